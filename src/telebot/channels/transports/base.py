@@ -1,0 +1,155 @@
+"""The small interface every transport implements.
+
+A transport moves opaque byte frames by key and reports peer presence; it knows nothing
+of calls, channels or cryptography. Keys are zenoh-style key expressions
+(``telebot/robot/guiabot/in``); patterns may use ``*`` (one chunk) and ``**`` (any chunks).
+
+Threading contract: every callback a transport invokes (``subscribe``'s batch callback,
+``watch_presence``'s callback) runs on the asyncio event loop the transport was opened
+on, never on a foreign thread. Received samples are delivered in batches, so a burst
+costs one loop wake-up, through a bounded queue that drops the oldest sample when the
+consumer falls behind (counted in :attr:`TransportStats.dropped`).
+"""
+
+from __future__ import annotations
+
+import abc
+import enum
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from types import TracebackType
+from typing import TYPE_CHECKING, Self
+
+if TYPE_CHECKING:
+    from telebot.config import TransportSettings
+
+__all__ = [
+    "Lane",
+    "Presence",
+    "Publisher",
+    "Sample",
+    "Subscription",
+    "Transport",
+    "TransportStats",
+]
+
+
+class Lane(enum.Enum):
+    """Quality of service of a publisher: which traffic may delay which.
+
+    CONTROL  stop, heartbeats, call set-up: highest priority, sent at once (express).
+    DATA     ordinary channels (chat, pose, goals): normal priority.
+    BULK     video and file chunks: lowest priority, dropped first under congestion,
+             so that bulk can never delay a stop.
+    """
+
+    CONTROL = "control"
+    DATA = "data"
+    BULK = "bulk"
+
+
+@dataclass(frozen=True, slots=True)
+class Sample:
+    """One received frame: the key it was published on and its bytes."""
+
+    key: str
+    payload: bytes
+
+
+@dataclass(slots=True)
+class TransportStats:
+    """Counters of one transport instance."""
+
+    published: int = 0
+    received: int = 0
+    dropped: int = 0  # received but discarded because the consumer fell behind
+
+
+SampleBatchCallback = Callable[[Sequence[Sample]], None]
+PresenceCallback = Callable[[str, bool], None]
+
+
+class Publisher(abc.ABC):
+    """Publishes frames on one key with the QoS of one lane."""
+
+    @abc.abstractmethod
+    def put(self, payload: bytes) -> None:
+        """Send ``payload``; never blocks (frames are dropped under congestion)."""
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Release the publisher; idempotent."""
+
+
+class Subscription(abc.ABC):
+    """A live subscription or presence watch; ``close()`` stops callbacks."""
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Stop delivering; idempotent."""
+
+
+class Presence(abc.ABC):
+    """A presence token: while it exists, watchers of a matching pattern see it alive."""
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Withdraw the token; watchers see it gone. Idempotent."""
+
+
+class Transport(abc.ABC):
+    """Moves opaque frames by key and reports peer presence.
+
+    Use as ``async with transport:``; :meth:`open` binds it to the running loop.
+    """
+
+    #: Registry name of the transport ("zenoh", "memory", ...).
+    name: str = ""
+
+    def __init__(self) -> None:
+        self.stats = TransportStats()
+
+    @classmethod
+    @abc.abstractmethod
+    def from_settings(cls, settings: TransportSettings) -> Self:
+        """Build an unopened transport from the validated settings."""
+
+    @abc.abstractmethod
+    async def open(self) -> None:
+        """Connect; after this the other methods may be called."""
+
+    @abc.abstractmethod
+    async def close(self) -> None:
+        """Undeclare everything and disconnect; bounded in time, never hangs; idempotent."""
+
+    @abc.abstractmethod
+    def publisher(self, key: str, lane: Lane = Lane.DATA) -> Publisher:
+        """Declare a publisher on ``key`` with the QoS of ``lane``."""
+
+    @abc.abstractmethod
+    def subscribe(self, pattern: str, callback: SampleBatchCallback) -> Subscription:
+        """Deliver samples on keys matching ``pattern`` to ``callback`` on the loop, in batches."""
+
+    @abc.abstractmethod
+    def declare_presence(self, key: str) -> Presence:
+        """Announce a presence token on ``key``."""
+
+    @abc.abstractmethod
+    def watch_presence(self, pattern: str, callback: PresenceCallback) -> Subscription:
+        """Call ``callback(key, alive)`` for tokens matching ``pattern``.
+
+        Tokens that already exist are reported alive at once (history), then every
+        appearance and disappearance as it happens.
+        """
+
+    async def __aenter__(self) -> Self:
+        await self.open()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()

@@ -1,0 +1,125 @@
+"""Settings, validated by pydantic: TOML files and flags become these models.
+
+Every model forbids unknown keys, so a misspelt key is an error naming the key and the
+file, never a silent default. :func:`load_toml` turns any problem into one
+:class:`~telebot.errors.ConfigError` line.
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from pathlib import Path
+from typing import Any, Literal, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from telebot.errors import ConfigError
+
+__all__ = [
+    "CallSettings",
+    "MemorySettings",
+    "StrictModel",
+    "TransportSettings",
+    "ZenohSettings",
+    "default_home",
+    "format_validation_error",
+    "load_toml",
+]
+
+
+class StrictModel(BaseModel):
+    """Base of every settings model: unknown keys are errors, values are checked on assignment."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False)
+
+
+class ZenohSettings(StrictModel):
+    """How the zenoh transport connects. The defaults need no router and no config file."""
+
+    mode: Literal["peer", "client"] = "peer"
+    #: Endpoints to listen on, e.g. ``["tcp/127.0.0.1:7447"]``; empty = zenoh's default.
+    listen: list[str] = Field(default_factory=list)
+    #: Endpoints (peers or routers) to connect to, e.g. ``["tcp/10.0.0.5:7447"]``.
+    connect: list[str] = Field(default_factory=list)
+    #: Find peers on the local network by UDP multicast (zenoh's default in peer mode).
+    multicast_scouting: bool = True
+    #: A zenoh JSON5 config file loaded first (TLS, ACL, ...); the keys above override it.
+    config_file: Path | None = None
+    #: Extra zenoh config, path -> value, inserted last, e.g.
+    #: ``{"transport/link/tls/root_ca_certificate" = "/etc/telebot/ca.pem"}``.
+    options: dict[str, Any] = Field(default_factory=dict)
+    #: Bound on how long closing the session may take, in seconds.
+    close_timeout: float = Field(default=2.0, gt=0, le=60)
+    #: Samples buffered between zenoh's threads and the event loop; the oldest drop beyond.
+    queue_size: int = Field(default=4096, ge=16, le=1_000_000)
+
+
+class MemorySettings(StrictModel):
+    """The in-process transport: which hub to join and under which node name."""
+
+    hub: str = "default"
+    #: Node name on the hub (links are set between node names); default: a unique name.
+    node: str | None = None
+
+
+class TransportSettings(StrictModel):
+    """Which transport to use (``kind``) and the settings of each built-in one."""
+
+    kind: str = "zenoh"
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
+    memory: MemorySettings = Field(default_factory=MemorySettings)
+    #: Settings for a third-party transport, passed through as they are.
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
+class CallSettings(StrictModel):
+    """Timing of calls: heartbeats, drop detection and set-up."""
+
+    #: Heartbeats sent per second on the control lane (20 Hz by default).
+    heartbeat_hz: float = Field(default=20.0, gt=0, le=1000)
+    #: A call drops when no valid frame arrived from the peer for this long (seconds).
+    timeout: float = Field(default=0.5, gt=0, le=60)
+    #: How long a caller waits for the robot to answer (seconds).
+    connect_timeout: float = Field(default=5.0, gt=0, le=600)
+
+
+Model = TypeVar("Model", bound=BaseModel)
+
+
+def format_validation_error(exc: ValidationError, source: str) -> str:
+    """One line naming the file, the key and what is wrong with it."""
+    problems = []
+    for err in exc.errors():
+        key = ".".join(str(part) for part in err["loc"]) or "(top level)"
+        message = "unknown key" if err["type"] == "extra_forbidden" else err["msg"]
+        problems.append(f"{key}: {message}")
+    return f"{source}: " + "; ".join(problems)
+
+
+def load_toml(path: Path, model: type[Model]) -> Model:
+    """Read ``path`` as TOML and validate it as ``model``; any problem is a ConfigError."""
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError as exc:
+        raise ConfigError(f"{path}: no such file") from exc
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror}") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: invalid TOML: {exc}") from exc
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(exc, str(path))) from exc
+
+
+def default_home() -> Path:
+    """Where keys, contacts and known robots live: ``$TELEBOT_HOME`` or the user's config dir."""
+    env = os.environ.get("TELEBOT_HOME")
+    if env:
+        return Path(env).expanduser()
+    xdg = os.environ.get("XDG_CONFIG_HOME")
+    base = Path(xdg).expanduser() if xdg else Path.home() / ".config"
+    return base / "telebot"
