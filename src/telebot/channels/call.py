@@ -1,0 +1,635 @@
+"""Calls over a transport: a user calls a robot by name (Skype's call), asyncio side.
+
+The protocol logic is in :mod:`telebot.channels.proto` (sans-IO); this module moves its
+frames over a :class:`~telebot.channels.transports.base.Transport` and keeps time.
+
+Key expressions (``ns`` is the namespace, ``telebot`` by default)::
+
+    {ns}/robot/{robot}/in                      frames to a robot
+    {ns}/user/{user}/{instance}/in             frames to one running user client
+    {ns}/presence/robot/{robot}/{public_key}   presence token of a robot
+    {ns}/presence/user/{user}/{instance}       presence token of a user client
+
+A call ends when either side hangs up, or drops when the peer's presence token
+disappears or nothing authentic arrived from it for ``CallSettings.timeout``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import time
+from collections import Counter, OrderedDict
+from collections.abc import AsyncIterator, Callable, Sequence
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Literal, Self
+
+from telebot.channels.channel import Channel, ReceivedDatagram
+from telebot.channels.proto.frames import (
+    INSTANCE_LEN,
+    DataFrame,
+    Datagram,
+    Hangup,
+    Hello,
+    Welcome,
+    decode_frame,
+    encode_hangup,
+    validate_name,
+)
+from telebot.channels.proto.noise import InitiatorHandshake
+from telebot.channels.proto.session import (
+    Answer,
+    CallSession,
+    CallStats,
+    answer_hello,
+    finish_call,
+    read_hello,
+    start_call,
+)
+from telebot.channels.transports.base import (
+    Lane,
+    Presence,
+    Publisher,
+    Sample,
+    Subscription,
+    Transport,
+)
+from telebot.config import CallSettings
+from telebot.errors import CallRejected, CallTimeout, ProtocolError, TelebotError
+from telebot.identity import ContactBook, Identity, KnownRobots, Role, decode_key, encode_key
+
+__all__ = [
+    "DEFAULT_NAMESPACE",
+    "Call",
+    "CallEnd",
+    "EndpointStats",
+    "RobotEndpoint",
+    "RobotPresence",
+    "UserEndpoint",
+]
+
+log = logging.getLogger("telebot.call")
+
+DEFAULT_NAMESPACE = "telebot"
+#: How often a caller repeats its HELLO while waiting (a lossy link may eat it).
+HELLO_RETRY_INTERVAL = 0.25
+#: How many times a HANGUP is sent (it is not acknowledged; the peer's timeout is the backstop).
+HANGUP_REPEATS = 3
+_TIMER_SLACK = 0.001  # fire just after a deadline, never just before it
+
+
+@dataclass(frozen=True, slots=True)
+class CallEnd:
+    """Why a call ended. ``kind`` is "hung_up" or "dropped"; ``by_peer`` who ended it."""
+
+    kind: Literal["hung_up", "dropped"]
+    by_peer: bool
+    detail: str
+
+    def __str__(self) -> str:
+        if self.kind == "hung_up":
+            who = "by the peer" if self.by_peer else "here"
+            return f"was hung up {who}: {self.detail}"
+        return f"dropped: {self.detail}"
+
+
+class Call:
+    """An established, authenticated call with one peer; open channels with :meth:`channel`."""
+
+    def __init__(
+        self,
+        endpoint: _Endpoint,
+        session: CallSession,
+        *,
+        peer: str,
+        role: Role | None,
+        peer_inbox: str,
+        peer_presence: str,
+    ) -> None:
+        self._endpoint = endpoint
+        self._session = session
+        #: The other side's name: a contact's name on a robot, the robot's name on a user.
+        self.peer = peer
+        #: The role of the user in this call (the contact's role, as the robot granted it).
+        self.role = role
+        self._peer_inbox = peer_inbox
+        self._publishers: dict[Lane, Publisher] = {}
+        self._channels: dict[str, Channel] = {}
+        self._loop = asyncio.get_running_loop()
+        self._timer: asyncio.TimerHandle | None = None
+        self._ended: asyncio.Future[CallEnd] = self._loop.create_future()
+        self.end: CallEnd | None = None
+        #: Called with the name of a channel that received a datagram but is not open
+        #: here; it may open it with :meth:`channel`, otherwise the datagram is dropped.
+        self.on_unopened_channel: Callable[[str], None] | None = None
+        #: Datagrams for channels not open here (and not opened by the hook above).
+        self.unrouted = 0
+        self._presence_watch = endpoint.transport.watch_presence(
+            peer_presence, self._on_peer_presence
+        )
+        self._schedule()
+
+    def __repr__(self) -> str:
+        state = "active" if self.end is None else str(self.end)
+        return f"<Call {self.id} with {self.peer!r} {state}>"
+
+    @property
+    def id(self) -> str:
+        """The call id, as hex."""
+        return self._session.call_id.hex()
+
+    @property
+    def stats(self) -> CallStats:
+        """Frame counters, rejections by reason, round-trip time and loss."""
+        return self._session.stats
+
+    @property
+    def active(self) -> bool:
+        """True until the call is hung up or dropped."""
+        return self.end is None
+
+    def channel(
+        self,
+        name: str,
+        *,
+        lane: Lane = Lane.DATA,
+        latest_only: bool = False,
+        queue_size: int = 256,
+    ) -> Channel:
+        """The channel called ``name``, opened now if it is not open yet.
+
+        ``lane`` sets the QoS of what this side sends (CONTROL for stop, BULK for
+        video); ``latest_only`` keeps only the newest undelivered datagram.
+        """
+        existing = self._channels.get(name)
+        if existing is not None:
+            if existing.lane != lane or existing.latest_only != latest_only:
+                raise ValueError(f"channel {name!r} is already open with other options")
+            return existing
+        channel = Channel(self, name, lane=lane, latest_only=latest_only, queue_size=queue_size)
+        self._channels[name] = channel
+        return channel
+
+    @property
+    def channels(self) -> dict[str, Channel]:
+        """The open channels by name."""
+        return dict(self._channels)
+
+    async def hangup(self, reason: str = "hung up") -> None:
+        """End the call and tell the peer why; idempotent."""
+        self.hangup_now(reason)
+        await asyncio.sleep(0)  # let the transport flush before a caller closes it
+
+    def hangup_now(self, reason: str = "hung up") -> None:
+        """:meth:`hangup` for code that cannot await (signal handlers, callbacks)."""
+        if self.end is not None:
+            return
+        frame = self._session.seal(encode_hangup(reason))
+        try:
+            for _ in range(HANGUP_REPEATS):
+                self._put(frame, Lane.CONTROL)
+        except TelebotError as exc:  # the peer's own timeout will notice instead
+            log.warning("call %s: hang-up not sent: %s", self.id, exc)
+        self._finish(CallEnd("hung_up", by_peer=False, detail=reason))
+
+    async def wait_ended(self) -> CallEnd:
+        """Wait until the call ends; returns why."""
+        return await asyncio.shield(self._ended)
+
+    # -- plumbing used by channels and the endpoint -------------------------------
+
+    def send_plaintext(self, plaintext: bytes, lane: Lane) -> None:
+        """Seal ``plaintext`` into a DATA frame and publish it on ``lane``."""
+        self._put(self._session.seal(plaintext), lane)
+
+    def _put(self, frame: bytes, lane: Lane) -> None:
+        publisher = self._publishers.get(lane)
+        if publisher is None:
+            publisher = self._endpoint.transport.publisher(self._peer_inbox, lane)
+            self._publishers[lane] = publisher
+        publisher.put(frame)
+
+    def _on_frame(self, frame: DataFrame) -> None:
+        now = self._loop.time()
+        message = self._session.open(frame, now)  # raises on forged / replayed / malformed
+        match message:
+            case Datagram(channel=name, payload=payload):
+                channel = self._channels.get(name)
+                if channel is None and self.on_unopened_channel is not None:
+                    self.on_unopened_channel(name)
+                    channel = self._channels.get(name)
+                if channel is None:
+                    self.unrouted += 1
+                    return
+                channel._deliver(ReceivedDatagram(name, self.peer, payload, now))
+            case Hangup(reason=reason):
+                self._finish(CallEnd("hung_up", by_peer=True, detail=reason or "hung up"))
+            case _:
+                pass  # a heartbeat: the session already took what it needs
+
+    def _on_peer_presence(self, key: str, alive: bool) -> None:
+        if not alive and self.end is None:
+            self._finish(CallEnd("dropped", by_peer=True, detail=f"{self.peer} went offline"))
+
+    def _schedule(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+        when = self._session.next_deadline() + _TIMER_SLACK
+        self._timer = self._loop.call_at(when, self._on_timer)
+
+    def _on_timer(self) -> None:
+        self._timer = None
+        if self.end is not None:
+            return
+        now = self._loop.time()
+        if self._session.timed_out(now):
+            silence = now - self._session.last_heard
+            self._finish(
+                CallEnd(
+                    "dropped", by_peer=True, detail=f"nothing from {self.peer} for {silence:.2f} s"
+                )
+            )
+            return
+        if self._session.heartbeat_due(now):
+            try:
+                self._put(self._session.seal_heartbeat(now), Lane.CONTROL)
+            except TelebotError as exc:  # a failing transport ends the call by timeout
+                log.warning("call %s: heartbeat not sent: %s", self.id, exc)
+        self._schedule()
+
+    def _finish(self, end: CallEnd) -> None:
+        if self.end is not None:
+            return
+        self.end = end
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        self._presence_watch.close()
+        for publisher in self._publishers.values():
+            publisher.close()
+        self._publishers.clear()
+        for channel in self._channels.values():
+            channel._wake()
+        self._ended.set_result(end)
+        self._endpoint._forget(self)
+        log.info("call %s with %s %s", self.id, self.peer, end)
+
+
+@dataclass(slots=True)
+class EndpointStats:
+    """What an endpoint refused, by reason (frames that never reached a call)."""
+
+    rejected: Counter[str]
+
+    def __init__(self) -> None:
+        self.rejected = Counter()
+
+
+class _Endpoint:
+    """What robot and user endpoints share: the inbox, dispatch to calls, presence."""
+
+    def __init__(
+        self,
+        transport: Transport,
+        identity: Identity,
+        *,
+        settings: CallSettings | None = None,
+        namespace: str = DEFAULT_NAMESPACE,
+    ) -> None:
+        self.transport = transport
+        self.identity = identity
+        self.settings = settings or CallSettings()
+        self.namespace = namespace
+        self.stats = EndpointStats()
+        self._calls: dict[bytes, Call] = {}
+        self._subscription: Subscription | None = None
+        self._presence: Presence | None = None
+        self._closed = False
+
+    # Subclasses name their inbox and presence keys.
+    inbox: str
+    presence_key: str
+
+    async def __aenter__(self) -> Self:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+    async def start(self) -> None:
+        """Listen on the inbox and announce presence (the transport must be open)."""
+        self._subscription = self.transport.subscribe(self.inbox, self._on_samples)
+        self._presence = self.transport.declare_presence(self.presence_key)
+
+    async def close(self, reason: str = "shutting down") -> None:
+        """Hang up every call, withdraw presence and stop listening; idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        for call in list(self._calls.values()):
+            await call.hangup(reason)
+        if self._presence is not None:
+            self._presence.close()
+        if self._subscription is not None:
+            self._subscription.close()
+
+    @property
+    def calls(self) -> list[Call]:
+        """The calls that are up now."""
+        return list(self._calls.values())
+
+    def _new_call(
+        self,
+        session: CallSession,
+        *,
+        peer: str,
+        role: Role | None,
+        peer_inbox: str,
+        peer_presence: str,
+    ) -> Call:
+        call = Call(
+            self, session, peer=peer, role=role, peer_inbox=peer_inbox, peer_presence=peer_presence
+        )
+        self._calls[session.call_id] = call
+        return call
+
+    def _forget(self, call: Call) -> None:
+        self._calls.pop(bytes.fromhex(call.id), None)
+
+    def _on_samples(self, samples: Sequence[Sample]) -> None:
+        for sample in samples:
+            try:
+                frame = decode_frame(sample.payload)
+                if isinstance(frame, DataFrame):
+                    call = self._calls.get(frame.call_id)
+                    if call is None:
+                        self.stats.rejected["unknown_call"] += 1
+                        continue
+                    call._on_frame(frame)
+                else:
+                    self._on_handshake(frame)
+            except ProtocolError as exc:
+                # Garbage, forgeries and replays are counted and dropped, never raised.
+                self.stats.rejected[type(exc).__name__] += 1
+                log.debug("dropped a frame on %s: %s", sample.key, exc)
+            except Exception:  # a bug must not take the endpoint down with it
+                self.stats.rejected["internal_error"] += 1
+                log.exception("error handling a frame on %s", sample.key)
+
+    def _on_handshake(self, frame: Hello | Welcome) -> None:
+        raise ProtocolError(f"unexpected {type(frame).__name__} frame")
+
+
+# --------------------------------------------------------------------------------------
+
+
+class RobotEndpoint(_Endpoint):
+    """A robot that answers calls from its contacts.
+
+    ``async with RobotEndpoint(transport, identity, contacts) as robot:`` then
+    ``async for call in robot.incoming():`` or set :attr:`on_call`.
+    """
+
+    def __init__(
+        self,
+        transport: Transport,
+        identity: Identity,
+        contacts: ContactBook,
+        *,
+        settings: CallSettings | None = None,
+        namespace: str = DEFAULT_NAMESPACE,
+    ) -> None:
+        super().__init__(transport, identity, settings=settings, namespace=namespace)
+        self.contacts = contacts
+        self.inbox = f"{namespace}/robot/{identity.name}/in"
+        self.presence_key = (
+            f"{namespace}/presence/robot/{identity.name}/{encode_key(identity.public_key)}"
+        )
+        #: Called with each new call (on the loop); if unset, calls queue for :meth:`incoming`.
+        self.on_call: Callable[[Call], None] | None = None
+        self._incoming: asyncio.Queue[Call] = asyncio.Queue(maxsize=64)
+        # HELLO retransmissions get the same WELCOME again: call_id -> (HELLO, WELCOME).
+        self._answered: OrderedDict[bytes, tuple[bytes, bytes]] = OrderedDict()
+        # The newest HELLO timestamp accepted per caller key: an old HELLO is a replay.
+        self._latest_hello: dict[bytes, int] = {}
+
+    async def incoming(self) -> AsyncIterator[Call]:
+        """Each call as it is answered."""
+        while True:
+            yield await self._incoming.get()
+
+    def _on_handshake(self, frame: Hello | Welcome) -> None:
+        if not isinstance(frame, Hello):
+            raise ProtocolError("a robot does not take WELCOME frames")
+        raw = frame.encode()
+        cached = self._answered.get(frame.call_id)
+        if cached is not None:
+            if cached[0] == raw:  # the caller did not get our answer: repeat it
+                self._reply(frame, cached[1])
+            else:
+                self.stats.rejected["call_id_reused"] += 1
+            return
+        offer, handshake = read_hello(self.identity.private_key, frame)
+        contact = self.contacts.by_key(offer.caller_public_key)
+        if contact is None:
+            log.warning("refused a call from %r: key not in the contact list", frame.caller)
+            self.stats.rejected["not_a_contact"] += 1
+            answer = Answer(
+                False, self.identity.name, reason=f"not in the contact list of {self.identity.name}"
+            )
+            welcome, _ = answer_hello(handshake, frame.call_id, answer)
+            self._remember(frame.call_id, raw, welcome.encode())
+            self._reply(frame, welcome.encode())
+            return
+        if offer.timestamp_ns <= self._latest_hello.get(offer.caller_public_key, -1):
+            self.stats.rejected["replayed_hello"] += 1
+            return
+        self._latest_hello[offer.caller_public_key] = offer.timestamp_ns
+        welcome, keys = answer_hello(
+            handshake, frame.call_id, Answer(True, self.identity.name, role=contact.role.value)
+        )
+        self._remember(frame.call_id, raw, welcome.encode())
+        now = asyncio.get_running_loop().time()
+        session = CallSession(
+            frame.call_id,
+            keys,
+            heartbeat_interval=1.0 / self.settings.heartbeat_hz,
+            timeout=self.settings.timeout,
+            now=now,
+        )
+        instance = frame.instance.hex()
+        call = self._new_call(
+            session,
+            peer=contact.name,
+            role=contact.role,
+            peer_inbox=f"{self.namespace}/user/{frame.caller}/{instance}/in",
+            peer_presence=f"{self.namespace}/presence/user/{frame.caller}/{instance}",
+        )
+        self._reply(frame, welcome.encode())
+        log.info("answered call %s from %s (%s)", call.id, contact.name, contact.role.value)
+        if self.on_call is not None:
+            self.on_call(call)
+        elif self._incoming.full():
+            self.stats.rejected["incoming_queue_full"] += 1
+            call.hangup_now("robot busy")
+        else:
+            self._incoming.put_nowait(call)
+
+    def _remember(self, call_id: bytes, hello: bytes, welcome: bytes) -> None:
+        self._answered[call_id] = (hello, welcome)
+        while len(self._answered) > 256:
+            self._answered.popitem(last=False)
+
+    def _reply(self, hello: Hello, welcome: bytes) -> None:
+        inbox = f"{self.namespace}/user/{hello.caller}/{hello.instance.hex()}/in"
+        publisher = self.transport.publisher(inbox, Lane.CONTROL)
+        try:
+            publisher.put(welcome)
+        finally:
+            publisher.close()
+
+
+@dataclass(frozen=True, slots=True)
+class RobotPresence:
+    """A robot seen online: its name, its key, and whether this user trusts that key."""
+
+    name: str
+    public_key: bytes
+    trusted: bool
+
+
+class UserEndpoint(_Endpoint):
+    """A user client that calls robots by name: ``call = await user.call("guiabot")``."""
+
+    def __init__(
+        self,
+        transport: Transport,
+        identity: Identity,
+        known_robots: KnownRobots,
+        *,
+        settings: CallSettings | None = None,
+        namespace: str = DEFAULT_NAMESPACE,
+    ) -> None:
+        super().__init__(transport, identity, settings=settings, namespace=namespace)
+        self.known_robots = known_robots
+        self.instance = os.urandom(INSTANCE_LEN)
+        base = f"{namespace}/user/{identity.name}/{self.instance.hex()}"
+        self.inbox = f"{base}/in"
+        self.presence_key = f"{namespace}/presence/user/{identity.name}/{self.instance.hex()}"
+        self._pending: dict[bytes, tuple[InitiatorHandshake, asyncio.Future[Call]]] = {}
+        self._pending_robot: dict[bytes, str] = {}
+
+    async def call(self, robot: str, *, timeout: float | None = None) -> Call:
+        """Call ``robot``; returns the call once the robot accepted it.
+
+        Raises CallRejected with the robot's reason, CallTimeout if it does not answer,
+        or CallError when the robot is not in known_robots.
+        """
+        validate_name(robot, "robot name")
+        robot_key = self.known_robots.get(robot)
+        if robot_key is None:
+            raise CallRejected(
+                f"{robot} is not a known robot: add its public key with "
+                f"'telebot-user known add {robot} KEY'"
+            )
+        timeout = self.settings.connect_timeout if timeout is None else timeout
+        call_id = os.urandom(8)
+        hello, handshake = start_call(
+            self.identity.private_key,
+            robot_key,
+            caller=self.identity.name,
+            instance=self.instance,
+            call_id=call_id,
+            wall_time_ns=time.time_ns(),
+        )
+        future: asyncio.Future[Call] = asyncio.get_running_loop().create_future()
+        self._pending[call_id] = (handshake, future)
+        self._pending_robot[call_id] = robot
+        publisher = self.transport.publisher(f"{self.namespace}/robot/{robot}/in", Lane.CONTROL)
+        frame = hello.encode()
+        try:
+            async with asyncio.timeout(timeout):
+                while True:
+                    publisher.put(frame)
+                    with contextlib.suppress(TimeoutError):
+                        return await asyncio.wait_for(asyncio.shield(future), HELLO_RETRY_INTERVAL)
+        except TimeoutError:
+            online = robot in {p.name for p in await self.robots_online(wait=0.0)}
+            hint = "it is online but did not answer" if online else "is it online?"
+            raise CallTimeout(
+                f"robot {robot} did not answer within {timeout:g} s ({hint})"
+            ) from None
+        finally:
+            publisher.close()
+            self._pending.pop(call_id, None)
+            self._pending_robot.pop(call_id, None)
+
+    def _on_handshake(self, frame: Hello | Welcome) -> None:
+        if not isinstance(frame, Welcome):
+            raise ProtocolError("a user client does not take HELLO frames")
+        pending = self._pending.get(frame.call_id)
+        if pending is None or pending[1].done():
+            self.stats.rejected["unexpected_welcome"] += 1
+            return
+        handshake, future = pending
+        answer, keys = finish_call(handshake, frame)  # raises if not from the robot
+        robot = self._pending_robot[frame.call_id]
+        if answer.robot != robot:
+            raise ProtocolError(f"WELCOME names robot {answer.robot!r}, not {robot!r}")
+        if not answer.accepted:
+            future.set_exception(CallRejected(answer.reason or f"{robot} refused the call"))
+            return
+        try:
+            role: Role | None = Role(answer.role)
+        except ValueError:
+            role = None
+        session = CallSession(
+            frame.call_id,
+            keys,
+            heartbeat_interval=1.0 / self.settings.heartbeat_hz,
+            timeout=self.settings.timeout,
+            now=asyncio.get_running_loop().time(),
+        )
+        call = self._new_call(
+            session,
+            peer=robot,
+            role=role,
+            peer_inbox=f"{self.namespace}/robot/{robot}/in",
+            peer_presence=f"{self.namespace}/presence/robot/{robot}/{encode_key(self.known_robots.get(robot) or b'')}",
+        )
+        future.set_result(call)
+
+    async def robots_online(self, wait: float = 1.0) -> list[RobotPresence]:
+        """Robots whose presence tokens are seen within ``wait`` seconds."""
+        seen: dict[str, RobotPresence] = {}
+        prefix = f"{self.namespace}/presence/robot/"
+
+        def on_presence(key: str, alive: bool) -> None:
+            name, _, key_text = key.removeprefix(prefix).partition("/")
+            try:
+                public_key = decode_key(key_text)
+            except ValueError:
+                return  # not a telebot robot token
+            if alive:
+                trusted = self.known_robots.get(name) == public_key
+                seen[name] = RobotPresence(name, public_key, trusted)
+            else:
+                seen.pop(name, None)
+
+        watch = self.transport.watch_presence(f"{prefix}*/*", on_presence)
+        try:
+            await asyncio.sleep(wait)
+            if not seen:  # history arrives asynchronously: give it one more loop turn
+                await asyncio.sleep(0.05)
+        finally:
+            watch.close()
+        return sorted(seen.values(), key=lambda p: p.name)

@@ -1,0 +1,292 @@
+"""The bytes on the wire: outer frames and the messages sealed inside them. Sans-IO.
+
+Every frame starts with a version byte and a type byte, then the 8-byte call id that
+the caller picked at random. Integers are big-endian unless said otherwise::
+
+    HELLO    ver=1 | type=1 | call_id[8] | name_len u8 | name | instance[8] | noise_msg1
+    WELCOME  ver=1 | type=2 | call_id[8] | noise_msg2
+    DATA     ver=1 | type=3 | call_id[8] | counter u64 | AEAD(ciphertext + 16-byte tag)
+
+HELLO's header (everything before ``noise_msg1``) is the Noise prologue, so a frame
+whose header was changed in flight fails the handshake. DATA's 18-byte header is the
+AEAD's associated data and its counter is the nonce (see :mod:`.noise`).
+
+Inside a DATA frame's plaintext the first byte says what it carries::
+
+    DATAGRAM   kind=1 | flags u8 (bit 0: text) | name_len u8 | channel name | payload
+    HEARTBEAT  kind=2 | seq u32 | sent_us u64 | echo_us u64 | echo_delay_us u32
+    HANGUP     kind=3 | reason (UTF-8)
+
+Decoders raise :class:`~telebot.errors.ProtocolError` on anything malformed.
+"""
+
+from __future__ import annotations
+
+import re
+import struct
+from dataclasses import dataclass
+
+from telebot.errors import DatagramTooLarge, ProtocolError
+
+__all__ = [
+    "CALL_ID_LEN",
+    "INSTANCE_LEN",
+    "MAX_CHANNEL_NAME",
+    "MAX_DATAGRAM",
+    "NAME_PATTERN",
+    "VERSION",
+    "DataFrame",
+    "Datagram",
+    "Hangup",
+    "Heartbeat",
+    "Hello",
+    "Message",
+    "Welcome",
+    "decode_frame",
+    "decode_message",
+    "encode_datagram",
+    "encode_hangup",
+    "encode_heartbeat",
+    "validate_channel_name",
+    "validate_name",
+]
+
+VERSION = 1
+CALL_ID_LEN = 8
+INSTANCE_LEN = 8
+#: Largest datagram payload a channel carries, as Skype's App2App did (32 KB).
+MAX_DATAGRAM = 32_768
+MAX_CHANNEL_NAME = 255
+#: Robot and user names: they become zenoh key chunks, so no ``/ * $ ? #`` and no spaces.
+NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+
+TYPE_HELLO = 1
+TYPE_WELCOME = 2
+TYPE_DATA = 3
+
+KIND_DATAGRAM = 1
+KIND_HEARTBEAT = 2
+KIND_HANGUP = 3
+
+FLAG_TEXT = 0x01
+
+_DATA_HEADER = struct.Struct(">BB8sQ")
+DATA_HEADER_LEN = _DATA_HEADER.size  # 18
+_HEARTBEAT = struct.Struct(">BIQQI")
+_TAG_LEN = 16
+# A DATA frame's largest plaintext: a full datagram with the longest channel name.
+_MAX_PLAINTEXT = 3 + MAX_CHANNEL_NAME + MAX_DATAGRAM
+MAX_FRAME = DATA_HEADER_LEN + _MAX_PLAINTEXT + _TAG_LEN
+_MAX_NOISE_MESSAGE = 2048
+
+
+def validate_name(name: str, what: str = "name") -> str:
+    """Check a robot or user name (a zenoh key chunk); return it or raise ValueError."""
+    if not NAME_PATTERN.fullmatch(name):
+        raise ValueError(
+            f"invalid {what} {name!r}: use 1-64 letters, digits, '.', '_' or '-', "
+            "starting with a letter or digit"
+        )
+    return name
+
+
+def validate_channel_name(name: str) -> bytes:
+    """A channel name's UTF-8 bytes, or ValueError when empty, too long or not text."""
+    if not isinstance(name, str) or not name:
+        raise ValueError("a channel name is a non-empty string")
+    encoded = name.encode("utf-8", "strict")
+    if len(encoded) > MAX_CHANNEL_NAME:
+        raise ValueError(f"channel name longer than {MAX_CHANNEL_NAME} bytes")
+    return encoded
+
+
+@dataclass(frozen=True, slots=True)
+class Hello:
+    """A caller asks for a call: its name, its client instance and Noise message 1."""
+
+    call_id: bytes
+    caller: str
+    instance: bytes
+    noise_message: bytes
+
+    @property
+    def prologue(self) -> bytes:
+        """The header bytes, bound into the handshake as the Noise prologue."""
+        name = self.caller.encode("ascii")
+        return (
+            bytes([VERSION, TYPE_HELLO]) + self.call_id + bytes([len(name)]) + name + self.instance
+        )
+
+    def encode(self) -> bytes:
+        """The frame's bytes."""
+        return self.prologue + self.noise_message
+
+
+@dataclass(frozen=True, slots=True)
+class Welcome:
+    """The robot's answer to a HELLO: Noise message 2 (accepting or refusing inside)."""
+
+    call_id: bytes
+    noise_message: bytes
+
+    def encode(self) -> bytes:
+        """The frame's bytes."""
+        return bytes([VERSION, TYPE_WELCOME]) + self.call_id + self.noise_message
+
+
+@dataclass(frozen=True, slots=True)
+class DataFrame:
+    """An encrypted message of an established call."""
+
+    call_id: bytes
+    counter: int
+    header: bytes  # the 18 bytes authenticated as associated data
+    ciphertext: bytes
+
+    @staticmethod
+    def make_header(call_id: bytes, counter: int) -> bytes:
+        """The 18-byte header of a DATA frame (also its AEAD associated data)."""
+        return _DATA_HEADER.pack(VERSION, TYPE_DATA, call_id, counter)
+
+
+Frame = Hello | Welcome | DataFrame
+
+
+def decode_frame(data: bytes) -> Frame:
+    """Parse an outer frame; raise ProtocolError when it is not one."""
+    if len(data) < 2 + CALL_ID_LEN:
+        raise ProtocolError(f"frame too short ({len(data)} bytes)")
+    if len(data) > MAX_FRAME:
+        raise ProtocolError(f"frame too long ({len(data)} bytes)")
+    version, kind = data[0], data[1]
+    if version != VERSION:
+        raise ProtocolError(f"unsupported protocol version {version}")
+    call_id = bytes(data[2:10])
+    if kind == TYPE_DATA:
+        if len(data) < DATA_HEADER_LEN + _TAG_LEN:
+            raise ProtocolError("DATA frame too short")
+        counter = int.from_bytes(data[10:18], "big")
+        return DataFrame(call_id, counter, bytes(data[:DATA_HEADER_LEN]), bytes(data[18:]))
+    if kind == TYPE_HELLO:
+        if len(data) < 11:
+            raise ProtocolError("HELLO frame too short")
+        name_len = data[10]
+        name_end = 11 + name_len
+        noise_start = name_end + INSTANCE_LEN
+        if len(data) <= noise_start:
+            raise ProtocolError("HELLO frame truncated")
+        try:
+            caller = validate_name(bytes(data[11:name_end]).decode("ascii"), "caller name")
+        except (UnicodeDecodeError, ValueError) as exc:
+            raise ProtocolError("HELLO frame with an invalid caller name") from exc
+        noise_message = bytes(data[noise_start:])
+        if len(noise_message) > _MAX_NOISE_MESSAGE:
+            raise ProtocolError("HELLO handshake message too long")
+        return Hello(call_id, caller, bytes(data[name_end:noise_start]), noise_message)
+    if kind == TYPE_WELCOME:
+        noise_message = bytes(data[10:])
+        if not noise_message or len(noise_message) > _MAX_NOISE_MESSAGE:
+            raise ProtocolError("WELCOME handshake message missing or too long")
+        return Welcome(call_id, noise_message)
+    raise ProtocolError(f"unknown frame type {kind}")
+
+
+@dataclass(frozen=True, slots=True)
+class Datagram:
+    """A channel datagram: channel name and payload (``str`` if sent as text)."""
+
+    channel: str
+    payload: str | bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Heartbeat:
+    """Liveness plus what the peer needs to measure round-trip time and loss.
+
+    ``sent_us`` is the sender's clock; ``echo_us`` repeats the ``sent_us`` of the last
+    heartbeat the sender received and ``echo_delay_us`` how long it held it, so the
+    first side computes RTT = now - echo_us - echo_delay_us on its own clock (as RTCP).
+    """
+
+    seq: int
+    sent_us: int
+    echo_us: int
+    echo_delay_us: int
+
+
+@dataclass(frozen=True, slots=True)
+class Hangup:
+    """The peer ends the call."""
+
+    reason: str
+
+
+Message = Datagram | Heartbeat | Hangup
+
+
+def encode_datagram(channel_name: bytes, payload: str | bytes) -> bytes:
+    """Plaintext of a DATAGRAM; raises DatagramTooLarge before anything is sent."""
+    if isinstance(payload, str):
+        body = payload.encode("utf-8")
+        flags = FLAG_TEXT
+    elif isinstance(payload, bytes | bytearray | memoryview):
+        body = bytes(payload)
+        flags = 0
+    else:
+        raise TypeError(f"a datagram is str or bytes, not {type(payload).__name__}")
+    if len(body) > MAX_DATAGRAM:
+        raise DatagramTooLarge(
+            f"datagram of {len(body)} bytes is larger than the {MAX_DATAGRAM}-byte limit"
+        )
+    return bytes([KIND_DATAGRAM, flags, len(channel_name)]) + channel_name + body
+
+
+def encode_heartbeat(beat: Heartbeat) -> bytes:
+    """Plaintext of a HEARTBEAT."""
+    return _HEARTBEAT.pack(
+        KIND_HEARTBEAT,
+        beat.seq & 0xFFFFFFFF,
+        beat.sent_us & 0xFFFFFFFFFFFFFFFF,
+        beat.echo_us & 0xFFFFFFFFFFFFFFFF,
+        min(beat.echo_delay_us, 0xFFFFFFFF),
+    )
+
+
+def encode_hangup(reason: str) -> bytes:
+    """Plaintext of a HANGUP (the reason is cut to 200 bytes)."""
+    return bytes([KIND_HANGUP]) + reason.encode("utf-8")[:200]
+
+
+def decode_message(plaintext: bytes) -> Message:
+    """Parse a DATA frame's plaintext; raise ProtocolError when malformed."""
+    if not plaintext:
+        raise ProtocolError("empty message")
+    kind = plaintext[0]
+    if kind == KIND_DATAGRAM:
+        if len(plaintext) < 3:
+            raise ProtocolError("DATAGRAM truncated")
+        flags, name_len = plaintext[1], plaintext[2]
+        if flags & ~FLAG_TEXT:
+            raise ProtocolError(f"DATAGRAM with unknown flags {flags:#x}")
+        if name_len == 0 or len(plaintext) < 3 + name_len:
+            raise ProtocolError("DATAGRAM with a missing or truncated channel name")
+        body = plaintext[3 + name_len :]
+        if len(body) > MAX_DATAGRAM:
+            raise ProtocolError("DATAGRAM payload over the limit")
+        try:
+            channel = plaintext[3 : 3 + name_len].decode("utf-8")
+            payload: str | bytes = body.decode("utf-8") if flags & FLAG_TEXT else body
+        except UnicodeDecodeError as exc:
+            raise ProtocolError("DATAGRAM text is not UTF-8") from exc
+        return Datagram(channel, payload)
+    if kind == KIND_HEARTBEAT:
+        if len(plaintext) != _HEARTBEAT.size:
+            raise ProtocolError("HEARTBEAT of the wrong size")
+        _, seq, sent_us, echo_us, echo_delay_us = _HEARTBEAT.unpack(plaintext)
+        return Heartbeat(seq, sent_us, echo_us, echo_delay_us)
+    if kind == KIND_HANGUP:
+        try:
+            return Hangup(plaintext[1:].decode("utf-8"))
+        except UnicodeDecodeError as exc:
+            raise ProtocolError("HANGUP reason is not UTF-8") from exc
+    raise ProtocolError(f"unknown message kind {kind}")
