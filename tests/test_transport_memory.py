@@ -1,0 +1,541 @@
+"""The memory transport: key matching, delivery, link conditions, presence, lifecycle."""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
+from contextlib import AsyncExitStack
+
+import pytest
+
+from telebot.channels.transports import Lane, Sample, create_transport
+from telebot.channels.transports.memory import (
+    LinkConditions,
+    MemoryHub,
+    MemoryTransport,
+    key_matches,
+)
+from telebot.config import MemorySettings, TransportSettings
+from telebot.errors import TransportError
+
+# --------------------------------------------------------------------------- helpers
+
+
+class Inbox:
+    """A subscription callback that records batches and arrival times."""
+
+    def __init__(self) -> None:
+        self.batches: list[list[Sample]] = []
+        self.arrivals: list[tuple[float, bytes]] = []
+        self._changed = asyncio.Event()
+
+    def __call__(self, batch: Sequence[Sample]) -> None:
+        now = asyncio.get_running_loop().time()
+        self.batches.append(list(batch))
+        self.arrivals.extend((now, s.payload) for s in batch)
+        self._changed.set()
+
+    @property
+    def payloads(self) -> list[bytes]:
+        return [payload for _, payload in self.arrivals]
+
+    async def wait_for(self, count: int) -> None:
+        """Wait until ``count`` samples arrived; fail after 2 s."""
+        async with asyncio.timeout(2.0):
+            while len(self.arrivals) < count:
+                self._changed.clear()
+                await self._changed.wait()
+
+
+class Events:
+    """A presence callback that records (key, alive) events."""
+
+    def __init__(self) -> None:
+        self.events: list[tuple[str, bool]] = []
+
+    def __call__(self, key: str, alive: bool) -> None:
+        self.events.append((key, alive))
+
+
+async def settle(seconds: float = 0.0) -> None:
+    """Let the loop run pending callbacks (and timers due within ``seconds``)."""
+    await asyncio.sleep(seconds)
+    for _ in range(3):
+        await asyncio.sleep(0)
+
+
+@pytest.fixture
+async def stack() -> AsyncIterator[AsyncExitStack]:
+    async with AsyncExitStack() as s:
+        yield s
+
+
+Join = Callable[[MemoryHub, str], Awaitable[MemoryTransport]]
+
+
+@pytest.fixture
+def join(stack: AsyncExitStack) -> Join:
+    """Open a transport on ``hub`` as ``node``, closed at the end of the test."""
+
+    async def _join(hub: MemoryHub, node: str) -> MemoryTransport:
+        return await stack.enter_async_context(MemoryTransport(hub, node))
+
+    return _join
+
+
+def nums(inbox: Inbox) -> list[int]:
+    return [int(p) for p in inbox.payloads]
+
+
+# --------------------------------------------------------------------------- key expressions
+
+
+@pytest.mark.parametrize(
+    ("pattern", "key", "expected"),
+    [
+        ("a/b/c", "a/b/c", True),
+        ("a/b/c", "a/b/d", False),
+        ("a/b", "a/b/c", False),
+        ("a/*/c", "a/b/c", True),
+        ("a/*/c", "a/c", False),
+        ("a/*/c", "a/b/x/c", False),
+        ("a/*", "a/b/c", False),
+        ("*", "a", True),
+        ("a/**", "a", True),
+        ("a/**", "a/b/c/d", True),
+        ("a/**", "b/a", False),
+        ("a/**/d", "a/d", True),
+        ("a/**/d", "a/b/c/d", True),
+        ("a/**/d", "a/b/c/e", False),
+        ("**", "x/y/z", True),
+        ("**/z", "x/y/z", True),
+        ("**/*/z", "z", False),
+        ("a/**/*/c", "a/b/c", True),
+        ("telebot/robot/*/in", "telebot/robot/guiabot/in", True),
+        ("telebot/robot/*/in", "telebot/robot/guiabot/out", False),
+    ],
+)
+def test_key_matches(pattern: str, key: str, expected: bool) -> None:
+    assert key_matches(pattern, key) is expected
+
+
+# --------------------------------------------------------------------------- delivery
+
+
+async def test_delivered_to_matching_subscription_only_in_one_batch(join: Join) -> None:
+    hub = MemoryHub(seed=1)
+    a, b = await join(hub, "a"), await join(hub, "b")
+    hit, miss = Inbox(), Inbox()
+    b.subscribe("telebot/*/in", hit)
+    b.subscribe("telebot/*/out", miss)
+    pub = a.publisher("telebot/r1/in")
+    buf = bytearray(b"x")
+    for i in range(5):
+        buf[0] = ord(str(i))
+        pub.put(bytes(buf))
+    assert hit.batches == []  # never delivered inside put()
+    await hit.wait_for(5)
+    await settle()
+    assert [len(batch) for batch in hit.batches] == [5]
+    assert hit.payloads == [b"0", b"1", b"2", b"3", b"4"]
+    assert hit.batches[0][0].key == "telebot/r1/in"
+    assert miss.batches == []
+    assert a.stats.published == 5
+    assert b.stats.received == 5
+    assert hub.link_stats("a", "b").delivered == 5
+
+
+async def test_payload_is_copied(join: Join) -> None:
+    hub = MemoryHub(seed=1)
+    a, b = await join(hub, "a"), await join(hub, "b")
+    inbox = Inbox()
+    b.subscribe("k", inbox)
+    buf = bytearray(b"before")
+    a.publisher("k").put(buf)  # type: ignore[arg-type]  # senders may pass a buffer
+    buf[:] = b"after!"
+    await inbox.wait_for(1)
+    assert inbox.payloads == [b"before"]
+
+
+async def test_own_frames_are_unimpaired(join: Join) -> None:
+    hub = MemoryHub(seed=1)
+    a, b = await join(hub, "a"), await join(hub, "b")
+    hub.set_link("a", "b", loss=1.0)
+    own, other = Inbox(), Inbox()
+    a.subscribe("k", own)
+    b.subscribe("k", other)
+    pub = a.publisher("k", Lane.CONTROL)
+    for _ in range(10):
+        pub.put(b"p")
+    await own.wait_for(10)
+    await settle()
+    assert other.arrivals == []
+    assert hub.link_stats("a", "b").lost == 10
+    with pytest.raises(ValueError, match="itself"):
+        hub.link("a", "a")
+
+
+async def test_closed_subscription_stops_even_in_flight(join: Join) -> None:
+    hub = MemoryHub(seed=1)
+    a, b = await join(hub, "a"), await join(hub, "b")
+    hub.set_link("a", "b", latency=0.02)
+    inbox = Inbox()
+    sub = b.subscribe("k", inbox)
+    a.publisher("k").put(b"1")
+    sub.close()
+    sub.close()  # idempotent
+    await settle(0.04)
+    assert inbox.arrivals == []
+
+
+# --------------------------------------------------------------------------- loss
+
+
+async def _lost_set(seed: int, loss: float, count: int) -> tuple[set[int], MemoryHub]:
+    hub = MemoryHub(seed=seed)
+    async with MemoryTransport(hub, "a") as a, MemoryTransport(hub, "b") as b:
+        hub.set_link("a", "b", loss=loss)
+        inbox = Inbox()
+        b.subscribe("k", inbox)
+        pub = a.publisher("k")
+        for i in range(count):
+            pub.put(str(i).encode())
+        await settle()
+        return set(range(count)) - set(nums(inbox)), hub
+
+
+async def test_loss_rate_and_determinism() -> None:
+    lost, hub = await _lost_set(seed=42, loss=0.3, count=2000)
+    assert 0.26 < len(lost) / 2000 < 0.34
+    stats = hub.link_stats("a", "b")
+    assert (stats.sent, stats.delivered, stats.lost) == (2000, 2000 - len(lost), len(lost))
+    again, _ = await _lost_set(seed=42, loss=0.3, count=2000)
+    assert again == lost
+    other, _ = await _lost_set(seed=43, loss=0.3, count=2000)
+    assert other != lost
+
+
+async def test_links_have_independent_streams(join: Join) -> None:
+    hub = MemoryHub(seed=5)
+    a, b, c = await join(hub, "a"), await join(hub, "b"), await join(hub, "c")
+    hub.set_link("a", "b", loss=0.5)
+    hub.set_link("a", "c", loss=0.5)
+    at_b, at_c = Inbox(), Inbox()
+    b.subscribe("k", at_b)
+    c.subscribe("k", at_c)
+    pub = a.publisher("k")
+    for i in range(200):
+        pub.put(str(i).encode())
+    await settle()
+    assert 0 < len(at_b.arrivals) < 200
+    assert nums(at_b) != nums(at_c)
+
+
+# --------------------------------------------------------------------------- timing
+
+
+async def test_latency_delays_delivery(join: Join) -> None:
+    hub = MemoryHub(seed=1)
+    a, b = await join(hub, "a"), await join(hub, "b")
+    hub.link("a", "b").latency = 0.05
+    inbox = Inbox()
+    b.subscribe("k", inbox)
+    sent = asyncio.get_running_loop().time()
+    a.publisher("k").put(b"x")
+    await settle(0.02)
+    assert inbox.arrivals == []
+    await inbox.wait_for(1)
+    delay = inbox.arrivals[0][0] - sent
+    assert 0.049 <= delay < 0.09
+
+
+async def test_latency_without_jitter_keeps_order(join: Join) -> None:
+    hub = MemoryHub(seed=1)
+    a, b = await join(hub, "a"), await join(hub, "b")
+    hub.set_link("a", "b", latency=0.01)
+    inbox = Inbox()
+    b.subscribe("k", inbox)
+    pub = a.publisher("k")
+    for i in range(100):
+        pub.put(str(i).encode())
+    await inbox.wait_for(100)
+    assert nums(inbox) == list(range(100))
+
+
+async def test_jitter_reorders(join: Join) -> None:
+    hub = MemoryHub(seed=3)
+    a, b = await join(hub, "a"), await join(hub, "b")
+    hub.set_link("a", "b", latency=0.005, jitter=0.03)
+    inbox = Inbox()
+    b.subscribe("k", inbox)
+    pub = a.publisher("k")
+    for i in range(50):
+        pub.put(str(i).encode())
+    await inbox.wait_for(50)
+    received = nums(inbox)
+    assert sorted(received) == list(range(50))  # nothing lost or duplicated
+    assert received != list(range(50))
+
+
+async def test_bandwidth_spaces_frames(join: Join) -> None:
+    hub = MemoryHub(seed=1)
+    a, b = await join(hub, "a"), await join(hub, "b")
+    hub.set_link("a", "b", bandwidth=25_000)  # 1000-byte frames: 40 ms each
+    inbox = Inbox()
+    b.subscribe("k", inbox)
+    pub = a.publisher("k")
+    start = asyncio.get_running_loop().time()
+    for _ in range(5):
+        pub.put(bytes(1000))
+    await inbox.wait_for(5)
+    times = [t - start for t, _ in inbox.arrivals]
+    assert 0.199 <= times[-1] < 0.26
+    gaps = [later - earlier for earlier, later in itertools.pairwise(times)]
+    assert all(0.03 < gap < 0.06 for gap in gaps), gaps
+
+
+async def test_tail_drop_beyond_max_queue_delay(join: Join) -> None:
+    hub = MemoryHub(seed=1)
+    a, b = await join(hub, "a"), await join(hub, "b")
+    # 1000-byte frames take 50 ms each: frames 0-2 wait 0, 50, 100 ms, frame 3 would wait 150.
+    hub.set_link("a", "b", bandwidth=20_000, max_queue_delay=0.12)
+    inbox = Inbox()
+    b.subscribe("k", inbox)
+    pub = a.publisher("k")
+    for i in range(10):
+        pub.put(str(i).encode().ljust(1000))
+    await inbox.wait_for(3)
+    await settle(0.05)
+    assert [p.strip() for p in inbox.payloads] == [b"0", b"1", b"2"]
+    stats = hub.link_stats("a", "b")
+    assert (stats.sent, stats.delivered, stats.lost, stats.tail_dropped) == (10, 3, 7, 7)
+    assert stats.in_flight == 0
+
+
+async def test_conditions_changed_while_running_apply_to_later_frames(join: Join) -> None:
+    hub = MemoryHub(seed=1)
+    a, b = await join(hub, "a"), await join(hub, "b")
+    inbox = Inbox()
+    b.subscribe("k", inbox)
+    pub = a.publisher("k")
+    pub.put(b"0")
+    await inbox.wait_for(1)
+    hub.link("a", "b").loss = 1.0
+    pub.put(b"1")
+    await settle()
+    assert inbox.payloads == [b"0"]
+    hub.set_link("a", "b", loss=0.0, latency=0.03)
+    sent = asyncio.get_running_loop().time()
+    pub.put(b"2")
+    await inbox.wait_for(2)
+    assert inbox.payloads == [b"0", b"2"]
+    assert inbox.arrivals[-1][0] - sent >= 0.029
+
+
+# --------------------------------------------------------------------------- cut and heal
+
+
+async def test_cut_drops_frames_and_presence_heal_restores_both(join: Join) -> None:
+    hub = MemoryHub(seed=1)
+    a, b = await join(hub, "a"), await join(hub, "b")
+    a.declare_presence("telebot/robot/a")
+    b.declare_presence("telebot/robot/b")
+    seen_by_a, seen_by_b = Events(), Events()
+    a.watch_presence("telebot/robot/*", seen_by_a)
+    b.watch_presence("telebot/robot/*", seen_by_b)
+    inbox = Inbox()
+    b.subscribe("k", inbox)
+    pub = a.publisher("k")
+    await settle()
+    assert ("telebot/robot/a", True) in seen_by_b.events
+    assert ("telebot/robot/b", True) in seen_by_a.events
+    seen_by_a.events.clear()
+    seen_by_b.events.clear()
+
+    hub.cut("a", "b")
+    for _ in range(20):
+        pub.put(b"lost")
+    await settle(0.01)
+    assert inbox.arrivals == []
+    assert hub.link_stats("a", "b").lost == 20
+    assert seen_by_b.events == [("telebot/robot/a", False)]
+    assert seen_by_a.events == [("telebot/robot/b", False)]
+
+    hub.heal("a", "b")
+    pub.put(b"back")
+    await inbox.wait_for(1)
+    await settle()
+    assert inbox.payloads == [b"back"]
+    assert seen_by_b.events == [("telebot/robot/a", False), ("telebot/robot/a", True)]
+    assert seen_by_a.events == [("telebot/robot/b", False), ("telebot/robot/b", True)]
+
+
+async def test_one_direction_down(join: Join) -> None:
+    hub = MemoryHub(seed=1)
+    a, b = await join(hub, "a"), await join(hub, "b")
+    a.declare_presence("p/a")
+    b.declare_presence("p/b")
+    seen_by_a, seen_by_b = Events(), Events()
+    a.watch_presence("p/**", seen_by_a)
+    b.watch_presence("p/**", seen_by_b)
+    await settle()
+    seen_by_a.events.clear()
+    seen_by_b.events.clear()
+    hub.link("a", "b").up = False  # setting the field directly also updates presence
+    await settle()
+    assert seen_by_b.events == [("p/a", False)]  # b still sees its own token
+    assert seen_by_a.events == []  # b -> a is still up
+    hub.link("a", "b").up = False  # no change, no event
+    await settle()
+    assert seen_by_b.events == [("p/a", False)]
+
+
+# --------------------------------------------------------------------------- presence
+
+
+async def test_presence_history_then_changes(join: Join) -> None:
+    hub = MemoryHub(seed=1)
+    a, b = await join(hub, "a"), await join(hub, "b")
+    first = a.declare_presence("telebot/robot/one")
+    a.declare_presence("telebot/user/x")
+    events = Events()
+    b.watch_presence("telebot/robot/*", events)
+    assert events.events == []  # history is reported asynchronously too
+    await settle()
+    assert events.events == [("telebot/robot/one", True)]
+    a.declare_presence("telebot/robot/two")
+    first.close()
+    first.close()  # idempotent
+    await settle()
+    assert events.events == [
+        ("telebot/robot/one", True),
+        ("telebot/robot/two", True),
+        ("telebot/robot/one", False),
+    ]
+
+
+async def test_closed_watch_reports_nothing(join: Join) -> None:
+    hub = MemoryHub(seed=1)
+    a, b = await join(hub, "a"), await join(hub, "b")
+    events = Events()
+    watch = b.watch_presence("**", events)
+    a.declare_presence("x")
+    watch.close()  # before the loop ran the pending report
+    await settle()
+    assert events.events == []
+
+
+async def test_transport_close_removes_presence_and_detaches(join: Join) -> None:
+    hub = MemoryHub(seed=1)
+    b = await join(hub, "b")
+    a = MemoryTransport(hub, "a")
+    await a.open()
+    assert sorted(hub.nodes) == ["a", "b"]
+    a.declare_presence("telebot/robot/a")
+    own, other = Events(), Events()
+    a.watch_presence("**", own)
+    b.watch_presence("**", other)
+    inbox = Inbox()
+    a.subscribe("k", inbox)
+    await settle()
+    assert other.events == [("telebot/robot/a", True)]
+    own.events.clear()
+
+    await a.close()
+    await a.close()  # idempotent
+    b.publisher("k").put(b"nobody")
+    await settle()
+    assert hub.nodes == ["b"]
+    assert other.events == [("telebot/robot/a", True), ("telebot/robot/a", False)]
+    assert own.events == []
+    assert inbox.arrivals == []
+
+
+# --------------------------------------------------------------------------- validation and lifecycle
+
+
+@pytest.mark.parametrize(
+    ("fields", "name"),
+    [
+        ({"loss": -0.1}, "loss"),
+        ({"loss": 1.5}, "loss"),
+        ({"loss": float("nan")}, "loss"),
+        ({"latency": -1.0}, "latency"),
+        ({"jitter": -0.01}, "jitter"),
+        ({"bandwidth": 0}, "bandwidth"),
+        ({"bandwidth": -5.0}, "bandwidth"),
+        ({"max_queue_delay": -1.0}, "max_queue_delay"),
+        ({"up": "yes"}, "up"),
+    ],
+)
+def test_invalid_conditions(fields: dict[str, object], name: str) -> None:
+    with pytest.raises(ValueError, match=name):
+        LinkConditions(**fields)  # type: ignore[arg-type]
+    conditions = LinkConditions()
+    with pytest.raises(ValueError, match=name):
+        setattr(conditions, name, next(iter(fields.values())))
+    assert conditions == LinkConditions()  # a rejected value changes nothing
+
+
+def test_set_link_validates_before_changing() -> None:
+    hub = MemoryHub(seed=1)
+    with pytest.raises(ValueError, match=r"unknown link condition.*lose"):
+        hub.set_link("a", "b", lose=0.5)
+    with pytest.raises(ValueError, match="latency"):
+        hub.set_link("a", "b", loss=0.5, latency=-1)
+    assert hub.link("a", "b") == LinkConditions()
+    assert hub.link("b", "a") == LinkConditions()
+
+
+async def test_use_before_open_and_after_close_raises() -> None:
+    transport = MemoryTransport(MemoryHub(seed=1), "a")
+    with pytest.raises(TransportError, match="not open"):
+        transport.publisher("k")
+    with pytest.raises(TransportError, match="not open"):
+        transport.subscribe("k", Inbox())
+    with pytest.raises(TransportError, match="not open"):
+        transport.declare_presence("k")
+    with pytest.raises(TransportError, match="not open"):
+        transport.watch_presence("k", Events())
+    async with transport:
+        pub = transport.publisher("k")
+        with pytest.raises(TransportError, match="already open"):
+            await transport.open()
+    with pytest.raises(TransportError, match="closed"):
+        pub.put(b"x")
+    with pytest.raises(TransportError, match="closed"):
+        transport.subscribe("k", Inbox())
+    with pytest.raises(TransportError, match="closed"):
+        await transport.open()
+
+
+async def test_invalid_keys_and_duplicate_nodes(join: Join) -> None:
+    hub = MemoryHub(seed=1)
+    a = await join(hub, "a")
+    with pytest.raises(TransportError, match="wildcard"):
+        a.publisher("telebot/*")
+    with pytest.raises(TransportError, match="empty chunk"):
+        a.subscribe("telebot//x", Inbox())
+    with pytest.raises(TransportError, match="whole chunk"):
+        a.subscribe("telebot/ro*", Inbox())
+    with pytest.raises(TransportError, match="already has an open node 'a'"):
+        await MemoryTransport(hub, "a").open()
+
+
+async def test_from_settings_and_registry() -> None:
+    settings = TransportSettings(
+        kind="memory", memory=MemorySettings(hub="test-transport-memory", node="robot")
+    )
+    transport = create_transport(settings)
+    assert isinstance(transport, MemoryTransport)
+    assert transport.hub is MemoryHub.named("test-transport-memory")
+    assert transport.node == "robot"
+    unnamed = MemoryTransport.from_settings(
+        TransportSettings(kind="memory", memory=MemorySettings(hub="test-transport-memory"))
+    )
+    assert unnamed.node.startswith("node-")
+    assert unnamed.node != MemoryTransport(unnamed.hub).node
+    async with transport:
+        assert transport.node in transport.hub.nodes
+    assert transport.node not in transport.hub.nodes
