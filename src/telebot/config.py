@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from telebot.errors import ConfigError
 
 __all__ = [
+    "AppConfig",
     "CallSettings",
     "MemorySettings",
     "StrictModel",
@@ -115,11 +116,24 @@ def load_toml(path: Path, model: type[Model]) -> Model:
         raise ConfigError(format_validation_error(exc, str(path))) from exc
 
 
-def default_home() -> Path:
-    """Where keys, contacts and known robots live: ``$TELEBOT_HOME`` or the user's config dir."""
+def default_home(kind: Literal["robot", "user"]) -> Path:
+    """Where keys, contacts and known robots live when ``--home`` is not given.
+
+    ``$TELEBOT_HOME`` if set, else ``<user config dir>/telebot/<kind>`` (robot and user
+    keep separate homes, so one machine can run both).
+    """
     env = os.environ.get("TELEBOT_HOME")
     if env:
         return Path(env).expanduser()
     xdg = os.environ.get("XDG_CONFIG_HOME")
     base = Path(xdg).expanduser() if xdg else Path.home() / ".config"
-    return base / "telebot"
+    return base / "telebot" / kind
+
+
+class AppConfig(StrictModel):
+    """The config file of ``telebot-robot`` and ``telebot-user`` (``configs/*.toml``)."""
+
+    #: First chunk of every key expression; robots and users meet only in the same one.
+    namespace: str = Field(default="telebot", pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
+    transport: TransportSettings = Field(default_factory=TransportSettings)
+    call: CallSettings = Field(default_factory=CallSettings)

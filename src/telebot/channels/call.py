@@ -58,7 +58,7 @@ from telebot.channels.transports.base import (
     Transport,
 )
 from telebot.config import CallSettings
-from telebot.errors import CallRejected, CallTimeout, ProtocolError, TelebotError
+from telebot.errors import CallError, CallRejected, CallTimeout, ProtocolError, TelebotError
 from telebot.identity import ContactBook, Identity, KnownRobots, Role, decode_key, encode_key
 
 __all__ = [
@@ -537,7 +537,7 @@ class UserEndpoint(_Endpoint):
         validate_name(robot, "robot name")
         robot_key = self.known_robots.get(robot)
         if robot_key is None:
-            raise CallRejected(
+            raise CallError(
                 f"{robot} is not a known robot: add its public key with "
                 f"'telebot-user known add {robot} KEY'"
             )

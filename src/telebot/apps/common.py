@@ -1,0 +1,124 @@
+"""What both command lines share: argument parsing, config, homes, one-line errors."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import sys
+from collections.abc import Callable, Coroutine
+from pathlib import Path
+from typing import Any, Literal, NoReturn
+
+from pydantic import ValidationError
+
+from telebot import __version__
+from telebot.config import AppConfig, default_home, format_validation_error, load_toml
+from telebot.errors import CallError, ConfigError, IdentityError, TelebotError, TransportError
+
+__all__ = [
+    "EXIT_FAILURE",
+    "EXIT_OK",
+    "EXIT_USAGE",
+    "Parser",
+    "add_connection_options",
+    "add_home_option",
+    "app_config",
+    "home_of",
+    "run",
+]
+
+EXIT_OK = 0
+EXIT_FAILURE = 1  # the command ran but what it asked for failed
+EXIT_USAGE = 2  # bad flags, config or keys; or no connection
+
+
+class Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line and exit 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def new_parser(prog: str, description: str) -> Parser:
+    """The top-level parser of a telebot command, with --version and --log-level."""
+    parser = Parser(prog=prog, description=description)
+    parser.add_argument("--version", action="version", version=f"{prog} {__version__}")
+    parser.add_argument(
+        "--log-level",
+        default="warning",
+        type=str.lower,
+        choices=["debug", "info", "warning", "error"],
+        help="logging threshold (default: warning)",
+    )
+    return parser
+
+
+def add_home_option(parser: argparse.ArgumentParser, kind: Literal["robot", "user"]) -> None:
+    """``--home``: where keys and contact lists live."""
+    parser.add_argument(
+        "--home",
+        type=Path,
+        default=None,
+        help=f"directory of keys and contact lists (default: $TELEBOT_HOME or {default_home(kind)})",
+    )
+
+
+def add_connection_options(parser: argparse.ArgumentParser) -> None:
+    """``--config``, ``--listen``, ``--connect``: how to reach the network."""
+    parser.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help="TOML config file (see configs/); default: built-in defaults",
+    )
+    parser.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
+    )
+    parser.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="zenoh endpoint (peer or router) to connect to, e.g. tcp/10.0.0.5:7447 (repeatable)",
+    )
+
+
+def home_of(args: argparse.Namespace, kind: Literal["robot", "user"]) -> Path:
+    """The home directory chosen by ``--home``, ``$TELEBOT_HOME`` or the default."""
+    home: Path | None = args.home
+    return home.expanduser() if home is not None else default_home(kind)
+
+
+def app_config(args: argparse.Namespace) -> AppConfig:
+    """The config file (or defaults) with ``--listen`` / ``--connect`` applied."""
+    config = load_toml(args.config, AppConfig) if args.config else AppConfig()
+    try:
+        if args.listen:
+            config.transport.zenoh.listen = list(args.listen)
+        if args.connect:
+            config.transport.zenoh.connect = list(args.connect)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(exc, "command line")) from exc
+    return config
+
+
+def run(prog: str, main: Callable[[], Coroutine[Any, Any, int]], log_level: str) -> int:
+    """Run ``main`` on a new event loop; turn telebot errors into one line and an exit code."""
+    logging.basicConfig(
+        level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    try:
+        return asyncio.run(main())
+    except KeyboardInterrupt:
+        return 130
+    except (ConfigError, IdentityError, TransportError, CallError) as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except TelebotError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return EXIT_FAILURE

@@ -1,0 +1,138 @@
+"""``telebot-robot``: the robot's command line.
+
+The robot daemon (chat, map, video, driving) comes with the next issues; today it
+manages the robot's key and contact list and runs the echo robot, a network check.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Any
+
+from telebot.apps.common import (
+    EXIT_OK,
+    EXIT_USAGE,
+    Parser,
+    add_connection_options,
+    add_home_option,
+    app_config,
+    home_of,
+    new_parser,
+    run,
+)
+from telebot.identity import ContactBook, Identity, Role, encode_key, fingerprint, parse_public_key
+
+PROG = "telebot-robot"
+
+
+def build_parser() -> Parser:
+    """The argument parser of telebot-robot."""
+    parser = new_parser(PROG, "The telebot robot: answers calls from its contacts.")
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
+    commands.required = True
+
+    keygen = commands.add_parser("keygen", help="create this robot's key pair")
+    keygen.add_argument("name", help="the robot's name, which users call (e.g. guiabot)")
+    keygen.add_argument("--force", action="store_true", help="replace an existing key")
+    add_home_option(keygen, "robot")
+
+    pubkey = commands.add_parser("pubkey", help="print this robot's public key line")
+    add_home_option(pubkey, "robot")
+
+    contacts = commands.add_parser("contacts", help="list or edit the users this robot answers")
+    actions = contacts.add_subparsers(dest="action", metavar="ACTION", parser_class=Parser)
+    actions.required = True
+    listing = actions.add_parser("list", help="list contacts")
+    add = actions.add_parser("add", help="add or replace a contact")
+    add.add_argument("name", help="the user's name")
+    add.add_argument("public_key", help="the user's public key (or their whole .pub line)")
+    add.add_argument("--role", choices=[r.value for r in Role], default=Role.OBSERVER.value)
+    remove = actions.add_parser("remove", help="remove a contact")
+    remove.add_argument("name")
+    for action in (listing, add, remove):
+        add_home_option(action, "robot")
+
+    echo = commands.add_parser(
+        "echo",
+        help="answer calls and echo every datagram back (network check for 'telebot-user ping')",
+    )
+    add_home_option(echo, "robot")
+    add_connection_options(echo)
+    echo.add_argument(
+        "--events", action="store_true", help="print call events as JSON lines on stdout"
+    )
+    return parser
+
+
+def _print_event(event: dict[str, Any]) -> None:
+    print(json.dumps(event), flush=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of telebot-robot."""
+    args = build_parser().parse_args(argv)
+    home = home_of(args, "robot")
+
+    async def command() -> int:
+        if args.command == "keygen":
+            identity = Identity.generate(args.name)
+            identity.save(home, overwrite=args.force)
+            print(f"robot key of {identity.name} written to {home}")
+            print(identity.public_line())
+            return EXIT_OK
+        if args.command == "pubkey":
+            print(Identity.load(home).public_line())
+            return EXIT_OK
+        if args.command == "contacts":
+            return _contacts(args, home)
+        # echo
+        from telebot.apps.echo import serve_echo
+
+        identity = Identity.load(home)
+        contacts = ContactBook.load(home)
+        if not len(contacts):
+            print(
+                f"{PROG}: warning: no contacts in {home}; every call will be refused",
+                file=sys.stderr,
+            )
+        emit = _print_event if args.events else (lambda event: None)
+        await serve_echo(app_config(args), identity, contacts, emit)
+        return EXIT_OK
+
+    return run(PROG, command, args.log_level)
+
+
+def _contacts(args: argparse.Namespace, home: Any) -> int:
+    book = ContactBook.load(home)
+    if args.action == "list":
+        for contact in book:
+            print(
+                f"{contact.name}\t{contact.role.value}\t{encode_key(contact.public_key)}\t{fingerprint(contact.public_key)}"
+            )
+        return EXIT_OK
+    if args.action == "add":
+        try:
+            key = parse_public_key(args.public_key)
+        except ValueError as exc:
+            print(f"{PROG}: error: bad public key for {args.name}: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+        try:
+            book.add(args.name, key, Role(args.role))
+        except ValueError as exc:
+            print(f"{PROG}: error: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+        book.save()
+        print(f"{args.name} added as {args.role}")
+        return EXIT_OK
+    if not book.remove(args.name):
+        print(f"{PROG}: error: no contact named {args.name!r}", file=sys.stderr)
+        return EXIT_USAGE
+    book.save()
+    print(f"{args.name} removed")
+    return EXIT_OK
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,204 @@
+"""``telebot-user``: the user's command line.
+
+Chat, map, video and the web UI come with the next issues; today it manages the user's
+key and the robots it trusts, lists robots online and pings a robot through a call.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from telebot.apps.common import (
+    EXIT_FAILURE,
+    EXIT_OK,
+    EXIT_USAGE,
+    Parser,
+    add_connection_options,
+    add_home_option,
+    app_config,
+    home_of,
+    new_parser,
+    run,
+)
+from telebot.identity import Identity, KnownRobots, encode_key, fingerprint, parse_public_key
+
+PROG = "telebot-user"
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+    return value
+
+
+def build_parser() -> Parser:
+    """The argument parser of telebot-user."""
+    parser = new_parser(PROG, "The telebot user client: call robots, talk and drive through them.")
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
+    commands.required = True
+
+    keygen = commands.add_parser("keygen", help="create your key pair")
+    keygen.add_argument("name", help="your user name, as robots know you (e.g. alice)")
+    keygen.add_argument("--force", action="store_true", help="replace an existing key")
+    add_home_option(keygen, "user")
+
+    pubkey = commands.add_parser(
+        "pubkey", help="print your public key line (give it to robot admins)"
+    )
+    add_home_option(pubkey, "user")
+
+    known = commands.add_parser("known", help="list or edit the robots whose keys you trust")
+    actions = known.add_subparsers(dest="action", metavar="ACTION", parser_class=Parser)
+    actions.required = True
+    listing = actions.add_parser("list", help="list known robots")
+    add = actions.add_parser("add", help="trust a robot's key")
+    add.add_argument("name", help="the robot's name")
+    add.add_argument("public_key", help="the robot's public key (or its whole .pub line)")
+    remove = actions.add_parser("remove", help="forget a robot")
+    remove.add_argument("name")
+    for action in (listing, add, remove):
+        add_home_option(action, "user")
+
+    robots = commands.add_parser("robots", help="list the robots online")
+    add_home_option(robots, "user")
+    add_connection_options(robots)
+    robots.add_argument(
+        "--wait", type=_positive_float, default=2.0, help="seconds to listen (default 2)"
+    )
+
+    ping = commands.add_parser(
+        "ping", help="call a robot running 'telebot-robot echo' and measure the link"
+    )
+    ping.add_argument("robot", help="the robot's name")
+    add_home_option(ping, "user")
+    add_connection_options(ping)
+    ping.add_argument(
+        "--count", type=_positive_int, default=20, help="datagrams to send (default 20)"
+    )
+    ping.add_argument(
+        "--size", type=_positive_int, default=64, help="bytes per datagram, 12..32768 (default 64)"
+    )
+    ping.add_argument(
+        "--interval",
+        type=_positive_float,
+        default=0.05,
+        help="seconds between datagrams (default 0.05)",
+    )
+    ping.add_argument(
+        "--timeout",
+        type=_positive_float,
+        default=None,
+        help="seconds to wait for the robot to answer",
+    )
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of telebot-user."""
+    args = build_parser().parse_args(argv)
+    home = home_of(args, "user")
+
+    async def command() -> int:
+        if args.command == "keygen":
+            identity = Identity.generate(args.name)
+            identity.save(home, overwrite=args.force)
+            print(f"user key of {identity.name} written to {home}")
+            print(identity.public_line())
+            return EXIT_OK
+        if args.command == "pubkey":
+            print(Identity.load(home).public_line())
+            return EXIT_OK
+        if args.command == "known":
+            return _known(args, home)
+        if args.command == "robots":
+            return await _robots(args, home)
+        return await _ping(args, home)
+
+    return run(PROG, command, args.log_level)
+
+
+def _known(args: argparse.Namespace, home: Path) -> int:
+    known = KnownRobots.load(home)
+    if args.action == "list":
+        for name in known.names():
+            key = known.get(name) or b""
+            print(f"{name}\t{encode_key(key)}\t{fingerprint(key)}")
+        return EXIT_OK
+    if args.action == "add":
+        try:
+            known.add(args.name, parse_public_key(args.public_key))
+        except ValueError as exc:
+            print(f"{PROG}: error: bad robot name or key for {args.name}: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+        known.save()
+        print(f"{args.name} is now a known robot")
+        return EXIT_OK
+    if not known.remove(args.name):
+        print(f"{PROG}: error: no known robot named {args.name!r}", file=sys.stderr)
+        return EXIT_USAGE
+    known.save()
+    print(f"{args.name} forgotten")
+    return EXIT_OK
+
+
+async def _robots(args: argparse.Namespace, home: Path) -> int:
+    from telebot.channels.call import UserEndpoint
+    from telebot.channels.transports import create_transport
+
+    config = app_config(args)
+    identity = Identity.load(home)
+    known = KnownRobots.load(home)
+    async with (
+        create_transport(config.transport) as transport,
+        UserEndpoint(
+            transport, identity, known, settings=config.call, namespace=config.namespace
+        ) as user,
+    ):
+        online = await user.robots_online(wait=args.wait)
+    for robot in online:
+        trust = (
+            "known" if robot.trusted else ("KEY MISMATCH" if known.get(robot.name) else "unknown")
+        )
+        print(f"{robot.name}\t{trust}\t{encode_key(robot.public_key)}")
+    if not online:
+        print("no robots online", file=sys.stderr)
+    return EXIT_OK
+
+
+async def _ping(args: argparse.Namespace, home: Path) -> int:
+    from telebot.apps.ping import ping
+    from telebot.channels.call import UserEndpoint
+    from telebot.channels.transports import create_transport
+
+    if not 12 <= args.size <= 32768:
+        print(f"{PROG}: error: --size must be between 12 and 32768 bytes", file=sys.stderr)
+        return EXIT_USAGE
+    config = app_config(args)
+    identity = Identity.load(home)
+    known = KnownRobots.load(home)
+    async with (
+        create_transport(config.transport) as transport,
+        UserEndpoint(
+            transport, identity, known, settings=config.call, namespace=config.namespace
+        ) as user,
+    ):
+        call = await user.call(args.robot, timeout=args.timeout)
+        print(f"call {call.id} with {call.peer} answered (role {call.role})")
+        result = await ping(call, count=args.count, size=args.size, interval=args.interval)
+        await call.hangup("ping done")
+    print(result.summary())
+    return EXIT_OK if result.received else EXIT_FAILURE
+
+
+if __name__ == "__main__":
+    sys.exit(main())
