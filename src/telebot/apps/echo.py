@@ -19,7 +19,7 @@ from telebot.channels.transports import create_transport
 from telebot.config import AppConfig
 from telebot.identity import ContactBook, Identity
 
-__all__ = ["STATS_CHANNEL", "call_stats", "serve_echo"]
+__all__ = ["STATS_CHANNEL", "call_stats", "echo_call", "serve_echo"]
 
 STATS_CHANNEL = "_stats"
 
@@ -48,7 +48,9 @@ def call_stats(call: Call, endpoint: RobotEndpoint) -> dict[str, Any]:
     }
 
 
-def _echo_call(call: Call, endpoint: RobotEndpoint, emit: EventSink) -> None:
+def echo_call(call: Call, endpoint: RobotEndpoint, emit: EventSink) -> None:
+    """Echo every datagram of ``call`` back on its channel; report its start and end."""
+
     def on_channel(name: str) -> None:
         channel = call.channel(name)
 
@@ -101,7 +103,7 @@ async def serve_echo(
                 transport, identity, contacts, settings=config.call, namespace=config.namespace
             ) as robot,
         ):
-            robot.on_call = lambda call: _echo_call(call, robot, emit)
+            robot.on_call = lambda call: echo_call(call, robot, emit)
             emit({"event": "ready", "robot": identity.name, "inbox": robot.inbox})
             await stop.wait()
             emit({"event": "stopping", "calls": len(robot.calls)})
