@@ -21,7 +21,7 @@ import json
 import os
 import tomllib
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
 
@@ -101,7 +101,8 @@ def _read_toml(path: Path) -> dict[str, object]:
 def _write_atomically(path: Path, text: str, mode: int = 0o644) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
+    tmp.unlink(missing_ok=True)  # a stale file would keep its own (maybe wider) mode
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)
     with os.fdopen(fd, "w", encoding="utf-8") as handle:
         handle.write(text)
     os.replace(tmp, path)
@@ -112,7 +113,7 @@ class Identity:
     """A name and its X25519 key pair: a user or a robot."""
 
     name: str
-    private_key: bytes
+    private_key: bytes = field(repr=False)  # never in logs
 
     @property
     def public_key(self) -> bytes:

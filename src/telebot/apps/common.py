@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import signal
 import sys
 from collections.abc import Callable, Coroutine
 from pathlib import Path
@@ -107,13 +108,30 @@ def app_config(args: argparse.Namespace) -> AppConfig:
     return config
 
 
+EXIT_TERMINATED = 128 + signal.SIGTERM
+
+
+async def _terminable(main: Callable[[], Coroutine[Any, Any, int]]) -> int:
+    """Run ``main``; SIGTERM cancels it, so its ``async with`` blocks hang up and close."""
+    task = asyncio.current_task()
+    assert task is not None
+    loop = asyncio.get_running_loop()
+    loop.add_signal_handler(signal.SIGTERM, task.cancel)
+    try:
+        return await main()
+    except asyncio.CancelledError:
+        return EXIT_TERMINATED
+    finally:
+        loop.remove_signal_handler(signal.SIGTERM)
+
+
 def run(prog: str, main: Callable[[], Coroutine[Any, Any, int]], log_level: str) -> int:
     """Run ``main`` on a new event loop; turn telebot errors into one line and an exit code."""
     logging.basicConfig(
         level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
     try:
-        return asyncio.run(main())
+        return asyncio.run(_terminable(main))
     except KeyboardInterrupt:
         return 130
     except (ConfigError, IdentityError, TransportError, CallError) as exc:

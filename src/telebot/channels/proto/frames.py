@@ -248,13 +248,14 @@ def encode_heartbeat(beat: Heartbeat) -> bytes:
         beat.seq & 0xFFFFFFFF,
         beat.sent_us & 0xFFFFFFFFFFFFFFFF,
         beat.echo_us & 0xFFFFFFFFFFFFFFFF,
-        min(beat.echo_delay_us, 0xFFFFFFFF),
+        min(max(beat.echo_delay_us, 0), 0xFFFFFFFF),
     )
 
 
 def encode_hangup(reason: str) -> bytes:
-    """Plaintext of a HANGUP (the reason is cut to 200 bytes)."""
-    return bytes([KIND_HANGUP]) + reason.encode("utf-8")[:200]
+    """Plaintext of a HANGUP (the reason is cut to 200 bytes, on a character boundary)."""
+    cut = reason.encode("utf-8")[:200].decode("utf-8", "ignore")
+    return bytes([KIND_HANGUP]) + cut.encode("utf-8")
 
 
 def decode_message(plaintext: bytes) -> Message:

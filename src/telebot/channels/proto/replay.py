@@ -32,7 +32,12 @@ class ReplayWindow:
         """Mark ``counter`` as seen; call only after :meth:`check` and authentication pass."""
         if counter > self._highest:
             shift = counter - self._highest
-            self._bits = ((self._bits << shift) | 1) & ((1 << WINDOW) - 1)
+            # A jump past the whole window forgets everything; shifting by a huge gap
+            # first would allocate gigabytes (a peer chooses the counter).
+            if shift >= WINDOW:
+                self._bits = 1
+            else:
+                self._bits = ((self._bits << shift) | 1) & ((1 << WINDOW) - 1)
             self._highest = counter
         else:
             self._bits |= 1 << (self._highest - counter)

@@ -197,7 +197,10 @@ class CallSession:
 
     def seal_heartbeat(self, now: float) -> bytes:
         """The next heartbeat frame; schedules the one after."""
-        self._next_heartbeat = max(self._next_heartbeat + self.heartbeat_interval, now)
+        # Keep the cadence; after a stall, start a fresh one rather than sending a burst.
+        self._next_heartbeat += self.heartbeat_interval
+        if self._next_heartbeat <= now:
+            self._next_heartbeat = now + self.heartbeat_interval
         echo_us, echo_delay_us = 0, 0
         if self._peer_beat is not None:
             echo_us = self._peer_beat[0]

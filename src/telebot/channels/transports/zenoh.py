@@ -1,0 +1,582 @@
+"""The zenoh transport: frames by key expression, presence by liveliness tokens.
+
+Peer mode with the default settings needs no router: peers on one machine or one LAN
+find each other by multicast scouting. Client mode with ``connect`` endpoints reaches
+robots across networks through zenoh routers (TLS and ACL come from ``config_file`` or
+``options``).
+
+Threading. zenoh-python runs every Python callback on a thread of its own: by default
+one ``pyo3-closure`` Python thread per declaration, fed by zenoh's network threads
+through a small bounded channel (about 256 samples in 1.10). A callback that blocks
+therefore stalls the receive path of the whole session, for every key, once that
+channel is full. Our callbacks only append to a bounded deque under a lock and, at most
+once per batch, wake the event loop with ``call_soon_threadsafe``; everything else
+happens on the loop. A slow consumer therefore costs dropped samples (oldest first,
+counted in ``stats.dropped``), never a stalled zenoh thread.
+
+Lifetime. Callback subscribers are declared in zenoh's "background" mode: dropping the
+Python object does *not* undeclare them, and their ``pyo3-closure`` thread is not a
+daemon thread, so a subscriber that is never undeclared keeps the interpreter from
+exiting. Liveliness tokens and publishers, on the contrary, *are* undeclared when the
+Python object is garbage collected. The transport therefore keeps a reference to every
+entity it declared and undeclares them all in :meth:`ZenohTransport.close`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import json
+import logging
+import re
+import threading
+from collections.abc import Callable
+from typing import Any, Final, Protocol, Self, TypeVar
+
+import zenoh
+
+from telebot.channels.transports.base import (
+    Lane,
+    Presence,
+    PresenceCallback,
+    Publisher,
+    Sample,
+    SampleBatchCallback,
+    Subscription,
+    Transport,
+)
+from telebot.config import TransportSettings, ZenohSettings
+from telebot.errors import TransportError
+
+__all__ = [
+    "LANE_QOS",
+    "ZenohPresence",
+    "ZenohPresenceWatch",
+    "ZenohPublisher",
+    "ZenohSubscription",
+    "ZenohTransport",
+    "build_zenoh_config",
+]
+
+logger = logging.getLogger("telebot.transport.zenoh")
+
+_T = TypeVar("_T")
+_E = TypeVar("_E", bound="_Entity")
+
+#: Publisher QoS of each lane, as keyword arguments of ``Session.declare_publisher``.
+#: Every lane drops under congestion (a stale pose or video frame is worth nothing, and a
+#: blocked publisher would block the event loop); CONTROL is sent first and at once
+#: (express: not held back for batching), BULK last, so video can never delay a stop.
+LANE_QOS: Final[dict[Lane, dict[str, Any]]] = {
+    Lane.CONTROL: {
+        "priority": zenoh.Priority.REAL_TIME,
+        "express": True,
+        "congestion_control": zenoh.CongestionControl.DROP,
+    },
+    Lane.DATA: {
+        "priority": zenoh.Priority.DATA,
+        "congestion_control": zenoh.CongestionControl.DROP,
+    },
+    Lane.BULK: {
+        "priority": zenoh.Priority.DATA_LOW,
+        "congestion_control": zenoh.CongestionControl.DROP,
+    },
+}
+
+# zenoh's messages end with the Rust source location and may wrap a JSON5 parser
+# error; users need the reason only, on one line.
+_RUST_LOCATION = re.compile(r"\s*\bat\s+\S+\.rs:\d+\.?")
+_JSON5_MESSAGE = re.compile(r'msg:\s*"((?:[^"\\]|\\.)*)"')
+
+
+def _reason(exc: BaseException) -> str:
+    """The human part of a zenoh error message, on one line."""
+    text = _RUST_LOCATION.sub("", str(exc))
+    match = _JSON5_MESSAGE.search(text)
+    if match:
+        text = match.group(1).replace('\\"', '"')
+    if text.startswith('Str("') and text.endswith('")'):
+        text = text[5:-2]
+    return " ".join(text.split()) or type(exc).__name__
+
+
+def _insert(config: zenoh.Config, key: str, value: Any, what: str) -> None:
+    try:
+        config.insert_json5(key, json.dumps(value))
+    except (zenoh.ZError, TypeError, ValueError) as exc:
+        # TypeError/ValueError: json.dumps of a value TOML cannot produce but Python can.
+        raise TransportError(f"zenoh {what} {value!r} rejected: {_reason(exc)}") from exc
+
+
+def _insert_endpoints(config: zenoh.Config, key: str, endpoints: list[str], what: str) -> None:
+    try:
+        config.insert_json5(key, json.dumps(endpoints))
+    except zenoh.ZError as exc:
+        # zenoh names the malformed endpoint only in its own words; find it ourselves so
+        # the message points at the one entry to fix.
+        for endpoint in endpoints:
+            try:
+                zenoh.Config().insert_json5(key, json.dumps([endpoint]))
+            except zenoh.ZError as one:
+                raise TransportError(
+                    f"zenoh {what} endpoint {endpoint!r} is invalid: {_reason(one)}"
+                ) from exc
+        raise TransportError(f"zenoh {what} endpoints {endpoints!r}: {_reason(exc)}") from exc
+
+
+def build_zenoh_config(settings: ZenohSettings) -> zenoh.Config:
+    """The ``zenoh.Config`` that ``settings`` describe; any zenoh error is a TransportError.
+
+    The config file (if any) is loaded first; ``mode``, ``listen``, ``connect`` and
+    ``multicast_scouting`` override it, and ``options`` (path -> value) are inserted last.
+    Empty ``listen``/``connect`` lists keep zenoh's (or the file's) defaults.
+    """
+    if settings.config_file is not None:
+        try:
+            config = zenoh.Config.from_file(str(settings.config_file))
+        except zenoh.ZError as exc:
+            raise TransportError(
+                f"cannot load zenoh config file {settings.config_file}: {_reason(exc)}"
+            ) from exc
+    else:
+        config = zenoh.Config()
+    _insert(config, "mode", settings.mode, "mode")
+    if settings.listen:
+        _insert_endpoints(config, "listen/endpoints", settings.listen, "listen")
+    if settings.connect:
+        _insert_endpoints(config, "connect/endpoints", settings.connect, "connect")
+    _insert(config, "scouting/multicast/enabled", settings.multicast_scouting, "multicast_scouting")
+    for path, value in settings.options.items():
+        _insert(config, path, value, f"option {path!r} =")
+    return config
+
+
+def _call_soon(loop: asyncio.AbstractEventLoop, fn: Callable[..., object], *args: Any) -> bool:
+    """Schedule ``fn`` on ``loop`` from any thread; False if the loop is already closed."""
+    try:
+        loop.call_soon_threadsafe(fn, *args)
+    except RuntimeError:
+        # The loop was closed under a late zenoh callback: nobody is left to deliver to.
+        return False
+    return True
+
+
+async def _run_in_daemon_thread(fn: Callable[[], _T], name: str) -> _T:
+    """Run blocking ``fn`` on a fresh daemon thread and await its result.
+
+    Unlike ``asyncio.to_thread``, a call that never returns cannot hold up the exit of
+    ``asyncio.run`` (which joins the default executor) or of the interpreter.
+    """
+    loop = asyncio.get_running_loop()
+    future: asyncio.Future[_T] = loop.create_future()
+
+    def set_result(result: _T) -> None:
+        if not future.done():  # else the awaiting side timed out or was cancelled
+            future.set_result(result)
+
+    def set_exception(error: BaseException) -> None:
+        if not future.done():
+            future.set_exception(error)
+
+    def target() -> None:
+        try:
+            result = fn()
+        except BaseException as exc:
+            _call_soon(loop, set_exception, exc)
+        else:
+            _call_soon(loop, set_result, result)
+
+    threading.Thread(target=target, name=name, daemon=True).start()
+    return await future
+
+
+class _Undeclarable(Protocol):
+    # zenoh's stubs leave undeclare() unannotated; this gives our calls a type.
+    def undeclare(self) -> object: ...
+
+
+class _Closable(Protocol):
+    def close(self) -> object: ...
+
+
+def _undeclare(raw: _Undeclarable | None, what: str) -> None:
+    """Undeclare ``raw``; an entity already gone with its session needs nothing more."""
+    if raw is None:
+        return
+    try:
+        raw.undeclare()
+    except zenoh.ZError as exc:
+        logger.debug("undeclaring %s: %s", what, _reason(exc))
+
+
+def _close_session(session: _Closable) -> None:
+    session.close()
+
+
+class _Entity:
+    """Something declared on the session that the transport must undeclare on close."""
+
+    def _mark_closed(self) -> None:
+        """Stop delivering at once (on the loop), without calling into zenoh."""
+
+    def _undeclare(self) -> None:
+        """Undeclare in zenoh; may be called from a worker thread."""
+
+
+class ZenohPublisher(Publisher, _Entity):
+    """Publishes on one key with the QoS of one lane (see :data:`LANE_QOS`)."""
+
+    def __init__(
+        self, transport: ZenohTransport, raw: zenoh.Publisher, key: str, lane: Lane
+    ) -> None:
+        self._transport = transport
+        self._raw = raw
+        self.key = key
+        self.lane = lane
+        self._closed = False
+
+    @property
+    def raw(self) -> zenoh.Publisher:
+        """The underlying zenoh publisher (to inspect its QoS)."""
+        return self._raw
+
+    def put(self, payload: bytes) -> None:
+        """Send ``payload``; never blocks (congestion control DROP)."""
+        if self._closed:
+            raise TransportError(f"zenoh publisher on {self.key!r} is closed")
+        try:
+            self._raw.put(payload)
+        except zenoh.ZError as exc:
+            raise TransportError(f"zenoh put on {self.key!r} failed: {_reason(exc)}") from exc
+        self._transport.stats.published += 1
+
+    def close(self) -> None:
+        """Undeclare the publisher; idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._transport._forget(self)
+        self._undeclare()
+
+    def _mark_closed(self) -> None:
+        self._closed = True
+
+    def _undeclare(self) -> None:
+        _undeclare(self._raw, f"publisher {self.key}")
+
+
+class ZenohSubscription(Subscription, _Entity):
+    """Delivers matching samples to a callback on the loop, in batches.
+
+    zenoh's thread appends to a bounded deque and schedules one drain per batch; the
+    drain, on the loop, hands everything queued to the callback in one call.
+    """
+
+    def __init__(
+        self,
+        transport: ZenohTransport,
+        loop: asyncio.AbstractEventLoop,
+        pattern: str,
+        callback: SampleBatchCallback,
+        queue_size: int,
+    ) -> None:
+        self._transport = transport
+        self._loop = loop
+        self.pattern = pattern
+        self._callback = callback
+        # deque(maxlen) drops the oldest by itself; we only count it.
+        self._queue: collections.deque[tuple[str, bytes]] = collections.deque(maxlen=queue_size)
+        self._lock = transport._lock  # shared: it also guards the transport's counters
+        self._drain_scheduled = False
+        self._closed = False
+        self._raw: zenoh.Subscriber[None] | None = None
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        """zenoh thread: queue the sample, wake the loop once per batch. Never waits."""
+        if self._closed or sample.kind != zenoh.SampleKind.PUT:
+            return
+        item = (str(sample.key_expr), sample.payload.to_bytes())  # convert outside the lock
+        stats = self._transport.stats
+        with self._lock:
+            stats.received += 1
+            if len(self._queue) == self._queue.maxlen:
+                stats.dropped += 1
+            self._queue.append(item)
+            if self._drain_scheduled:
+                return  # the pending drain will take this one too
+            self._drain_scheduled = True
+        _call_soon(self._loop, self._drain)
+
+    def _drain(self) -> None:
+        """Loop: deliver everything queued so far as one batch."""
+        with self._lock:
+            items = list(self._queue)
+            self._queue.clear()
+            self._drain_scheduled = False
+        if self._closed or not items:
+            return
+        batch = [Sample(key, payload) for key, payload in items]
+        try:
+            self._callback(batch)
+        except Exception:
+            # One bad batch must not end the subscription: later batches still come.
+            logger.exception("subscriber callback for %r raised", self.pattern)
+
+    def close(self) -> None:
+        """Stop delivering and undeclare; idempotent."""
+        if self._closed:
+            return
+        self._mark_closed()
+        self._transport._forget(self)
+        self._undeclare()
+
+    def _mark_closed(self) -> None:
+        self._closed = True
+        with self._lock:
+            self._queue.clear()
+
+    def _undeclare(self) -> None:
+        _undeclare(self._raw, f"subscriber {self.pattern}")
+
+
+class ZenohPresence(Presence, _Entity):
+    """A liveliness token: alive for watchers until closed or the session ends."""
+
+    def __init__(self, transport: ZenohTransport, raw: zenoh.LivelinessToken, key: str) -> None:
+        self._transport = transport
+        self._raw = raw  # zenoh undeclares a token when this object is collected
+        self.key = key
+        self._closed = False
+
+    def close(self) -> None:
+        """Withdraw the token; idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._transport._forget(self)
+        self._undeclare()
+
+    def _mark_closed(self) -> None:
+        self._closed = True
+
+    def _undeclare(self) -> None:
+        _undeclare(self._raw, f"token {self.key}")
+
+
+class ZenohPresenceWatch(Subscription, _Entity):
+    """Reports liveliness tokens appearing (PUT) and vanishing (DELETE), on the loop."""
+
+    def __init__(
+        self,
+        transport: ZenohTransport,
+        loop: asyncio.AbstractEventLoop,
+        pattern: str,
+        callback: PresenceCallback,
+    ) -> None:
+        self._transport = transport
+        self._loop = loop
+        self.pattern = pattern
+        self._callback = callback
+        self._closed = False
+        self._raw: zenoh.Subscriber[None] | None = None
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        """zenoh thread: forward (key, alive) to the loop; presence changes are rare."""
+        if self._closed:
+            return
+        alive = sample.kind == zenoh.SampleKind.PUT
+        _call_soon(self._loop, self._deliver, str(sample.key_expr), alive)
+
+    def _deliver(self, key: str, alive: bool) -> None:
+        if self._closed:
+            return
+        try:
+            self._callback(key, alive)
+        except Exception:
+            logger.exception("presence callback for %r raised", self.pattern)
+
+    def close(self) -> None:
+        """Stop reporting and undeclare; idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._transport._forget(self)
+        self._undeclare()
+
+    def _mark_closed(self) -> None:
+        self._closed = True
+
+    def _undeclare(self) -> None:
+        _undeclare(self._raw, f"presence watch {self.pattern}")
+
+
+class ZenohTransport(Transport):
+    """Frames and presence over an Eclipse Zenoh session.
+
+    Single use: :meth:`open` once, :meth:`close` once (further closes do nothing).
+    """
+
+    name = "zenoh"
+
+    def __init__(self, settings: ZenohSettings | None = None) -> None:
+        super().__init__()
+        self.settings = settings if settings is not None else ZenohSettings()
+        self._session: zenoh.Session | None = None
+        self._session_id: str | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._opening = False
+        self._closed = False
+        # Guards the subscription queues and the received/dropped counters, which
+        # zenoh's threads update.
+        self._lock = threading.Lock()
+        # Strong references to everything declared: tokens and publishers die with
+        # their Python object, and close() must reach every subscriber.
+        self._entities: dict[int, _Entity] = {}
+
+    @classmethod
+    def from_settings(cls, settings: TransportSettings) -> Self:
+        """Build an unopened transport from ``settings.zenoh``."""
+        return cls(settings.zenoh)
+
+    @property
+    def session_id(self) -> str:
+        """The zenoh id of the session (hex string); available once opened."""
+        if self._session_id is None:
+            raise TransportError("zenoh transport is not open")
+        return self._session_id
+
+    @property
+    def session(self) -> zenoh.Session:
+        """The underlying ``zenoh.Session``, for what this interface does not cover."""
+        return self._require_open()
+
+    async def open(self) -> None:
+        """Open the zenoh session on a worker thread (zenoh.open may block)."""
+        if self._closed:
+            raise TransportError("zenoh transport is closed; create a new one")
+        if self._session is not None or self._opening:
+            raise TransportError("zenoh transport is already open")
+        config = build_zenoh_config(self.settings)
+        self._loop = asyncio.get_running_loop()
+        self._opening = True
+        task = asyncio.ensure_future(asyncio.to_thread(zenoh.open, config))
+        try:
+            session = await asyncio.shield(task)
+        except asyncio.CancelledError:
+            # The thread cannot be stopped; close the session it may still produce.
+            task.add_done_callback(_close_late_session)
+            raise
+        except zenoh.ZError as exc:
+            raise TransportError(
+                f"cannot open zenoh session (mode={self.settings.mode}, "
+                f"listen={self.settings.listen}, connect={self.settings.connect}): "
+                f"{_reason(exc)}"
+            ) from exc
+        finally:
+            self._opening = False
+        if self._closed:  # close() ran while zenoh.open was still working
+            threading.Thread(target=session.close, name="zenoh-close-late", daemon=True).start()
+            raise TransportError("zenoh transport was closed while opening")
+        self._session = session
+        self._session_id = str(session.zid())
+        logger.debug("zenoh session %s open (%s)", self._session_id, self.settings.mode)
+
+    async def close(self) -> None:
+        """Undeclare everything and close the session within ``settings.close_timeout``.
+
+        Callbacks stop at once; the zenoh calls run on a daemon thread, and if they do
+        not finish in time a warning is logged and close returns anyway.
+        """
+        if self._closed:
+            return
+        self._closed = True
+        session, self._session = self._session, None
+        entities = list(self._entities.values())
+        self._entities.clear()
+        for entity in entities:
+            entity._mark_closed()
+        if session is None:
+            return
+        # Subscribers first: their callback threads keep the interpreter alive.
+        entities.sort(key=lambda e: not isinstance(e, ZenohSubscription | ZenohPresenceWatch))
+
+        def shutdown() -> None:
+            for entity in entities:
+                entity._undeclare()
+            _close_session(session)
+
+        timeout = self.settings.close_timeout
+        try:
+            await asyncio.wait_for(_run_in_daemon_thread(shutdown, "zenoh-close"), timeout)
+        except TimeoutError:
+            logger.warning(
+                "zenoh session %s did not close within %.1f s; abandoning it",
+                self._session_id,
+                timeout,
+            )
+        except Exception as exc:  # close must not raise: the session is abandoned either way
+            logger.warning("closing zenoh session %s: %s", self._session_id, _reason(exc))
+
+    def publisher(self, key: str, lane: Lane = Lane.DATA) -> ZenohPublisher:
+        """Declare a publisher on ``key`` with the QoS of ``lane``."""
+        session = self._require_open()
+        try:
+            raw = session.declare_publisher(key, **LANE_QOS[lane])
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot publish on {key!r}: {_reason(exc)}") from exc
+        return self._remember(ZenohPublisher(self, raw, key, lane))
+
+    def subscribe(self, pattern: str, callback: SampleBatchCallback) -> ZenohSubscription:
+        """Deliver samples matching ``pattern`` to ``callback(batch)`` on the loop."""
+        session = self._require_open()
+        assert self._loop is not None
+        sub = ZenohSubscription(self, self._loop, pattern, callback, self.settings.queue_size)
+        try:
+            sub._raw = session.declare_subscriber(pattern, sub._on_sample)
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot subscribe to {pattern!r}: {_reason(exc)}") from exc
+        return self._remember(sub)
+
+    def declare_presence(self, key: str) -> ZenohPresence:
+        """Declare a liveliness token on ``key``."""
+        session = self._require_open()
+        try:
+            raw = session.liveliness().declare_token(key)
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot declare presence {key!r}: {_reason(exc)}") from exc
+        return self._remember(ZenohPresence(self, raw, key))
+
+    def watch_presence(self, pattern: str, callback: PresenceCallback) -> ZenohPresenceWatch:
+        """Call ``callback(key, alive)`` on the loop for tokens matching ``pattern``."""
+        session = self._require_open()
+        assert self._loop is not None
+        watch = ZenohPresenceWatch(self, self._loop, pattern, callback)
+        try:
+            watch._raw = session.liveliness().declare_subscriber(
+                pattern, watch._on_sample, history=True
+            )
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot watch presence {pattern!r}: {_reason(exc)}") from exc
+        return self._remember(watch)
+
+    def _require_open(self) -> zenoh.Session:
+        if self._closed:
+            raise TransportError("zenoh transport is closed")
+        if self._session is None:
+            raise TransportError("zenoh transport is not open; call open() first")
+        return self._session
+
+    def _remember(self, entity: _E) -> _E:
+        self._entities[id(entity)] = entity
+        return entity
+
+    def _forget(self, entity: _Entity) -> None:
+        self._entities.pop(id(entity), None)
+
+
+def _close_late_session(task: asyncio.Future[zenoh.Session]) -> None:
+    """Close a session whose open() was cancelled while zenoh.open was still running."""
+    if task.cancelled() or task.exception() is not None:
+        return
+    session = task.result()
+    threading.Thread(target=session.close, name="zenoh-close-late", daemon=True).start()

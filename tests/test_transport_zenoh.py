@@ -1,0 +1,576 @@
+"""The zenoh transport on loopback: in one process, and across two real processes.
+
+Every session uses TCP on 127.0.0.1 with multicast scouting off, so tests never see
+peers from other tests or other machines: one side listens on a free port, the other
+connects to it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from collections.abc import AsyncIterator, Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any, cast
+
+import pytest
+import zenoh
+
+from telebot.channels.transports import create_transport
+from telebot.channels.transports.base import Lane, Sample
+from telebot.channels.transports.zenoh import ZenohTransport, build_zenoh_config
+from telebot.config import TransportSettings, ZenohSettings
+from telebot.errors import TransportError
+
+pytestmark = pytest.mark.zenoh
+
+PEER_SCRIPT = Path(__file__).with_name("zenoh_peer_proc.py")
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+    return port
+
+
+def listen_settings(endpoint: str, **kwargs: Any) -> ZenohSettings:
+    return ZenohSettings(listen=[endpoint], multicast_scouting=False, **kwargs)
+
+
+def connect_settings(endpoint: str, **kwargs: Any) -> ZenohSettings:
+    return ZenohSettings(connect=[endpoint], multicast_scouting=False, **kwargs)
+
+
+async def wait_until(condition: Callable[[], bool], timeout: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"condition not met within {timeout} s")
+        await asyncio.sleep(0.01)
+
+
+class Inbox:
+    """Collects batches delivered by a subscription."""
+
+    def __init__(self) -> None:
+        self.batches: list[list[Sample]] = []
+        self.event = asyncio.Event()
+
+    def __call__(self, batch: Sequence[Sample]) -> None:
+        self.batches.append(list(batch))
+        self.event.set()
+
+    @property
+    def samples(self) -> list[Sample]:
+        return [sample for batch in self.batches for sample in batch]
+
+    async def next_sample(self, timeout: float = 5.0) -> Sample:
+        """Wait for and remove the oldest sample not yet taken."""
+        async with asyncio.timeout(timeout):
+            while not self.batches:
+                self.event.clear()
+                await self.event.wait()
+        sample = self.batches[0].pop(0)
+        if not self.batches[0]:
+            self.batches.pop(0)
+        return sample
+
+
+async def warm_up(put: Callable[[bytes], None], inbox: Inbox, timeout: float = 5.0) -> None:
+    """Publish until the first sample gets through: declarations propagate asynchronously."""
+    deadline = time.monotonic() + timeout
+    while not inbox.batches:
+        if time.monotonic() > deadline:
+            raise AssertionError("no sample got through")
+        put(b"warm-up")
+        await asyncio.sleep(0.05)
+    await asyncio.sleep(0.1)  # let stray warm-ups arrive before the test proper
+    inbox.batches.clear()
+
+
+@pytest.fixture
+async def pair() -> AsyncIterator[tuple[ZenohTransport, ZenohTransport]]:
+    """Two open transports in this process: the first listens, the second connects."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    listener = ZenohTransport(listen_settings(endpoint))
+    connector = ZenohTransport(connect_settings(endpoint))
+    await listener.open()
+    try:
+        await connector.open()
+        try:
+            yield listener, connector
+        finally:
+            await connector.close()
+    finally:
+        await listener.close()
+
+
+class Peer:
+    """A zenoh peer in a child process (tests/zenoh_peer_proc.py)."""
+
+    def __init__(self, test_id: str, token: str | None = None) -> None:
+        self.test_id = test_id
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        args = [sys.executable, str(PEER_SCRIPT), "--listen", self.endpoint, "--id", test_id]
+        if token is not None:
+            args += ["--token", token]
+        env = dict(os.environ)
+        src = str(Path(__file__).resolve().parents[1] / "src")
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [src, env.get("PYTHONPATH")]))
+        self.proc = subprocess.Popen(
+            args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env
+        )
+
+    async def ready(self, timeout: float = 10.0) -> None:
+        assert self.proc.stdout is not None
+        async with asyncio.timeout(timeout):
+            line = await asyncio.to_thread(self.proc.stdout.readline)
+        if line.strip() != b"ready":
+            self.stop()
+            assert self.proc.stderr is not None
+            raise AssertionError(f"peer failed: {line!r} {self.proc.stderr.read()!r}")
+
+    def stop(self) -> None:
+        """Ask the child to exit (stdin EOF), kill it if it does not, reap it."""
+        if self.proc.poll() is None:
+            assert self.proc.stdin is not None
+            try:
+                self.proc.stdin.close()
+                self.proc.wait(timeout=3)
+            except (subprocess.TimeoutExpired, OSError):
+                self.proc.kill()
+        self.proc.wait()
+        for stream in (self.proc.stdin, self.proc.stdout, self.proc.stderr):
+            if stream is not None:
+                stream.close()
+
+
+@pytest.fixture
+def peer_factory() -> Iterator[Callable[..., Peer]]:
+    """Start child peers; every one is stopped and reaped at teardown, whatever happened."""
+    peers: list[Peer] = []
+
+    def start(test_id: str, token: str | None = None) -> Peer:
+        peer = Peer(test_id, token)
+        peers.append(peer)
+        return peer
+
+    yield start
+    for peer in peers:
+        peer.stop()
+
+
+# --- configuration -------------------------------------------------------------------
+
+
+def test_build_config_inserts_settings() -> None:
+    settings = ZenohSettings(
+        mode="client",
+        listen=["tcp/127.0.0.1:7001"],
+        connect=["tcp/10.0.0.5:7447", "tcp/10.0.0.6:7447"],
+        multicast_scouting=False,
+        options={"scouting/delay": 123, "transport/unicast/max_sessions": 7},
+    )
+    config = build_zenoh_config(settings)
+    assert config.get_json("mode") == '"client"'
+    assert config.get_json("listen/endpoints") == '["tcp/127.0.0.1:7001"]'
+    assert config.get_json("connect/endpoints") == '["tcp/10.0.0.5:7447","tcp/10.0.0.6:7447"]'
+    assert config.get_json("scouting/multicast/enabled") == "false"
+    assert config.get_json("scouting/delay") == "123"
+    assert config.get_json("transport/unicast/max_sessions") == "7"
+
+
+def test_build_config_keeps_defaults_for_empty_endpoints() -> None:
+    default = zenoh.Config()
+    config = build_zenoh_config(ZenohSettings())
+    assert config.get_json("listen/endpoints") == default.get_json("listen/endpoints")
+    assert config.get_json("connect/endpoints") == default.get_json("connect/endpoints")
+    assert config.get_json("mode") == '"peer"'
+    assert config.get_json("scouting/multicast/enabled") == "true"
+
+
+def test_build_config_file_is_loaded_then_overridden(tmp_path: Path) -> None:
+    path = tmp_path / "zenoh.json5"
+    path.write_text('{ mode: "client", scouting: { delay: 321 } }', encoding="utf-8")
+    config = build_zenoh_config(ZenohSettings(config_file=path))
+    assert config.get_json("scouting/delay") == "321"  # from the file
+    assert config.get_json("mode") == '"peer"'  # the settings win
+
+
+@pytest.mark.parametrize(
+    ("settings", "expected"),
+    [
+        (ZenohSettings(options={"bogus/key": 1}), "'bogus/key'"),
+        (ZenohSettings(options={"scouting/multicast/enabled": "yes"}), "expected a boolean"),
+        (ZenohSettings(listen=["tcp/127.0.0.1:7447", "localhost:7447"]), "'localhost:7447'"),
+        (ZenohSettings(connect=["127.0.0.1"]), "connect endpoint '127.0.0.1'"),
+        (ZenohSettings(config_file=Path("/nonexistent/zenoh.json5")), "/nonexistent/zenoh.json5"),
+    ],
+)
+def test_build_config_errors_name_the_culprit(settings: ZenohSettings, expected: str) -> None:
+    with pytest.raises(TransportError) as info:
+        build_zenoh_config(settings)
+    message = str(info.value)
+    assert expected in message
+    assert "\n" not in message
+    assert ".rs:" not in message  # no Rust source locations in user-facing errors
+    assert isinstance(info.value.__cause__, zenoh.ZError)
+
+
+async def test_open_error_is_transport_error() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    async with ZenohTransport(listen_settings(endpoint)):
+        clash = ZenohTransport(listen_settings(endpoint))
+        with pytest.raises(TransportError, match=r"127\.0\.0\.1"):
+            await clash.open()
+
+
+def test_registry_builds_zenoh_transport() -> None:
+    settings = TransportSettings(kind="zenoh", zenoh=ZenohSettings(queue_size=99))
+    transport = create_transport(settings)
+    assert isinstance(transport, ZenohTransport)
+    assert transport.name == "zenoh"
+    assert transport.settings.queue_size == 99
+
+
+# --- lifecycle -----------------------------------------------------------------------
+
+
+async def test_use_before_open_and_after_close_raises() -> None:
+    transport = ZenohTransport(listen_settings(f"tcp/127.0.0.1:{free_port()}"))
+    with pytest.raises(TransportError, match="not open"):
+        transport.publisher("test/x")
+    with pytest.raises(TransportError, match="not open"):
+        _ = transport.session_id
+    await transport.open()
+    assert len(transport.session_id) >= 16
+    int(transport.session_id, 16)  # a hex zenoh id
+    publisher = transport.publisher("test/x")
+    await transport.close()
+    await transport.close()  # idempotent
+    for use in (
+        lambda: transport.publisher("test/x"),
+        lambda: transport.subscribe("test/x", lambda batch: None),
+        lambda: transport.declare_presence("test/x"),
+        lambda: transport.watch_presence("test/x", lambda key, alive: None),
+    ):
+        with pytest.raises(TransportError, match="closed"):
+            use()
+    with pytest.raises(TransportError, match="closed"):
+        publisher.put(b"late")
+    with pytest.raises(TransportError, match="closed"):
+        await transport.open()
+
+
+async def test_default_peer_mode_works_without_router() -> None:
+    """The defaults (peer, multicast scouting on, no endpoints) open and deliver locally."""
+    async with ZenohTransport() as transport:
+        inbox = Inbox()
+        key = f"test/{uuid.uuid4().hex}/local"
+        transport.subscribe(key, inbox)
+        transport.publisher(key).put(b"hello")
+        sample = await inbox.next_sample()
+        assert sample == Sample(key, b"hello")
+
+
+async def test_close_is_bounded_even_if_zenoh_hangs(caplog: pytest.LogCaptureFixture) -> None:
+    transport = ZenohTransport(listen_settings(f"tcp/127.0.0.1:{free_port()}", close_timeout=0.3))
+    await transport.open()
+    transport.subscribe("test/**", lambda batch: None)
+    real_session: Any = transport.session
+    release = threading.Event()
+
+    class HangingSession:
+        """Stands in for a zenoh session whose close() does not return."""
+
+        def close(self) -> None:
+            release.wait(10)
+            real_session.close()
+
+    transport._session = cast(Any, HangingSession())
+    started = time.monotonic()
+    try:
+        with caplog.at_level(logging.WARNING, logger="telebot.transport.zenoh"):
+            await transport.close()
+        elapsed = time.monotonic() - started
+    finally:
+        release.set()
+    assert elapsed < 0.3 + 0.5
+    assert "did not close within" in caplog.text
+
+
+async def test_close_with_live_entities_is_quick(
+    pair: tuple[ZenohTransport, ZenohTransport],
+) -> None:
+    listener, connector = pair
+    test_id = uuid.uuid4().hex
+    events: list[tuple[str, bool]] = []
+    listener.watch_presence(f"test/{test_id}/**", lambda key, alive: events.append((key, alive)))
+    for i in range(5):
+        connector.subscribe(f"test/{test_id}/sub/{i}", lambda batch: None)
+        connector.publisher(f"test/{test_id}/pub/{i}", Lane.BULK)
+        connector.watch_presence(f"test/{test_id}/token/{i}", lambda key, alive: None)
+        connector.declare_presence(f"test/{test_id}/token/{i}")
+    await wait_until(lambda: len(events) == 5)
+    started = time.monotonic()
+    await connector.close()
+    assert time.monotonic() - started < connector.settings.close_timeout + 0.5
+    # Every token went with the session, and the other side saw it.
+    await wait_until(lambda: len(events) == 10)
+    assert sorted(key for key, alive in events if not alive) == [
+        f"test/{test_id}/token/{i}" for i in range(5)
+    ]
+
+
+# --- publish / subscribe in one process ------------------------------------------------
+
+
+async def test_roundtrip_between_two_transports(
+    pair: tuple[ZenohTransport, ZenohTransport],
+) -> None:
+    listener, connector = pair
+    test_id = uuid.uuid4().hex
+    inbox = Inbox()
+    listener.subscribe(f"test/{test_id}/in", inbox)
+    publisher = connector.publisher(f"test/{test_id}/in")
+    await warm_up(publisher.put, inbox)
+    published = connector.stats.published
+    payload = bytes(range(256)) * 4
+    publisher.put(payload)
+    sample = await inbox.next_sample()
+    assert sample.key == f"test/{test_id}/in"
+    assert sample.payload == payload
+    assert connector.stats.published == published + 1
+    assert listener.stats.received >= 1
+    assert listener.session_id != connector.session_id
+
+
+async def test_wildcard_pattern(pair: tuple[ZenohTransport, ZenohTransport]) -> None:
+    listener, connector = pair
+    test_id = uuid.uuid4().hex
+    inbox = Inbox()
+    listener.subscribe(f"test/{test_id}/**", inbox)
+    await warm_up(connector.publisher(f"test/{test_id}/warm").put, inbox)
+    connector.publisher(f"test/{test_id}/a/b/c").put(b"deep")
+    connector.publisher(f"test/{test_id}-other/a").put(b"outside")
+    connector.publisher(f"test/{test_id}/d").put(b"shallow")
+    await wait_until(lambda: len(inbox.samples) >= 2)
+    await asyncio.sleep(0.1)  # room for a wrong extra sample to show up
+    assert sorted((s.key, s.payload) for s in inbox.samples) == [
+        (f"test/{test_id}/a/b/c", b"deep"),
+        (f"test/{test_id}/d", b"shallow"),
+    ]
+
+
+async def test_closed_subscription_gets_nothing(
+    pair: tuple[ZenohTransport, ZenohTransport],
+) -> None:
+    listener, connector = pair
+    key = f"test/{uuid.uuid4().hex}/in"
+    inbox = Inbox()
+    subscription = listener.subscribe(key, inbox)
+    publisher = connector.publisher(key)
+    await warm_up(publisher.put, inbox)
+    subscription.close()
+    subscription.close()  # idempotent
+    publisher.put(b"after close")
+    await asyncio.sleep(0.3)
+    assert inbox.batches == []
+
+
+async def test_callback_error_is_logged_and_delivery_goes_on(
+    pair: tuple[ZenohTransport, ZenohTransport], caplog: pytest.LogCaptureFixture
+) -> None:
+    listener, connector = pair
+    key = f"test/{uuid.uuid4().hex}/in"
+    inbox = Inbox()
+
+    def explosive(batch: Sequence[Sample]) -> None:
+        inbox(batch)
+        if any(sample.payload == b"boom" for sample in batch):
+            raise RuntimeError("consumer bug")
+
+    listener.subscribe(key, explosive)
+    publisher = connector.publisher(key)
+    await warm_up(publisher.put, inbox)
+    with caplog.at_level(logging.ERROR, logger="telebot.transport.zenoh"):
+        publisher.put(b"boom")
+        assert (await inbox.next_sample()).payload == b"boom"
+        publisher.put(b"after")
+        assert (await inbox.next_sample()).payload == b"after"
+    assert "consumer bug" in caplog.text
+
+
+# --- batching and back-pressure -----------------------------------------------------
+
+
+async def test_burst_arrives_in_few_batches(pair: tuple[ZenohTransport, ZenohTransport]) -> None:
+    listener, connector = pair
+    key = f"test/{uuid.uuid4().hex}/burst"
+    inbox = Inbox()
+    listener.subscribe(key, inbox)
+    publisher = connector.publisher(key)
+    await warm_up(publisher.put, inbox)
+    count = 2000
+    for i in range(count):
+        publisher.put(b"%d" % i)
+    await wait_until(lambda: len(inbox.samples) >= count)
+    await asyncio.sleep(0.05)
+    assert [s.payload for s in inbox.samples] == [b"%d" % i for i in range(count)]
+    assert len(inbox.batches) < count // 10, f"{len(inbox.batches)} loop wake-ups"
+    assert listener.stats.dropped == 0
+
+
+async def test_slow_consumer_drops_oldest() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    async with (
+        ZenohTransport(listen_settings(endpoint, queue_size=16)) as listener,
+        ZenohTransport(connect_settings(endpoint)) as connector,
+    ):
+        key = f"test/{uuid.uuid4().hex}/flood"
+        inbox = Inbox()
+        count = 200
+        blocking = threading.Event()
+        sent = threading.Event()
+
+        def consumer(batch: Sequence[Sample]) -> None:
+            inbox(batch)
+            if any(sample.payload == b"block" for sample in batch):
+                # Hog the event loop while the flood arrives, as a slow consumer would.
+                blocking.set()
+                sent.wait(5)
+                deadline = time.monotonic() + 5
+                while listener.stats.received < received_before + count + 1:
+                    assert time.monotonic() < deadline, "flood did not arrive"
+                    time.sleep(0.01)
+
+        listener.subscribe(key, consumer)
+        publisher = connector.publisher(key)
+        await warm_up(publisher.put, inbox)
+        received_before = listener.stats.received
+
+        def flood() -> None:
+            blocking.wait(5)
+            for i in range(count):
+                publisher.put(b"%d" % i)
+            sent.set()
+
+        sender = threading.Thread(target=flood)
+        sender.start()
+        try:
+            publisher.put(b"block")
+            await wait_until(lambda: any(s.payload == b"199" for s in inbox.samples))
+        finally:
+            sent.set()
+            sender.join()
+        after_block = [s.payload for s in inbox.samples if s.payload != b"block"]
+        # Only the newest queue_size samples survived, in order, in one batch.
+        assert after_block == [b"%d" % i for i in range(count - 16, count)]
+        assert listener.stats.dropped == count - 16
+        assert len(inbox.batches[-1]) == 16
+
+
+# --- lanes ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("lane", "priority", "express"),
+    [
+        (Lane.CONTROL, zenoh.Priority.REAL_TIME, True),
+        (Lane.DATA, zenoh.Priority.DATA, False),
+        (Lane.BULK, zenoh.Priority.DATA_LOW, False),
+    ],
+)
+async def test_lane_qos(
+    pair: tuple[ZenohTransport, ZenohTransport], lane: Lane, priority: Any, express: bool
+) -> None:
+    listener, connector = pair
+    key = f"test/{uuid.uuid4().hex}/{lane.value}"
+    publisher = connector.publisher(key, lane)
+    assert publisher.raw.priority == priority
+    assert publisher.raw.congestion_control == zenoh.CongestionControl.DROP
+    # The QoS must also travel with the data: look at the sample the other side gets.
+    received: list[Any] = []
+    raw_sub: Any = listener.session.declare_subscriber(key, received.append)
+    try:
+        deadline = time.monotonic() + 5
+        while not received:
+            assert time.monotonic() < deadline, "nothing received"
+            publisher.put(b"x")
+            await asyncio.sleep(0.05)
+        sample = received[0]
+        assert sample.priority == priority
+        assert sample.express is express
+        assert sample.congestion_control == zenoh.CongestionControl.DROP
+    finally:
+        raw_sub.undeclare()
+
+
+# --- across two processes ------------------------------------------------------------
+
+
+async def test_roundtrip_across_processes(peer_factory: Callable[..., Peer]) -> None:
+    test_id = uuid.uuid4().hex
+    peer = peer_factory(test_id)
+    await peer.ready()
+    async with ZenohTransport(connect_settings(peer.endpoint)) as transport:
+        inbox = Inbox()
+        transport.subscribe(f"test/{test_id}/pong", inbox)
+        ping = transport.publisher(f"test/{test_id}/ping")
+        await warm_up(ping.put, inbox)
+        for size in (0, 1, 100, 1400, 8192, 32768, 32768 + 100):
+            payload = os.urandom(size)
+            ping.put(payload)
+            sample = await inbox.next_sample()
+            assert sample.key == f"test/{test_id}/pong"
+            assert sample.payload == payload, f"size {size}"
+
+
+async def test_presence_across_processes(peer_factory: Callable[..., Peer]) -> None:
+    test_id = uuid.uuid4().hex
+    token = f"test/{test_id}/presence/child"
+    peer = peer_factory(test_id, token=token)
+    await peer.ready()
+    async with ZenohTransport(connect_settings(peer.endpoint)) as transport:
+        events: list[tuple[str, bool]] = []
+        transport.watch_presence(f"test/{test_id}/presence/**", lambda k, a: events.append((k, a)))
+        await wait_until(lambda: (token, True) in events)
+        peer.proc.kill()  # SIGKILL: no goodbye, only the TCP link closing
+        started = time.monotonic()
+        await wait_until(lambda: (token, False) in events, timeout=5.0)
+        assert time.monotonic() - started < 5.0
+        assert events == [(token, True), (token, False)]
+
+
+async def test_local_presence_token_and_watch(
+    pair: tuple[ZenohTransport, ZenohTransport],
+) -> None:
+    listener, connector = pair
+    test_id = uuid.uuid4().hex
+    events: list[tuple[str, bool]] = []
+    on_loop: list[bool] = []
+    loop_thread = threading.get_ident()
+
+    def watcher(key: str, alive: bool) -> None:
+        on_loop.append(threading.get_ident() == loop_thread)
+        events.append((key, alive))
+
+    early = connector.declare_presence(f"test/{test_id}/early")
+    listener.watch_presence(f"test/{test_id}/*", watcher)
+    await wait_until(lambda: (f"test/{test_id}/early", True) in events)  # history
+    late = connector.declare_presence(f"test/{test_id}/late")
+    await wait_until(lambda: (f"test/{test_id}/late", True) in events)
+    late.close()
+    await wait_until(lambda: (f"test/{test_id}/late", False) in events)
+    assert (f"test/{test_id}/early", False) not in events
+    early.close()
+    await wait_until(lambda: (f"test/{test_id}/early", False) in events)
+    assert all(on_loop)
