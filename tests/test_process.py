@@ -91,7 +91,7 @@ async def test_frozen_user_is_dropped_by_the_robot(
     processes: list[Process],
     lease_ms: int | None,
 ) -> None:
-    robot, calls, port = robot_here
+    _, calls, port = robot_here
     user = start_user_ping(
         homes, port, write_config(tmp_path / "user.toml", lease_ms=lease_ms), processes
     )
@@ -133,7 +133,7 @@ async def test_user_sigterm_hangs_up_and_exits_within_2s(
     tmp_path: Path,
     processes: list[Process],
 ) -> None:
-    robot, calls, port = robot_here
+    _, calls, port = robot_here
     user = start_user_ping(homes, port, write_config(tmp_path / "user.toml"), processes)
     call = await asyncio.wait_for(calls.get(), 15)
     answered = await asyncio.to_thread(user.next_line, 10)

@@ -428,3 +428,16 @@ def test_initiator_read_raises_only_protocol_errors(data: bytes) -> None:
     else:
         assert data == _MSG2
         assert payload == b"welcome"
+
+
+def test_a_forged_answer_does_not_spoil_the_handshake_for_the_genuine_one() -> None:
+    initiator_static, responder_static = os.urandom(32), os.urandom(32)
+    initiator = InitiatorHandshake(initiator_static, public_key_of(responder_static), b"p")
+    responder = ResponderHandshake(responder_static, b"p")
+    responder.read_message(initiator.write_message(b"hi"))
+    genuine, _ = responder.write_message(b"welcome")
+    forged = os.urandom(len(genuine))
+    with pytest.raises(AuthenticationError):
+        initiator.read_message(forged)
+    payload, _ = initiator.read_message(genuine)
+    assert payload == b"welcome"

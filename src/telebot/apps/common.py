@@ -14,6 +14,7 @@ from typing import Any, Literal, NoReturn
 from pydantic import ValidationError
 
 from telebot import __version__
+from telebot.channels.proto.frames import validate_name
 from telebot.config import AppConfig, default_home, format_validation_error, load_toml
 from telebot.errors import CallError, ConfigError, IdentityError, TelebotError, TransportError
 
@@ -26,6 +27,8 @@ __all__ = [
     "add_home_option",
     "app_config",
     "home_of",
+    "name_arg",
+    "new_parser",
     "run",
 ]
 
@@ -53,6 +56,14 @@ def new_parser(prog: str, description: str) -> Parser:
         help="logging threshold (default: warning)",
     )
     return parser
+
+
+def name_arg(text: str) -> str:
+    """argparse type of robot and user names (they become zenoh key chunks)."""
+    try:
+        return validate_name(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
 
 
 def add_home_option(parser: argparse.ArgumentParser, kind: Literal["robot", "user"]) -> None:

@@ -19,6 +19,7 @@ from telebot.apps.common import (
     add_home_option,
     app_config,
     home_of,
+    name_arg,
     new_parser,
     run,
 )
@@ -34,7 +35,9 @@ def build_parser() -> Parser:
     commands.required = True
 
     keygen = commands.add_parser("keygen", help="create this robot's key pair")
-    keygen.add_argument("name", help="the robot's name, which users call (e.g. guiabot)")
+    keygen.add_argument(
+        "name", type=name_arg, help="the robot's name, which users call (e.g. guiabot)"
+    )
     keygen.add_argument("--force", action="store_true", help="replace an existing key")
     add_home_option(keygen, "robot")
 
@@ -46,11 +49,11 @@ def build_parser() -> Parser:
     actions.required = True
     listing = actions.add_parser("list", help="list contacts")
     add = actions.add_parser("add", help="add or replace a contact")
-    add.add_argument("name", help="the user's name")
+    add.add_argument("name", type=name_arg, help="the user's name")
     add.add_argument("public_key", help="the user's public key (or their whole .pub line)")
     add.add_argument("--role", choices=[r.value for r in Role], default=Role.OBSERVER.value)
     remove = actions.add_parser("remove", help="remove a contact")
-    remove.add_argument("name")
+    remove.add_argument("name", type=name_arg)
     for action in (listing, add, remove):
         add_home_option(action, "robot")
 

@@ -19,6 +19,7 @@ from telebot.apps.common import (
     add_home_option,
     app_config,
     home_of,
+    name_arg,
     new_parser,
     run,
 )
@@ -48,7 +49,9 @@ def build_parser() -> Parser:
     commands.required = True
 
     keygen = commands.add_parser("keygen", help="create your key pair")
-    keygen.add_argument("name", help="your user name, as robots know you (e.g. alice)")
+    keygen.add_argument(
+        "name", type=name_arg, help="your user name, as robots know you (e.g. alice)"
+    )
     keygen.add_argument("--force", action="store_true", help="replace an existing key")
     add_home_option(keygen, "user")
 
@@ -62,10 +65,10 @@ def build_parser() -> Parser:
     actions.required = True
     listing = actions.add_parser("list", help="list known robots")
     add = actions.add_parser("add", help="trust a robot's key")
-    add.add_argument("name", help="the robot's name")
+    add.add_argument("name", type=name_arg, help="the robot's name")
     add.add_argument("public_key", help="the robot's public key (or its whole .pub line)")
     remove = actions.add_parser("remove", help="forget a robot")
-    remove.add_argument("name")
+    remove.add_argument("name", type=name_arg)
     for action in (listing, add, remove):
         add_home_option(action, "user")
 
@@ -79,7 +82,7 @@ def build_parser() -> Parser:
     ping = commands.add_parser(
         "ping", help="call a robot running 'telebot-robot echo' and measure the link"
     )
-    ping.add_argument("robot", help="the robot's name")
+    ping.add_argument("robot", type=name_arg, help="the robot's name")
     add_home_option(ping, "user")
     add_connection_options(ping)
     ping.add_argument(

@@ -374,7 +374,8 @@ class _Endpoint:
                     if call is None:
                         self.stats.rejected["unknown_call"] += 1
                         continue
-                    call._on_frame(frame)
+                    with contextlib.suppress(ProtocolError):  # counted in call.stats.rejected
+                        call._on_frame(frame)
                 else:
                     self._on_handshake(frame)
             except ProtocolError as exc:
@@ -439,6 +440,10 @@ class RobotEndpoint(_Endpoint):
                 self.stats.rejected["call_id_reused"] += 1
             return
         offer, handshake = read_hello(self.identity.private_key, frame)
+        if offer.user != frame.caller:
+            raise ProtocolError(
+                f"HELLO header names {frame.caller!r} but its payload {offer.user!r}"
+            )
         contact = self.contacts.by_key(offer.caller_public_key)
         if contact is None:
             log.warning("refused a call from %r: key not in the contact list", frame.caller)
@@ -583,8 +588,11 @@ class UserEndpoint(_Endpoint):
         handshake, future = pending
         answer, keys = finish_call(handshake, frame)  # raises if not from the robot
         robot = self._pending_robot[frame.call_id]
-        if answer.robot != robot:
-            raise ProtocolError(f"WELCOME names robot {answer.robot!r}, not {robot!r}")
+        if answer.robot != robot:  # authentic, so the robot itself is misconfigured
+            future.set_exception(
+                CallError(f"the robot with {robot}'s key answered as {answer.robot!r}")
+            )
+            return
         if not answer.accepted:
             future.set_exception(CallRejected(answer.reason or f"{robot} refused the call"))
             return

@@ -129,6 +129,11 @@ class _SymmetricState:
     def split(self) -> tuple[bytes, bytes]:
         return _hkdf2(self.ck, b"")
 
+    def copy(self) -> _SymmetricState:
+        clone = object.__new__(_SymmetricState)
+        clone.h, clone.ck, clone._key, clone._nonce = self.h, self.ck, self._key, self._nonce
+        return clone
+
 
 class TransportKeys:
     """The two per-call keys a finished handshake yields, seen from one side."""
@@ -190,7 +195,8 @@ class InitiatorHandshake:
             raise RuntimeError("write the first message before reading the answer")
         if len(message) < DH_LEN + TAG_LEN:
             raise ProtocolError("handshake answer too short")
-        st = self._state
+        # Work on a copy: a forged answer must not spoil the state for the genuine one.
+        st = self._state.copy()
         re = message[:DH_LEN]
         st.mix_hash(re)
         st.mix_key(_dh(self._e, re))

@@ -1,0 +1,222 @@
+"""The command lines as a user meets them: real processes, real files, one-line errors."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from conftest import ROBOT, Homes, free_port, write_config
+from telebot import __version__
+from telebot.identity import ContactBook, KnownRobots
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def run(*args: str, timeout: float = 30) -> subprocess.CompletedProcess[str]:
+    module = "telebot.apps.robot_cli" if args[0] == "robot" else "telebot.apps.user_cli"
+    return subprocess.run(
+        [sys.executable, "-m", module, *args[1:]], capture_output=True, text=True, timeout=timeout
+    )
+
+
+def one_line_error(result: subprocess.CompletedProcess[str], *needles: str) -> None:
+    """Exit 2, exactly one line on stderr containing every needle, no traceback."""
+    assert result.returncode == 2, (result.stdout, result.stderr)
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert "Traceback" not in result.stderr
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+
+
+@pytest.mark.parametrize("side", ["robot", "user"])
+def test_help_and_version(side: str) -> None:
+    help_result = run(side, "--help")
+    assert help_result.returncode == 0
+    assert "keygen" in help_result.stdout
+    version = run(side, "--version")
+    assert version.returncode == 0
+    assert version.stdout.strip() == f"telebot-{side} {__version__}"
+
+
+@pytest.mark.parametrize(
+    ("args", "needles"),
+    [
+        (("robot", "pubkey", "--bogus"), ["unrecognized arguments: --bogus"]),
+        (("robot",), ["required: COMMAND"]),
+        (
+            ("robot", "contacts", "add", "bob", "not-a-key", "--home", "{home}"),
+            ["bad public key for bob"],
+        ),
+        (
+            ("robot", "contacts", "add", "bob", "x", "--role", "king", "--home", "{home}"),
+            ["invalid choice: 'king'"],
+        ),
+        (
+            ("robot", "contacts", "remove", "nobody", "--home", "{home}"),
+            ["no contact named 'nobody'"],
+        ),
+        (("robot", "keygen", "bad/name", "--home", "{home}"), ["invalid name 'bad/name'"]),
+        (("user", "ping", "a*", "--home", "{home}"), ["invalid name 'a*'"]),
+        (
+            ("user", "ping", ROBOT, "--count", "0", "--home", "{home}"),
+            ["--count", "must be at least 1"],
+        ),
+        (
+            ("user", "ping", ROBOT, "--size", "40000", "--home", "{home}"),
+            ["--size must be between 12 and 32768"],
+        ),
+        (("user", "ping", ROBOT, "--home", "{home}"), ["no key in", "keygen"]),
+        (
+            ("user", "known", "add", "guiabot", "AAAA", "--home", "{home}"),
+            ["bad robot name or key"],
+        ),
+        (("user", "robots", "--wait", "-1", "--home", "{home}"), ["--wait", "must be positive"]),
+    ],
+)
+def test_bad_input_gives_one_line_and_exit_2(
+    tmp_path: Path, args: tuple[str, ...], needles: list[str]
+) -> None:
+    result = run(*(a.replace("{home}", str(tmp_path / "home")) for a in args))
+    one_line_error(result, *needles)
+
+
+def test_keygen_refuses_to_overwrite_a_key(tmp_path: Path) -> None:
+    first = run("user", "keygen", "alice", "--home", str(tmp_path))
+    assert first.returncode == 0
+    assert first.stdout.strip().splitlines()[-1].startswith("telebot-x25519 ")
+    one_line_error(run("user", "keygen", "alice", "--home", str(tmp_path)), "already exists")
+    assert (
+        run("user", "pubkey", "--home", str(tmp_path)).stdout
+        == first.stdout.splitlines()[-1] + "\n"
+    )
+
+
+def test_contacts_and_known_robots_are_edited_on_disk(tmp_path: Path) -> None:
+    robot_home, user_home = tmp_path / "robot", tmp_path / "user"
+    robot_pub = run("robot", "keygen", "guiabot", "--home", str(robot_home)).stdout.splitlines()[-1]
+    user_pub = run("user", "keygen", "alice", "--home", str(user_home)).stdout.splitlines()[-1]
+    assert (
+        run(
+            "robot",
+            "contacts",
+            "add",
+            "alice",
+            user_pub,
+            "--role",
+            "driver",
+            "--home",
+            str(robot_home),
+        ).returncode
+        == 0
+    )
+    assert (
+        run("user", "known", "add", "guiabot", robot_pub, "--home", str(user_home)).returncode == 0
+    )
+    contact = ContactBook.load(robot_home).by_key(
+        __import__("telebot.identity").identity.parse_public_key(user_pub)
+    )
+    assert contact is not None and contact.name == "alice" and contact.role.value == "driver"
+    assert KnownRobots.load(user_home).names() == ["guiabot"]
+    listing = run("robot", "contacts", "list", "--home", str(robot_home))
+    assert listing.stdout.startswith("alice\tdriver\t")
+    assert run("robot", "contacts", "remove", "alice", "--home", str(robot_home)).returncode == 0
+    assert len(ContactBook.load(robot_home)) == 0
+
+
+@pytest.mark.parametrize(
+    ("config", "needles"),
+    [
+        ("[transport]\nkidn = 'zenoh'\n", ["transport.kidn: unknown key", "bad.toml"]),
+        ("[call]\ntimeout = -1\n", ["call.timeout", "greater than 0"]),
+        ("[transport.zenoh]\nmode = 'router'\n", ["transport.zenoh.mode"]),
+        ("not toml at all [", ["invalid TOML"]),
+        ("[transport]\nkind = 'smoke'\n", ["unknown transport 'smoke'", "memory", "zenoh"]),
+        ("[transport.zenoh.options]\n'bogus/key' = 1\n", ["bogus/key"]),
+    ],
+)
+def test_bad_config_gives_one_line_and_exit_2(
+    homes: Homes, tmp_path: Path, config: str, needles: list[str]
+) -> None:
+    path = tmp_path / "bad.toml"
+    path.write_text(config)
+    result = run("robot", "echo", "--home", str(homes.robot_home), "--config", str(path))
+    one_line_error(result, *needles)
+
+
+def test_shipped_configs_are_valid() -> None:
+    from telebot.config import AppConfig, load_toml
+
+    for name in ("robot.toml", "user.toml"):
+        config = load_toml(ROOT / "configs" / name, AppConfig)
+        assert config.transport.kind == "zenoh"
+        assert config.call.timeout <= 0.5
+
+
+@pytest.mark.zenoh
+def test_robots_lists_and_ping_measures_through_a_real_robot(homes: Homes, tmp_path: Path) -> None:
+    port = free_port()
+    config = str(write_config(tmp_path / "loopback.toml"))
+    robot = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "telebot.apps.robot_cli",
+            "echo",
+            "--home",
+            str(homes.robot_home),
+            "--config",
+            config,
+            "--listen",
+            f"tcp/127.0.0.1:{port}",
+            "--events",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert robot.stdout is not None
+        assert '"ready"' in robot.stdout.readline()
+        connect = [
+            "--home",
+            str(homes.user_home),
+            "--config",
+            config,
+            "--connect",
+            f"tcp/127.0.0.1:{port}",
+        ]
+        robots = run("user", "robots", "--wait", "1", *connect)
+        assert robots.returncode == 0
+        assert robots.stdout.startswith(f"{ROBOT}\tknown\t")
+        ping = run("user", "ping", ROBOT, "--count", "5", "--interval", "0.01", *connect)
+        assert ping.returncode == 0, ping.stderr
+        assert "5 sent, 5 received (0.0% loss)" in ping.stdout
+        one_line_error(run("user", "ping", "nobot", *connect), "nobot is not a known robot")
+    finally:
+        robot.terminate()
+        robot.wait(timeout=10)
+        assert robot.stdout is not None
+        robot.stdout.close()
+    assert robot.returncode == 0
+
+
+@pytest.mark.zenoh
+def test_ping_to_an_offline_robot_says_so(homes: Homes, tmp_path: Path) -> None:
+    config = str(write_config(tmp_path / "loopback.toml"))
+    result = run(
+        "user",
+        "ping",
+        ROBOT,
+        "--timeout",
+        "1",
+        "--home",
+        str(homes.user_home),
+        "--config",
+        config,
+        "--listen",
+        f"tcp/127.0.0.1:{free_port()}",
+    )
+    one_line_error(result, f"robot {ROBOT} did not answer within 1 s", "is it online?")

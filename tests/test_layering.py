@@ -1,0 +1,135 @@
+"""The layers stay visible: sans-IO protocol code does no I/O, nothing imports upwards.
+
+Layers, lowest first (a module may import from its own layer and those below)::
+
+    errors < config < channels.proto < identity < channels.transports
+           < channels (call, channel) < robot < safety < services < apps
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parent.parent / "src" / "telebot"
+
+LAYERS = [
+    "telebot.errors",
+    "telebot.config",
+    "telebot.channels.proto",
+    "telebot.identity",
+    "telebot.channels.transports",
+    "telebot.channels",
+    "telebot.robot",
+    "telebot.safety",
+    "telebot.services",
+    "telebot.apps",
+]
+
+SANS_IO_FORBIDDEN = {
+    "asyncio",
+    "zenoh",
+    "time",
+    "threading",
+    "socket",
+    "selectors",
+    "trio",
+    "anyio",
+}
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(SRC.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def layer_of(module: str) -> int | None:
+    """Index of the most specific layer ``module`` belongs to (None for telebot itself)."""
+    best: int | None = None
+    best_len = -1
+    for index, prefix in enumerate(LAYERS):
+        if (module == prefix or module.startswith(prefix + ".")) and len(prefix) > best_len:
+            best, best_len = index, len(prefix)
+    return best
+
+
+def imports_of(path: Path) -> list[str]:
+    """Every module imported anywhere in the file (inside functions and TYPE_CHECKING too)."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    found: list[str] = []
+    package = (
+        module_name(path).rsplit(".", 1)[0] if path.name != "__init__.py" else module_name(path)
+    )
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found.extend(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[: len(base) - (node.level - 1)]
+                found.append(".".join([*base, node.module] if node.module else base))
+            elif node.module:
+                found.append(node.module)
+    return found
+
+
+SOURCES = sorted(SRC.rglob("*.py"))
+
+
+def test_the_layer_map_covers_every_module() -> None:
+    unmapped = [
+        module_name(p)
+        for p in SOURCES
+        if module_name(p) != "telebot" and layer_of(module_name(p)) is None
+    ]
+    assert unmapped == []
+
+
+@pytest.mark.parametrize("path", SOURCES, ids=lambda p: module_name(p))
+def test_nothing_imports_from_a_layer_above_it(path: Path) -> None:
+    own = layer_of(module_name(path))
+    if own is None:
+        return  # telebot/__init__.py: the public face may re-export from any layer
+    upward = []
+    for imported in imports_of(path):
+        if not imported.startswith("telebot"):
+            continue
+        target = layer_of(imported)
+        if target is not None and target > own:
+            upward.append(imported)
+    assert upward == [], f"{module_name(path)} imports from layers above it: {upward}"
+
+
+@pytest.mark.parametrize(
+    "path", sorted((SRC / "channels" / "proto").rglob("*.py")), ids=lambda p: module_name(p)
+)
+def test_sans_io_modules_import_no_io_and_no_clock(path: Path) -> None:
+    bad = [name for name in imports_of(path) if name.split(".")[0] in SANS_IO_FORBIDDEN]
+    assert bad == [], f"{module_name(path)} is sans-IO but imports {bad}"
+
+
+def test_the_checker_sees_imports_it_must_refuse(tmp_path: Path) -> None:
+    # Guard against a checker that silently finds nothing.
+    proto = SRC / "channels" / "proto" / "session.py"
+    assert "telebot.channels.proto.frames" in imports_of(proto)
+    assert layer_of("telebot.apps.demo") > layer_of("telebot.channels.call")  # type: ignore[operator]
+    assert layer_of("telebot.channels.transports.zenoh") == LAYERS.index(
+        "telebot.channels.transports"
+    )
+
+
+def test_import_telebot_does_not_import_zenoh() -> None:
+    code = (
+        "import sys, telebot, telebot.channels.call, telebot.channels.transports, telebot.apps.user_cli; "
+        "from telebot.channels.transports import get_transport_class; get_transport_class('memory'); "
+        "assert 'zenoh' not in sys.modules, 'zenoh imported'; "
+        "get_transport_class('zenoh'); assert 'zenoh' in sys.modules"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 0, result.stderr
