@@ -567,7 +567,13 @@ class UserEndpoint(_Endpoint):
                     publisher.put(frame)
                     with contextlib.suppress(TimeoutError):
                         return await asyncio.wait_for(asyncio.shield(future), HELLO_RETRY_INTERVAL)
-        except TimeoutError:
+        except BaseException as exc:
+            # Answered, but the caller gave up (cancelled) at that very moment: end the
+            # call rather than leave it running unseen.
+            if future.done() and not future.cancelled() and future.exception() is None:
+                future.result().hangup_now("call set-up cancelled")
+            if not isinstance(exc, TimeoutError):
+                raise
             online = robot in {p.name for p in await self.robots_online(wait=0.0)}
             hint = "it is online but did not answer" if online else "is it online?"
             raise CallTimeout(
