@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 
-from telebot.identity import ContactBook, Identity, KnownRobots, Role
+from telebot.identity import ContactBook, Identity, KnownRobots, create_paired_homes
 
 ROBOT = "guiabot"
 USER = "alice"
@@ -51,16 +51,8 @@ class Homes:
 
 @pytest.fixture
 def homes(tmp_path: Path) -> Homes:
-    robot, user = Identity.generate(ROBOT), Identity.generate(USER)
+    robot, user = create_paired_homes(tmp_path, ROBOT, USER)
     robot_home, user_home = tmp_path / "robot", tmp_path / "user"
-    robot.save(robot_home)
-    user.save(user_home)
-    contacts = ContactBook.load(robot_home)
-    contacts.add(USER, user.public_key, Role.DRIVER)
-    contacts.save()
-    known = KnownRobots.load(user_home)
-    known.add(ROBOT, robot.public_key)
-    known.save()
     return Homes(robot_home, user_home, robot, user)
 
 

@@ -38,6 +38,7 @@ __all__ = [
     "Identity",
     "KnownRobots",
     "Role",
+    "create_paired_homes",
     "decode_key",
     "encode_key",
     "fingerprint",
@@ -297,3 +298,25 @@ class KnownRobots:
     def names(self) -> list[str]:
         """Names of all known robots."""
         return sorted(self._robots)
+
+
+def create_paired_homes(
+    base: Path, robot: str, user: str, role: Role = Role.DRIVER
+) -> tuple[Identity, Identity]:
+    """New keys under ``base/robot`` and ``base/user`` that know each other.
+
+    The robot lists the user as a contact with ``role``; the user trusts the robot's key.
+    For demos, tests and benchmarks: real files, as ``keygen``, ``contacts add`` and
+    ``known add`` would write them.
+    """
+    robot_identity, user_identity = Identity.generate(robot), Identity.generate(user)
+    robot_home, user_home = base / "robot", base / "user"
+    robot_identity.save(robot_home)
+    user_identity.save(user_home)
+    contacts = ContactBook.load(robot_home)
+    contacts.add(user, user_identity.public_key, role)
+    contacts.save()
+    known = KnownRobots.load(user_home)
+    known.add(robot, robot_identity.public_key)
+    known.save()
+    return robot_identity, user_identity

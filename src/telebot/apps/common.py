@@ -17,6 +17,7 @@ from telebot import __version__
 from telebot.channels.proto.frames import validate_name
 from telebot.config import AppConfig, default_home, format_validation_error, load_toml
 from telebot.errors import CallError, ConfigError, IdentityError, TelebotError, TransportError
+from telebot.identity import Identity
 
 __all__ = [
     "EXIT_FAILURE",
@@ -27,6 +28,7 @@ __all__ = [
     "add_home_option",
     "app_config",
     "home_of",
+    "keygen",
     "name_arg",
     "new_parser",
     "run",
@@ -134,6 +136,15 @@ async def _terminable(main: Callable[[], Coroutine[Any, Any, int]]) -> int:
         return EXIT_TERMINATED
     finally:
         loop.remove_signal_handler(signal.SIGTERM)
+
+
+def keygen(name: str, home: Path, *, overwrite: bool, kind: Literal["robot", "user"]) -> int:
+    """``keygen``: write a new key pair under ``home`` and print its public line."""
+    identity = Identity.generate(name)
+    identity.save(home, overwrite=overwrite)
+    print(f"{kind} key of {identity.name} written to {home}")
+    print(identity.public_line())
+    return EXIT_OK
 
 
 def run(prog: str, main: Callable[[], Coroutine[Any, Any, int]], log_level: str) -> int:

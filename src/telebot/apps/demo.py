@@ -24,27 +24,13 @@ from telebot.apps.ping import ping, throughput
 from telebot.channels.call import UserEndpoint
 from telebot.channels.transports import create_transport
 from telebot.config import AppConfig
-from telebot.identity import ContactBook, Identity, KnownRobots, Role
+from telebot.identity import Identity, KnownRobots, create_paired_homes
 
 
 def _free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         return int(sock.getsockname()[1])
-
-
-def _prepare_homes(base: Path) -> tuple[Path, Path]:
-    robot_home, user_home = base / "robot", base / "user"
-    robot, user = Identity.generate("guiabot"), Identity.generate("alice")
-    robot.save(robot_home)
-    user.save(user_home)
-    contacts = ContactBook.load(robot_home)
-    contacts.add("alice", user.public_key, Role.DRIVER)
-    contacts.save()
-    known = KnownRobots.load(user_home)
-    known.add("guiabot", robot.public_key)
-    known.save()
-    return robot_home, user_home
 
 
 async def _user_side(user_home: Path, endpoint: str) -> None:
@@ -88,7 +74,8 @@ async def _user_side(user_home: Path, endpoint: str) -> None:
 def main() -> int:
     """Run the demo; exit 0 when every step worked."""
     with tempfile.TemporaryDirectory(prefix="telebot-demo-") as tmp:
-        robot_home, user_home = _prepare_homes(Path(tmp))
+        create_paired_homes(Path(tmp), "guiabot", "alice")
+        robot_home, user_home = Path(tmp) / "robot", Path(tmp) / "user"
         port = _free_port()
         endpoint = f"tcp/127.0.0.1:{port}"
         print(

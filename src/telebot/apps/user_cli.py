@@ -19,6 +19,7 @@ from telebot.apps.common import (
     add_home_option,
     app_config,
     home_of,
+    keygen,
     name_arg,
     new_parser,
     run,
@@ -113,11 +114,7 @@ def main(argv: list[str] | None = None) -> int:
 
     async def command() -> int:
         if args.command == "keygen":
-            identity = Identity.generate(args.name)
-            identity.save(home, overwrite=args.force)
-            print(f"user key of {identity.name} written to {home}")
-            print(identity.public_line())
-            return EXIT_OK
+            return keygen(args.name, home, overwrite=args.force, kind="user")
         if args.command == "pubkey":
             print(Identity.load(home).public_line())
             return EXIT_OK
