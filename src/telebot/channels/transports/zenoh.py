@@ -285,42 +285,55 @@ class ZenohSubscription(Subscription, _Entity):
         self.pattern = pattern
         self._callback = callback
         # deque(maxlen) drops the oldest by itself; we only count it.
-        self._queue: collections.deque[tuple[str, bytes]] = collections.deque(maxlen=queue_size)
-        self._lock = transport._lock  # shared: it also guards the transport's counters
+        self._queue: collections.deque[Sample] = collections.deque(maxlen=queue_size)
         self._drain_scheduled = False
+        # Written only by this subscription's zenoh thread; folded into the transport's
+        # stats on the loop, so no lock is shared between the two threads.
+        self._received = 0
+        self._dropped = 0
+        self._reported = (0, 0)
         self._closed = False
         self._raw: zenoh.Subscriber[None] | None = None
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        """zenoh thread: queue the sample, wake the loop once per batch. Never waits."""
+        """zenoh thread: queue the sample, wake the loop once per batch. Never waits.
+
+        No lock: deque appends and pops are atomic, and the flag is set here and cleared
+        by the drain *before* it empties the queue, so a sample appended at any moment
+        is either taken by a drain already running or schedules the next one.
+        """
         if self._closed or sample.kind != zenoh.SampleKind.PUT:
             return
-        item = (str(sample.key_expr), sample.payload.to_bytes())  # convert outside the lock
-        stats = self._transport.stats
-        with self._lock:
-            stats.received += 1
-            if len(self._queue) == self._queue.maxlen:
-                stats.dropped += 1
-            self._queue.append(item)
-            if self._drain_scheduled:
-                return  # the pending drain will take this one too
+        queue = self._queue
+        if len(queue) == queue.maxlen:
+            self._dropped += 1
+        queue.append(Sample(str(sample.key_expr), sample.payload.to_bytes()))
+        self._received += 1
+        if not self._drain_scheduled:
             self._drain_scheduled = True
-        _call_soon(self._loop, self._drain)
+            _call_soon(self._loop, self._drain)
 
     def _drain(self) -> None:
         """Loop: deliver everything queued so far as one batch."""
-        with self._lock:
-            items = list(self._queue)
-            self._queue.clear()
-            self._drain_scheduled = False
-        if self._closed or not items:
+        self._drain_scheduled = False
+        queue = self._queue
+        pop = queue.popleft
+        batch = [pop() for _ in range(len(queue))]
+        self._report()
+        if self._closed or not batch:
             return
-        batch = [Sample(key, payload) for key, payload in items]
         try:
             self._callback(batch)
         except Exception:
             # One bad batch must not end the subscription: later batches still come.
             logger.exception("subscriber callback for %r raised", self.pattern)
+
+    def _report(self) -> None:
+        received, dropped = self._received, self._dropped
+        stats = self._transport.stats
+        stats.received += received - self._reported[0]
+        stats.dropped += dropped - self._reported[1]
+        self._reported = (received, dropped)
 
     def close(self) -> None:
         """Stop delivering and undeclare; idempotent."""
@@ -332,8 +345,7 @@ class ZenohSubscription(Subscription, _Entity):
 
     def _mark_closed(self) -> None:
         self._closed = True
-        with self._lock:
-            self._queue.clear()
+        self._queue.clear()
 
     def _undeclare(self) -> None:
         _undeclare(self._raw, f"subscriber {self.pattern}")
@@ -426,9 +438,6 @@ class ZenohTransport(Transport):
         self._loop: asyncio.AbstractEventLoop | None = None
         self._opening = False
         self._closed = False
-        # Guards the subscription queues and the received/dropped counters, which
-        # zenoh's threads update.
-        self._lock = threading.Lock()
         # Strong references to everything declared: tokens and publishers die with
         # their Python object, and close() must reach every subscriber.
         self._entities: dict[int, _Entity] = {}
