@@ -73,7 +73,7 @@ from telebot.channels.channel import ReceivedDatagram
 from telebot.channels.transports.base import Lane, Sample
 from telebot.channels.transports.zenoh import LANE_QOS, ZenohTransport, build_zenoh_config
 from telebot.config import ZenohSettings
-from telebot.identity import ContactBook, Identity, KnownRobots, Role
+from telebot.identity import ContactBook, Identity, KnownRobots, create_paired_homes
 
 SIZES: tuple[int, ...] = (64, 1024, 32768)
 DURATION = 3.0  # seconds of flooding per size
@@ -572,21 +572,6 @@ async def telebot_pings(call: Call) -> Pings:
         channel.set_callback(None)
 
 
-def make_homes(root: Path) -> tuple[Path, Path]:
-    """A robot home (key + contact list) and a user home (key + known robots)."""
-    robot, user = Identity.generate(ROBOT), Identity.generate(USER)
-    robot_home, user_home = root / "robot", root / "user"
-    robot.save(robot_home)
-    user.save(user_home)
-    contacts = ContactBook.load(robot_home)
-    contacts.add(USER, user.public_key, Role.DRIVER)
-    contacts.save()
-    known = KnownRobots.load(user_home)
-    known.add(ROBOT, robot.public_key)
-    known.save()
-    return robot_home, user_home
-
-
 async def telebot_measurements(
     port: int, user_home: Path, child: Child
 ) -> tuple[dict[int, Flood], Pings]:
@@ -608,7 +593,8 @@ async def telebot_measurements(
 def measure_telebot(profile: bool) -> tuple[dict[int, Flood], Pings]:
     """B and telebot C against one robot child, with keys in a temporary directory."""
     with tempfile.TemporaryDirectory(prefix="telebot-bench-") as tmp:
-        robot_home, user_home = make_homes(Path(tmp))
+        create_paired_homes(Path(tmp), ROBOT, USER)
+        robot_home, user_home = Path(tmp) / "robot", Path(tmp) / "user"
         port = free_port()
         child = Child(["telebot", str(port), str(robot_home)], profile=profile)
         try:
