@@ -99,6 +99,22 @@ def _read_toml(path: Path) -> dict[str, object]:
         raise ConfigError(f"{path}: cannot read: {exc}") from exc
 
 
+def _read_entries(path: Path, section: str) -> Iterator[tuple[str, dict[str, object], str]]:
+    """``(name, entry, where)`` for each ``[section.name]`` table of a contacts-like file."""
+    data = _read_toml(path)
+    unknown = set(data) - {section}
+    if unknown:
+        raise ConfigError(f"{path}: unknown key {sorted(unknown)[0]!r}")
+    table = data.get(section, {})
+    if not isinstance(table, dict):
+        raise ConfigError(f"{path}: {section!r} must be a table")
+    for name, entry in table.items():
+        where = f"{path}: {section}.{name}"
+        if not isinstance(entry, dict):
+            raise ConfigError(f"{where}: must be a table")
+        yield name, entry, where
+
+
 def _write_atomically(path: Path, text: str, mode: int = 0o644) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
@@ -190,22 +206,14 @@ class ContactBook:
     def load(cls, home: Path) -> ContactBook:
         """Read the contact list (empty when the file does not exist yet)."""
         path = home / CONTACTS_FILE
-        data = _read_toml(path)
-        unknown = set(data) - {"contacts"}
-        if unknown:
-            raise ConfigError(f"{path}: unknown key {sorted(unknown)[0]!r}")
-        table = data.get("contacts", {})
-        if not isinstance(table, dict):
-            raise ConfigError(f"{path}: 'contacts' must be a table")
         contacts: dict[str, Contact] = {}
-        for name, entry in table.items():
-            where = f"{path}: contacts.{name}"
-            if not isinstance(entry, dict) or set(entry) - {"public_key", "role"}:
+        for name, entry, where in _read_entries(path, "contacts"):
+            if set(entry) - {"public_key", "role"}:
                 raise ConfigError(f"{where}: expected only 'public_key' and 'role'")
             try:
                 validate_name(name, "contact name")
                 key = decode_key(str(entry.get("public_key", "")))
-                role = Role(entry.get("role", "observer"))
+                role = Role(str(entry.get("role", "observer")))
             except ValueError as exc:
                 raise ConfigError(f"{where}: {exc}") from exc
             contacts[name] = Contact(name, key, role)
@@ -254,17 +262,9 @@ class KnownRobots:
     def load(cls, home: Path) -> KnownRobots:
         """Read the known robots (empty when the file does not exist yet)."""
         path = home / KNOWN_ROBOTS_FILE
-        data = _read_toml(path)
-        unknown = set(data) - {"robots"}
-        if unknown:
-            raise ConfigError(f"{path}: unknown key {sorted(unknown)[0]!r}")
-        table = data.get("robots", {})
-        if not isinstance(table, dict):
-            raise ConfigError(f"{path}: 'robots' must be a table")
         robots: dict[str, bytes] = {}
-        for name, entry in table.items():
-            where = f"{path}: robots.{name}"
-            if not isinstance(entry, dict) or set(entry) != {"public_key"}:
+        for name, entry, where in _read_entries(path, "robots"):
+            if set(entry) != {"public_key"}:
                 raise ConfigError(f"{where}: expected exactly 'public_key'")
             try:
                 validate_name(name, "robot name")

@@ -216,14 +216,26 @@ def _close_session(session: _Closable) -> None:
 class _Entity:
     """Something declared on the session that the transport must undeclare on close."""
 
+    _closed: bool
+    _transport: ZenohTransport
+
+    def close(self) -> None:
+        """Stop at once, forget it in the transport and undeclare it; idempotent."""
+        if self._closed:
+            return
+        self._mark_closed()
+        self._transport._forget(self)
+        self._undeclare()
+
     def _mark_closed(self) -> None:
         """Stop delivering at once (on the loop), without calling into zenoh."""
+        self._closed = True
 
     def _undeclare(self) -> None:
         """Undeclare in zenoh; may be called from a worker thread."""
 
 
-class ZenohPublisher(Publisher, _Entity):
+class ZenohPublisher(_Entity, Publisher):
     """Publishes on one key with the QoS of one lane (see :data:`LANE_QOS`)."""
 
     def __init__(
@@ -250,22 +262,11 @@ class ZenohPublisher(Publisher, _Entity):
             raise TransportError(f"zenoh put on {self.key!r} failed: {_reason(exc)}") from exc
         self._transport.stats.published += 1
 
-    def close(self) -> None:
-        """Undeclare the publisher; idempotent."""
-        if self._closed:
-            return
-        self._closed = True
-        self._transport._forget(self)
-        self._undeclare()
-
-    def _mark_closed(self) -> None:
-        self._closed = True
-
     def _undeclare(self) -> None:
         _undeclare(self._raw, f"publisher {self.key}")
 
 
-class ZenohSubscription(Subscription, _Entity):
+class ZenohSubscription(_Entity, Subscription):
     """Delivers matching samples to a callback on the loop, in batches.
 
     zenoh's thread appends to a bounded deque and schedules one drain per batch; the
@@ -335,14 +336,6 @@ class ZenohSubscription(Subscription, _Entity):
         stats.dropped += dropped - self._reported[1]
         self._reported = (received, dropped)
 
-    def close(self) -> None:
-        """Stop delivering and undeclare; idempotent."""
-        if self._closed:
-            return
-        self._mark_closed()
-        self._transport._forget(self)
-        self._undeclare()
-
     def _mark_closed(self) -> None:
         self._closed = True
         self._queue.clear()
@@ -351,7 +344,7 @@ class ZenohSubscription(Subscription, _Entity):
         _undeclare(self._raw, f"subscriber {self.pattern}")
 
 
-class ZenohPresence(Presence, _Entity):
+class ZenohPresence(_Entity, Presence):
     """A liveliness token: alive for watchers until closed or the session ends."""
 
     def __init__(self, transport: ZenohTransport, raw: zenoh.LivelinessToken, key: str) -> None:
@@ -360,22 +353,11 @@ class ZenohPresence(Presence, _Entity):
         self.key = key
         self._closed = False
 
-    def close(self) -> None:
-        """Withdraw the token; idempotent."""
-        if self._closed:
-            return
-        self._closed = True
-        self._transport._forget(self)
-        self._undeclare()
-
-    def _mark_closed(self) -> None:
-        self._closed = True
-
     def _undeclare(self) -> None:
         _undeclare(self._raw, f"token {self.key}")
 
 
-class ZenohPresenceWatch(Subscription, _Entity):
+class ZenohPresenceWatch(_Entity, Subscription):
     """Reports liveliness tokens appearing (PUT) and vanishing (DELETE), on the loop."""
 
     def __init__(
@@ -406,17 +388,6 @@ class ZenohPresenceWatch(Subscription, _Entity):
             self._callback(key, alive)
         except Exception:
             logger.exception("presence callback for %r raised", self.pattern)
-
-    def close(self) -> None:
-        """Stop reporting and undeclare; idempotent."""
-        if self._closed:
-            return
-        self._closed = True
-        self._transport._forget(self)
-        self._undeclare()
-
-    def _mark_closed(self) -> None:
-        self._closed = True
 
     def _undeclare(self) -> None:
         _undeclare(self._raw, f"presence watch {self.pattern}")
