@@ -104,9 +104,18 @@ def test_nothing_imports_from_a_layer_above_it(path: Path) -> None:
     assert upward == [], f"{module_name(path)} imports from layers above it: {upward}"
 
 
-@pytest.mark.parametrize(
-    "path", sorted((SRC / "channels" / "proto").rglob("*.py")), ids=lambda p: module_name(p)
+# Protocol logic, service protocols and the simulated robot (stepped by the caller's clock)
+# are sans-IO.
+SANS_IO_SOURCES = sorted(
+    [
+        *(SRC / "channels" / "proto").rglob("*.py"),
+        *(SRC / "robot" / "sim").rglob("*.py"),
+        *(SRC / "services" / "proto").rglob("*.py"),
+    ]
 )
+
+
+@pytest.mark.parametrize("path", SANS_IO_SOURCES, ids=lambda p: module_name(p))
 def test_sans_io_modules_import_no_io_and_no_clock(path: Path) -> None:
     bad = [name for name in imports_of(path) if name.split(".")[0] in SANS_IO_FORBIDDEN]
     assert bad == [], f"{module_name(path)} is sans-IO but imports {bad}"
@@ -133,3 +142,16 @@ def test_import_telebot_does_not_import_zenoh() -> None:
         [sys.executable, "-c", code], capture_output=True, text=True, timeout=60
     )
     assert result.returncode == 0, result.stderr
+
+
+@pytest.mark.parametrize(
+    "path", sorted((SRC / "robot").rglob("*.py")), ids=lambda p: module_name(p)
+)
+def test_the_robot_adapter_knows_nothing_of_calls_or_transports(path: Path) -> None:
+    # The navigation stack is usable on its own (and by a ROS 2 adapter): no comms inside.
+    bad = [
+        name
+        for name in imports_of(path)
+        if name.startswith(("telebot.channels", "telebot.identity", "zenoh"))
+    ]
+    assert bad == [], f"{module_name(path)} imports {bad}"

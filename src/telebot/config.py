@@ -17,9 +17,14 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from telebot.errors import ConfigError
 
 __all__ = [
+    "HARD_MAX_ANGULAR_SPEED",
+    "HARD_MAX_LINEAR_SPEED",
     "AppConfig",
     "CallSettings",
     "MemorySettings",
+    "RobotConfig",
+    "ServiceSettings",
+    "SimSettings",
     "StrictModel",
     "TransportSettings",
     "ZenohSettings",
@@ -85,6 +90,64 @@ class CallSettings(StrictModel):
     connect_timeout: float = Field(default=5.0, gt=0, le=600)
 
 
+#: No configuration may make the simulated base faster than this (m/s).
+HARD_MAX_LINEAR_SPEED = 1.5
+#: No configuration may make the simulated base turn faster than this (rad/s).
+HARD_MAX_ANGULAR_SPEED = 3.0
+
+
+class SimSettings(StrictModel):
+    """The simulated robot: map, places, speed limits, sensors, battery (SI units)."""
+
+    #: A built-in map name (``"building"``: the 4000 × 4000 default floor, ``"small"``) or a
+    #: path to a ROS map_server YAML file.
+    map: str = "building"
+    #: A places TOML file (``[places.NAME] x, y, yaw_deg``); default: the map's own
+    #: ``<map>.places.toml`` beside its YAML, when there is one.
+    places: Path | None = None
+    #: Where the robot starts: a place name; default: the first place of the map.
+    start: str | None = None
+    #: Seed for localisation noise; the same seed gives the same run.
+    seed: int = 0
+    #: Top linear speed (m/s); the paper's robot was limited to 0.5.
+    max_linear_speed: float = Field(default=0.5, gt=0, le=HARD_MAX_LINEAR_SPEED)
+    #: Top angular speed (rad/s).
+    max_angular_speed: float = Field(default=1.0, gt=0, le=HARD_MAX_ANGULAR_SPEED)
+    #: Linear acceleration limit (m/s²), used for braking too.
+    linear_accel: float = Field(default=0.5, gt=0, le=5.0)
+    #: Angular acceleration limit (rad/s²).
+    angular_accel: float = Field(default=2.0, gt=0, le=20.0)
+    #: Radius of the (round) base; the costmap is inflated by it (m).
+    robot_radius: float = Field(default=0.25, gt=0, le=2.0)
+    #: A goal is reached within this distance (m) …
+    goal_tolerance: float = Field(default=0.05, gt=0, le=1.0)
+    #: … and this heading error (degrees), when the goal has a heading.
+    yaw_tolerance_deg: float = Field(default=2.0, gt=0, le=45.0)
+    #: Control (and laser) rate of the simulation (Hz).
+    control_hz: float = Field(default=20.0, ge=5, le=200)
+    #: Laser beams over 360° and their range (m).
+    laser_beams: int = Field(default=360, ge=8, le=4096)
+    laser_range: float = Field(default=10.0, gt=0, le=50.0)
+    #: Clearance kept in front of the base beyond its braking distance (m).
+    stop_margin: float = Field(default=0.15, ge=0, le=2.0)
+    #: How long a goal may stay blocked by an obstacle before it replans (or fails) (s).
+    blocked_timeout: float = Field(default=10.0, gt=0, le=600)
+    #: The base stops by itself when velocity commands are older than this (s).
+    cmd_vel_timeout: float = Field(default=0.5, gt=0, le=5.0)
+    #: Localisation noise: standard deviation of position (m) and heading (degrees);
+    #: the error is bounded by three standard deviations.
+    position_noise: float = Field(default=0.01, ge=0, le=0.5)
+    heading_noise_deg: float = Field(default=0.5, ge=0, le=10.0)
+    #: Hours the battery lasts standing still, and at full speed.
+    battery_idle_hours: float = Field(default=8.0, gt=0)
+    battery_moving_hours: float = Field(default=3.0, gt=0)
+    #: Charge (percent) below which the battery reports low.
+    battery_low_percent: float = Field(default=20.0, ge=0, le=100)
+    #: Camera image size (pixels).
+    camera_width: int = Field(default=640, ge=32, le=3840)
+    camera_height: int = Field(default=480, ge=24, le=2160)
+
+
 Model = TypeVar("Model", bound=BaseModel)
 
 
@@ -137,3 +200,19 @@ class AppConfig(StrictModel):
     namespace: str = Field(default="telebot", pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
     transport: TransportSettings = Field(default_factory=TransportSettings)
     call: CallSettings = Field(default_factory=CallSettings)
+
+
+class ServiceSettings(StrictModel):
+    """Rates of the robot's streaming services."""
+
+    #: Pose, velocity and status updates per second on the ``pose`` channel.
+    pose_hz: float = Field(default=10.0, gt=0, le=100)
+    #: Telemetry messages per second on the ``telemetry`` channel.
+    telemetry_hz: float = Field(default=1.0, gt=0, le=20)
+
+
+class RobotConfig(AppConfig):
+    """The config file of ``telebot-robot`` (``configs/robot.toml``): adds the robot."""
+
+    sim: SimSettings = Field(default_factory=SimSettings)
+    services: ServiceSettings = Field(default_factory=ServiceSettings)

@@ -14,10 +14,16 @@ foreign libraries (zenoh, cryptography, pydantic) are mapped at the boundary wit
     ├── ProtocolError(ValueError)         a frame or message that does not decode (sans-IO)
     │   └── AuthenticationError           a frame that fails AEAD / handshake verification
     ├── DatagramTooLarge(ValueError)      payload over 32,768 bytes, raised before any I/O
-    └── CallError                         a call could not be set up, or it ended
-        ├── CallRejected                  the robot refused the call (reason given by it)
-        ├── CallTimeout(TimeoutError)     nobody answered in time
-        └── CallEnded                     using a call that was hung up or dropped
+    ├── CallError                         a call could not be set up, or it ended
+    │   ├── CallRejected                  the robot refused the call (reason given by it)
+    │   ├── CallTimeout(TimeoutError)     nobody answered in time
+    │   └── CallEnded                     using a call that was hung up or dropped
+    └── RobotError                        the robot adapter refused or could not do something
+        ├── MapError(ValueError)          a missing or malformed map file (names the file)
+        ├── UnknownPlace(LookupError)     a place name the robot does not know (lists known ones)
+        ├── UnknownCamera(LookupError)    a camera name the robot does not have
+        ├── NoPath                        no path to a goal (outside the map, in a wall, cut off)
+        └── InvalidCommand(ValueError)    a motion request with bad numbers (NaN, infinite, …)
 """
 
 from __future__ import annotations
@@ -31,10 +37,16 @@ __all__ = [
     "ConfigError",
     "DatagramTooLarge",
     "IdentityError",
+    "InvalidCommand",
+    "MapError",
+    "NoPath",
     "ProtocolError",
+    "RobotError",
     "TelebotError",
     "TransportError",
     "TransportTimeout",
+    "UnknownCamera",
+    "UnknownPlace",
     "UnknownTransport",
 ]
 
@@ -93,3 +105,27 @@ class CallEnded(CallError):
     def __init__(self, message: str, reason: str = "") -> None:
         super().__init__(message)
         self.reason = reason
+
+
+class RobotError(TelebotError):
+    """The robot adapter refused a request or could not carry it out."""
+
+
+class MapError(RobotError, ValueError):
+    """A map file is missing or malformed; the message names the file."""
+
+
+class UnknownPlace(RobotError, LookupError):
+    """A place name the robot does not know; the message lists the known ones."""
+
+
+class UnknownCamera(RobotError, LookupError):
+    """A camera name the robot does not have; the message lists its cameras."""
+
+
+class NoPath(RobotError):
+    """The planner found no path; the message says why (``"inside an obstacle"``)."""
+
+
+class InvalidCommand(RobotError, ValueError):
+    """A motion request with numbers the robot cannot act on (not finite, out of range)."""

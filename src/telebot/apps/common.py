@@ -9,7 +9,7 @@ import signal
 import sys
 from collections.abc import Callable, Coroutine
 from pathlib import Path
-from typing import Any, Literal, NoReturn
+from typing import Any, Literal, NoReturn, TypeVar
 
 from pydantic import ValidationError
 
@@ -29,10 +29,13 @@ __all__ = [
     "app_config",
     "home_of",
     "keygen",
+    "load_app_config",
     "name_arg",
     "new_parser",
     "run",
 ]
+
+Config = TypeVar("Config", bound=AppConfig)
 
 EXIT_OK = 0
 EXIT_FAILURE = 1  # the command ran but what it asked for failed
@@ -110,7 +113,12 @@ def home_of(args: argparse.Namespace, kind: Literal["robot", "user"]) -> Path:
 
 def app_config(args: argparse.Namespace) -> AppConfig:
     """The config file (or defaults) with ``--listen`` / ``--connect`` applied."""
-    config = load_toml(args.config, AppConfig) if args.config else AppConfig()
+    return load_app_config(args, AppConfig)
+
+
+def load_app_config(args: argparse.Namespace, model: type[Config]) -> Config:
+    """``--config`` read as ``model`` (or its defaults), with ``--listen`` / ``--connect``."""
+    config = load_toml(args.config, model) if args.config else model()
     try:
         if args.listen:
             config.transport.zenoh.listen = list(args.listen)

@@ -1,0 +1,277 @@
+"""The ``NavStack`` protocol: the one interface the rest of telebot uses to talk to a robot.
+
+The simulated robot (:mod:`telebot.robot.sim`) implements it, and a real robot adapter (ROS 2
+over zenoh) will implement the same calls. Nothing here knows about simulation.
+
+Conventions (ROS REP-103): x forward, y left, yaw counter-clockwise, metres and radians, in
+the map frame. The chat command ``turn X`` (degrees, positive to the right, as in the paper)
+is translated by the chat service, not here: :meth:`NavStack.turn` takes REP-103 radians.
+
+Every method is non-blocking: commands start work and return a :class:`GoalHandle` whose
+``status`` the caller polls (or awaits through its service), and queries return the adapter's
+latest state. A motion request the robot cannot act on (a goal inside a wall, no path)
+returns a handle that has already failed, with the reason, and the robot does not move.
+Numbers that are not finite raise :class:`~telebot.errors.InvalidCommand`.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+import numpy.typing as npt
+
+from telebot.errors import InvalidCommand
+from telebot.robot.grid import OccupancyGrid
+
+__all__ = [
+    "Battery",
+    "CameraFrame",
+    "CameraInfo",
+    "GoalHandle",
+    "GoalStatus",
+    "NavStack",
+    "NavState",
+    "NavStatus",
+    "Pose2D",
+    "PoseEstimate",
+    "Velocity",
+    "normalize_angle",
+    "require_finite",
+]
+
+
+def normalize_angle(angle: float) -> float:
+    """``angle`` wrapped into ``[-π, π)``."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def require_finite(**values: float) -> None:
+    """Raise :class:`InvalidCommand` naming the first argument that is not a finite number."""
+    for name, value in values.items():
+        if not isinstance(value, int | float) or not math.isfinite(value):
+            raise InvalidCommand(f"{name} must be a finite number, not {value!r}")
+
+
+@dataclass(frozen=True, slots=True)
+class Pose2D:
+    """A planar pose in the map frame: metres and radians (REP-103)."""
+
+    x: float
+    y: float
+    yaw: float = 0.0
+
+    def distance_to(self, other: Pose2D) -> float:
+        """Euclidean distance between the two positions, in metres."""
+        return math.hypot(other.x - self.x, other.y - self.y)
+
+
+@dataclass(frozen=True, slots=True)
+class PoseEstimate:
+    """The localisation estimate: pose, 3×3 covariance over (x, y, yaw), and its time."""
+
+    pose: Pose2D
+    covariance: tuple[float, ...]
+    stamp: float
+
+
+@dataclass(frozen=True, slots=True)
+class Velocity:
+    """Base velocity: linear (m/s, forward positive) and angular (rad/s, CCW positive)."""
+
+    linear: float = 0.0
+    angular: float = 0.0
+
+
+class NavState(enum.StrEnum):
+    """What the base is doing."""
+
+    IDLE = "idle"
+    MOVING = "moving"
+    BLOCKED = "blocked"
+    FAILED = "failed"
+
+
+@dataclass(frozen=True, slots=True)
+class NavStatus:
+    """The base's state and, when blocked or failed, why (``"obstacle ahead"``)."""
+
+    state: NavState
+    detail: str = ""
+
+    def __str__(self) -> str:
+        return f"{self.state}: {self.detail}" if self.detail else str(self.state)
+
+
+class GoalStatus(enum.StrEnum):
+    """Where a navigation goal or relative move stands."""
+
+    ACTIVE = "active"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    CANCELLED = "cancelled"
+
+    @property
+    def done(self) -> bool:
+        """Whether the goal has finished (any way other than still running)."""
+        return self is not GoalStatus.ACTIVE
+
+
+@runtime_checkable
+class GoalHandle(Protocol):
+    """A running (or finished) navigation goal or relative move."""
+
+    @property
+    def goal_id(self) -> int:
+        """Unique number of this goal within the adapter."""
+        ...
+
+    @property
+    def description(self) -> str:
+        """What was asked, in words (``"goto lab"``, ``"forward 2.00 m"``)."""
+        ...
+
+    @property
+    def target(self) -> Pose2D | None:
+        """The pose the goal ends at, when known."""
+        ...
+
+    @property
+    def status(self) -> GoalStatus:
+        """Current status."""
+        ...
+
+    @property
+    def progress(self) -> float:
+        """Fraction done, 0 … 1."""
+        ...
+
+    @property
+    def reason(self) -> str:
+        """Why it failed or was cancelled; empty otherwise."""
+        ...
+
+    def cancel(self) -> None:
+        """Cancel the goal if it is still running (the robot stops)."""
+        ...
+
+
+@dataclass(frozen=True, slots=True)
+class CameraInfo:
+    """A camera the robot has."""
+
+    name: str
+    width: int
+    height: int
+    fov_deg: float
+    description: str = ""
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class CameraFrame:
+    """One picture: BGR ``uint8`` image of shape (height, width, 3), its camera and time."""
+
+    camera: str
+    image: npt.NDArray[np.uint8]
+    stamp: float
+    frame_id: int
+
+
+@dataclass(frozen=True, slots=True)
+class Battery:
+    """Battery state: charge in percent, and whether it is low."""
+
+    percent: float
+    low: bool
+    charging: bool = False
+
+
+class NavStack(Protocol):
+    """The one interface telebot uses to drive a robot (see the module docstring)."""
+
+    def map(self) -> OccupancyGrid:
+        """The robot's map (occupancy grid, resolution, origin)."""
+        ...
+
+    def pose(self) -> PoseEstimate:
+        """The latest localisation estimate."""
+        ...
+
+    def velocity(self) -> Velocity:
+        """The base's current velocity."""
+        ...
+
+    def navigate_to(
+        self, x: float, y: float, yaw: float | None = None, *, label: str = ""
+    ) -> GoalHandle:
+        """Plan and drive to ``(x, y)``, then face ``yaw`` if given (replaces any running goal).
+
+        ``label`` names the goal in messages (``"no path to lab: …"``); default: the point.
+        """
+        ...
+
+    def navigate_to_place(self, name: str) -> GoalHandle:
+        """Drive to a named place; raises :class:`~telebot.errors.UnknownPlace`."""
+        ...
+
+    def forward(self, metres: float) -> GoalHandle:
+        """Drive straight ``metres`` (negative: backwards)."""
+        ...
+
+    def turn(self, radians: float) -> GoalHandle:
+        """Turn in place by ``radians`` (REP-103: positive is counter-clockwise, to the left)."""
+        ...
+
+    def stop(self) -> None:
+        """Stop now: cancel the running goal and bring the base to rest."""
+        ...
+
+    def places(self) -> Mapping[str, Pose2D]:
+        """Named places of the map."""
+        ...
+
+    def cameras(self) -> tuple[CameraInfo, ...]:
+        """The robot's cameras."""
+        ...
+
+    @property
+    def active_camera(self) -> str:
+        """Name of the selected camera."""
+        ...
+
+    def select_camera(self, name: str) -> None:
+        """Select a camera; raises :class:`~telebot.errors.UnknownCamera`."""
+        ...
+
+    def get_frame(self, camera: str | None = None) -> CameraFrame:
+        """A fresh frame from ``camera`` (default: the active one)."""
+        ...
+
+    def battery(self) -> Battery:
+        """Battery state."""
+        ...
+
+    def status(self) -> NavStatus:
+        """Idle / moving / blocked by obstacle / failed, with why."""
+        ...
+
+    def current_goal(self) -> GoalHandle | None:
+        """The goal that is running, if any."""
+        ...
+
+    @property
+    def speed_limit(self) -> float:
+        """The linear speed cap in force (m/s), never above the configured maximum."""
+        ...
+
+    def set_speed_limit(self, linear: float) -> None:
+        """Lower (or restore, up to the configured maximum) the linear speed cap."""
+        ...
+
+    def diagnostics(self) -> Mapping[str, str]:
+        """Named health values (``{"laser": "ok", …}``) for telemetry."""
+        ...

@@ -1,0 +1,741 @@
+"""``SimNavStack``: the simulated robot behind the :class:`~telebot.robot.nav.NavStack` protocol.
+
+Stepping model: the caller passes the time to :meth:`SimNavStack.step` — ``loop.time()``
+under the daemon, any increasing numbers in tests. Each step is one control cycle: the
+laser scans, localisation updates, the controller computes one velocity command and hands
+it to the base, and the base then moves in fixed sub-steps up to ``now``. A long gap between
+steps is what a stalled control loop looks like, and the base's ``cmd_vel`` watchdog stops
+the robot ``cmd_vel_timeout`` into it, exactly as on a real base.
+
+Deterministic: the same map, settings, seed, calls and step times give the same run.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from types import MappingProxyType
+
+import numpy as np
+
+from telebot.config import SimSettings
+from telebot.errors import InvalidCommand, MapError, NoPath, RobotError, UnknownCamera, UnknownPlace
+from telebot.robot.grid import OccupancyGrid
+from telebot.robot.mapfile import load_map, load_places, places_path_for
+from telebot.robot.nav import (
+    Battery,
+    CameraFrame,
+    CameraInfo,
+    GoalStatus,
+    NavState,
+    NavStatus,
+    Pose2D,
+    PoseEstimate,
+    Velocity,
+    normalize_angle,
+    require_finite,
+)
+from telebot.robot.sim.building import resolve_map
+from telebot.robot.sim.camera import CameraModel, Renderer, default_cameras
+from telebot.robot.sim.controller import (
+    DiffDriveBase,
+    Limits,
+    PathTracker,
+    rotate_command,
+    straight_command,
+)
+from telebot.robot.sim.laser import Laser, LaserScan
+from telebot.robot.sim.planner import Costmap
+from telebot.robot.sim.world import Obstacle
+
+__all__ = ["SimGoal", "SimNavStack"]
+
+#: Longest relative move accepted (metres) and largest turn (radians).
+MAX_RELATIVE_MOVE = 100.0
+MAX_TURN = 2.0 * math.pi
+#: Time constant of the localisation error's random walk (seconds).
+NOISE_TIME_CONSTANT = 2.0
+
+
+class _Kind(enum.Enum):
+    PATH = "path"
+    STRAIGHT = "straight"
+    ROTATE = "rotate"
+
+
+class SimGoal:
+    """A goal of the simulated robot; implements :class:`~telebot.robot.nav.GoalHandle`."""
+
+    def __init__(
+        self,
+        stack: SimNavStack,
+        goal_id: int,
+        kind: _Kind,
+        description: str,
+        target: Pose2D | None,
+    ) -> None:
+        self._stack = stack
+        self._id = goal_id
+        self.kind = kind
+        self._description = description
+        self._target = target
+        self._status = GoalStatus.ACTIVE
+        self._progress = 0.0
+        self._reason = ""
+        # Geometry of the motion, filled in by the stack.
+        self.tracker: PathTracker | None = None
+        self.final_yaw: float | None = None
+        self.aligning = False
+        self.start = Pose2D(0.0, 0.0, 0.0)
+        self.distance = 0.0
+        self.angle = 0.0
+        self.turned = 0.0
+        self.last_yaw = 0.0
+        self.blocked_since: float | None = None
+        self.replans = 0
+
+    @property
+    def goal_id(self) -> int:
+        """Unique number of this goal within the stack."""
+        return self._id
+
+    @property
+    def description(self) -> str:
+        """What was asked, in words."""
+        return self._description
+
+    @property
+    def target(self) -> Pose2D | None:
+        """The pose the goal ends at (a turn's target heading at the start position)."""
+        return self._target
+
+    @property
+    def status(self) -> GoalStatus:
+        """Current status."""
+        return self._status
+
+    @property
+    def progress(self) -> float:
+        """Fraction done, 0 … 1."""
+        return self._progress
+
+    @property
+    def reason(self) -> str:
+        """Why it failed or was cancelled; empty otherwise."""
+        return self._reason
+
+    @property
+    def blocked(self) -> bool:
+        """Whether an obstacle is holding this goal up right now."""
+        return self.blocked_since is not None
+
+    def cancel(self) -> None:
+        """Cancel the goal if it is still running; the robot stops."""
+        self._stack._cancel_goal(self, "cancelled")
+
+    def _finish(self, status: GoalStatus, reason: str = "") -> None:
+        self._status = status
+        self._reason = reason
+        self.blocked_since = None
+        if status is GoalStatus.SUCCEEDED:
+            self._progress = 1.0
+
+    def _set_progress(self, value: float) -> None:
+        self._progress = max(self._progress, min(max(value, 0.0), 1.0))
+
+    def __repr__(self) -> str:
+        return f"<SimGoal {self._id} {self._description!r} {self._status}>"
+
+
+class SimNavStack:
+    """A simulated differential-drive robot on a ROS map (see the module docstring)."""
+
+    def __init__(
+        self,
+        grid: OccupancyGrid,
+        places: Mapping[str, Pose2D] | None = None,
+        settings: SimSettings | None = None,
+        *,
+        start: Pose2D | None = None,
+        now: float = 0.0,
+        map_name: str = "map",
+    ) -> None:
+        self._settings = settings = settings if settings is not None else SimSettings()
+        self._grid = grid
+        self._map_name = map_name
+        self._places = {name.lower(): pose for name, pose in (places or {}).items()}
+        self._limits = Limits(
+            linear_speed=settings.max_linear_speed,
+            angular_speed=settings.max_angular_speed,
+            linear_accel=settings.linear_accel,
+            angular_accel=settings.angular_accel,
+        )
+        self._costmap = Costmap.from_grid(grid, settings.robot_radius)
+        self._laser = Laser(grid, beams=settings.laser_beams, range_max=settings.laser_range)
+        self._renderer: Renderer | None = None  # built on the first frame: tests rarely need it
+        self._cameras: dict[str, CameraModel] = {
+            model.name: model
+            for model in default_cameras(settings.camera_width, settings.camera_height)
+        }
+        self._active_camera = next(iter(self._cameras))
+        self._frame_id = 0
+
+        if start is None:
+            if not self._places:
+                raise RobotError("the map has no places: give a start pose")
+            start = next(iter(self._places.values()))
+        require_finite(x=start.x, y=start.y, yaw=start.yaw)
+        if not self._costmap.is_free(start.x, start.y):
+            raise RobotError(
+                f"start pose ({start.x:.2f}, {start.y:.2f}) is not free space on the map"
+            )
+        self._base = DiffDriveBase(
+            limits=self._limits,
+            cmd_vel_timeout=settings.cmd_vel_timeout,
+            pose=Pose2D(start.x, start.y, normalize_angle(start.yaw)),
+        )
+        self._now = float(now)
+        self._rng = np.random.default_rng(settings.seed)
+        self._noise = np.zeros(3)
+        self._sigma = np.array(
+            [
+                settings.position_noise,
+                settings.position_noise,
+                math.radians(settings.heading_noise_deg),
+            ]
+        )
+        self._obstacles: dict[int, Obstacle] = {}
+        self._next_obstacle_id = 1
+        self._next_goal_id = 1
+        self._goal: SimGoal | None = None
+        self._last_goal: SimGoal | None = None
+        self._teleop = False
+        self._teleop_blocked = False
+        self._speed_limit = settings.max_linear_speed
+        self._battery = 100.0
+        self._collisions = 0
+        self._scan: LaserScan = self._laser.scan(self._base.pose, ())
+
+    # ------------------------------------------------------------------ construction
+
+    @classmethod
+    def from_settings(
+        cls, settings: SimSettings | None = None, *, base_dir: Path | None = None, now: float = 0.0
+    ) -> SimNavStack:
+        """Load the map and places named by ``settings`` (relative paths from ``base_dir``).
+
+        Raises :class:`~telebot.errors.MapError` or :class:`~telebot.errors.ConfigError`
+        naming the file at fault, :class:`~telebot.errors.UnknownPlace` for a bad ``start``.
+        """
+        settings = settings if settings is not None else SimSettings()
+        yaml_path = resolve_map(settings.map, base_dir)
+        grid = load_map(yaml_path)
+        if settings.places is not None:
+            places_file = settings.places
+            if base_dir is not None and not places_file.is_absolute():
+                places_file = base_dir / places_file
+            places = load_places(places_file)
+        else:
+            default_places = places_path_for(yaml_path)
+            places = load_places(default_places) if default_places.exists() else {}
+        start = None
+        if settings.start is not None:
+            start = _lookup_place(places, settings.start)
+        stack = cls(grid, places, settings, start=start, now=now, map_name=settings.map)
+        if start is None and not places:
+            raise MapError(f"{yaml_path}: the map has no places file: set sim.start")
+        return stack
+
+    # ------------------------------------------------------------------ NavStack: queries
+
+    def map(self) -> OccupancyGrid:
+        """The occupancy grid."""
+        return self._grid
+
+    def pose(self) -> PoseEstimate:
+        """The localisation estimate: true pose plus bounded, slowly varying noise."""
+        var = self._sigma**2
+        return PoseEstimate(
+            pose=self._estimate(),
+            covariance=(var[0], 0.0, 0.0, 0.0, var[1], 0.0, 0.0, 0.0, var[2]),
+            stamp=self._now,
+        )
+
+    def velocity(self) -> Velocity:
+        """The base's current velocity."""
+        return self._base.velocity
+
+    def places(self) -> Mapping[str, Pose2D]:
+        """Named places (lower-case names)."""
+        return MappingProxyType(self._places)
+
+    def battery(self) -> Battery:
+        """Battery charge; it drains with time and faster with motion."""
+        return Battery(
+            percent=round(self._battery, 2),
+            low=self._battery < self._settings.battery_low_percent,
+        )
+
+    def current_goal(self) -> SimGoal | None:
+        """The running goal, if any."""
+        return self._goal
+
+    def status(self) -> NavStatus:
+        """Idle, moving, blocked by an obstacle, or failed (with the last goal's reason)."""
+        goal = self._goal
+        if goal is not None:
+            if goal.blocked:
+                return NavStatus(NavState.BLOCKED, "obstacle ahead")
+            return NavStatus(NavState.MOVING, goal.description)
+        if self._teleop and self._teleop_blocked:
+            return NavStatus(NavState.BLOCKED, "obstacle ahead")
+        if self._teleop and self._base.velocity != Velocity():
+            return NavStatus(NavState.MOVING, "manual driving")
+        last = self._last_goal
+        if not self._teleop and last is not None and last.status is GoalStatus.FAILED:
+            return NavStatus(NavState.FAILED, last.reason)
+        if self._base.velocity != Velocity():
+            return NavStatus(NavState.MOVING, "braking")
+        return NavStatus(NavState.IDLE)
+
+    @property
+    def speed_limit(self) -> float:
+        """Linear speed cap in force (m/s)."""
+        return self._speed_limit
+
+    def set_speed_limit(self, linear: float) -> None:
+        """Set the linear speed cap; never above the configured top speed."""
+        require_finite(linear=linear)
+        if linear < 0:
+            raise InvalidCommand(f"speed limit must be ≥ 0, not {linear}")
+        self._speed_limit = min(float(linear), self._settings.max_linear_speed)
+
+    def diagnostics(self) -> Mapping[str, str]:
+        """Health values for telemetry."""
+        grid = self._grid
+        hits = int(np.count_nonzero(self._scan.ranges < self._scan.range_max))
+        return {
+            "map": f"{self._map_name} {grid.width}x{grid.height} @ {grid.resolution:g} m",
+            "laser": f"ok, {hits}/{len(self._scan.ranges)} beams hit",
+            "localisation": f"ok, sigma {self._settings.position_noise:g} m",
+            "base_watchdog": f"{self._base.watchdog_trips} stop(s) on stale commands",
+            "collisions": str(self._collisions),
+            "obstacles": str(len(self._obstacles)),
+            "speed_limit": f"{self._speed_limit:g} m/s",
+            "battery": f"{self._battery:.1f}%",
+        }
+
+    # ------------------------------------------------------------------ NavStack: cameras
+
+    def cameras(self) -> tuple[CameraInfo, ...]:
+        """The two cameras: ``navcam`` (forward, for driving) and ``usercam`` (for people)."""
+        return tuple(
+            CameraInfo(m.name, m.width, m.height, m.fov_deg, m.description)
+            for m in self._cameras.values()
+        )
+
+    @property
+    def active_camera(self) -> str:
+        """The selected camera's name."""
+        return self._active_camera
+
+    def select_camera(self, name: str) -> None:
+        """Select ``name`` (case-insensitive)."""
+        self._active_camera = self._camera(name).name
+
+    def get_frame(self, camera: str | None = None) -> CameraFrame:
+        """Render what ``camera`` (default: the active one) sees from the true pose now."""
+        model = self._camera(camera if camera is not None else self._active_camera)
+        if self._renderer is None:
+            self._renderer = Renderer(self._grid)
+        image = self._renderer.render(self._base.pose, model, tuple(self._obstacles.values()))
+        self._frame_id += 1
+        return CameraFrame(camera=model.name, image=image, stamp=self._now, frame_id=self._frame_id)
+
+    def _camera(self, name: str) -> CameraModel:
+        model = self._cameras.get(name.strip().lower())
+        if model is None:
+            known = ", ".join(self._cameras)
+            raise UnknownCamera(f"unknown camera {name!r}; cameras: {known}")
+        return model
+
+    # ------------------------------------------------------------------ NavStack: motion
+
+    def navigate_to(
+        self, x: float, y: float, yaw: float | None = None, *, label: str = ""
+    ) -> SimGoal:
+        """Plan from the estimated pose to ``(x, y)`` and drive there; face ``yaw`` if given."""
+        require_finite(x=x, y=y)
+        if yaw is not None:
+            require_finite(yaw=yaw)
+        label = label or f"({x:.2f}, {y:.2f})"
+        target = Pose2D(x, y, normalize_angle(yaw) if yaw is not None else math.nan)
+        goal = self._new_goal(_Kind.PATH, f"goto {label}", target)
+        if goal.status is not GoalStatus.ACTIVE:
+            return goal
+        here = self._estimate()
+        try:
+            path = self._costmap.plan((here.x, here.y), (x, y))
+        except NoPath as exc:
+            return self._fail_at_once(goal, f"no path to {label}: {exc}")
+        goal.tracker = PathTracker(path.waypoints)
+        goal.final_yaw = None if yaw is None else normalize_angle(yaw)
+        return self._start(goal)
+
+    def navigate_to_place(self, name: str) -> SimGoal:
+        """Drive to a named place (case-insensitive); unknown names list the known ones."""
+        pose = _lookup_place(self._places, name)
+        return self.navigate_to(pose.x, pose.y, pose.yaw, label=name.strip().lower())
+
+    def forward(self, metres: float) -> SimGoal:
+        """Drive straight ``metres`` along the current heading (negative: backwards)."""
+        require_finite(metres=metres)
+        if abs(metres) > MAX_RELATIVE_MOVE:
+            raise InvalidCommand(f"move of {metres} m is over the {MAX_RELATIVE_MOVE:g} m limit")
+        here = self._estimate()
+        target = Pose2D(
+            here.x + metres * math.cos(here.yaw), here.y + metres * math.sin(here.yaw), here.yaw
+        )
+        goal = self._new_goal(_Kind.STRAIGHT, f"forward {metres:.2f} m", target)
+        if goal.status is not GoalStatus.ACTIVE:
+            return goal
+        goal.start = here
+        goal.distance = float(metres)
+        return self._start(goal)
+
+    def turn(self, radians: float) -> SimGoal:
+        """Turn on the spot by ``radians`` (REP-103: positive is counter-clockwise)."""
+        require_finite(radians=radians)
+        if abs(radians) > MAX_TURN:
+            raise InvalidCommand(f"turn of {math.degrees(radians):.0f}° is over one full turn")
+        here = self._estimate()
+        target = Pose2D(here.x, here.y, normalize_angle(here.yaw + radians))
+        goal = self._new_goal(_Kind.ROTATE, f"turn {math.degrees(radians):.1f}°", target)
+        if goal.status is not GoalStatus.ACTIVE:
+            return goal
+        goal.angle = float(radians)
+        goal.last_yaw = here.yaw
+        return self._start(goal)
+
+    def stop(self) -> None:
+        """Stop now: the running goal is cancelled and the base brakes within one tick."""
+        if self._goal is not None:
+            self._end_goal(self._goal, GoalStatus.CANCELLED, "stopped")
+        self._teleop = False
+        self._base.halt()
+
+    def cancel(self) -> None:
+        """Cancel the running goal, if any (the robot stops)."""
+        if self._goal is not None:
+            self._cancel_goal(self._goal, "cancelled")
+
+    def drive(self, linear: float, angular: float) -> None:
+        """Manual velocity command (teleoperation); repeat it, or the base watchdog stops it.
+
+        Replaces any running goal. The laser still stops the base before an obstacle.
+        """
+        require_finite(linear=linear, angular=angular)
+        if self._goal is not None:
+            self._end_goal(self._goal, GoalStatus.CANCELLED, "replaced by manual driving")
+        self._teleop = True
+        self._base.set_command(Velocity(float(linear), float(angular)), self._now)
+
+    # ------------------------------------------------------------------ simulation only
+
+    @property
+    def now(self) -> float:
+        """Simulation time of the last step."""
+        return self._now
+
+    @property
+    def settings(self) -> SimSettings:
+        """The settings the robot was built with."""
+        return self._settings
+
+    @property
+    def true_pose(self) -> Pose2D:
+        """Where the robot really is (the estimate in :meth:`pose` is noisy)."""
+        return self._base.pose
+
+    @property
+    def collisions(self) -> int:
+        """Sub-steps in which the base would have touched something and was held back."""
+        return self._collisions
+
+    def laser_scan(self) -> LaserScan:
+        """The latest laser scan (taken at the last step)."""
+        return self._scan
+
+    def add_obstacle(self, obstacle: Obstacle) -> int:
+        """Put a dynamic obstacle in the world; returns its id for :meth:`remove_obstacle`."""
+        obstacle_id = self._next_obstacle_id
+        self._next_obstacle_id += 1
+        self._obstacles[obstacle_id] = obstacle
+        return obstacle_id
+
+    def remove_obstacle(self, obstacle_id: int) -> None:
+        """Take a dynamic obstacle away (unknown ids are ignored)."""
+        self._obstacles.pop(obstacle_id, None)
+
+    @property
+    def obstacles(self) -> Mapping[int, Obstacle]:
+        """The dynamic obstacles by id."""
+        return MappingProxyType(self._obstacles)
+
+    def set_battery(self, percent: float) -> None:
+        """Set the charge (for tests and demonstrations)."""
+        require_finite(percent=percent)
+        self._battery = min(max(float(percent), 0.0), 100.0)
+
+    def step(self, now: float) -> None:
+        """Run one control cycle at ``now`` and move the base up to ``now``."""
+        require_finite(now=now)
+        dt_total = now - self._now
+        if dt_total <= 0:
+            return
+        self._update_localisation(dt_total)
+        obstacles = tuple(self._obstacles.values())
+        self._scan = self._laser.scan(self._base.pose, obstacles)
+        if self._goal is not None:
+            self._control(self._goal, self._now)
+        self._teleop_blocked = False
+        if self._teleop:
+            self._guard_teleop()
+        self._move(now, obstacles)
+
+    # ------------------------------------------------------------------ internals
+
+    def _estimate(self) -> Pose2D:
+        pose = self._base.pose
+        return Pose2D(
+            pose.x + float(self._noise[0]),
+            pose.y + float(self._noise[1]),
+            normalize_angle(pose.yaw + float(self._noise[2])),
+        )
+
+    def _update_localisation(self, dt: float) -> None:
+        # A mean-reverting random walk, clipped at three standard deviations: the error
+        # drifts slowly like AMCL's rather than jumping every cycle, and stays bounded.
+        decay = math.exp(-dt / NOISE_TIME_CONSTANT)
+        kick = self._sigma * math.sqrt(1.0 - decay * decay)
+        self._noise = self._noise * decay + self._rng.normal(0.0, 1.0, 3) * kick
+        self._noise = np.clip(self._noise, -3.0 * self._sigma, 3.0 * self._sigma)
+
+    def _new_goal(self, kind: _Kind, description: str, target: Pose2D | None) -> SimGoal:
+        goal = SimGoal(self, self._next_goal_id, kind, description, target)
+        self._next_goal_id += 1
+        if self._battery <= 0.0:
+            return self._fail_at_once(goal, "battery empty")
+        return goal
+
+    def _fail_at_once(self, goal: SimGoal, reason: str) -> SimGoal:
+        # A goal that cannot start leaves the running one alone: a typo must not stop a
+        # robot that is driving somewhere sensible.
+        goal._finish(GoalStatus.FAILED, reason)
+        if self._goal is None:
+            self._last_goal = goal
+        return goal
+
+    def _start(self, goal: SimGoal) -> SimGoal:
+        if self._goal is not None:
+            self._end_goal(self._goal, GoalStatus.CANCELLED, "replaced by a new goal")
+        self._teleop = False
+        self._goal = goal
+        return goal
+
+    def _end_goal(self, goal: SimGoal, status: GoalStatus, reason: str = "") -> None:
+        goal._finish(status, reason)
+        if self._goal is goal:
+            self._goal = None
+            self._last_goal = goal
+            # Brake within the acceleration limits; stop() additionally halts at once.
+            self._base.set_command(Velocity(), self._now)
+
+    def _cancel_goal(self, goal: SimGoal, reason: str) -> None:
+        if goal.status is GoalStatus.ACTIVE:
+            self._end_goal(goal, GoalStatus.CANCELLED, reason)
+            self._base.halt()
+
+    def _control(self, goal: SimGoal, now: float) -> None:
+        """One control cycle for ``goal``: a command for the base, or the goal's end."""
+        here = self._estimate()
+        limits = self._limits
+        settings = self._settings
+        remaining = math.inf
+        if goal.kind is _Kind.ROTATE or goal.aligning:
+            if goal.kind is _Kind.ROTATE:
+                goal.turned += normalize_angle(here.yaw - goal.last_yaw)
+                goal.last_yaw = here.yaw
+                error = goal.angle - goal.turned
+                goal._set_progress(1.0 - abs(error) / max(abs(goal.angle), 1e-9))
+            else:
+                assert goal.final_yaw is not None
+                error = normalize_angle(goal.final_yaw - here.yaw)
+            if abs(error) <= math.radians(settings.yaw_tolerance_deg) and (
+                abs(self._base.velocity.angular) < 0.05
+            ):
+                self._end_goal(goal, GoalStatus.SUCCEEDED)
+                return
+            command = Velocity(0.0, rotate_command(error, limits))
+        elif goal.kind is _Kind.STRAIGHT:
+            command, remaining = straight_command(here, goal.start, goal.distance, limits)
+            goal._set_progress(1.0 - abs(remaining) / max(abs(goal.distance), 1e-9))
+            if abs(remaining) <= settings.goal_tolerance:
+                self._end_goal(goal, GoalStatus.SUCCEEDED)
+                return
+        else:
+            tracker = goal.tracker
+            assert tracker is not None
+            gx, gy = tracker.goal
+            if math.hypot(gx - here.x, gy - here.y) <= settings.goal_tolerance:
+                goal._set_progress(1.0)
+                if goal.final_yaw is None:
+                    self._end_goal(goal, GoalStatus.SUCCEEDED)
+                    return
+                goal.aligning = True
+                self._control(goal, now)
+                return
+            remaining = tracker.remaining(here)
+            if tracker.length > 0:
+                goal._set_progress(1.0 - remaining / tracker.length)
+            command = tracker.command(here, limits)
+
+        if command.linear != 0.0 or self._base.velocity.linear != 0.0:
+            direction = math.copysign(1.0, command.linear or self._base.velocity.linear)
+            blocked, static = self._front_blocked(direction, remaining)
+            if blocked:
+                command = Velocity(0.0, 0.0)
+                if goal.blocked_since is None:
+                    goal.blocked_since = now
+                if goal.kind is _Kind.STRAIGHT and static:
+                    # A wall does not move away: say so now rather than wait.
+                    self._end_goal(goal, GoalStatus.FAILED, "stopped: obstacle ahead")
+                    return
+                if now - goal.blocked_since >= settings.blocked_timeout:
+                    self._blocked_too_long(goal, here)
+                    return
+            else:
+                goal.blocked_since = None
+        self._base.set_command(command, now)
+
+    def _blocked_too_long(self, goal: SimGoal, here: Pose2D) -> None:
+        if goal.kind is not _Kind.PATH or goal.tracker is None:
+            self._end_goal(goal, GoalStatus.FAILED, "stopped: obstacle ahead")
+            return
+        costmap = self._costmap.with_obstacles(tuple(self._obstacles.values()))
+        try:
+            path = costmap.plan((here.x, here.y), goal.tracker.goal)
+        except NoPath as exc:
+            self._end_goal(
+                goal, GoalStatus.FAILED, f"stopped: obstacle ahead, no way around ({exc})"
+            )
+            return
+        goal.tracker = PathTracker(path.waypoints)
+        goal.blocked_since = None
+        goal.replans += 1
+
+    def _front_blocked(self, direction: float, remaining: float) -> tuple[bool, bool]:
+        """Whether a laser hit lies in the strip the base will sweep before it can stop.
+
+        Returns ``(blocked, static)``; ``static`` when a blocking hit is on a map wall.
+        """
+        settings = self._settings
+        speed = abs(self._base.velocity.linear)
+        reach = braking_speed_distance(speed, settings.linear_accel) + settings.stop_margin
+        # Near the goal only the distance still to drive matters, so a goal just in front
+        # of a wall is reachable.
+        reach = min(reach, remaining + 0.02)
+        length = settings.robot_radius + max(reach, 0.0)
+        points = self._scan.points()
+        if points.size == 0:
+            return False, False
+        ahead = points[:, 0] * direction
+        mask = (ahead > 0.0) & (ahead <= length) & (np.abs(points[:, 1]) < settings.robot_radius)
+        if not mask.any():
+            return False, False
+        pose = self._base.pose
+        cos_y, sin_y = math.cos(pose.yaw), math.sin(pose.yaw)
+        static = False
+        for px, py in points[mask]:
+            wx = pose.x + px * cos_y - py * sin_y
+            wy = pose.y + px * sin_y + py * cos_y
+            if not self._near_dynamic_obstacle(wx, wy):
+                static = True
+                break
+        return True, static
+
+    def _near_dynamic_obstacle(self, x: float, y: float) -> bool:
+        tolerance = 2.0 * self._grid.resolution
+        return any(
+            math.hypot(x - obs.x, y - obs.y) <= obs.radius + tolerance
+            for obs in self._obstacles.values()
+        )
+
+    def _guard_teleop(self) -> None:
+        command = self._base.command
+        direction = command.linear or self._base.velocity.linear
+        if direction == 0.0:
+            return
+        blocked, _ = self._front_blocked(math.copysign(1.0, direction), math.inf)
+        if blocked:
+            self._teleop_blocked = True
+            # Keep the command's time: being blocked must not refresh the watchdog. The
+            # obstacle is beyond the braking distance, so the normal deceleration suffices.
+            self._base.command = Velocity(0.0, command.angular)
+
+    def _move(self, now: float, obstacles: Sequence[Obstacle]) -> None:
+        dt_max = 1.0 / self._settings.control_hz
+        settings = self._settings
+        while self._now < now - 1e-12:
+            dt = min(dt_max, now - self._now)
+            t = self._now + dt
+            target = self._base.target(t, self._speed_limit)
+            before = self._base.pose
+            after = self._base.advance(target, dt, self._speed_limit)
+            if self._pose_allowed(before, after, obstacles):
+                self._base.commit(after)
+            else:
+                self._collisions += 1
+                self._base.halt()
+            speed_share = abs(self._base.velocity.linear) / settings.max_linear_speed
+            idle_rate = 100.0 / (settings.battery_idle_hours * 3600.0)
+            moving_rate = 100.0 / (settings.battery_moving_hours * 3600.0)
+            drain = idle_rate + max(moving_rate - idle_rate, 0.0) * speed_share
+            self._battery = max(self._battery - drain * dt, 0.0)
+            self._now = t
+        self._now = now
+        if self._battery <= 0.0 and (self._goal is not None or self._teleop):
+            if self._goal is not None:
+                self._end_goal(self._goal, GoalStatus.FAILED, "battery empty")
+            self._teleop = False
+            self._base.halt()
+
+    def _pose_allowed(self, before: Pose2D, after: Pose2D, obstacles: Sequence[Obstacle]) -> bool:
+        """Physics guard: the base never moves into a wall or an obstacle."""
+        free_after = self._costmap.is_free(after.x, after.y)
+        if not free_after and self._costmap.is_free(before.x, before.y):
+            return False
+        radius = self._settings.robot_radius
+        for obs in obstacles:
+            gap_after = math.hypot(after.x - obs.x, after.y - obs.y) - obs.radius - radius
+            if gap_after < 0:
+                gap_before = math.hypot(before.x - obs.x, before.y - obs.y) - obs.radius - radius
+                if gap_after < gap_before:
+                    return False
+        return True
+
+
+def braking_speed_distance(speed: float, accel: float) -> float:
+    """Distance needed to stop from ``speed`` at deceleration ``accel``."""
+    return speed * speed / (2.0 * accel)
+
+
+def _lookup_place(places: Mapping[str, Pose2D], name: str) -> Pose2D:
+    key = name.strip().lower()
+    for place, pose in places.items():
+        if place.lower() == key:
+            return pose
+    known = ", ".join(sorted(places)) or "none"
+    raise UnknownPlace(f"unknown place {name!r}; known places: {known}")
