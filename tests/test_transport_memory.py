@@ -6,6 +6,7 @@ import asyncio
 import itertools
 from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from contextlib import AsyncExitStack
+from pathlib import Path
 
 import pytest
 
@@ -539,3 +540,49 @@ async def test_from_settings_and_registry() -> None:
     async with transport:
         assert transport.node in transport.hub.nodes
     assert transport.node not in transport.hub.nodes
+
+
+async def test_a_call_whose_answer_is_lost_for_longer_than_the_timeout_still_comes_up(
+    tmp_path: Path,
+) -> None:
+    # The robot's answers are lost for 1 s (twice the call timeout): the caller keeps
+    # repeating its HELLO, which keeps the robot's half of the call alive, so once the
+    # answer gets through the call works, instead of dying at once on the robot's side.
+    from telebot.apps.echo import echo_call
+    from telebot.channels.call import RobotEndpoint, UserEndpoint
+    from telebot.config import CallSettings
+    from telebot.identity import ContactBook, Identity, KnownRobots, create_paired_homes
+
+    create_paired_homes(tmp_path, "guiabot", "alice")
+    hub = MemoryHub(seed=3)
+    settings = CallSettings(timeout=0.5)
+    async with (
+        MemoryTransport(hub, "robot") as robot_transport,
+        MemoryTransport(hub, "user") as user_transport,
+        RobotEndpoint(
+            robot_transport,
+            Identity.load(tmp_path / "robot"),
+            ContactBook.load(tmp_path / "robot"),
+            settings=settings,
+        ) as robot,
+        UserEndpoint(
+            user_transport,
+            Identity.load(tmp_path / "user"),
+            KnownRobots.load(tmp_path / "user"),
+            settings=settings,
+        ) as user,
+    ):
+        robot.on_call = lambda call: echo_call(call, robot, lambda event: None)
+        hub.link("robot", "user").loss = 1.0
+        calling = asyncio.create_task(user.call("guiabot", timeout=5.0))
+        await asyncio.sleep(1.0)
+        assert not calling.done()
+        hub.link("robot", "user").loss = 0.0
+        call = await calling
+        chat = call.channel("chat")
+        await asyncio.sleep(1.0)  # longer than the timeout: a dead half would show now
+        assert call.active
+        chat.send("still there?")
+        reply = await asyncio.wait_for(chat.receive(), 2.0)
+        assert reply.payload == "still there?"
+        await call.hangup()

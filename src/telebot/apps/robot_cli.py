@@ -1,7 +1,8 @@
 """``telebot-robot``: the robot's command line.
 
-The robot daemon (chat, map, video, driving) comes with the next issues; today it
-manages the robot's key and contact list and runs the echo robot, a network check.
+``telebot-robot run`` is the robot daemon (simulated robot, chat, map, pose, goals,
+telemetry); the other commands manage the robot's key and contact list, generate the
+default map, and run the echo robot, a network check.
 """
 
 from __future__ import annotations
@@ -9,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import Any
 
 from telebot.apps.common import (
@@ -17,13 +19,14 @@ from telebot.apps.common import (
     Parser,
     add_connection_options,
     add_home_option,
-    app_config,
     home_of,
     keygen,
+    load_app_config,
     name_arg,
     new_parser,
     run,
 )
+from telebot.config import RobotConfig
 from telebot.identity import ContactBook, Identity, Role, encode_key, fingerprint, parse_public_key
 
 PROG = "telebot-robot"
@@ -58,6 +61,32 @@ def build_parser() -> Parser:
     for action in (listing, add, remove):
         add_home_option(action, "robot")
 
+    daemon = commands.add_parser(
+        "run",
+        help="run the robot daemon: answer calls and serve chat, map, pose, goals, telemetry",
+        description="Run the robot: start the simulated robot on its map, answer calls from "
+        "the contacts and serve them. Stops the robot, hangs up and exits on SIGINT/SIGTERM.",
+    )
+    add_home_option(daemon, "robot")
+    add_connection_options(daemon)
+    daemon.add_argument(
+        "--map",
+        default=None,
+        metavar="MAP",
+        help="map to drive on: 'building' (default), 'small' or a ROS map_server YAML file "
+        "(overrides sim.map of the config)",
+    )
+    daemon.add_argument(
+        "--events", action="store_true", help="print robot events as JSON lines on stdout"
+    )
+
+    make_map = commands.add_parser(
+        "make-map",
+        help="generate a built-in map (ROS map_server YAML + PGM + places) into a folder",
+    )
+    make_map.add_argument("--name", choices=["building", "small"], default="building")
+    make_map.add_argument("--out", type=Path, required=True, help="folder to write the map into")
+
     echo = commands.add_parser(
         "echo",
         help="answer calls and echo every datagram back (network check for 'telebot-user ping')",
@@ -87,6 +116,12 @@ def main(argv: list[str] | None = None) -> int:
             return EXIT_OK
         if args.command == "contacts":
             return _contacts(args, home)
+        if args.command == "make-map":
+            from telebot.robot.sim.building import main as make_map
+
+            return make_map(["--name", args.name, "--out", str(args.out)])
+        if args.command == "run":
+            return await _run_daemon(args, home)
         # echo
         from telebot.apps.echo import serve_echo
 
@@ -98,10 +133,30 @@ def main(argv: list[str] | None = None) -> int:
                 file=sys.stderr,
             )
         emit = _print_event if args.events else (lambda event: None)
-        await serve_echo(app_config(args), identity, contacts, emit)
+        await serve_echo(load_app_config(args, RobotConfig), identity, contacts, emit)
         return EXIT_OK
 
     return run(PROG, command, args.log_level)
+
+
+async def _run_daemon(args: argparse.Namespace, home: Path) -> int:
+    from telebot.apps.robot_daemon import serve_robot
+
+    config = load_app_config(args, RobotConfig)
+    base_dir = args.config.parent if args.config else None
+    if args.map is not None:
+        config.sim.map = args.map
+        base_dir = None  # a --map path is relative to where the command runs
+    identity = Identity.load(home)
+    contacts = ContactBook.load(home)
+    if not len(contacts):
+        print(
+            f"{PROG}: warning: no contacts in {home}; every call will be refused", file=sys.stderr
+        )
+    await serve_robot(
+        config, identity, contacts, base_dir=base_dir, emit=_print_event if args.events else None
+    )
+    return EXIT_OK
 
 
 def _contacts(args: argparse.Namespace, home: Any) -> int:

@@ -1,7 +1,7 @@
 """``telebot-user``: the user's command line.
 
-Chat, map, video and the web UI come with the next issues; today it manages the user's
-key and the robots it trusts, lists robots online and pings a robot through a call.
+Talk to a robot (``chat``, ``send``), fetch its map (``getmap``), ask where it is
+(``where``); manage your key and the robots you trust; list robots online; ping a robot.
 """
 
 from __future__ import annotations
@@ -104,6 +104,59 @@ def build_parser() -> Parser:
         default=None,
         help="seconds to wait for the robot to answer",
     )
+
+    chat = commands.add_parser(
+        "chat",
+        help="chat with a robot (Table I commands); reads commands from stdin when piped",
+        description="Chat with a robot. On a terminal, commands run as you type them (so "
+        "'stop' works while it moves). Piped, one command per line runs to its end before "
+        "the next, and the command exits after the last one (within --timeout).",
+    )
+    send = commands.add_parser(
+        "send",
+        help="send one chat command and print the replies until it completes",
+        description="Send one chat command. Exit status: 0 success, 1 the robot reports "
+        "failure, 2 usage or connection error (robot offline, not a contact, timed out).",
+    )
+    send.add_argument("robot", type=name_arg, help="the robot's name")
+    send.add_argument("words", nargs="+", metavar="COMMAND", help="the command, e.g. fwd 2")
+    chat.add_argument("robot", type=name_arg, help="the robot's name")
+    for parser_ in (chat, send):
+        add_home_option(parser_, "user")
+        add_connection_options(parser_)
+        parser_.add_argument(
+            "--timeout",
+            type=_positive_float,
+            default=300.0,
+            help="seconds the command (piped chat: all commands) may take (default 300)",
+        )
+        parser_.add_argument(
+            "--map-dir",
+            type=Path,
+            default=Path("."),
+            help="where 'getmap' saves ROBOT-map.png and its YAML (default: current folder)",
+        )
+
+    getmap = commands.add_parser(
+        "getmap", help="download the robot's map as PNG plus a ROS map_server YAML"
+    )
+    getmap.add_argument("robot", type=name_arg, help="the robot's name")
+    getmap.add_argument(
+        "-o", "--output", type=Path, required=True, help="PNG file to write (YAML goes beside it)"
+    )
+    getmap.add_argument(
+        "--timeout", type=_positive_float, default=60.0, help="seconds the transfer may take"
+    )
+    add_home_option(getmap, "user")
+    add_connection_options(getmap)
+
+    where = commands.add_parser("where", help="print the robot's pose in the map frame")
+    where.add_argument("robot", type=name_arg, help="the robot's name")
+    where.add_argument(
+        "--timeout", type=_positive_float, default=5.0, help="seconds to wait for a pose"
+    )
+    add_home_option(where, "user")
+    add_connection_options(where)
     return parser
 
 
@@ -122,9 +175,35 @@ def main(argv: list[str] | None = None) -> int:
             return _known(args, home)
         if args.command == "robots":
             return await _robots(args, home)
-        return await _ping(args, home)
+        if args.command == "ping":
+            return await _ping(args, home)
+        return await _talk(args, home)
 
     return run(PROG, command, args.log_level)
+
+
+async def _talk(args: argparse.Namespace, home: Path) -> int:
+    from telebot.apps import user_client
+
+    config = app_config(args)
+    if args.command == "send":
+        return await user_client.send_command(
+            args.robot,
+            " ".join(args.words),
+            home=home,
+            config=config,
+            timeout=args.timeout,
+            map_dir=args.map_dir,
+        )
+    if args.command == "chat":
+        return await user_client.chat_session(
+            args.robot, home=home, config=config, timeout=args.timeout, map_dir=args.map_dir
+        )
+    if args.command == "getmap":
+        return await user_client.get_map(
+            args.robot, args.output, home=home, config=config, timeout=args.timeout
+        )
+    return await user_client.where(args.robot, home=home, config=config, timeout=args.timeout)
 
 
 def _known(args: argparse.Namespace, home: Path) -> int:

@@ -420,6 +420,8 @@ class RobotEndpoint(_Endpoint):
         self._incoming: asyncio.Queue[Call] = asyncio.Queue(maxsize=64)
         # HELLO retransmissions get the same WELCOME again: call_id -> (HELLO, WELCOME).
         self._answered: OrderedDict[bytes, tuple[bytes, bytes]] = OrderedDict()
+        # Call ids of the cached answers that accepted a call.
+        self._accepted: set[bytes] = set()
         # The newest HELLO timestamp accepted per caller key: an old HELLO is a replay.
         self._latest_hello: dict[bytes, int] = {}
 
@@ -434,10 +436,22 @@ class RobotEndpoint(_Endpoint):
         raw = frame.encode()
         cached = self._answered.get(frame.call_id)
         if cached is not None:
-            if cached[0] == raw:  # the caller did not get our answer: repeat it
-                self._reply(frame, cached[1])
-            else:
+            if cached[0] != raw:
                 self.stats.rejected["call_id_reused"] += 1
+                return
+            # The caller did not get our answer: repeat it. While the call has heard
+            # nothing else, the repeat is its only sign of life, so it keeps the call up;
+            # once the call is gone, repeating the answer would hand the caller a call
+            # that no longer exists here, so it gets silence and times out instead.
+            call = self._calls.get(frame.call_id)
+            if call is None and frame.call_id in self._accepted:
+                self.stats.rejected["hello_for_ended_call"] += 1
+                return
+            if call is not None and call.stats.frames_received == 0:
+                call._session.last_heard = max(
+                    call._session.last_heard, asyncio.get_running_loop().time()
+                )
+            self._reply(frame, cached[1])
             return
         offer, handshake = read_hello(self.identity.private_key, frame)
         if offer.user != frame.caller:
@@ -463,6 +477,7 @@ class RobotEndpoint(_Endpoint):
             handshake, frame.call_id, Answer(True, self.identity.name, role=contact.role.value)
         )
         self._remember(frame.call_id, raw, welcome.encode())
+        self._accepted.add(frame.call_id)
         now = asyncio.get_running_loop().time()
         session = CallSession(
             frame.call_id,
@@ -492,7 +507,8 @@ class RobotEndpoint(_Endpoint):
     def _remember(self, call_id: bytes, hello: bytes, welcome: bytes) -> None:
         self._answered[call_id] = (hello, welcome)
         while len(self._answered) > 256:
-            self._answered.popitem(last=False)
+            forgotten, _ = self._answered.popitem(last=False)
+            self._accepted.discard(forgotten)
 
     def _reply(self, hello: Hello, welcome: bytes) -> None:
         inbox = f"{self.namespace}/user/{hello.caller}/{hello.instance.hex()}/in"

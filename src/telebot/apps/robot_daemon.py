@@ -1,0 +1,101 @@
+"""``telebot-robot run``: the robot daemon.
+
+Starts the simulated robot on its map, opens the transport (zenoh peer by default),
+answers calls from the contacts and serves chat, map, pose, goals and telemetry on each.
+On SIGINT / SIGTERM it stops the robot first, then hangs up its calls, then exits.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import signal
+from pathlib import Path
+
+from telebot.channels.call import RobotEndpoint
+from telebot.channels.transports import create_transport
+from telebot.config import RobotConfig
+from telebot.identity import ContactBook, Identity
+from telebot.robot.sim.stack import SimNavStack
+from telebot.services.robot import EventSink, RobotServer
+
+__all__ = ["SHUTDOWN_REASON", "serve_robot"]
+
+log = logging.getLogger("telebot.daemon")
+
+SHUTDOWN_REASON = "robot shutting down"
+
+
+async def serve_robot(
+    config: RobotConfig,
+    identity: Identity,
+    contacts: ContactBook,
+    *,
+    base_dir: Path | None = None,
+    emit: EventSink | None = None,
+    stop: asyncio.Event | None = None,
+) -> None:
+    """Run the robot until ``stop`` is set or SIGINT / SIGTERM arrives.
+
+    Relative map and places paths in ``config.sim`` are taken from ``base_dir`` (the
+    config file's folder).
+    """
+    emit = emit if emit is not None else (lambda event: None)
+    stop = stop or asyncio.Event()
+    loop = asyncio.get_running_loop()
+    nav = await asyncio.to_thread(
+        SimNavStack.from_settings, config.sim, base_dir=base_dir, now=loop.time()
+    )
+    server = RobotServer(
+        nav,
+        config.services,
+        control_hz=config.sim.control_hz,
+        map_name=Path(config.sim.map).stem,
+        emit=emit,
+    )
+    await server.prepare()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        async with (
+            create_transport(config.transport) as transport,
+            RobotEndpoint(
+                transport, identity, contacts, settings=config.call, namespace=config.namespace
+            ) as endpoint,
+        ):
+            server.attach(endpoint)
+            runner = asyncio.create_task(server.run(), name="robot-loop")
+            pose = nav.pose().pose
+            log.info(
+                "robot %s ready on map %s at (%.2f, %.2f)",
+                identity.name,
+                config.sim.map,
+                pose.x,
+                pose.y,
+            )
+            emit(
+                {
+                    "event": "ready",
+                    "robot": identity.name,
+                    "map": config.sim.map,
+                    "places": sorted(nav.places()),
+                }
+            )
+            try:
+                stopped = asyncio.create_task(stop.wait())
+                done, _ = await asyncio.wait({runner, stopped}, return_when=asyncio.FIRST_COMPLETED)
+                if runner in done:
+                    runner.result()  # a crashed loop is an error, not a quiet exit
+            finally:
+                # Fail safe order: the robot stops before anything else happens.
+                nav.stop()
+                emit({"event": "stopping", "calls": len(endpoint.calls)})
+                runner.cancel()
+                stopped.cancel()
+                await asyncio.gather(runner, stopped, return_exceptions=True)
+                for call in endpoint.calls:
+                    call.hangup_now(SHUTDOWN_REASON)
+                await asyncio.sleep(0.05)  # let the hang-ups leave before the transport closes
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)

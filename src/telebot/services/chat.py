@@ -1,0 +1,348 @@
+"""The chat service: the paper's text commands (Table I) run on a :class:`NavStack`.
+
+One :class:`ChatSession` serves one caller on the ``chat`` channel. The daemon hands it
+every datagram (:meth:`ChatSession.on_payload`) and calls :meth:`ChatSession.poll` from its
+loop at 10 Hz or more; the session answers through ``send``. It needs no event loop and no
+clock of its own: a motion's end is noticed by polling the goal's handle, exactly as the
+paper's server monitored the pose until "finished moving".
+
+A motion command is answered twice, as in the paper::
+
+    fwd 2   →  "Forward command received"   (final: false)
+            →  "finished moving"            (final: true, ok: true)
+            or "stopped: obstacle ahead"    (final: true, ok: false)
+
+Callers whose role may not drive (observers) may still ask questions and ``stop``: a stop
+button that depends on one's role is not a safety feature.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from telebot.errors import ProtocolError, RobotError
+from telebot.robot.nav import GoalHandle, GoalStatus, NavStack, NavState
+from telebot.services.proto.chat import (
+    HELP_TEXT,
+    USAGE,
+    BatteryQuery,
+    Cancel,
+    ChatReply,
+    Command,
+    CommandError,
+    Forward,
+    GetMap,
+    GotoPlace,
+    GotoPoint,
+    Help,
+    Left,
+    NavCam,
+    Places,
+    Right,
+    Status,
+    Stop,
+    Turn,
+    UserCam,
+    Where,
+    decode_request,
+    parse_command,
+)
+
+__all__ = [
+    "FINISHED",
+    "OBSERVER_REFUSAL",
+    "UNBLOCK_POLLS",
+    "ChatSession",
+]
+
+logger = logging.getLogger(__name__)
+
+#: The final reply of a motion that reached its goal (the paper's words).
+FINISHED = "finished moving"
+#: The reply to an observer's motion or camera command.
+OBSERVER_REFUSAL = "refused: observers may not drive or switch cameras — ask a driver"
+#: Polls a blocked goal must stay clear before a new blockage earns a new notice; a robot
+#: edging past an obstacle flickers between blocked and moving, and one notice is enough.
+UNBLOCK_POLLS = 10
+
+_ACK_GOTO = "Goto command received"
+_ACK_FORWARD = "Forward command received"
+_ACK_TURN = "Turn command received"
+
+# Commands that move the robot or change what it shows: drivers and admins only.
+_DRIVING = (GotoPlace, GotoPoint, Forward, Turn, Left, Right, Cancel, NavCam, UserCam)
+
+
+@dataclass(slots=True)
+class _Motion:
+    """A motion request still waiting for its final reply."""
+
+    request_id: int
+    handle: GoalHandle
+    notified_blocked: bool = False
+    clear_polls: int = 0
+
+
+class ChatSession:
+    """Runs one caller's chat commands on ``nav`` and sends the replies (module docstring).
+
+    ``may_drive`` is the caller's right to move the robot (the driver and admin roles);
+    ``send`` delivers one reply on the chat channel; ``user`` names the caller in logs.
+    Neither :meth:`on_payload` nor :meth:`poll` ever raises.
+    """
+
+    def __init__(
+        self,
+        nav: NavStack,
+        *,
+        may_drive: bool,
+        send: Callable[[ChatReply], None],
+        user: str = "",
+    ) -> None:
+        self._nav = nav
+        self._may_drive = may_drive
+        self._send = send
+        self._user = user or "caller"
+        self._motions: list[_Motion] = []
+        # Next reply number of each request that has not had its final reply.
+        self._seq: dict[int, int] = {}
+        #: Datagrams dropped because they were not chat requests.
+        self.rejected = 0
+        #: Replies that ``send`` failed to deliver (logged, then dropped).
+        self.send_errors = 0
+
+    @property
+    def may_drive(self) -> bool:
+        """Whether this caller may move the robot and switch its camera."""
+        return self._may_drive
+
+    @property
+    def pending(self) -> int:
+        """Motion requests that have not had their final reply yet."""
+        return len(self._motions)
+
+    # ------------------------------------------------------------------ entry points
+
+    def on_payload(self, payload: str | bytes) -> None:
+        """Handle one datagram from the chat channel; garbage is counted and dropped."""
+        try:
+            request = decode_request(payload)
+        except ProtocolError as exc:
+            # No reply: without a valid id there is nothing to answer to, and answering
+            # garbage would let any sender make the robot talk.
+            self.rejected += 1
+            logger.debug("chat from %s: dropped a datagram: %s", self._user, exc)
+            return
+        self.handle_text(request.id, request.text)
+
+    def handle_text(self, request_id: int, text: str) -> None:
+        """Parse and run one chat line as request ``request_id`` (never raises)."""
+        try:
+            command = parse_command(text)
+        except CommandError as exc:
+            self._reply(request_id, str(exc), ok=False)
+            return
+        # Who moved the robot belongs in the log; a web UI polling "status" does not.
+        level = logging.INFO if isinstance(command, (*_DRIVING, Stop)) else logging.DEBUG
+        logger.log(level, "chat from %s: %s", self._user, command)
+        try:
+            self._execute(request_id, command)
+        except RobotError as exc:
+            # InvalidCommand, UnknownPlace (lists the known ones), UnknownCamera, NoPath:
+            # the adapter's own message is the clearest answer.
+            self._finish_done_motions()
+            self._reply(request_id, str(exc), ok=False)
+        except Exception:
+            logger.exception("chat from %s: %r failed", self._user, text)
+            self._reply(request_id, "internal error: the robot could not run that", ok=False)
+
+    def poll(self) -> None:
+        """Send the final replies of finished motions and notices of blocked ones."""
+        try:
+            self._finish_done_motions()
+            self._notice_blockages()
+        except Exception:
+            # A broken adapter must not take the daemon's loop down with it.
+            logger.exception("chat poll for %s failed", self._user)
+
+    # ------------------------------------------------------------------ commands
+
+    def _execute(self, request_id: int, command: Command) -> None:
+        nav = self._nav
+        if isinstance(command, _DRIVING) and not self._may_drive:
+            logger.info("chat from %s: refused %s (observer)", self._user, command)
+            self._reply(request_id, OBSERVER_REFUSAL, ok=False)
+            return
+        match command:
+            case GotoPlace(name):
+                self._start_motion(request_id, nav.navigate_to_place(name), _ACK_GOTO)
+            case GotoPoint(x, y, yaw_deg):
+                yaw = None if yaw_deg is None else math.radians(yaw_deg)
+                self._start_motion(request_id, nav.navigate_to(x, y, yaw), _ACK_GOTO)
+            case Forward(metres):
+                self._start_motion(request_id, nav.forward(metres), _ACK_FORWARD)
+            case Turn(degrees_right):
+                # The paper's turn is positive to the right; REP-103 is counter-clockwise.
+                self._start_motion(request_id, nav.turn(-math.radians(degrees_right)), _ACK_TURN)
+            case Left():
+                self._start_motion(request_id, nav.turn(math.pi / 2), _ACK_TURN)
+            case Right():
+                self._start_motion(request_id, nav.turn(-math.pi / 2), _ACK_TURN)
+            case Stop():
+                nav.stop()
+                self._finish_done_motions()  # the stopped request hears "stopped" first
+                self._reply(request_id, "stopped")
+            case Cancel():
+                goal = nav.current_goal()
+                if goal is None or goal.status.done:
+                    self._reply(request_id, "nothing to cancel")
+                    return
+                goal.cancel()
+                self._finish_done_motions()
+                self._reply(request_id, "cancelled")
+            case NavCam() | UserCam():
+                nav.select_camera("navcam" if isinstance(command, NavCam) else "usercam")
+                self._reply(request_id, f"{nav.active_camera} selected")
+            case Where():
+                self._reply(request_id, self._where())
+            case Places():
+                self._reply(request_id, self._places())
+            case Status():
+                self._reply(request_id, self._status())
+            case BatteryQuery():
+                battery = nav.battery()
+                text = f"battery {battery.percent:.0f}%"
+                if battery.low:
+                    text += " (low)"
+                if battery.charging:
+                    text += ", charging"
+                self._reply(request_id, text)
+            case GetMap():
+                grid = nav.map()
+                self._reply(
+                    request_id,
+                    f"sending map: {grid.width} x {grid.height} cells at {grid.resolution:g} m",
+                    attachment="map",
+                )
+            case Help(topic):
+                self._reply(request_id, HELP_TEXT if topic is None else USAGE[topic])
+
+    def _start_motion(self, request_id: int, handle: GoalHandle, ack: str) -> None:
+        # The new goal may have replaced one of ours: its final reply goes out first.
+        self._finish_done_motions()
+        if handle.status.done:
+            # Refused at once (no path, battery empty): the reason is the whole answer.
+            self._reply(request_id, _final_text(handle), ok=handle.status is GoalStatus.SUCCEEDED)
+            return
+        self._reply(request_id, ack, final=False)
+        self._motions.append(_Motion(request_id, handle))
+
+    def _where(self) -> str:
+        pose = self._nav.pose().pose
+        heading = round(math.degrees(pose.yaw)) + 0  # "+ 0": no "-0°"
+        return f"x {_metres(pose.x)} m, y {_metres(pose.y)} m, heading {heading}°"
+
+    def _places(self) -> str:
+        places = self._nav.places()
+        if not places:
+            return "no named places on this map"
+        listed = ", ".join(
+            f"{name} ({_metres(pose.x)}, {_metres(pose.y)})"
+            for name, pose in sorted(places.items())
+        )
+        return f"places: {listed}"
+
+    def _status(self) -> str:
+        status = self._nav.status()
+        goal = self._nav.current_goal()
+        text = str(status.state)
+        # The simulated robot's detail while moving is the goal's description: say it once.
+        if status.detail and (goal is None or status.detail != goal.description):
+            text += f": {status.detail}"
+        if goal is not None and not goal.status.done:
+            text += f" — {goal.description}, {goal.progress:.0%} done"
+        return text
+
+    # ------------------------------------------------------------------ goal tracking
+
+    def _finish_done_motions(self) -> None:
+        still_running: list[_Motion] = []
+        finished: list[_Motion] = []
+        for motion in self._motions:
+            (finished if motion.handle.status.done else still_running).append(motion)
+        self._motions = still_running
+        for motion in finished:
+            handle = motion.handle
+            self._reply(
+                motion.request_id,
+                _final_text(handle),
+                ok=handle.status is GoalStatus.SUCCEEDED,
+            )
+
+    def _notice_blockages(self) -> None:
+        if not self._motions:
+            return
+        status = self._nav.status()
+        current = self._nav.current_goal()
+        for motion in self._motions:
+            blocked = (
+                status.state is NavState.BLOCKED
+                and current is not None
+                and current.goal_id == motion.handle.goal_id
+            )
+            if blocked:
+                motion.clear_polls = 0
+                if not motion.notified_blocked:
+                    motion.notified_blocked = True
+                    detail = status.detail or "obstacle ahead"
+                    self._reply(motion.request_id, f"blocked: {detail}", final=False, ok=False)
+            elif motion.notified_blocked:
+                motion.clear_polls += 1
+                if motion.clear_polls >= UNBLOCK_POLLS:
+                    motion.notified_blocked = False
+
+    # ------------------------------------------------------------------ output
+
+    def _reply(
+        self,
+        request_id: int,
+        text: str,
+        *,
+        final: bool = True,
+        ok: bool = True,
+        attachment: str | None = None,
+    ) -> None:
+        seq = self._seq.pop(request_id, 0) if final else self._seq.get(request_id, 0)
+        if not final:
+            self._seq[request_id] = seq + 1
+        reply = ChatReply(request_id, text, final=final, ok=ok, attachment=attachment, seq=seq)
+        try:
+            self._send(reply)
+        except Exception:
+            # A lost reply is what a lossy channel does anyway; the daemon must go on.
+            self.send_errors += 1
+            logger.warning("chat reply to %s could not be sent", self._user, exc_info=True)
+
+
+def _final_text(handle: GoalHandle) -> str:
+    """The final reply for a finished goal: the paper's words, or why it did not get there."""
+    status, reason = handle.status, handle.reason
+    if status is GoalStatus.SUCCEEDED:
+        return FINISHED
+    if status is GoalStatus.FAILED:
+        return reason or "failed"
+    # Cancelled: "stopped" and "cancelled" speak for themselves, other reasons need the
+    # word ("cancelled: replaced by a new goal").
+    if not reason:
+        return "cancelled"
+    if reason.startswith(("stopped", "cancelled")):
+        return reason
+    return f"cancelled: {reason}"
+
+
+def _metres(value: float) -> str:
+    text = f"{value:.2f}"
+    return "0.00" if text == "-0.00" else text

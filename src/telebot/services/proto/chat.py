@@ -1,0 +1,491 @@
+"""The chat channel, sans-IO: the paper's text commands (Table I) and their message format.
+
+Parsing turns one line a person typed into one command event (h11 style: a frozen, slotted
+dataclass per command, handled with ``match``)::
+
+    >>> parse_command("  FWD 2 ")
+    Forward(metres=2.0)
+    >>> parse_command("turn -45")
+    Turn(degrees_right=-45.0)
+
+A line that is not a command raises :class:`CommandError`, whose message is the exact reply
+the robot sends back: ``"unknown command 'xyz' — try help"`` or the command's usage line.
+
+Messages are JSON text datagrams (see ``docs/protocol.md``)::
+
+    user → robot   {"id": 7, "text": "fwd 2"}
+    robot → user   {"id": 7, "seq": 0, "text": "Forward command received", "final": false,
+                    "ok": true}
+    robot → user   {"id": 7, "seq": 1, "text": "finished moving", "final": true, "ok": true}
+
+Conventions: ``goto X Y [YAW]`` is in the map frame with ``YAW`` in degrees counter-clockwise
+(ROS REP-103), while ``turn X`` keeps the paper's convention, degrees positive to the right.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from typing import Any, TypeAlias
+
+from telebot.errors import ProtocolError
+from telebot.services.proto.messages import decode_object, encode_object, require_int
+
+__all__ = [
+    "HELP_TEXT",
+    "MAX_FORWARD_M",
+    "MAX_REPLY_TEXT",
+    "MAX_REQUEST_TEXT",
+    "MAX_TURN_DEG",
+    "USAGE",
+    "BatteryQuery",
+    "Cancel",
+    "ChatReply",
+    "ChatRequest",
+    "Command",
+    "CommandError",
+    "Forward",
+    "GetMap",
+    "GotoPlace",
+    "GotoPoint",
+    "Help",
+    "Left",
+    "NavCam",
+    "Places",
+    "Right",
+    "Status",
+    "Stop",
+    "Turn",
+    "UserCam",
+    "Where",
+    "decode_reply",
+    "decode_request",
+    "encode_request",
+    "parse_command",
+]
+
+#: Longest command text a request may carry (characters): a typed line, not a document.
+MAX_REQUEST_TEXT = 1000
+#: Longest reply text (characters). At most 4 UTF-8 bytes a character, a reply stays well
+#: inside a 32 KB datagram; the robot shortens longer texts (a huge places list) with "…".
+MAX_REPLY_TEXT = 4000
+#: Largest ``fwd`` distance (metres) and ``turn`` angle (degrees) the parser accepts.
+MAX_FORWARD_M = 100.0
+MAX_TURN_DEG = 360.0
+
+
+class CommandError(ProtocolError):
+    """A chat line that is not a valid command; ``str(exc)`` is the exact reply text."""
+
+
+# ---------------------------------------------------------------------------- commands
+
+
+@dataclass(frozen=True, slots=True)
+class GotoPlace:
+    """``goto N``: drive to the named place ``N`` (as typed; the robot matches any case)."""
+
+    name: str
+
+
+@dataclass(frozen=True, slots=True)
+class GotoPoint:
+    """``goto X Y [YAW]``: drive to a map-frame point (metres), then face ``yaw_deg``.
+
+    ``yaw_deg`` is in degrees counter-clockwise from the map's x axis (REP-103), or ``None``
+    to arrive with any heading.
+    """
+
+    x: float
+    y: float
+    yaw_deg: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class GetMap:
+    """``getmap``: send the map (the transfer runs on the ``map`` channel)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Where:
+    """``where?``: report the robot's pose in the map frame."""
+
+
+@dataclass(frozen=True, slots=True)
+class Forward:
+    """``fwd X``: drive straight ``metres`` (negative: backwards)."""
+
+    metres: float
+
+
+@dataclass(frozen=True, slots=True)
+class Turn:
+    """``turn X``: turn on the spot by ``degrees_right`` (the paper's sign: positive right)."""
+
+    degrees_right: float
+
+
+@dataclass(frozen=True, slots=True)
+class Left:
+    """``left``: turn 90° to the left."""
+
+
+@dataclass(frozen=True, slots=True)
+class Right:
+    """``right``: turn 90° to the right."""
+
+
+@dataclass(frozen=True, slots=True)
+class NavCam:
+    """``navcam``: select the navigation camera."""
+
+
+@dataclass(frozen=True, slots=True)
+class UserCam:
+    """``usercam``: select the user-interaction camera."""
+
+
+@dataclass(frozen=True, slots=True)
+class Stop:
+    """``stop``: stop now (any participant may)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Cancel:
+    """``cancel``: cancel the running goal."""
+
+
+@dataclass(frozen=True, slots=True)
+class Places:
+    """``places``: list the named places with their coordinates."""
+
+
+@dataclass(frozen=True, slots=True)
+class Status:
+    """``status``: what the robot is doing, and how far the goal has got."""
+
+
+@dataclass(frozen=True, slots=True)
+class BatteryQuery:
+    """``battery``: the battery charge."""
+
+
+@dataclass(frozen=True, slots=True)
+class Help:
+    """``help`` (all commands) or ``help CMD`` (``topic``: the canonical name of one)."""
+
+    topic: str | None = None
+
+
+#: Any chat command.
+Command: TypeAlias = (
+    GotoPlace
+    | GotoPoint
+    | GetMap
+    | Where
+    | Forward
+    | Turn
+    | Left
+    | Right
+    | NavCam
+    | UserCam
+    | Stop
+    | Cancel
+    | Places
+    | Status
+    | BatteryQuery
+    | Help
+)
+
+# ---------------------------------------------------------------------------- usage
+
+#: The usage line of every command, by canonical name (the first word of Table I's form).
+USAGE: dict[str, str] = {
+    "goto": (
+        "usage: goto N — drive to the place N (see places); "
+        "goto X Y [YAW] — drive to the map point X Y (metres), facing YAW degrees "
+        "(counter-clockwise)"
+    ),
+    "getmap": "usage: getmap — send the map",
+    "where?": "usage: where? — report the robot's position and heading on the map",
+    "fwd": (f"usage: fwd X — drive X metres forward (negative: back), at most {MAX_FORWARD_M:g} m"),
+    "turn": (f"usage: turn X — turn X degrees, positive to the right, at most {MAX_TURN_DEG:g}°"),
+    "left": "usage: left — turn 90° to the left",
+    "right": "usage: right — turn 90° to the right",
+    "navcam": "usage: navcam — select the navigation camera",
+    "usercam": "usage: usercam — select the user-interaction camera",
+    "stop": "usage: stop — stop the robot now",
+    "cancel": "usage: cancel — cancel the running goal",
+    "places": "usage: places — list the named places",
+    "status": "usage: status — what the robot is doing",
+    "battery": "usage: battery — the battery charge",
+    "help": "usage: help [COMMAND] — list the commands, or explain one",
+}
+
+#: The reply to ``help``: every command on its own line.
+HELP_TEXT = "commands (any case):\n" + "\n".join(
+    "  " + line.removeprefix("usage: ") for line in USAGE.values()
+)
+
+# Every accepted spelling of a command word → its canonical name. Two-word spellings
+# ("go to", "get map") are joined before the lookup.
+_ALIASES: dict[str, str] = {
+    "goto": "goto",
+    "go to": "goto",
+    "navigate": "goto",
+    "getmap": "getmap",
+    "get map": "getmap",
+    "map": "getmap",
+    "where": "where?",
+    "pose": "where?",
+    "fwd": "fwd",
+    "forward": "fwd",
+    "back": "back",
+    "backward": "back",
+    "backwards": "back",
+    "turn": "turn",
+    "rotate": "turn",
+    "left": "left",
+    "right": "right",
+    "navcam": "navcam",
+    "nav cam": "navcam",
+    "usercam": "usercam",
+    "user cam": "usercam",
+    "stop": "stop",
+    "halt": "stop",
+    "cancel": "cancel",
+    "abort": "cancel",
+    "places": "places",
+    "status": "status",
+    "battery": "battery",
+    "help": "help",
+    "?": "help",
+    "commands": "help",
+}
+
+# Plain decimal numbers only: Python's float() would also take "nan", "1_0" or "١٢".
+_NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
+_WHERE_QUESTIONS = (["am", "i"], ["are", "you"], ["is", "the", "robot"])
+_METRES = ("m", "metre", "metres", "meter", "meters")
+_DEGREES = ("°", "deg", "degs", "degree", "degrees")
+# A long unknown word is echoed shortened: the reply is for a person, not a hex dump.
+_ECHO_MAX = 32
+
+
+# ---------------------------------------------------------------------------- parsing
+
+
+def parse_command(text: str) -> Command:
+    """The command in one chat line; raises :class:`CommandError` with the reply text.
+
+    Forgiving: any case, spaces anywhere, ``where?``/``where``/``where am i``, aliases
+    (``forward``, ``go to``, ``back X``, ``turn left``), units (``fwd 2m``, ``turn 90°``).
+    Numbers must be finite and within the command's limit, else the usage line.
+    """
+    # "−" (U+2212) is what phones and word processors put in front of numbers.
+    words = text.replace("\u2212", "-").lower().split()
+    if not words:
+        raise CommandError("empty command — try help")
+    word, args = words[0], words[1:]
+    # "where?", "status?", and above all "STOP!!" (someone typing in a hurry).
+    word = word.rstrip("?!.") or word
+    if args and f"{word} {args[0]}" in _ALIASES:
+        word, args = f"{word} {args[0]}", args[1:]
+    name = _ALIASES.get(word)
+    if name is None:
+        raise CommandError(_unknown(text.split()[0]))  # echoed as typed
+    match name:
+        case "goto":
+            return _goto(_original_args(text, len(words) - len(args)))
+        case "fwd":
+            return Forward(_forward_metres(args, "fwd"))
+        case "back":
+            return Forward(-abs(_forward_metres(args, "fwd")))
+        case "turn":
+            if args in (["left"], ["right"]):
+                return Left() if args[0] == "left" else Right()
+            degrees = _number(args, _DEGREES, "turn")
+            if abs(degrees) > MAX_TURN_DEG:
+                raise CommandError(USAGE["turn"])
+            return Turn(degrees)
+        case "where?":
+            # Only the questions that ask for the robot: "where lab" wants something else.
+            if args and [arg.rstrip("?") for arg in args] not in _WHERE_QUESTIONS:
+                raise CommandError(USAGE["where?"])
+            return Where()
+        case "help":
+            return _help(args)
+        case _:
+            if args:
+                raise CommandError(USAGE[name])
+            return _SIMPLE[name]
+
+
+_SIMPLE: dict[str, Command] = {
+    "getmap": GetMap(),
+    "left": Left(),
+    "right": Right(),
+    "navcam": NavCam(),
+    "usercam": UserCam(),
+    "stop": Stop(),
+    "cancel": Cancel(),
+    "places": Places(),
+    "status": Status(),
+    "battery": BatteryQuery(),
+}
+
+
+def _unknown(word: str) -> str:
+    shown = word if len(word) <= _ECHO_MAX else word[: _ECHO_MAX - 1] + "…"
+    return f"unknown command '{shown}' — try help"
+
+
+def _original_args(text: str, skip: int) -> list[str]:
+    # Place names keep the case the user typed: a real robot's names may be case-sensitive.
+    return text.replace("\u2212", "-").split()[skip:]
+
+
+def _goto(args: list[str]) -> GotoPlace | GotoPoint:
+    if not args:
+        raise CommandError(USAGE["goto"])
+    # One word is always a place, even "101": room numbers are good place names. Two or
+    # three words starting with a number are a point; "goto room 101" is a place again.
+    if len(args) == 1 or not _NUMBER.fullmatch(args[0]):
+        return GotoPlace(" ".join(args))
+    if len(args) > 3:
+        raise CommandError(USAGE["goto"])
+    values = [_finite(arg, "goto") for arg in args]
+    return GotoPoint(values[0], values[1], values[2] if len(values) == 3 else None)
+
+
+def _forward_metres(args: list[str], name: str) -> float:
+    metres = _number(args, _METRES, name)
+    if abs(metres) > MAX_FORWARD_M:
+        raise CommandError(USAGE[name])
+    return metres
+
+
+def _number(args: list[str], units: tuple[str, ...], name: str) -> float:
+    """The single number in ``args``, with an optional unit attached or after it."""
+    if len(args) == 2 and args[1] in units:
+        args = args[:1]
+    if len(args) != 1:
+        raise CommandError(USAGE[name])
+    token = args[0]
+    for unit in sorted(units, key=len, reverse=True):
+        if token.endswith(unit) and len(token) > len(unit):
+            token = token[: -len(unit)]
+            break
+    return _finite(token, name)
+
+
+def _finite(token: str, name: str) -> float:
+    if not _NUMBER.fullmatch(token):
+        raise CommandError(USAGE[name])
+    value = float(token)
+    # "1e999" matches the pattern but is infinite.
+    if not math.isfinite(value):
+        raise CommandError(USAGE[name])
+    return value + 0.0  # no "-0.0" in replies
+
+
+def _help(args: list[str]) -> Help:
+    if not args:
+        return Help()
+    topic = " ".join(args)
+    if len(topic) > 1:
+        topic = topic.rstrip("?")
+    name = _ALIASES.get(topic)
+    if name is None:
+        raise CommandError(_unknown(topic))
+    return Help("fwd" if name == "back" else name)
+
+
+# ---------------------------------------------------------------------------- messages
+
+
+@dataclass(frozen=True, slots=True)
+class ChatRequest:
+    """A chat line from the user: ``id`` (u32, chosen by the user) and the typed ``text``."""
+
+    id: int
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
+class ChatReply:
+    """The robot's answer to request ``id``.
+
+    ``final`` is false for acknowledgements and notices while a motion runs, true on the
+    request's last reply. ``ok`` is false when the reply reports trouble (a refusal, a
+    failure, a blocked robot). ``attachment`` names what follows on another channel
+    (``"map"``). ``seq`` numbers the replies to one request from 0, so that a client can
+    drop the copies a robot sends again when a request is repeated over the lossy link.
+    """
+
+    id: int
+    text: str
+    final: bool = True
+    ok: bool = True
+    attachment: str | None = None
+    seq: int = 0
+
+    def encode(self) -> str:
+        """The reply as a JSON text datagram (text shortened to :data:`MAX_REPLY_TEXT`)."""
+        text = self.text
+        if len(text) > MAX_REPLY_TEXT:
+            text = text[: MAX_REPLY_TEXT - 1] + "…"
+        message: dict[str, Any] = {
+            "id": self.id,
+            "seq": self.seq,
+            "text": text,
+            "final": self.final,
+            "ok": self.ok,
+        }
+        if self.attachment is not None:
+            message["attachment"] = self.attachment
+        return encode_object(message)
+
+
+def encode_request(id: int, text: str) -> str:
+    """A request datagram; :class:`ProtocolError` for a bad id or an over-long text."""
+    if isinstance(id, bool) or not isinstance(id, int) or not 0 <= id < 2**32:
+        raise ProtocolError(f"chat request: id must be an integer in 0..{2**32 - 1}")
+    if len(text) > MAX_REQUEST_TEXT:
+        raise ProtocolError(f"chat request: text is longer than {MAX_REQUEST_TEXT} characters")
+    return encode_object({"id": id, "text": text})
+
+
+def decode_request(payload: str | bytes) -> ChatRequest:
+    """Parse a request datagram; :class:`ProtocolError` on anything else.
+
+    Unknown keys are ignored, so that newer clients can add fields.
+    """
+    what = "chat request"
+    message = decode_object(payload, what=what)
+    request_id = require_int(message, "id", what=what)
+    text = message.get("text")
+    if not isinstance(text, str):
+        raise ProtocolError(f"{what}: 'text' must be a string")
+    if len(text) > MAX_REQUEST_TEXT:
+        raise ProtocolError(f"{what}: text is longer than {MAX_REQUEST_TEXT} characters")
+    return ChatRequest(request_id, text)
+
+
+def decode_reply(payload: str | bytes) -> ChatReply:
+    """Parse a reply datagram; :class:`ProtocolError` on anything else (unknown keys ignored)."""
+    what = "chat reply"
+    message = decode_object(payload, what=what)
+    reply_id = require_int(message, "id", what=what)
+    seq = require_int(message, "seq", what=what)
+    text = message.get("text")
+    if not isinstance(text, str):
+        raise ProtocolError(f"{what}: 'text' must be a string")
+    final, ok = message.get("final"), message.get("ok")
+    if not isinstance(final, bool) or not isinstance(ok, bool):
+        raise ProtocolError(f"{what}: 'final' and 'ok' must be booleans")
+    attachment = message.get("attachment")
+    if attachment is not None and not isinstance(attachment, str):
+        raise ProtocolError(f"{what}: 'attachment' must be a string")
+    return ChatReply(reply_id, text, final, ok, attachment, seq)

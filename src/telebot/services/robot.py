@@ -1,0 +1,351 @@
+"""The robot side of telebot: steps the robot in real time and serves every call.
+
+:class:`RobotServer` owns the navigation stack. One task steps it at the control rate
+(``loop.time()`` is the simulation's clock); on every step each call's
+:class:`CallServices` reports finished goals, and at their own rates publishes pose and
+telemetry. Every handler is guarded: garbage from one peer is dropped and counted and never
+reaches the others or stops the robot's loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+from collections import OrderedDict
+from collections.abc import Callable
+from typing import Any, Protocol
+
+from telebot.channels.call import Call, RobotEndpoint
+from telebot.channels.channel import ReceivedDatagram
+from telebot.channels.transports.base import Lane
+from telebot.config import ServiceSettings
+from telebot.errors import ProtocolError, TelebotError
+from telebot.identity import Role
+from telebot.robot.nav import GoalHandle, GoalStatus, NavStack
+from telebot.services.chat import ChatSession
+from telebot.services.mapxfer import MapService
+from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
+from telebot.services.proto.chat import ChatReply, decode_request
+from telebot.services.proto.mapxfer import EncodedMap, encode_map
+from telebot.services.proto.status import (
+    GoalUpdate,
+    PoseUpdate,
+    Telemetry,
+    decode_goal_command,
+)
+
+__all__ = ["CallServices", "EventSink", "RobotServer", "SteppedNavStack", "may_drive"]
+
+log = logging.getLogger("telebot.robot")
+
+#: Requests (chat ids, goal ids) remembered per call, to answer repeats without re-running.
+REMEMBERED = 256
+#: While a goal runs, its status is repeated this often (s), so a lost update heals.
+GOAL_STATUS_EVERY = 0.5
+
+EventSink = Callable[[dict[str, Any]], None]
+
+
+class SteppedNavStack(NavStack, Protocol):
+    """A NavStack driven by the caller's clock (the simulated robot)."""
+
+    def step(self, now: float) -> None:
+        """Advance to ``now``."""
+        ...
+
+
+def may_drive(role: Role | None) -> bool:
+    """Whether a contact with ``role`` may move the robot (drivers and admins)."""
+    return role in (Role.DRIVER, Role.ADMIN)
+
+
+class CallServices:
+    """The services of one call: chat, map, pose, goals and telemetry channels."""
+
+    def __init__(self, server: RobotServer, call: Call) -> None:
+        self.server = server
+        self.call = call
+        nav = server.nav
+        self._chat_channel = call.channel(CHAT, lane=Lane.CONTROL)
+        self._goals_channel = call.channel(GOALS, lane=Lane.CONTROL)
+        self._pose_channel = call.channel(POSE, lane=Lane.DATA, latest_only=True)
+        self._telemetry_channel = call.channel(TELEMETRY, lane=Lane.DATA, latest_only=True)
+        self.chat = ChatSession(
+            nav, may_drive=may_drive(call.role), send=self._send_chat, user=call.peer
+        )
+        self.map = MapService(call.channel(MAP, lane=Lane.BULK), server.encoded_map)
+        # Lossy channels: a user repeats a request until it hears back, so the robot
+        # answers a repeat with what it already said instead of running it twice.
+        self._chat_replies: OrderedDict[int, list[str]] = OrderedDict()
+        self._goals: OrderedDict[int, GoalHandle | GoalUpdate] = OrderedDict()
+        self._goal_sent: dict[int, tuple[str, float]] = {}
+        self.rejected = 0
+        self._chat_channel.set_callback(self._on_chat)
+        self._goals_channel.set_callback(self._on_goal_command)
+
+    # -- chat -----------------------------------------------------------------------
+
+    def _on_chat(self, datagram: ReceivedDatagram) -> None:
+        try:
+            request = decode_request(datagram.payload)
+        except ProtocolError as exc:
+            self.rejected += 1
+            self._chat_channel.stats.rejected += 1
+            log.debug("call %s: chat datagram dropped: %s", self.call.id, exc)
+            return
+        earlier = self._chat_replies.get(request.id)
+        if earlier is not None:
+            for text in earlier:
+                self._send(self._chat_channel, text)
+            return
+        _remember(self._chat_replies, request.id, [])
+        self.server.emit({"event": "chat", "peer": self.call.peer, "text": request.text})
+        self.chat.handle_text(request.id, request.text)
+
+    def _send_chat(self, reply: ChatReply) -> None:
+        text = reply.encode()
+        replies = self._chat_replies.get(reply.id)
+        if replies is not None:
+            replies.append(text)
+        self._send(self._chat_channel, text)
+
+    # -- goals ----------------------------------------------------------------------
+
+    def _on_goal_command(self, datagram: ReceivedDatagram) -> None:
+        try:
+            command = decode_goal_command(datagram.payload)
+        except ProtocolError as exc:
+            self.rejected += 1
+            self._goals_channel.stats.rejected += 1
+            log.debug("call %s: goals datagram dropped: %s", self.call.id, exc)
+            return
+        known = self._goals.get(command.id)
+        if command.type == "query" or (command.type == "goal" and known is not None):
+            self._send_goal_status(command.id, force=True)
+            return
+        if command.type == "cancel":
+            if not may_drive(self.call.role):
+                self._send(
+                    self._goals_channel, GoalUpdate(command.id, "refused", 0.0, _OBSERVER).encode()
+                )
+                return
+            if isinstance(known, GoalHandle):
+                known.cancel()
+            self._send_goal_status(command.id, force=True)
+            return
+        if not may_drive(self.call.role):
+            _remember(self._goals, command.id, GoalUpdate(command.id, "refused", 0.0, _OBSERVER))
+        else:
+            try:
+                handle = self.server.nav.navigate_to(command.x, command.y, command.yaw)
+            except TelebotError as exc:
+                _remember(self._goals, command.id, GoalUpdate(command.id, "refused", 0.0, str(exc)))
+            else:
+                _remember(self._goals, command.id, handle)
+                self.server.emit({"event": "goal", "peer": self.call.peer, "id": command.id})
+        self._send_goal_status(command.id, force=True)
+
+    def _goal_update(self, goal_id: int) -> GoalUpdate:
+        entry = self._goals.get(goal_id)
+        if entry is None:
+            return GoalUpdate(goal_id, "unknown")
+        if isinstance(entry, GoalUpdate):
+            return entry
+        return GoalUpdate(goal_id, str(entry.status), entry.progress, entry.reason)
+
+    def _send_goal_status(self, goal_id: int, *, force: bool = False) -> None:
+        update = self._goal_update(goal_id)
+        now = self.server.now()
+        last = self._goal_sent.get(goal_id)
+        key = f"{update.status}:{update.progress:.2f}"
+        if force or last is None or last[0] != key or now - last[1] >= GOAL_STATUS_EVERY:
+            self._goal_sent[goal_id] = (key, now)
+            self._send(self._goals_channel, update.encode())
+
+    # -- periodic -------------------------------------------------------------------
+
+    def tick(self) -> None:
+        """After each robot step: chat reports, goal status changes."""
+        self.chat.poll()
+        for goal_id, entry in list(self._goals.items()):
+            if isinstance(entry, GoalHandle):
+                self._send_goal_status(goal_id)
+                if entry.status is not GoalStatus.ACTIVE:
+                    # Freeze it: the final status is what repeats and queries get.
+                    self._goals[goal_id] = self._goal_update(goal_id)
+                    self._send_goal_status(goal_id, force=True)
+
+    def publish_pose(self) -> None:
+        """Send the pose estimate, velocity and state (latest only)."""
+        nav = self.server.nav
+        estimate = nav.pose()
+        velocity = nav.velocity()
+        status = nav.status()
+        goal = nav.current_goal()
+        cov = estimate.covariance
+        update = PoseUpdate(
+            t=estimate.stamp,
+            x=estimate.pose.x,
+            y=estimate.pose.y,
+            yaw=estimate.pose.yaw,
+            cov=(cov[0], cov[4], cov[8]),
+            v=velocity.linear,
+            w=velocity.angular,
+            state=str(status.state),
+            detail=status.detail,
+            goal=goal.goal_id if goal is not None else None,
+        )
+        self._send(self._pose_channel, update.encode())
+
+    def publish_telemetry(self) -> None:
+        """Send battery, state, goal, camera, link quality and diagnostics."""
+        nav = self.server.nav
+        battery = nav.battery()
+        status = nav.status()
+        goal = nav.current_goal()
+        rtt = self.call.stats.rtt
+        telemetry = Telemetry(
+            t=self.server.now(),
+            battery=battery.percent,
+            battery_low=battery.low,
+            state=str(status.state),
+            detail=status.detail,
+            goal=goal.description if goal is not None else None,
+            progress=goal.progress if goal is not None else None,
+            camera=nav.active_camera,
+            speed_limit=nav.speed_limit,
+            rtt=rtt if rtt is not None and math.isfinite(rtt) else None,
+            loss=self.call.stats.loss,
+            role=str(self.call.role) if self.call.role is not None else "",
+            diagnostics=dict(nav.diagnostics()),
+        )
+        self._send(self._telemetry_channel, telemetry.encode())
+
+    def _send(self, channel: Any, text: str) -> None:
+        if not self.call.active:
+            return
+        try:
+            channel.send(text)
+        except TelebotError as exc:  # the call ended under us: its end is reported apart
+            log.debug("call %s: not sent on %s: %s", self.call.id, channel.name, exc)
+
+
+_OBSERVER = "observers may not drive: ask the driver"
+
+
+def _remember(table: OrderedDict[int, Any], key: int, value: Any) -> None:
+    table[key] = value
+    table.move_to_end(key)
+    while len(table) > REMEMBERED:
+        table.popitem(last=False)
+
+
+class RobotServer:
+    """Runs the robot: steps ``nav`` in real time and serves the services on each call."""
+
+    def __init__(
+        self,
+        nav: SteppedNavStack,
+        settings: ServiceSettings | None = None,
+        *,
+        control_hz: float = 20.0,
+        map_name: str = "map",
+        emit: EventSink | None = None,
+    ) -> None:
+        self.nav = nav
+        self.settings = settings if settings is not None else ServiceSettings()
+        self.control_hz = control_hz
+        self.map_name = map_name
+        self.emit: EventSink = emit if emit is not None else (lambda event: None)
+        self.services: dict[str, CallServices] = {}
+        self._encoded: EncodedMap | None = None
+        self._loop = asyncio.get_running_loop()
+
+    def now(self) -> float:
+        """The robot's clock (the event loop's)."""
+        return self._loop.time()
+
+    def encoded_map(self) -> EncodedMap:
+        """The map, cropped and PNG-encoded once (the map does not change)."""
+        if self._encoded is None:
+            self._encoded = encode_map(self.nav.map(), self.map_name)
+        return self._encoded
+
+    async def prepare(self) -> None:
+        """Encode the map off the event loop before the first call needs it."""
+        self._encoded = await asyncio.to_thread(encode_map, self.nav.map(), self.map_name)
+
+    def attach(self, endpoint: RobotEndpoint) -> None:
+        """Serve every call ``endpoint`` answers from now on."""
+
+        def on_call(call: Call) -> None:
+            self.serve(call)
+
+        endpoint.on_call = on_call
+
+    def serve(self, call: Call) -> CallServices:
+        """Open the service channels on ``call``."""
+        services = CallServices(self, call)
+        self.services[call.id] = services
+        self.emit({"event": "call", "id": call.id, "peer": call.peer, "role": str(call.role)})
+        log.info("call %s from %s (%s)", call.id, call.peer, call.role)
+
+        def on_end(_: asyncio.Future[Any]) -> None:
+            self.services.pop(call.id, None)
+            services.map.close()
+            end = call.end
+            self.emit(
+                {
+                    "event": "ended",
+                    "id": call.id,
+                    "peer": call.peer,
+                    "kind": end.kind if end else "",
+                    "detail": end.detail if end else "",
+                }
+            )
+            log.info("call %s from %s ended: %s", call.id, call.peer, end)
+
+        asyncio.ensure_future(call.wait_ended()).add_done_callback(on_end)
+        return services
+
+    async def run(self) -> None:
+        """Step the robot and run the services until cancelled."""
+        period = 1.0 / self.control_hz
+        pose_every = 1.0 / self.settings.pose_hz
+        telemetry_every = 1.0 / self.settings.telemetry_hz
+        next_pose = next_telemetry = self.now()
+        next_step = self.now()
+        while True:
+            now = self.now()
+            try:
+                self.nav.step(now)
+            except Exception:
+                # Fail safe: a broken step must not leave the base driving.
+                log.exception("robot step failed: stopping the robot")
+                with contextlib.suppress(Exception):
+                    self.nav.stop()
+            for services in list(self.services.values()):
+                self._guarded(services.tick)
+                if now >= next_pose:
+                    self._guarded(services.publish_pose)
+                if now >= next_telemetry:
+                    self._guarded(services.publish_telemetry)
+            if now >= next_pose:
+                next_pose = max(next_pose + pose_every, now)
+            if now >= next_telemetry:
+                next_telemetry = max(next_telemetry + telemetry_every, now)
+            next_step += period
+            delay = next_step - self.now()
+            if delay < -period:  # we fell behind: do not try to catch up in a burst
+                next_step = self.now()
+                delay = 0.0
+            await asyncio.sleep(max(delay, 0.0))
+
+    @staticmethod
+    def _guarded(action: Callable[[], None]) -> None:
+        try:
+            action()
+        except Exception:
+            log.exception("service handler failed")

@@ -1,0 +1,373 @@
+"""The robot daemon end to end: ``telebot-robot run`` in its own process, users over zenoh.
+
+One daemon per module (on the small map, with a fast robot so the moves take a second or
+two), driven through the library (:func:`telebot.connect`) and the ``telebot-user``
+command, each in separate processes over zenoh on loopback.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import ROBOT, USER, Process, free_port
+from telebot.config import AppConfig, ZenohSettings
+from telebot.identity import ContactBook, Identity, KnownRobots, Role, create_paired_homes
+from telebot.robot.mapfile import load_map
+from telebot.robot.sim.building import resolve_map
+from telebot.services.client import RobotClient, connect
+from telebot.services.proto.mapxfer import decode_map
+
+pytestmark = pytest.mark.zenoh
+
+FAST_ROBOT = """
+[transport.zenoh]
+multicast_scouting = false
+
+[sim]
+map = "small"
+max_linear_speed = 1.5
+linear_accel = 3.0
+max_angular_speed = 3.0
+angular_accel = 8.0
+"""
+
+
+class Daemon:
+    """A robot daemon process and what a user needs to reach it."""
+
+    def __init__(self, base: Path) -> None:
+        create_paired_homes(base, ROBOT, USER, role=Role.DRIVER)
+        self.robot_home = base / "robot"
+        self.user_home = base / "user"
+        # A second user who may only watch.
+        observer = Identity.generate("olga")
+        self.observer_home = base / "olga"
+        observer.save(self.observer_home)
+        book = ContactBook.load(self.robot_home)
+        book.add("olga", observer.public_key, Role.OBSERVER)
+        book.save()
+        known = KnownRobots.load(self.observer_home)
+        known.add(ROBOT, Identity.load(self.robot_home).public_key)
+        known.save()
+        self.port = free_port()
+        config = base / "robot.toml"
+        config.write_text(FAST_ROBOT)
+        self.user_config = base / "user.toml"
+        self.user_config.write_text("[transport.zenoh]\nmulticast_scouting = false\n")
+        self.process = Process(
+            [
+                "telebot.apps.robot_cli",
+                "run",
+                "--home",
+                str(self.robot_home),
+                "--config",
+                str(config),
+                "--listen",
+                f"tcp/127.0.0.1:{self.port}",
+                "--events",
+            ]
+        )
+
+    @property
+    def endpoint(self) -> str:
+        return f"tcp/127.0.0.1:{self.port}"
+
+    def config(self) -> AppConfig:
+        return AppConfig.model_validate(
+            {
+                "transport": {
+                    "zenoh": ZenohSettings(connect=[self.endpoint], multicast_scouting=False)
+                }
+            }
+        )
+
+    def user_cli(
+        self, *args: str, home: Path | None = None, timeout: float = 60
+    ) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "telebot.apps.user_cli",
+                *args,
+                "--home",
+                str(home or self.user_home),
+                "--config",
+                str(self.user_config),
+                "--connect",
+                self.endpoint,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+        )
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
+    daemon = Daemon(tmp_path_factory.mktemp("daemon"))
+    line = daemon.process.next_line(timeout=60)
+    assert '"ready"' in line, line
+    yield daemon
+    daemon.process.stop()
+
+
+@pytest.fixture
+async def robot(daemon: Daemon) -> AsyncIterator[RobotClient]:
+    async with connect(ROBOT, home=daemon.user_home, config=daemon.config(), timeout=10) as client:
+        await client.stop()  # every test starts from a robot at rest
+        yield client
+
+
+async def settled_pose(robot: RobotClient) -> tuple[float, float, float]:
+    """The pose once the robot stands still."""
+    for _ in range(50):
+        pose = await robot.pose()
+        if pose.v == 0 and pose.w == 0:
+            return pose.x, pose.y, pose.yaw
+    raise AssertionError("the robot did not come to rest")
+
+
+def yaw_change(before: float, after: float) -> float:
+    return math.degrees((after - before + math.pi) % (2 * math.pi) - math.pi)
+
+
+async def test_fwd_moves_the_robot_two_metres(robot: RobotClient) -> None:
+    await robot.chat("turn 0.0")
+    x0, y0, yaw0 = await settled_pose(robot)
+    result = await robot.chat("fwd 2", timeout=30)
+    assert result.replies == ["Forward command received", "finished moving"]
+    assert result.ok
+    x1, y1, _ = await settled_pose(robot)
+    assert math.hypot(x1 - x0, y1 - y0) == pytest.approx(2.0, abs=0.1)
+    # Along the heading it had, not sideways.
+    along = (x1 - x0) * math.cos(yaw0) + (y1 - y0) * math.sin(yaw0)
+    assert along == pytest.approx(2.0, abs=0.1)
+    back = await robot.chat("fwd -2", timeout=30)
+    assert back.ok
+
+
+@pytest.mark.parametrize(
+    ("command", "expected"),
+    [("turn 90", -90.0), ("turn -45", 45.0), ("left", 90.0), ("right", -90.0)],
+)
+async def test_turns_follow_the_paper_positive_is_to_the_right(
+    robot: RobotClient, command: str, expected: float
+) -> None:
+    _, _, yaw0 = await settled_pose(robot)
+    result = await robot.chat(command, timeout=30)
+    assert result.replies == ["Turn command received", "finished moving"]
+    _, _, yaw1 = await settled_pose(robot)
+    assert yaw_change(yaw0, yaw1) == pytest.approx(expected, abs=3.0)
+
+
+async def test_goto_a_place_arrives_and_where_reports_the_pose(robot: RobotClient) -> None:
+    places = await robot.chat("places")
+    assert "room-b" in places.final_text
+    result = await robot.chat("goto room-b", timeout=60)
+    assert result.replies[0] == "Goto command received"
+    assert result.replies[-1] == "finished moving" and result.ok
+    x, y, _ = await settled_pose(robot)
+    assert math.hypot(x - 9.5, y - 4.0) < 0.1  # room-b of the small map
+    where = await robot.chat("where?")
+    assert where.ok
+    assert f"x {x:.2f} m" in where.final_text or abs(float(where.final_text.split()[1]) - x) < 0.05
+    assert (
+        "heading 90°" in where.final_text
+        or "heading 89°" in where.final_text
+        or "heading 91°" in where.final_text
+    )
+    back = await robot.chat("goto start", timeout=60)
+    assert back.ok
+
+
+async def test_goal_through_the_goals_channel(robot: RobotClient) -> None:
+    updates: list[str] = []
+    final = await robot.goto(
+        3.0, 5.2, 0.0, timeout=60, on_update=lambda u: updates.append(u.status)
+    )
+    assert final.status == "succeeded", final.reason
+    x, y, _ = await settled_pose(robot)
+    assert math.hypot(x - 3.0, y - 5.2) < 0.1
+    assert updates[0] == "active"
+    refused = await robot.goto(999.0, 999.0, timeout=10)
+    assert refused.status == "failed"
+    assert refused.reason.startswith("no path to (999.00, 999.00): ")
+
+
+async def test_cameras_switch_and_telemetry_says_which(robot: RobotClient) -> None:
+    assert (await robot.chat("usercam")).ok
+    for _ in range(5):
+        telemetry = await robot.telemetry()
+        if telemetry.camera == "usercam":
+            break
+    assert telemetry.camera == "usercam"
+    assert (await robot.chat("NAVCAM")).ok
+    for _ in range(5):
+        telemetry = await robot.telemetry()
+        if telemetry.camera == "navcam":
+            break
+    assert telemetry.camera == "navcam"
+    assert telemetry.battery > 0 and telemetry.role == "driver"
+    assert telemetry.rtt is not None and telemetry.rtt < 1.0
+    assert "laser" in telemetry.diagnostics
+
+
+async def test_getmap_gives_the_cropped_grid_exactly(robot: RobotClient) -> None:
+    result = await robot.chat("getmap")
+    assert result.ok and result.attachment == "map"
+    download = await robot.get_map()
+    grid = load_map(resolve_map("small"))
+    bounds = grid.known_bounds()
+    assert bounds is not None
+    expected = grid.crop(*bounds)
+    got = decode_map(download.png, download.resolution, download.origin_x, download.origin_y)
+    assert np.array_equal(got.data, expected.data)
+    assert (got.origin_x, got.origin_y) == pytest.approx((expected.origin_x, expected.origin_y))
+    image = cv2.imdecode(np.frombuffer(download.png, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert image.shape == expected.data.shape
+
+
+async def test_chat_answers_info_commands_and_refuses_bad_ones(robot: RobotClient) -> None:
+    assert "battery" in (await robot.chat("battery")).final_text
+    assert (await robot.chat("status")).ok
+    assert "fwd" in (await robot.chat("help")).final_text
+    unknown = await robot.chat("xyz")
+    assert not unknown.ok and unknown.final_text == "unknown command 'xyz' — try help"
+    usage = await robot.chat("fwd lots")
+    assert not usage.ok and usage.final_text.startswith("usage: fwd")
+
+
+async def test_an_observer_may_not_drive_but_may_stop(daemon: Daemon) -> None:
+    async with connect(
+        ROBOT, home=daemon.observer_home, config=daemon.config(), timeout=10
+    ) as olga:
+        refused = await olga.chat("fwd 1")
+        assert not refused.ok and "observer" in refused.final_text
+        goal = await olga.goto(3.0, 5.2)
+        assert goal.status == "refused"
+        assert (await olga.stop()).ok
+        assert (await olga.chat("where?")).ok
+
+
+async def test_garbage_on_every_channel_is_dropped_and_the_daemon_keeps_serving(
+    robot: RobotClient,
+) -> None:
+    for name in ("chat", "goals", "map", "pose", "telemetry", "nonsense"):
+        channel = (
+            robot.call.channel(name)
+            if name not in robot.call.channels
+            else robot.call.channels[name]
+        )
+        for junk in (b"\x00\xff" * 10, "not json", '{"id": "x"}', "[]", '{"type": "goal"}'):
+            channel.send(junk)
+    await asyncio.sleep(0.3)
+    assert (await robot.chat("where?")).ok
+
+
+def test_send_exit_codes(daemon: Daemon, tmp_path: Path) -> None:
+    ok = daemon.user_cli("send", ROBOT, "turn", "10")
+    assert ok.returncode == 0, ok.stderr
+    assert ok.stdout.splitlines() == ["Turn command received", "finished moving"]
+    failed = daemon.user_cli("send", ROBOT, "goto", "999", "999")
+    assert failed.returncode == 1
+    assert "no path to" in failed.stdout
+    offline = daemon.user_cli("send", "nobody", "where?", timeout=30)
+    assert offline.returncode == 2
+    assert offline.stderr.count("\n") == 1 and "nobody" in offline.stderr
+    stranger = tmp_path / "stranger"
+    Identity.generate("mallory").save(stranger)
+    known = KnownRobots.load(stranger)
+    known.add(ROBOT, Identity.load(daemon.robot_home).public_key)
+    known.save()
+    refused = daemon.user_cli("send", ROBOT, "where?", home=stranger)
+    assert refused.returncode == 2
+    assert "not in the contact list" in refused.stderr
+    usage = daemon.user_cli("send", ROBOT)
+    assert usage.returncode == 2
+
+
+def test_piped_chat_runs_each_command_to_its_end(daemon: Daemon, tmp_path: Path) -> None:
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "telebot.apps.user_cli",
+            "chat",
+            ROBOT,
+            "--home",
+            str(daemon.user_home),
+            "--config",
+            str(daemon.user_config),
+            "--connect",
+            daemon.endpoint,
+            "--map-dir",
+            str(tmp_path),
+        ],
+        input="where?\n  TURN   20 \nturn -20\ngetmap\n",
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    assert lines[0] == "> where?"
+    assert lines.count("finished moving") == 2
+    assert (tmp_path / f"{ROBOT}-map.png").exists() and (tmp_path / f"{ROBOT}-map.yaml").exists()
+    assert load_map(tmp_path / f"{ROBOT}-map.yaml").data.shape[0] > 0
+
+
+def test_getmap_and_where_commands(daemon: Daemon, tmp_path: Path) -> None:
+    out = tmp_path / "maps" / "small.png"
+    result = daemon.user_cli("getmap", ROBOT, "-o", str(out))
+    assert result.returncode == 0, result.stderr
+    reloaded = load_map(out.with_suffix(".yaml"))
+    grid = load_map(resolve_map("small"))
+    bounds = grid.known_bounds()
+    assert bounds is not None
+    assert np.array_equal(reloaded.data, grid.crop(*bounds).data)
+    where = daemon.user_cli("where", ROBOT)
+    assert where.returncode == 0, where.stderr
+    assert where.stdout.startswith("x ") and "heading" in where.stdout
+
+
+def test_sigterm_stops_the_robot_hangs_up_and_exits_within_two_seconds(tmp_path: Path) -> None:
+    daemon = Daemon(tmp_path)
+    try:
+        assert '"ready"' in daemon.process.next_line(timeout=60)
+
+        async def drive_and_wait() -> tuple[str, float]:
+            async with connect(
+                ROBOT, home=daemon.user_home, config=daemon.config(), timeout=10
+            ) as robot:
+                async for reply in robot.chat_replies("fwd 5"):
+                    assert reply.text == "Forward command received"
+                    break
+                await asyncio.sleep(0.5)
+                started = time.monotonic()
+                daemon.process.signal(signal.SIGTERM)
+                end = await robot.call.wait_ended()
+                return end.detail, time.monotonic() - started
+
+        detail, seconds = asyncio.run(drive_and_wait())
+        assert detail == "robot shutting down"
+        assert seconds < 2.0
+        daemon.process.popen.wait(timeout=2.0)
+        assert daemon.process.popen.returncode in (0, 143)
+        events = []
+        while not daemon.process.lines.empty():
+            events.append(daemon.process.lines.get())
+        assert any('"stopping"' in line for line in events)
+    finally:
+        daemon.process.stop()
