@@ -27,6 +27,8 @@ test: lint
 
 bench: install
 	$(BIN)/python bench/channels.py
+	$(BIN)/python bench/nav.py
+	$(BIN)/python bench/mapxfer.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache .hypothesis

@@ -21,8 +21,11 @@ from telebot.robot.grid import OccupancyGrid
 from telebot.robot.mapfile import (
     SAVE_FREE_THRESH,
     SAVE_OCCUPIED_THRESH,
+    grid_to_image,
+    image_to_grid,
     load_map,
     load_places,
+    map_yaml,
     places_path_for,
     save_map,
     save_places,
@@ -322,6 +325,30 @@ def test_save_map_writes_non_trinary_values_as_map_saver_does(tmp_path: Path) ->
     data = np.array([[0, 20, 21, 64, 65, 100, 101, -5]], dtype=np.int8)
     save_map(OccupancyGrid(data, 0.1, 0.0, 0.0), tmp_path / "m.yaml")
     assert load_map(tmp_path / "m.yaml").data.tolist() == [[F, F, U, U, X, X, U, U]]
+
+
+def test_grid_to_image_and_image_to_grid_are_what_save_map_and_load_map_do(
+    tmp_path: Path,
+) -> None:
+    data = np.array([[0, 20, 21, 64, 65, 100, 101, -5], [X, F, U, F, X, U, F, X]], dtype=np.int8)
+    grid = OccupancyGrid(data, 0.1, -2.0, 3.0)
+    save_map(grid, tmp_path / "m.yaml")
+    image = grid_to_image(grid)
+    assert image.dtype == np.uint8
+    assert image.tolist() == cv2.imread(str(tmp_path / "m.pgm"), cv2.IMREAD_UNCHANGED).tolist()
+    loaded = load_map(tmp_path / "m.yaml")
+    again = image_to_grid(image, 0.1, -2.0, 3.0)
+    assert np.array_equal(again.data, loaded.data)
+    assert (again.resolution, again.origin_x, again.origin_y) == (0.1, -2.0, 3.0)
+
+
+def test_map_yaml_refuses_bad_numbers() -> None:
+    with pytest.raises(ValueError, match="resolution"):
+        map_yaml("m.png", 0.0, 0.0, 0.0)
+    with pytest.raises(ValueError, match="origin_x"):
+        map_yaml("m.png", 0.05, math.nan, 0.0)
+    with pytest.raises(ValueError, match="image_name"):
+        map_yaml("", 0.05, 0.0, 0.0)
 
 
 trinary = arrays(

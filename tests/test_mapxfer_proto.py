@@ -23,7 +23,7 @@ from hypothesis.extra.numpy import arrays
 from telebot.channels.proto.frames import MAX_DATAGRAM
 from telebot.errors import MapError, ProtocolError
 from telebot.robot.grid import OccupancyGrid
-from telebot.robot.mapfile import load_map
+from telebot.robot.mapfile import CELL_FREE_MAX, CELL_OCCUPIED_MIN, load_map, map_yaml
 from telebot.services.proto.mapxfer import (
     ALREADY_RUNNING,
     CHUNK_HEADER,
@@ -40,7 +40,6 @@ from telebot.services.proto.mapxfer import (
     MapSender,
     decode_map,
     encode_map,
-    map_server_yaml,
     png_size,
 )
 
@@ -149,7 +148,8 @@ def test_rows_are_flipped_top_row_farthest_from_origin() -> None:
 
 
 def test_pixel_values_follow_map_saver_thresholds() -> None:
-    values = [0, 25, 26, 64, 65, 100, -1, 101, 127, -128, -2]
+    free, occupied = CELL_FREE_MAX, CELL_OCCUPIED_MIN
+    values = [0, free, free + 1, occupied - 1, occupied, 100, -1, 101, 127, -128, -2]
     encoded = encode_map(grid_of([values]))
     image = cv2.imdecode(np.frombuffer(encoded.png, np.uint8), cv2.IMREAD_UNCHANGED)
     assert image is not None
@@ -197,7 +197,7 @@ def test_png_and_yaml_load_back_in_ros_map_server_loader(tmp_path: Path) -> None
     grid = grid_of(data, res=0.05, ox=-12.3, oy=4.56)
     encoded = encode_map(grid)
     (tmp_path / "m.png").write_bytes(encoded.png)
-    text = map_server_yaml("m.png", encoded.resolution, encoded.origin_x, encoded.origin_y)
+    text = map_yaml("m.png", encoded.resolution, encoded.origin_x, encoded.origin_y)
     (tmp_path / "m.yaml").write_text(text)
     meta = yaml.safe_load(text)
     assert meta["mode"] == "trinary" and meta["negate"] == 0
@@ -209,15 +209,6 @@ def test_png_and_yaml_load_back_in_ros_map_server_loader(tmp_path: Path) -> None
     assert np.array_equal(loaded.data, grid.data[r0:r1, c0:c1])
     assert (loaded.origin_x, loaded.origin_y) == (encoded.origin_x, encoded.origin_y)
     assert loaded.resolution == encoded.resolution
-
-
-def test_map_server_yaml_refuses_bad_numbers() -> None:
-    with pytest.raises(ValueError, match="resolution"):
-        map_server_yaml("m.png", 0.0, 0.0, 0.0)
-    with pytest.raises(ValueError, match="origin_x"):
-        map_server_yaml("m.png", 0.05, math.nan, 0.0)
-    with pytest.raises(ValueError, match="image_name"):
-        map_server_yaml("", 0.05, 0.0, 0.0)
 
 
 def test_a_click_on_the_image_maps_to_world_coordinates() -> None:

@@ -424,7 +424,7 @@ async def test_burst_arrives_in_few_batches(pair: tuple[ZenohTransport, ZenohTra
         publisher.put(b"%d" % i)
     # Keep the loop busy while zenoh's threads receive the burst (as a loaded robot's
     # would be): everything that arrived meanwhile must come in a handful of wake-ups.
-    time.sleep(0.3)
+    time.sleep(0.3)  # noqa: ASYNC251  (blocking the loop is the point here)
     await wait_until(lambda: len(inbox.samples) >= count)
     await asyncio.sleep(0.05)
     assert [s.payload for s in inbox.samples] == [b"%d" % i for i in range(count)]

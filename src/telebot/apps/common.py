@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import logging
 import signal
 import sys
-from collections.abc import Callable, Coroutine
+from collections.abc import Callable, Coroutine, Iterator
 from pathlib import Path
 from typing import Any, Literal, NoReturn, TypeVar
 
@@ -26,6 +27,7 @@ __all__ = [
     "Parser",
     "add_connection_options",
     "add_home_option",
+    "add_log_level_option",
     "app_config",
     "home_of",
     "keygen",
@@ -33,6 +35,7 @@ __all__ = [
     "name_arg",
     "new_parser",
     "run",
+    "stop_on_signals",
 ]
 
 Config = TypeVar("Config", bound=AppConfig)
@@ -49,6 +52,9 @@ class Parser(argparse.ArgumentParser):
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see --help)\n")
 
 
+LOG_LEVELS = ["debug", "info", "warning", "error"]
+
+
 def new_parser(prog: str, description: str) -> Parser:
     """The top-level parser of a telebot command, with --version and --log-level."""
     parser = Parser(prog=prog, description=description)
@@ -57,10 +63,21 @@ def new_parser(prog: str, description: str) -> Parser:
         "--log-level",
         default="warning",
         type=str.lower,
-        choices=["debug", "info", "warning", "error"],
+        choices=LOG_LEVELS,
         help="logging threshold (default: warning)",
     )
     return parser
+
+
+def add_log_level_option(parser: argparse.ArgumentParser) -> None:
+    """``--log-level`` after a sub-command too (``telebot-robot run --log-level info``)."""
+    parser.add_argument(
+        "--log-level",
+        default=argparse.SUPPRESS,  # keep the top-level value unless given here
+        type=str.lower,
+        choices=LOG_LEVELS,
+        help="logging threshold (default: warning)",
+    )
 
 
 def name_arg(text: str) -> str:
@@ -144,6 +161,22 @@ async def _terminable(main: Callable[[], Coroutine[Any, Any, int]]) -> int:
         return EXIT_TERMINATED
     finally:
         loop.remove_signal_handler(signal.SIGTERM)
+
+
+@contextlib.contextmanager
+def stop_on_signals(stop: asyncio.Event) -> Iterator[None]:
+    """Inside the block, SIGINT and SIGTERM set ``stop`` (a server's clean shutdown).
+
+    Call it from a coroutine on the running loop; the handlers are removed on the way out.
+    """
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        yield
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
 
 
 def keygen(name: str, home: Path, *, overwrite: bool, kind: Literal["robot", "user"]) -> int:

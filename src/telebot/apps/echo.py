@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import asyncio
 import json
-import signal
 from collections.abc import Callable
 from typing import Any
 
+from telebot.apps.common import stop_on_signals
 from telebot.channels.call import Call, RobotEndpoint
 from telebot.channels.channel import ReceivedDatagram
 from telebot.channels.transports import create_transport
@@ -93,10 +93,7 @@ async def serve_echo(
 ) -> None:
     """Answer calls and echo datagrams until ``stop`` is set or SIGINT / SIGTERM arrives."""
     stop = stop or asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
-    try:
+    with stop_on_signals(stop):
         async with (
             create_transport(config.transport) as transport,
             RobotEndpoint(
@@ -107,6 +104,3 @@ async def serve_echo(
             emit({"event": "ready", "robot": identity.name, "inbox": robot.inbox})
             await stop.wait()
             emit({"event": "stopping", "calls": len(robot.calls)})
-    finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.remove_signal_handler(sig)

@@ -19,6 +19,7 @@ from telebot.apps.common import (
     Parser,
     add_connection_options,
     add_home_option,
+    add_log_level_option,
     home_of,
     keygen,
     load_app_config,
@@ -69,6 +70,7 @@ def build_parser() -> Parser:
     )
     add_home_option(daemon, "robot")
     add_connection_options(daemon)
+    add_log_level_option(daemon)
     daemon.add_argument(
         "--map",
         default=None,

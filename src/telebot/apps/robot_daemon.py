@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import signal
 from pathlib import Path
 
+from telebot.apps.common import stop_on_signals
 from telebot.channels.call import RobotEndpoint
 from telebot.channels.transports import create_transport
 from telebot.config import RobotConfig
@@ -54,9 +54,7 @@ async def serve_robot(
         emit=emit,
     )
     await server.prepare()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
-    try:
+    with stop_on_signals(stop):
         async with (
             create_transport(config.transport) as transport,
             RobotEndpoint(
@@ -96,6 +94,3 @@ async def serve_robot(
                 for call in endpoint.calls:
                     call.hangup_now(SHUTDOWN_REASON)
                 await asyncio.sleep(0.05)  # let the hang-ups leave before the transport closes
-    finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.remove_signal_handler(sig)

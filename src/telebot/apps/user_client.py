@@ -13,11 +13,9 @@ from typing import TextIO
 from telebot.apps.common import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from telebot.config import AppConfig
 from telebot.services.client import RobotClient, connect
-from telebot.services.mapxfer import MapDownload
 from telebot.services.proto.chat import ChatReply
-from telebot.services.proto.mapxfer import map_server_yaml
 
-__all__ = ["chat_session", "format_pose", "get_map", "save_map", "send_command", "where"]
+__all__ = ["chat_session", "format_pose", "get_map", "send_command", "where"]
 
 
 def format_pose(x: float, y: float, yaw: float) -> str:
@@ -31,18 +29,6 @@ async def _robot(
 ) -> AsyncIterator[RobotClient]:
     async with connect(robot, home=home, config=config, timeout=timeout) as client:
         yield client
-
-
-def save_map(download: MapDownload, png_path: Path) -> Path:
-    """Write the PNG and a ROS map_server YAML beside it; returns the YAML's path."""
-    png_path.parent.mkdir(parents=True, exist_ok=True)
-    png_path.write_bytes(download.png)
-    yaml_path = png_path.with_suffix(".yaml")
-    yaml_path.write_text(
-        map_server_yaml(png_path.name, download.resolution, download.origin_x, download.origin_y),
-        encoding="utf-8",
-    )
-    return yaml_path
 
 
 class _Progress:
@@ -72,7 +58,8 @@ class _Progress:
 async def _fetch_and_save(client: RobotClient, png_path: Path, timeout: float) -> Path:
     progress = _Progress(f"map from {client.robot}")
     download = await client.get_map(timeout=timeout, progress=progress)
-    yaml_path = save_map(download, png_path)
+    png_path.parent.mkdir(parents=True, exist_ok=True)
+    yaml_path = download.save(png_path)
     progress.finish(
         f"map saved to {png_path} ({len(download.png) // 1024} KB, "
         f"{download.width} x {download.height} cells at {download.resolution:g} m, "

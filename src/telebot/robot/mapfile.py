@@ -4,6 +4,22 @@
 robot uses loads here unchanged, and :func:`save_map` writes what ``map_saver`` writes (a
 binary PGM: free 254, occupied 0, unknown 205, plus its YAML), so any ROS tool loads our maps.
 
+This module is the one home of the map_server image and YAML conventions; the map transfer
+(:mod:`telebot.services.proto.mapxfer`) uses them through :func:`grid_to_image`,
+:func:`image_to_grid` and :func:`map_yaml`. Writing, each cell becomes a pixel of
+map_saver's trinary image:
+
+======================================  =====  ========
+cell value                              pixel  meaning
+======================================  =====  ========
+0 … :data:`CELL_FREE_MAX`               254    free
+:data:`CELL_OCCUPIED_MIN` … 100         0      occupied
+-1, anything else                       205    unknown
+======================================  =====  ========
+
+The two limits are the save thresholds as percentages, and the YAML beside the image names
+those thresholds, so every loader reads 254, 205 and 0 back as free, unknown and occupied.
+
 Loading, per pixel (``M`` is 255 for 8-bit images, 65535 for 16-bit ones):
 
 * ``shade`` is the mean of the colour channels divided by ``M``; in *trinary* mode an alpha
@@ -51,14 +67,22 @@ from telebot.robot.grid import FREE, OCCUPIED, UNKNOWN, OccupancyGrid
 from telebot.robot.nav import Pose2D, normalize_angle
 
 __all__ = [
+    "CELL_FREE_MAX",
+    "CELL_OCCUPIED_MIN",
     "MAP_MODES",
+    "PIXEL_FREE",
+    "PIXEL_OCCUPIED",
+    "PIXEL_UNKNOWN",
     "PLACE_NAME_PATTERN",
     "SAVE_FREE_THRESH",
     "SAVE_OCCUPIED_THRESH",
     "PlaceEntry",
     "PlacesFile",
+    "grid_to_image",
+    "image_to_grid",
     "load_map",
     "load_places",
+    "map_yaml",
     "places_path_for",
     "save_map",
     "save_places",
@@ -74,19 +98,44 @@ MAP_MODES = ("trinary", "scale", "raw")
 SAVE_OCCUPIED_THRESH = 0.65
 SAVE_FREE_THRESH = 0.196
 
+#: Cells up to this value (20) are written free, from :data:`CELL_OCCUPIED_MIN` (65) up
+#: occupied, the rest unknown: the save thresholds as percentages, the one rule for every
+#: map image we write.
+CELL_FREE_MAX = round(SAVE_FREE_THRESH * 100.0)
+CELL_OCCUPIED_MIN = round(SAVE_OCCUPIED_THRESH * 100.0)
+
+#: Pixel values of map_saver's trinary images.
+PIXEL_FREE = 254
+PIXEL_OCCUPIED = 0
+PIXEL_UNKNOWN = 205
+
 #: What a place name may look like.
 PLACE_NAME_PATTERN = re.compile(r"[a-z][a-z0-9_-]*")
-
-# Pixel values map_saver writes for each class of cell.
-_PGM_FREE = 254
-_PGM_OCCUPIED = 0
-_PGM_UNKNOWN = 205
 
 # An origin yaw this close to zero is float noise from a quaternion round trip, not a rotation.
 _YAW_TOLERANCE = 1e-6
 
 
 # --------------------------------------------------------------------------- map YAML
+
+
+@dataclass(frozen=True, slots=True)
+class _Reading:
+    """How a map YAML says its image's pixels become cells."""
+
+    mode: str
+    negate: bool
+    occupied_thresh: float
+    free_thresh: float
+
+
+#: How :func:`map_yaml` (and so :func:`save_map`) says to read the image.
+_SAVED = _Reading(
+    mode="trinary",
+    negate=False,
+    occupied_thresh=SAVE_OCCUPIED_THRESH,
+    free_thresh=SAVE_FREE_THRESH,
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -97,10 +146,7 @@ class _MapMeta:
     resolution: float
     origin_x: float
     origin_y: float
-    negate: bool
-    occupied_thresh: float
-    free_thresh: float
-    mode: str
+    reading: _Reading
 
 
 def _number(path: Path, doc: Mapping[str, Any], key: str) -> float:
@@ -129,16 +175,23 @@ def _as_number(path: Path, key: str, value: Any) -> float:
     return number
 
 
+def _read_file(path: Path, where: str, *, missing: str, directory: str) -> bytes:
+    """The bytes of ``path``; a MapError ``"<where>: …"`` if missing, a folder or unreadable."""
+    try:
+        return path.read_bytes()
+    except FileNotFoundError:
+        raise MapError(f"{where}: {missing}") from None
+    except IsADirectoryError:
+        raise MapError(f"{where}: {directory}") from None
+    except OSError as exc:
+        raise MapError(f"{where}: cannot read: {exc.strerror}") from exc
+
+
 def _read_map_yaml(path: Path) -> _MapMeta:
     """Read and check a map YAML file; every problem is one MapError line."""
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise MapError(f"{path}: no such map file") from None
-    except IsADirectoryError:
-        raise MapError(f"{path}: is a directory, not a map YAML file") from None
-    except OSError as exc:
-        raise MapError(f"{path}: cannot read: {exc.strerror}") from exc
+    raw = _read_file(
+        path, str(path), missing="no such map file", directory="is a directory, not a map YAML file"
+    )
     try:
         doc = yaml.safe_load(raw)
     except yaml.YAMLError as exc:
@@ -201,10 +254,9 @@ def _read_map_yaml(path: Path) -> _MapMeta:
         resolution=resolution,
         origin_x=ox,
         origin_y=oy,
-        negate=negate,
-        occupied_thresh=occupied,
-        free_thresh=free,
-        mode=mode.lower(),
+        reading=_Reading(
+            mode=mode.lower(), negate=negate, occupied_thresh=occupied, free_thresh=free
+        ),
     )
 
 
@@ -214,14 +266,7 @@ def _read_map_yaml(path: Path) -> _MapMeta:
 def _decode_image(yaml_path: Path, image_path: Path) -> npt.NDArray[Any]:
     """The image as OpenCV decodes it with ``IMREAD_UNCHANGED`` (channels and depth kept)."""
     where = f"{yaml_path}: image {image_path}"
-    try:
-        raw = image_path.read_bytes()
-    except FileNotFoundError:
-        raise MapError(f"{where}: no such file") from None
-    except IsADirectoryError:
-        raise MapError(f"{where}: is a directory") from None
-    except OSError as exc:
-        raise MapError(f"{where}: cannot read: {exc.strerror}") from exc
+    raw = _read_file(image_path, where, missing="no such file", directory="is a directory")
     # imdecode is imread's decoder without imread's stderr chatter and path-encoding pitfalls.
     image: npt.NDArray[Any] | None = None
     if raw:
@@ -263,27 +308,29 @@ def _channel_sums(
     return colour, 3, transparent
 
 
-def _image_to_cells(image: npt.NDArray[Any], meta: _MapMeta) -> npt.NDArray[np.int8]:
+def _image_to_cells(image: npt.NDArray[Any], reading: _Reading) -> npt.NDArray[np.int8]:
     """Occupancy values for each pixel, in image row order (top row first)."""
     maxval = 65535 if image.dtype == np.uint16 else 255
-    sums, count, transparent = _channel_sums(image, with_alpha=meta.mode == "trinary")
+    sums, count, transparent = _channel_sums(image, with_alpha=reading.mode == "trinary")
     # Each pixel's value depends only on its channel sum, so classify every possible sum
     # once (in float64, as nav2 does) and index: exact, and fast on 4000 × 4000 maps.
     possible = np.arange(count * maxval + 1, dtype=np.float64)
     shade = (possible / count) / maxval
     lut = np.empty(possible.shape, dtype=np.int8)
-    if meta.mode == "raw":
+    if reading.mode == "raw":
         percent = np.floor(shade * 255.0 + 0.5)  # std::round: halves away from zero
         inside = (percent >= FREE) & (percent <= OCCUPIED)
         lut[:] = UNKNOWN
         lut[inside] = percent[inside].astype(np.int8)
     else:
-        occ = shade if meta.negate else 1.0 - shade
-        occupied = meta.occupied_thresh < occ
-        free = occ < meta.free_thresh
-        if meta.mode == "scale":
+        occ = shade if reading.negate else 1.0 - shade
+        occupied = reading.occupied_thresh < occ
+        free = occ < reading.free_thresh
+        if reading.mode == "scale":
             scaled = np.rint(
-                (occ - meta.free_thresh) / (meta.occupied_thresh - meta.free_thresh) * 100.0
+                (occ - reading.free_thresh)
+                / (reading.occupied_thresh - reading.free_thresh)
+                * 100.0
             )
             lut[:] = np.clip(scaled, 0, 100).astype(np.int8)
         else:
@@ -291,9 +338,40 @@ def _image_to_cells(image: npt.NDArray[Any], meta: _MapMeta) -> npt.NDArray[np.i
         lut[occupied] = OCCUPIED
         lut[free] = FREE
     cells: npt.NDArray[np.int8] = lut[sums]
-    if meta.mode == "scale" and transparent is not None:
+    if reading.mode == "scale" and transparent is not None:
         cells[transparent] = UNKNOWN
     return cells
+
+
+def _grid_of_image(
+    image: npt.NDArray[Any],
+    reading: _Reading,
+    resolution: float,
+    origin_x: float,
+    origin_y: float,
+) -> OccupancyGrid:
+    # The image's top row is the grid row farthest from the origin.
+    cells = _image_to_cells(image, reading)
+    return OccupancyGrid(
+        data=np.ascontiguousarray(cells[::-1]),
+        resolution=resolution,
+        origin_x=origin_x,
+        origin_y=origin_y,
+    )
+
+
+def image_to_grid(
+    image: npt.NDArray[Any], resolution: float, origin_x: float, origin_y: float
+) -> OccupancyGrid:
+    """The grid of a map image as map_server reads it with the YAML of :func:`map_yaml`.
+
+    Trinary mode with :data:`SAVE_OCCUPIED_THRESH` and :data:`SAVE_FREE_THRESH`: 254 → 0,
+    0 → 100, 205 → -1, other shades by their occupancy ``1 - v/M``; the exact inverse of
+    :func:`grid_to_image` for grids of -1/0/100. ``image`` is 8- or 16-bit, grey or colour,
+    as OpenCV decodes it with ``IMREAD_UNCHANGED``; its top row is the grid's last.
+    ValueError for a bad georeference.
+    """
+    return _grid_of_image(image, _SAVED, resolution, origin_x, origin_y)
 
 
 def load_map(path: Path) -> OccupancyGrid:
@@ -305,13 +383,7 @@ def load_map(path: Path) -> OccupancyGrid:
     path = Path(path)
     meta = _read_map_yaml(path)
     image = _decode_image(path, meta.image)
-    cells = _image_to_cells(image, meta)
-    return OccupancyGrid(
-        data=np.ascontiguousarray(cells[::-1]),
-        resolution=meta.resolution,
-        origin_x=meta.origin_x,
-        origin_y=meta.origin_y,
-    )
+    return _grid_of_image(image, meta.reading, meta.resolution, meta.origin_x, meta.origin_y)
 
 
 # --------------------------------------------------------------------------- saving
@@ -336,42 +408,73 @@ def _atomic_write(path: Path, data: bytes) -> None:
         raise
 
 
+def _cell_to_pixel() -> npt.NDArray[np.uint8]:
+    # Indexed by the cell's int8 value read as uint8, so -1 (255) and every value outside
+    # 0..100 land on "unknown".
+    lut = np.full(256, PIXEL_UNKNOWN, dtype=np.uint8)
+    lut[0 : CELL_FREE_MAX + 1] = PIXEL_FREE
+    lut[CELL_OCCUPIED_MIN:101] = PIXEL_OCCUPIED
+    return lut
+
+
+_CELL_TO_PIXEL = _cell_to_pixel()
+
+
+def grid_to_image(grid: OccupancyGrid) -> npt.NDArray[np.uint8]:
+    """The grid as map_saver's trinary 8-bit grey image (top row = farthest grid row).
+
+    Cells 0 … :data:`CELL_FREE_MAX` become 254 (free), :data:`CELL_OCCUPIED_MIN` … 100
+    become 0 (occupied), everything else 205 (unknown).
+    """
+    return np.ascontiguousarray(_CELL_TO_PIXEL[grid.data[::-1].view(np.uint8)])
+
+
+def map_yaml(image_name: str, resolution: float, origin_x: float, origin_y: float) -> str:
+    """The ROS map_server YAML that loads ``image_name`` (an image of :func:`grid_to_image`).
+
+    Trinary mode, ``negate: 0``, thresholds :data:`SAVE_OCCUPIED_THRESH` and
+    :data:`SAVE_FREE_THRESH`, under which 254, 205 and 0 load as free, unknown and occupied
+    in every loader. ValueError for an empty name or a bad georeference.
+    """
+    if not image_name or not isinstance(image_name, str):
+        raise ValueError("image_name must be a file name")
+    for what, value in (("resolution", resolution), ("origin_x", origin_x), ("origin_y", origin_y)):
+        if not math.isfinite(value):
+            raise ValueError(f"{what} must be finite, not {value}")
+    if resolution <= 0:
+        raise ValueError(f"resolution must be positive, not {resolution}")
+    meta = {
+        "image": image_name,
+        "mode": _SAVED.mode,
+        "resolution": float(resolution),
+        "origin": [float(origin_x), float(origin_y), 0.0],
+        "negate": int(_SAVED.negate),
+        "occupied_thresh": _SAVED.occupied_thresh,
+        "free_thresh": _SAVED.free_thresh,
+    }
+    # PyYAML writes floats with full precision and a dot, so the origin reads back exactly.
+    return yaml.safe_dump(meta, sort_keys=False, default_flow_style=None)
+
+
 def _pgm_bytes(grid: OccupancyGrid) -> bytes:
-    """The grid as map_saver's trinary P5 PGM (top image row = farthest grid row)."""
-    free_int = round(SAVE_FREE_THRESH * 100.0)
-    occupied_int = round(SAVE_OCCUPIED_THRESH * 100.0)
-    # Indexed by the cell value's byte: -1 (and anything outside 0..100) is unknown.
-    lut = np.full(256, _PGM_UNKNOWN, dtype=np.uint8)
-    lut[0 : free_int + 1] = _PGM_FREE
-    lut[occupied_int:101] = _PGM_OCCUPIED
-    pixels = lut[grid.data[::-1].view(np.uint8)]
+    """The grid as map_saver's trinary P5 PGM."""
     header = (
         f"P5\n# CREATOR: telebot.robot.mapfile {grid.resolution:.3f} m/pix\n"
         f"{grid.width} {grid.height}\n255\n"
     ).encode("ascii")
-    return header + np.ascontiguousarray(pixels).tobytes()
+    return header + grid_to_image(grid).tobytes()
 
 
 def save_map(grid: OccupancyGrid, yaml_path: Path) -> None:
     """Write ``grid`` as ``<stem>.pgm`` plus ``yaml_path``, as ROS ``map_saver`` does.
 
-    Trinary mode, ``negate: 0``, thresholds :data:`SAVE_OCCUPIED_THRESH` and
-    :data:`SAVE_FREE_THRESH`; a grid of -1/0/100 loads back identical. Each file is replaced
-    atomically, the YAML last, so a YAML that exists always has its image beside it.
+    The image of :func:`grid_to_image` and the YAML of :func:`map_yaml`; a grid of -1/0/100
+    loads back identical. Each file is replaced atomically, the YAML last, so a YAML that
+    exists always has its image beside it.
     """
     yaml_path = Path(yaml_path)
     image_path = yaml_path.with_name(f"{yaml_path.stem}.pgm")
-    meta = {
-        "image": image_path.name,
-        "mode": "trinary",
-        "resolution": float(grid.resolution),
-        "origin": [float(grid.origin_x), float(grid.origin_y), 0.0],
-        "negate": 0,
-        "occupied_thresh": SAVE_OCCUPIED_THRESH,
-        "free_thresh": SAVE_FREE_THRESH,
-    }
-    # PyYAML writes floats with full precision and a dot, so the origin reads back exactly.
-    text = yaml.safe_dump(meta, sort_keys=False, default_flow_style=None)
+    text = map_yaml(image_path.name, grid.resolution, grid.origin_x, grid.origin_y)
     try:
         yaml_path.parent.mkdir(parents=True, exist_ok=True)
         _atomic_write(image_path, _pgm_bytes(grid))

@@ -32,6 +32,7 @@ from telebot.channels.channel import Channel, ReceivedDatagram
 from telebot.channels.transports.base import Lane
 from telebot.errors import CallEnded, ProtocolError, TelebotError
 from telebot.robot.grid import OccupancyGrid
+from telebot.robot.mapfile import map_yaml
 from telebot.services.proto import MAP
 from telebot.services.proto.mapxfer import (
     IDLE_TIMEOUT,
@@ -41,7 +42,6 @@ from telebot.services.proto.mapxfer import (
     MapReceiver,
     MapSender,
     decode_map,
-    map_server_yaml,
     png_size,
 )
 
@@ -272,7 +272,7 @@ class MapDownload:
 
     def yaml(self, image_name: str) -> str:
         """The ROS map_server YAML for this map, its image saved as ``image_name``."""
-        return map_server_yaml(image_name, *self._georeference())
+        return map_yaml(image_name, *self._georeference())
 
     def save(self, png_path: Path) -> Path:
         """Write the PNG to ``png_path`` and its map_server YAML beside it; returns the YAML path.

@@ -15,10 +15,10 @@ import logging
 import math
 from collections import OrderedDict
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 from telebot.channels.call import Call, RobotEndpoint
-from telebot.channels.channel import ReceivedDatagram
+from telebot.channels.channel import Channel, ReceivedDatagram
 from telebot.channels.transports.base import Lane
 from telebot.config import ServiceSettings
 from telebot.errors import ProtocolError, TelebotError
@@ -39,6 +39,8 @@ from telebot.services.proto.status import (
 __all__ = ["CallServices", "EventSink", "RobotServer", "SteppedNavStack", "may_drive"]
 
 log = logging.getLogger("telebot.robot")
+
+_Request = TypeVar("_Request")
 
 #: Requests (chat ids, goal ids) remembered per call, to answer repeats without re-running.
 REMEMBERED = 256
@@ -88,12 +90,8 @@ class CallServices:
     # -- chat -----------------------------------------------------------------------
 
     def _on_chat(self, datagram: ReceivedDatagram) -> None:
-        try:
-            request = decode_request(datagram.payload)
-        except ProtocolError as exc:
-            self.rejected += 1
-            self._chat_channel.stats.rejected += 1
-            log.debug("call %s: chat datagram dropped: %s", self.call.id, exc)
+        request = self._decode(self._chat_channel, decode_request, datagram)
+        if request is None:
             return
         earlier = self._chat_replies.get(request.id)
         if earlier is not None:
@@ -114,12 +112,8 @@ class CallServices:
     # -- goals ----------------------------------------------------------------------
 
     def _on_goal_command(self, datagram: ReceivedDatagram) -> None:
-        try:
-            command = decode_goal_command(datagram.payload)
-        except ProtocolError as exc:
-            self.rejected += 1
-            self._goals_channel.stats.rejected += 1
-            log.debug("call %s: goals datagram dropped: %s", self.call.id, exc)
+        command = self._decode(self._goals_channel, decode_goal_command, datagram)
+        if command is None:
             return
         known = self._goals.get(command.id)
         if command.type == "query" or (command.type == "goal" and known is not None):
@@ -222,6 +216,21 @@ class CallServices:
             diagnostics=dict(nav.diagnostics()),
         )
         self._send(self._telemetry_channel, telemetry.encode())
+
+    def _decode(
+        self,
+        channel: Channel,
+        decode: Callable[[str | bytes], _Request],
+        datagram: ReceivedDatagram,
+    ) -> _Request | None:
+        """``decode(payload)``, or None for a datagram that is not a request (counted, logged)."""
+        try:
+            return decode(datagram.payload)
+        except ProtocolError as exc:
+            self.rejected += 1
+            channel.stats.rejected += 1
+            log.debug("call %s: %s datagram dropped: %s", self.call.id, channel.name, exc)
+            return None
 
     def _send(self, channel: Any, text: str) -> None:
         if not self.call.active:

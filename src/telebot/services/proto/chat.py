@@ -448,22 +448,9 @@ class ChatReply:
         return encode_object(message)
 
 
-def encode_request(id: int, text: str) -> str:
-    """A request datagram; :class:`ProtocolError` for a bad id or an over-long text."""
-    if isinstance(id, bool) or not isinstance(id, int) or not 0 <= id < 2**32:
-        raise ProtocolError(f"chat request: id must be an integer in 0..{2**32 - 1}")
-    if len(text) > MAX_REQUEST_TEXT:
-        raise ProtocolError(f"chat request: text is longer than {MAX_REQUEST_TEXT} characters")
-    return encode_object({"id": id, "text": text})
-
-
-def decode_request(payload: str | bytes) -> ChatRequest:
-    """Parse a request datagram; :class:`ProtocolError` on anything else.
-
-    Unknown keys are ignored, so that newer clients can add fields.
-    """
+def _request(message: dict[str, Any]) -> ChatRequest:
+    """The request in a decoded (or about to be encoded) message; ProtocolError if invalid."""
     what = "chat request"
-    message = decode_object(payload, what=what)
     request_id = require_int(message, "id", what=what)
     text = message.get("text")
     if not isinstance(text, str):
@@ -471,6 +458,21 @@ def decode_request(payload: str | bytes) -> ChatRequest:
     if len(text) > MAX_REQUEST_TEXT:
         raise ProtocolError(f"{what}: text is longer than {MAX_REQUEST_TEXT} characters")
     return ChatRequest(request_id, text)
+
+
+def encode_request(id: int, text: str) -> str:
+    """A request datagram; :class:`ProtocolError` for anything :func:`decode_request` refuses."""
+    message = {"id": id, "text": text}
+    _request(message)
+    return encode_object(message)
+
+
+def decode_request(payload: str | bytes) -> ChatRequest:
+    """Parse a request datagram; :class:`ProtocolError` on anything else.
+
+    Unknown keys are ignored, so that newer clients can add fields.
+    """
+    return _request(decode_object(payload, what="chat request"))
 
 
 def decode_reply(payload: str | bytes) -> ChatReply:

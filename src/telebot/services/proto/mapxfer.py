@@ -2,21 +2,15 @@
 
 Encoding. :func:`encode_map` crops the occupancy grid to its known cells (on a SLAM map most
 of the grid is unknown: the default 4000 × 4000 map is 13 % known) and writes the crop as an
-8-bit grey PNG with the pixel values of ROS ``map_saver``'s trinary maps:
-
-====================  ===========  =====================================
-cell value            pixel        meaning
-====================  ===========  =====================================
-0 … 25                254          free
-65 … 100              0            occupied
--1, 26 … 64, other    205          unknown
-====================  ===========  =====================================
+8-bit grey PNG with the pixel values of ROS ``map_saver``'s trinary maps (free 254, occupied
+0, unknown 205), by the rules of :mod:`telebot.robot.mapfile`, the one home of the
+map_server image and YAML conventions (:func:`~telebot.robot.mapfile.grid_to_image`).
 
 The top image row is the grid row farthest from the origin (as in every map_server image);
 the georeference travels beside the image: the resolution and the crop's origin (the world
 position of the lower-left corner of the image's bottom-left pixel). :func:`decode_map` is
-the exact inverse for trinary grids (-1/0/100), and :func:`map_server_yaml` writes the YAML
-that makes any ROS tool load the PNG to the same grid.
+the exact inverse for trinary grids (-1/0/100), and :func:`telebot.robot.mapfile.map_yaml`
+writes the YAML that makes any ROS tool load the PNG to the same grid.
 
 Transfer (one JSON text datagram per control message, one binary datagram per chunk)::
 
@@ -37,23 +31,20 @@ The wire format is specified in ``docs/protocol.md`` ("The map channel").
 from __future__ import annotations
 
 import hashlib
-import math
 import re
 import struct
 from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Final, Literal
+from typing import Any, Final, Generic, Literal, TypeVar
 
 import cv2
 import numpy as np
-import numpy.typing as npt
-import yaml
 
 from telebot.channels.proto.frames import MAX_DATAGRAM
 from telebot.errors import MapError, ProtocolError
 from telebot.robot.grid import OccupancyGrid
-from telebot.robot.mapfile import SAVE_FREE_THRESH, SAVE_OCCUPIED_THRESH
+from telebot.robot.mapfile import grid_to_image, image_to_grid
 from telebot.services.proto.messages import (
     decode_object,
     encode_object,
@@ -63,8 +54,6 @@ from telebot.services.proto.messages import (
 
 __all__ = [
     "ALREADY_RUNNING",
-    "CELL_FREE_MAX",
-    "CELL_OCCUPIED_MIN",
     "CHUNK_HEADER",
     "CHUNK_KIND",
     "IDLE_TIMEOUT",
@@ -73,9 +62,6 @@ __all__ = [
     "MAX_MAP_BYTES",
     "MAX_MAP_CELLS",
     "MAX_RESEND_INDICES",
-    "PIXEL_FREE",
-    "PIXEL_OCCUPIED",
-    "PIXEL_UNKNOWN",
     "PNG_COMPRESSION",
     "REPEATS",
     "REQUEST_INTERVAL",
@@ -87,7 +73,6 @@ __all__ = [
     "Offer",
     "decode_map",
     "encode_map",
-    "map_server_yaml",
     "png_size",
 ]
 
@@ -133,15 +118,6 @@ ALREADY_RUNNING: Final = "a map transfer is already running"
 #: Longest ``reason`` or ``name`` kept from a peer (characters).
 MAX_TEXT: Final = 256
 
-#: Pixel values of map_saver's trinary images.
-PIXEL_FREE: Final = 254
-PIXEL_OCCUPIED: Final = 0
-PIXEL_UNKNOWN: Final = 205
-#: Cells up to this value are written free, from :data:`CELL_OCCUPIED_MIN` up occupied
-#: (map_saver's defaults, free_thresh 0.25 and occupied_thresh 0.65, as percentages).
-CELL_FREE_MAX: Final = 25
-CELL_OCCUPIED_MIN: Final = 65
-
 #: zlib level; with the RLE strategy below it changes nothing (RLE has one speed).
 PNG_COMPRESSION: Final = 6
 # Z_RLE: on the 4000² building map 10 ms and 5.6 KB against 18 ms and 4.8 KB for level 9
@@ -156,29 +132,6 @@ _PNG_PARAMS: Final = [
 
 _SHA256_HEX = re.compile(r"[0-9a-f]{64}")
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-
-
-def _cell_to_pixel() -> npt.NDArray[np.uint8]:
-    # Indexed by the cell's int8 value read as uint8, so -1 (255) and every value outside
-    # 0..100 land on "unknown".
-    lut = np.full(256, PIXEL_UNKNOWN, dtype=np.uint8)
-    lut[0 : CELL_FREE_MAX + 1] = PIXEL_FREE
-    lut[CELL_OCCUPIED_MIN:101] = PIXEL_OCCUPIED
-    return lut
-
-
-def _pixel_to_cell() -> npt.NDArray[np.int8]:
-    # What nav2/map_server does in trinary mode with the YAML of map_server_yaml(), so a map
-    # decoded here equals the same PNG loaded by any ROS tool, pixel for pixel.
-    occupancy = 1.0 - np.arange(256, dtype=np.float64) / 255.0
-    lut = np.full(256, -1, dtype=np.int8)
-    lut[occupancy > SAVE_OCCUPIED_THRESH] = 100
-    lut[occupancy < SAVE_FREE_THRESH] = 0
-    return lut
-
-
-_CELL_TO_PIXEL: Final = _cell_to_pixel()
-_PIXEL_TO_CELL: Final = _pixel_to_cell()
 
 
 # --------------------------------------------------------------------------- encoding
@@ -227,9 +180,7 @@ def encode_map(grid: OccupancyGrid, name: str = "map") -> EncodedMap:
     if bounds is None:
         raise MapError(f"map {name!r} has no known cells")
     cropped = grid.crop(*bounds)
-    # Rows are flipped: image row 0 (top) is the grid row farthest from the origin.
-    pixels = _CELL_TO_PIXEL[cropped.data[::-1].view(np.uint8)]
-    ok, buffer = cv2.imencode(".png", pixels, _PNG_PARAMS)
+    ok, buffer = cv2.imencode(".png", grid_to_image(cropped), _PNG_PARAMS)
     if not ok:
         raise MapError(f"map {name!r}: OpenCV could not encode it as PNG")
     png = buffer.tobytes()
@@ -257,8 +208,9 @@ def png_size(png: bytes) -> tuple[int, int]:
 def decode_map(png: bytes, resolution: float, origin_x: float, origin_y: float) -> OccupancyGrid:
     """The occupancy grid of a map PNG: the inverse of :func:`encode_map`.
 
-    Pixels are read as map_server reads them with :func:`map_server_yaml`'s thresholds
-    (trinary: 254 → 0, 0 → 100, 205 → -1, others by their shade). Raises ProtocolError
+    Pixels are read as map_server reads them with the YAML of
+    :func:`~telebot.robot.mapfile.map_yaml` (:func:`~telebot.robot.mapfile.image_to_grid`:
+    254 → 0, 0 → 100, 205 → -1, others by their shade). Raises ProtocolError
     for anything but an 8-bit grey PNG of at most :data:`MAX_MAP_CELLS` pixels, or an
     invalid georeference.
     """
@@ -273,39 +225,10 @@ def decode_map(png: bytes, resolution: float, origin_x: float, origin_y: float) 
         raise ProtocolError("map image: OpenCV cannot decode this PNG")
     if image.dtype != np.uint8 or image.ndim != 2:
         raise ProtocolError(f"map image: expected 8-bit grey, got {image.dtype} {image.shape}")
-    cells = _PIXEL_TO_CELL[image]
     try:
-        return OccupancyGrid(np.ascontiguousarray(cells[::-1]), resolution, origin_x, origin_y)
+        return image_to_grid(image, resolution, origin_x, origin_y)
     except ValueError as exc:
         raise ProtocolError(f"map georeference: {exc}") from exc
-
-
-def map_server_yaml(image_name: str, resolution: float, origin_x: float, origin_y: float) -> str:
-    """The ROS map_server YAML that loads ``image_name`` (a PNG of :func:`encode_map`).
-
-    Trinary mode, ``negate: 0``, ``occupied_thresh: 0.65`` and ``free_thresh: 0.196``:
-    map_saver's 0.25 would load the unknown grey 205 (occupancy 50/255 ≈ 0.196) as free in
-    nav2, so we write ROS 1's value, under which 254, 205 and 0 load as free, unknown and
-    occupied in every loader (the same thresholds as :func:`telebot.robot.mapfile.save_map`).
-    """
-    if not image_name or not isinstance(image_name, str):
-        raise ValueError("image_name must be a file name")
-    for what, value in (("resolution", resolution), ("origin_x", origin_x), ("origin_y", origin_y)):
-        if not math.isfinite(value):
-            raise ValueError(f"{what} must be finite, not {value}")
-    if resolution <= 0:
-        raise ValueError(f"resolution must be positive, not {resolution}")
-    meta = {
-        "image": image_name,
-        "mode": "trinary",
-        "resolution": float(resolution),
-        "origin": [float(origin_x), float(origin_y), 0.0],
-        "negate": 0,
-        "occupied_thresh": SAVE_OCCUPIED_THRESH,
-        "free_thresh": SAVE_FREE_THRESH,
-    }
-    # PyYAML writes floats with repr() precision, so the origin reads back exactly.
-    return yaml.safe_dump(meta, sort_keys=False, default_flow_style=None)
 
 
 # --------------------------------------------------------------------------- messages
@@ -400,14 +323,43 @@ def _message(kind: str, xfer: int, **fields: Any) -> str:
     return encode_object({"type": kind, "xfer": xfer, **fields})
 
 
+def _read_message(payload: str, what: str) -> tuple[dict[str, Any], Any, int]:
+    """A control message of :func:`_message`: ``(message, type, xfer)``; ProtocolError if not."""
+    message = decode_object(payload, what=what)
+    return message, message.get("type"), require_int(message, "xfer", what=what)
+
+
 def _chunk(xfer: int, index: int, data: bytes) -> bytes:
     return CHUNK_HEADER.pack(CHUNK_KIND, xfer, index) + data
+
+
+# --------------------------------------------------------------------------- both sides
+
+_Reply = TypeVar("_Reply")
+
+
+class _Side(Generic[_Reply]):
+    """What both ends of a transfer do alike: count the datagrams they drop, by reason."""
+
+    def __init__(self) -> None:
+        #: Datagrams dropped, by reason (garbage, unknown transfer, bad fields, …).
+        self.rejections: Counter[str] = Counter()
+
+    @property
+    def rejected(self) -> int:
+        """How many datagrams were dropped as invalid."""
+        return sum(self.rejections.values())
+
+    def _reject(self, reason: str) -> list[_Reply]:
+        """Count a dropped datagram; returns the replies to it (none)."""
+        self.rejections[reason] += 1
+        return []
 
 
 # --------------------------------------------------------------------------- robot side
 
 
-class MapSender:
+class MapSender(_Side[str | bytes]):
     """The robot's side of map transfers on one call: one transfer at a time.
 
     Feed every datagram of the "map" channel to :meth:`on_message` and send what it returns
@@ -432,6 +384,7 @@ class MapSender:
             raise ValueError(f"chunk_size must be in 1..{MAX_CHUNK_DATA}, not {chunk_size}")
         if not (idle_timeout > 0 and stale_after > 0):
             raise ValueError("idle_timeout and stale_after must be positive")
+        super().__init__()
         self._provider = provider
         self.chunk_size = chunk_size
         self.idle_timeout = idle_timeout
@@ -445,8 +398,6 @@ class MapSender:
         self._queued: set[int] = set()
         self._sent_before = bytearray()
         self._recent: OrderedDict[int, None] = OrderedDict()
-        #: Messages dropped, by reason (garbage, unknown transfer, bad fields, …).
-        self.rejections: Counter[str] = Counter()
         #: Late repeats of ``done``/``cancel``/``get`` for a finished transfer (not garbage).
         self.ignored = 0
         #: ``get`` requests refused because another transfer was running.
@@ -461,11 +412,6 @@ class MapSender:
         self.chunks_resent = 0
         #: The last exception of the provider (the reason of the last refusal it caused).
         self.provider_error: Exception | None = None
-
-    @property
-    def rejected(self) -> int:
-        """How many messages were dropped as invalid."""
-        return sum(self.rejections.values())
 
     @property
     def active(self) -> bool:
@@ -487,9 +433,7 @@ class MapSender:
         if isinstance(payload, bytes):
             return self._reject("binary")
         try:
-            message = decode_object(payload, what="map request")
-            kind = message.get("type")
-            xfer = require_int(message, "xfer", what="map request")
+            message, kind, xfer = _read_message(payload, "map request")
         except ProtocolError:
             return self._reject("malformed")
         match kind:
@@ -534,10 +478,6 @@ class MapSender:
         return self._last_heard + self.idle_timeout
 
     # -- handlers
-
-    def _reject(self, reason: str) -> list[str | bytes]:
-        self.rejections[reason] += 1
-        return []
 
     def _encoded(self) -> EncodedMap:
         if self._map is None:
@@ -639,7 +579,7 @@ class MapSender:
 ReceiverState = Literal["new", "requesting", "receiving", "done", "failed"]
 
 
-class MapReceiver:
+class MapReceiver(_Side[str]):
     """The user's side of one map transfer, ``xfer`` (a u32 the requester picks).
 
     Send :meth:`request`; feed every datagram of the "map" channel to :meth:`on_message`
@@ -675,6 +615,7 @@ class MapReceiver:
             raise ValueError("resend_after and request_interval must be positive")
         if not 1 <= max_bytes <= MAX_MAP_BYTES:
             raise ValueError(f"max_bytes must be in 1..{MAX_MAP_BYTES}")
+        super().__init__()
         self.xfer = xfer
         self.resend_after = resend_after
         self.request_interval = request_interval
@@ -691,8 +632,6 @@ class MapReceiver:
         self.requests = 0
         #: Chunks that arrived again (a resend crossed the first copy): harmless.
         self.duplicates = 0
-        #: Messages dropped, by reason (bad chunk, unknown transfer, bad offer, …).
-        self.rejections: Counter[str] = Counter()
         self._chunks: list[bytes | None] = []
         self._missing = 0
         self._received = 0
@@ -717,11 +656,6 @@ class MapReceiver:
     def failed(self) -> bool:
         """Whether the transfer failed (see :attr:`error`)."""
         return self.state == "failed"
-
-    @property
-    def rejected(self) -> int:
-        """How many datagrams were dropped as invalid."""
-        return sum(self.rejections.values())
 
     @property
     def progress(self) -> tuple[int, int]:
@@ -805,9 +739,7 @@ class MapReceiver:
         if isinstance(payload, bytes):
             return self._on_chunk(payload, now)
         try:
-            message = decode_object(payload, what="map reply")
-            kind = message.get("type")
-            xfer = require_int(message, "xfer", what="map reply")
+            message, kind, xfer = _read_message(payload, "map reply")
         except ProtocolError:
             return self._reject("malformed")
         if xfer != self.xfer:
@@ -819,10 +751,6 @@ class MapReceiver:
                 return self._on_error(message)
             case _:
                 return self._reject("unknown_type")
-
-    def _reject(self, reason: str) -> list[str]:
-        self.rejections[reason] += 1
-        return []
 
     def _on_error(self, message: dict[str, Any]) -> list[str]:
         if self.state == "new":
