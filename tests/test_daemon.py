@@ -126,7 +126,10 @@ def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
 @pytest.fixture
 async def robot(daemon: Daemon) -> AsyncIterator[RobotClient]:
     async with connect(ROBOT, home=daemon.user_home, config=daemon.config(), timeout=10) as client:
-        await client.stop()  # every test starts from a robot at rest
+        stopped = await client.stop()  # every test starts from a robot at rest...
+        assert stopped.ok
+        armed = await client.arm()  # ...that alice (holding the drive) re-arms
+        assert armed.ok, armed.reason
         yield client
 
 
@@ -144,7 +147,6 @@ def yaw_change(before: float, after: float) -> float:
 
 
 async def test_fwd_moves_the_robot_two_metres(robot: RobotClient) -> None:
-    await robot.chat("turn 0.0")
     x0, y0, yaw0 = await settled_pose(robot)
     result = await robot.chat("fwd 2", timeout=30)
     assert result.replies == ["Forward command received", "finished moving"]
@@ -259,6 +261,8 @@ async def test_an_observer_may_not_drive_but_may_stop(daemon: Daemon) -> None:
         assert goal.status == "refused"
         assert (await olga.stop()).ok
         assert (await olga.chat("where?")).ok
+        refused_arm = await olga.arm()
+        assert not refused_arm.ok and "observer" in refused_arm.reason
 
 
 async def test_garbage_on_every_channel_is_dropped_and_the_daemon_keeps_serving(
@@ -277,10 +281,14 @@ async def test_garbage_on_every_channel_is_dropped_and_the_daemon_keeps_serving(
 
 
 def test_send_exit_codes(daemon: Daemon, tmp_path: Path) -> None:
-    ok = daemon.user_cli("send", ROBOT, "turn", "10")
+    ok = daemon.user_cli("send", "--arm", ROBOT, "turn", "10")
     assert ok.returncode == 0, ok.stderr
     assert ok.stdout.splitlines() == ["Turn command received", "finished moving"]
-    failed = daemon.user_cli("send", ROBOT, "goto", "999", "999")
+    # Its call ended, so the robot latched stopped: without --arm a motion is refused.
+    latched = daemon.user_cli("send", ROBOT, "turn", "10")
+    assert latched.returncode == 1
+    assert latched.stdout.startswith("! refused:") and "arm" in latched.stdout
+    failed = daemon.user_cli("send", "--arm", ROBOT, "goto", "999", "999")
     assert failed.returncode == 1
     assert "no path to" in failed.stdout
     offline = daemon.user_cli("send", "nobody", "where?", timeout=30)
@@ -315,14 +323,14 @@ def test_piped_chat_runs_each_command_to_its_end(daemon: Daemon, tmp_path: Path)
             "--map-dir",
             str(tmp_path),
         ],
-        input="where?\n  TURN   20 \nturn -20\ngetmap\n",
+        input="arm\nwhere?\n  TURN   20 \nturn -20\ngetmap\n",
         capture_output=True,
         text=True,
         timeout=60,
     )
     assert result.returncode == 0, result.stderr
     lines = result.stdout.splitlines()
-    assert lines[0] == "> where?"
+    assert lines[:3] == ["> arm", "armed: send a motion command to move", "> where?"]
     assert lines.count("finished moving") == 2
     assert (tmp_path / f"{ROBOT}-map.png").exists() and (tmp_path / f"{ROBOT}-map.yaml").exists()
     assert load_map(tmp_path / f"{ROBOT}-map.yaml").data.shape[0] > 0
@@ -351,6 +359,7 @@ def test_sigterm_stops_the_robot_hangs_up_and_exits_within_two_seconds(tmp_path:
             async with connect(
                 ROBOT, home=daemon.user_home, config=daemon.config(), timeout=10
             ) as robot:
+                assert (await robot.arm()).ok
                 async for reply in robot.chat_replies("fwd 5"):
                     assert reply.text == "Forward command received"
                     break

@@ -23,6 +23,7 @@ __all__ = [
     "CallSettings",
     "MemorySettings",
     "RobotConfig",
+    "SafetySettings",
     "ServiceSettings",
     "SimSettings",
     "StrictModel",
@@ -211,8 +212,19 @@ class ServiceSettings(StrictModel):
     telemetry_hz: float = Field(default=1.0, gt=0, le=20)
 
 
+class SafetySettings(StrictModel):
+    """The safety supervisor. Its deadman time is ``call.timeout``, its hard speed cap
+    ``sim.max_linear_speed``."""
+
+    #: Allow cameras other than the navcam while the robot moves.
+    usercam_while_moving: bool = False
+    #: Audit log (JSON lines); relative paths are taken from the robot's home directory.
+    audit_log: Path = Path("audit.jsonl")
+
+
 class RobotConfig(AppConfig):
     """The config file of ``telebot-robot`` (``configs/robot.toml``): adds the robot."""
 
     sim: SimSettings = Field(default_factory=SimSettings)
     services: ServiceSettings = Field(default_factory=ServiceSettings)
+    safety: SafetySettings = Field(default_factory=SafetySettings)

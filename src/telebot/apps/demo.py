@@ -27,6 +27,7 @@ DEMO_HOME = Path(".telebot-demo")
 
 #: What the demo types when nobody is at the keyboard.
 TOUR = [
+    "arm",
     "where?",
     "places",
     "battery",

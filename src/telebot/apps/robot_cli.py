@@ -156,7 +156,12 @@ async def _run_daemon(args: argparse.Namespace, home: Path) -> int:
             f"{PROG}: warning: no contacts in {home}; every call will be refused", file=sys.stderr
         )
     await serve_robot(
-        config, identity, contacts, base_dir=base_dir, emit=_print_event if args.events else None
+        config,
+        identity,
+        contacts,
+        base_dir=base_dir,
+        home=home,
+        emit=_print_event if args.events else None,
     )
     return EXIT_OK
 

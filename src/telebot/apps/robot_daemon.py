@@ -18,6 +18,7 @@ from telebot.config import RobotConfig
 from telebot.identity import ContactBook, Identity
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.robot import EventSink, RobotServer
+from telebot.services.supervision import SafetyDriver
 
 __all__ = ["SHUTDOWN_REASON", "serve_robot"]
 
@@ -32,13 +33,15 @@ async def serve_robot(
     contacts: ContactBook,
     *,
     base_dir: Path | None = None,
+    home: Path | None = None,
     emit: EventSink | None = None,
     stop: asyncio.Event | None = None,
 ) -> None:
     """Run the robot until ``stop`` is set or SIGINT / SIGTERM arrives.
 
     Relative map and places paths in ``config.sim`` are taken from ``base_dir`` (the
-    config file's folder).
+    config file's folder); a relative audit log path from ``home`` (the robot's home).
+    The robot starts stopped and disarmed: a driver must re-arm it (``arm``).
     """
     emit = emit if emit is not None else (lambda event: None)
     stop = stop or asyncio.Event()
@@ -46,15 +49,26 @@ async def serve_robot(
     nav = await asyncio.to_thread(
         SimNavStack.from_settings, config.sim, base_dir=base_dir, now=loop.time()
     )
+    audit = config.safety.audit_log
+    if not audit.is_absolute() and home is not None:
+        audit = home / audit
+    safety = SafetyDriver(
+        nav,
+        timeout=config.call.timeout,
+        max_speed=config.sim.max_linear_speed,
+        usercam_while_moving=config.safety.usercam_while_moving,
+        audit_path=audit,
+    )
     server = RobotServer(
         nav,
         config.services,
         control_hz=config.sim.control_hz,
         map_name=Path(config.sim.map).stem,
         emit=emit,
+        safety=safety,
     )
     await server.prepare()
-    with stop_on_signals(stop):
+    with stop_on_signals(stop), safety:
         async with (
             create_transport(config.transport) as transport,
             RobotEndpoint(
@@ -86,7 +100,7 @@ async def serve_robot(
                     runner.result()  # a crashed loop is an error, not a quiet exit
             finally:
                 # Fail safe order: the robot stops before anything else happens.
-                nav.stop()
+                safety.stop(None, SHUTDOWN_REASON)
                 emit({"event": "stopping", "calls": len(endpoint.calls)})
                 runner.cancel()
                 stopped.cancel()

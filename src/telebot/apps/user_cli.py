@@ -108,9 +108,10 @@ def build_parser() -> Parser:
     chat = commands.add_parser(
         "chat",
         help="chat with a robot (Table I commands); reads commands from stdin when piped",
-        description="Chat with a robot. On a terminal, commands run as you type them (so "
-        "'stop' works while it moves). Piped, one command per line runs to its end before "
-        "the next, and the command exits after the last one (within --timeout).",
+        description="Chat with a robot. On a terminal, commands run as you type them and, "
+        "while the robot moves, any key stops it (Escape always does). Piped, one command "
+        "per line runs to its end before the next, and the command exits after the last one "
+        "(within --timeout). The robot starts stopped: send 'arm' before moving it.",
     )
     send = commands.add_parser(
         "send",
@@ -119,6 +120,12 @@ def build_parser() -> Parser:
         "failure, 2 usage or connection error (robot offline, not a contact, timed out).",
     )
     send.add_argument("robot", type=name_arg, help="the robot's name")
+    send.add_argument(
+        "--arm",
+        action="store_true",
+        help="re-arm the robot first, in the same call (needed to move it: the robot latches "
+        "stopped whenever its driver's call ends)",
+    )
     send.add_argument("words", nargs="+", metavar="COMMAND", help="the command, e.g. fwd 2")
     chat.add_argument("robot", type=name_arg, help="the robot's name")
     for parser_ in (chat, send):
@@ -194,6 +201,7 @@ async def _talk(args: argparse.Namespace, home: Path) -> int:
             config=config,
             timeout=args.timeout,
             map_dir=args.map_dir,
+            arm=args.arm,
         )
     if args.command == "chat":
         return await user_client.chat_session(

@@ -5,8 +5,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
+import os
 import sys
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import TextIO
 
@@ -95,9 +96,19 @@ async def send_command(
     config: AppConfig,
     timeout: float,
     map_dir: Path,
+    arm: bool = False,
 ) -> int:
-    """``telebot-user send``: exit 0 on success, 1 when the robot reports failure."""
+    """``telebot-user send``: exit 0 on success, 1 when the robot reports failure.
+
+    ``arm`` re-arms the robot first, in the same call (a robot latches stopped whenever
+    its driver's call ends, so a one-shot motion needs it).
+    """
     async with _robot(robot, home, config, config.call.connect_timeout) as client:
+        if arm:
+            ack = await client.arm()
+            if not ack.ok:
+                print(f"! refused to arm: {ack.reason}", flush=True)
+                return EXIT_FAILURE
         try:
             ok = await _run_command(client, command, timeout, map_dir)
         except TimeoutError:
@@ -122,7 +133,7 @@ async def chat_session(
 
     Piped input runs the commands one after the other, each to its end (a script of
     moves), and ends after the last one, all within ``timeout``. On a terminal commands
-    run at once, so ``stop`` can be typed while the robot moves.
+    run at once, and while the robot moves any key stops it (Escape always does).
     """
     async with _robot(robot, home, config, config.call.connect_timeout) as client:
         print(
@@ -151,19 +162,75 @@ async def chat_session(
 
 
 async def _interactive(client: RobotClient, map_dir: Path) -> int:
-    with contextlib.suppress(ImportError):
-        import readline  # noqa: F401  (line editing and history for input())
+    """A terminal chat: line editing, and while the robot moves any key stops it."""
+    loop = asyncio.get_running_loop()
+    keys: asyncio.Queue[str] = asyncio.Queue()
+    fd = sys.stdin.fileno()
+    with _cbreak(fd):
+        loop.add_reader(fd, lambda: keys.put_nowait(os.read(fd, 64).decode(errors="replace")))
+        try:
+            return await _edit_lines(client, map_dir, keys)
+        finally:
+            loop.remove_reader(fd)
+
+
+@contextlib.contextmanager
+def _cbreak(fd: int) -> Iterator[None]:
+    """Keys arrive one by one, without echo (we echo what is typed ourselves)."""
+    import termios
+    import tty
+
+    saved = termios.tcgetattr(fd)
+    try:
+        tty.setcbreak(fd)
+        yield
+    finally:
+        termios.tcsetattr(fd, termios.TCSADRAIN, saved)
+
+
+def _moving(client: RobotClient) -> bool:
+    pose = client.latest_pose.value
+    return pose is not None and (pose.v != 0.0 or pose.w != 0.0 or pose.state == "moving")
+
+
+async def _edit_lines(client: RobotClient, map_dir: Path, keys: asyncio.Queue[str]) -> int:
+    prompt = f"{client.robot}> "
+    line = ""
+    print(prompt, end="", flush=True)
     async with asyncio.TaskGroup() as tasks:
         while True:
-            try:
-                line = await asyncio.to_thread(input, f"{client.robot}> ")
-            except EOFError:
+            chunk = await keys.get()
+            if not chunk:
                 break
-            command = line.strip()
-            if command in ("quit", "exit"):
-                break
-            if command:
-                tasks.create_task(_run_command(client, command, None, map_dir))
+            if _moving(client):
+                # The paper's rule: any key while the robot moves stops it, at once.
+                tasks.create_task(client.stop())
+                print("\r\033[K[key pressed: stopping]", flush=True)
+                line = ""
+                print(prompt, end="", flush=True)
+                continue
+            for char in chunk:
+                if char in ("\x04",) and not line:  # Ctrl-D on an empty line: leave
+                    print()
+                    return EXIT_OK
+                if char in ("\r", "\n"):
+                    print()
+                    command = line.strip()
+                    line = ""
+                    if command in ("quit", "exit"):
+                        return EXIT_OK
+                    if command:
+                        tasks.create_task(_run_command(client, command, None, map_dir))
+                    print(prompt, end="", flush=True)
+                elif char in ("\x7f", "\b"):
+                    if line:
+                        line = line[:-1]
+                        print("\b \b", end="", flush=True)
+                elif char == "\x1b":  # Escape: stop (as in the web UI's chat box)
+                    tasks.create_task(client.stop())
+                elif char.isprintable():
+                    line += char
+                    print(char, end="", flush=True)
     return EXIT_OK
 
 

@@ -147,6 +147,11 @@ class Call:
         return self._session.stats
 
     @property
+    def last_heard(self) -> float:
+        """Event-loop time of the peer's last authentic frame (a plain float: any thread may read it)."""
+        return self._session.last_heard
+
+    @property
     def active(self) -> bool:
         """True until the call is hung up or dropped."""
         return self.end is None

@@ -22,12 +22,14 @@ import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 from telebot.errors import ProtocolError, RobotError
 from telebot.robot.nav import GoalHandle, GoalStatus, NavStack, NavState
 from telebot.services.proto.chat import (
     HELP_TEXT,
     USAGE,
+    Arm,
     BatteryQuery,
     Cancel,
     ChatReply,
@@ -41,9 +43,11 @@ from telebot.services.proto.chat import (
     Left,
     NavCam,
     Places,
+    ReleaseDrive,
     Right,
     Status,
     Stop,
+    TakeDrive,
     Turn,
     UserCam,
     Where,
@@ -56,6 +60,7 @@ __all__ = [
     "OBSERVER_REFUSAL",
     "UNBLOCK_POLLS",
     "ChatSession",
+    "DriveGate",
 ]
 
 logger = logging.getLogger(__name__)
@@ -73,7 +78,72 @@ _ACK_FORWARD = "Forward command received"
 _ACK_TURN = "Turn command received"
 
 # Commands that move the robot or change what it shows: drivers and admins only.
-_DRIVING = (GotoPlace, GotoPoint, Forward, Turn, Left, Right, Cancel, NavCam, UserCam)
+_DRIVING = (
+    GotoPlace,
+    GotoPoint,
+    Forward,
+    Turn,
+    Left,
+    Right,
+    Cancel,
+    NavCam,
+    UserCam,
+    Arm,
+    TakeDrive,
+    ReleaseDrive,
+)
+# Commands that start a motion: the safety supervisor must allow each.
+_MOVING = (GotoPlace, GotoPoint, Forward, Turn, Left, Right)
+
+
+def _describe(command: Command) -> str:
+    """A command as the audit log names it (``Forward(metres=2.0)`` → ``fwd 2``)."""
+    match command:
+        case GotoPlace(name):
+            return f"goto {name}"
+        case GotoPoint(x, y, yaw):
+            return f"goto {x:g} {y:g}" + ("" if yaw is None else f" {yaw:g}")
+        case Forward(metres):
+            return f"fwd {metres:g}"
+        case Turn(degrees):
+            return f"turn {degrees:g}"
+        case _:
+            return type(command).__name__.lower()
+
+
+class DriveGate(Protocol):
+    """The safety supervisor's say over one caller (see :mod:`telebot.services.supervision`).
+
+    Each method returns None when allowed, or the refusal to reply with.
+    """
+
+    def motion(self, what: str) -> str | None:
+        """May the caller start this motion now?"""
+        ...
+
+    def camera(self, name: str) -> str | None:
+        """May the caller select this camera now?"""
+        ...
+
+    def stop(self, reason: str = "stop requested") -> None:
+        """Stop the robot and latch (never refused)."""
+        ...
+
+    def rearm(self) -> str | None:
+        """Re-arm after a stop."""
+        ...
+
+    def take(self) -> str | None:
+        """Take the drive."""
+        ...
+
+    def release(self) -> str | None:
+        """Give the drive up."""
+        ...
+
+
+#: Replies to the drive-holding commands when the robot runs no supervisor.
+NO_SUPERVISOR = "this robot has no safety supervisor: nothing to arm or hand over"
 
 
 @dataclass(slots=True)
@@ -101,9 +171,11 @@ class ChatSession:
         may_drive: bool,
         send: Callable[[ChatReply], None],
         user: str = "",
+        gate: DriveGate | None = None,
     ) -> None:
         self._nav = nav
         self._may_drive = may_drive
+        self._gate = gate
         self._send = send
         self._user = user or "caller"
         self._motions: list[_Motion] = []
@@ -176,6 +248,12 @@ class ChatSession:
             logger.info("chat from %s: refused %s (observer)", self._user, command)
             self._reply(request_id, OBSERVER_REFUSAL, ok=False)
             return
+        gate = self._gate
+        if gate is not None and isinstance(command, _MOVING):
+            refusal = gate.motion(_describe(command))
+            if refusal is not None:
+                self._reply(request_id, f"refused: {refusal}", ok=False)
+                return
         match command:
             case GotoPlace(name):
                 self._start_motion(request_id, nav.navigate_to_place(name), _ACK_GOTO)
@@ -192,9 +270,14 @@ class ChatSession:
             case Right():
                 self._start_motion(request_id, nav.turn(-math.pi / 2), _ACK_TURN)
             case Stop():
-                nav.stop()
+                if gate is not None:
+                    gate.stop()  # latches: the robot stays stopped until re-armed
+                else:
+                    nav.stop()
                 self._finish_done_motions()  # the stopped request hears "stopped" first
                 self._reply(request_id, "stopped")
+            case Arm() | TakeDrive() | ReleaseDrive():
+                self._drive_command(request_id, command)
             case Cancel():
                 goal = nav.current_goal()
                 if goal is None or goal.status.done:
@@ -204,7 +287,12 @@ class ChatSession:
                 self._finish_done_motions()
                 self._reply(request_id, "cancelled")
             case NavCam() | UserCam():
-                nav.select_camera("navcam" if isinstance(command, NavCam) else "usercam")
+                camera = "navcam" if isinstance(command, NavCam) else "usercam"
+                refusal = gate.camera(camera) if gate is not None else None
+                if refusal is not None:
+                    self._reply(request_id, f"refused: {refusal}", ok=False)
+                    return
+                nav.select_camera(camera)
                 self._reply(request_id, f"{nav.active_camera} selected")
             case Where():
                 self._reply(request_id, self._where())
@@ -229,6 +317,23 @@ class ChatSession:
                 )
             case Help(topic):
                 self._reply(request_id, HELP_TEXT if topic is None else USAGE[topic])
+
+    def _drive_command(self, request_id: int, command: Arm | TakeDrive | ReleaseDrive) -> None:
+        gate = self._gate
+        if gate is None:
+            self._reply(request_id, NO_SUPERVISOR, ok=False)
+            return
+        if isinstance(command, Arm):
+            refusal, done = gate.rearm(), "armed: send a motion command to move"
+        elif isinstance(command, TakeDrive):
+            refusal, done = gate.take(), "you hold the drive (send arm to re-arm)"
+        else:
+            refusal, done = gate.release(), "drive released; the robot is stopped"
+            self._finish_done_motions()  # the stopped motion's final reply goes first
+        if refusal is not None:
+            self._reply(request_id, f"refused: {refusal}", ok=False)
+        else:
+            self._reply(request_id, done)
 
     def _start_motion(self, request_id: int, handle: GoalHandle, ack: str) -> None:
         # The new goal may have replaced one of ours: its final reply goes out first.

@@ -13,7 +13,7 @@ import contextlib
 import itertools
 import logging
 import secrets
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncGenerator, AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Generic, TypeVar
@@ -28,6 +28,14 @@ from telebot.identity import Identity, KnownRobots
 from telebot.services.mapxfer import MapDownload, fetch_map
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
 from telebot.services.proto.chat import ChatReply, decode_reply, encode_request
+from telebot.services.proto.safety import (
+    SAFETY,
+    RequestType,
+    SafetyAck,
+    SafetyRequest,
+    SafetyStatus,
+    decode_safety_reply,
+)
 from telebot.services.proto.status import (
     GoalCommand,
     GoalUpdate,
@@ -46,6 +54,12 @@ T = TypeVar("T")
 
 #: A request nobody answered is sent again after this long (s).
 RESEND_AFTER = 0.3
+#: What the robot says when it has not measured the call's round trip yet (just after
+#: set-up), and how often a refused motion is asked again for that reason (every 0.1 s).
+UNMEASURED = "round trip is not measured yet"
+UNMEASURED_RETRIES = 20
+#: A stop is repeated this often (s) until the robot acknowledges it.
+STOP_REPEAT = 0.05
 #: While waiting for the end of a long-running request, ask again this often (s), so a
 #: lost final answer is recovered.
 REFRESH_AFTER = 2.0
@@ -95,11 +109,16 @@ class RobotClient:
         self._pose = call.channel(POSE, lane=Lane.DATA, latest_only=True)
         self._telemetry = call.channel(TELEMETRY, lane=Lane.DATA, latest_only=True)
         self._map: Channel = call.channel(MAP, lane=Lane.BULK)
+        self._safety = call.channel(SAFETY, lane=Lane.CONTROL)
         # Request ids start at a random point so a reconnecting client does not collide
         # with answers the robot still remembers from an earlier call.
         start = secrets.randbelow(2**31)
         self._chat_ids = itertools.count(start)
         self._goal_ids = itertools.count(start)
+        self._safety_ids = itertools.count(start)
+        self._safety_waiters: dict[int, asyncio.Queue[SafetyAck]] = {}
+        #: The robot's safety state (armed, why stopped, who holds the drive).
+        self.latest_safety: _Latest[SafetyStatus] = _Latest()
         self._chat_waiters: dict[int, asyncio.Queue[ChatReply]] = {}
         self._goal_waiters: dict[int, asyncio.Queue[GoalUpdate]] = {}
         self.latest_pose: _Latest[PoseUpdate] = _Latest()
@@ -110,6 +129,7 @@ class RobotClient:
         self._goals.set_callback(self._on_goal)
         self._pose.set_callback(self._on_pose)
         self._telemetry.set_callback(self._on_telemetry)
+        self._safety.set_callback(self._on_safety)
 
     @property
     def robot(self) -> str:
@@ -126,28 +146,49 @@ class RobotClient:
         Raises TimeoutError if the robot does not finish within ``timeout`` seconds and
         :class:`~telebot.errors.CallEnded` if the call ends first.
         """
+        async with asyncio.timeout(timeout):
+            for attempt in range(UNMEASURED_RETRIES + 1):
+                first = True
+                async with contextlib.aclosing(self._one_request(command)) as replies:
+                    async for reply in replies:
+                        # Just after the call comes up the robot has not measured the link's
+                        # round trip yet and refuses to start a motion: ask again shortly.
+                        if (
+                            first
+                            and reply.final
+                            and not reply.ok
+                            and UNMEASURED in reply.text
+                            and attempt < UNMEASURED_RETRIES
+                        ):
+                            break
+                        first = False
+                        yield reply
+                    else:
+                        return
+                await asyncio.sleep(RESEND_AFTER / 3)
+
+    async def _one_request(self, command: str) -> AsyncGenerator[ChatReply, None]:
         request_id = next(self._chat_ids) % 2**32
         replies: asyncio.Queue[ChatReply] = asyncio.Queue()
         self._chat_waiters[request_id] = replies
         seen: set[int] = set()
         payload = encode_request(request_id, command)
         try:
-            async with asyncio.timeout(timeout):
-                self._send(self._chat, payload)
-                wait = RESEND_AFTER
-                while True:
-                    try:
-                        reply = await self._next(replies, wait)
-                    except TimeoutError:
-                        self._send(self._chat, payload)  # lost one way or the other: ask again
-                        continue
-                    wait = REFRESH_AFTER
-                    if reply.seq in seen:
-                        continue
-                    seen.add(reply.seq)
-                    yield reply
-                    if reply.final:
-                        return
+            self._send(self._chat, payload)
+            wait = RESEND_AFTER
+            while True:
+                try:
+                    reply = await self._next(replies, wait)
+                except TimeoutError:
+                    self._send(self._chat, payload)  # lost one way or the other: ask again
+                    continue
+                wait = REFRESH_AFTER
+                if reply.seq in seen:
+                    continue
+                seen.add(reply.seq)
+                yield reply
+                if reply.final:
+                    return
         finally:
             self._chat_waiters.pop(request_id, None)
 
@@ -169,9 +210,42 @@ class RobotClient:
                 result.attachment = reply.attachment
         return result
 
-    async def stop(self, *, timeout: float = 5.0) -> ChatResult:
-        """Stop the robot (any participant may)."""
-        return await self.chat("stop", timeout=timeout)
+    async def stop(self, *, timeout: float = 5.0) -> SafetyAck:
+        """Stop the robot now (any participant may); repeated until the robot acknowledges.
+
+        The stop goes on the ``safety`` channel (CONTROL lane) and is sent again every
+        :data:`STOP_REPEAT` seconds until acknowledged, so loss cannot eat it. The robot
+        stays stopped (disarmed) until the drive holder re-arms it (:meth:`arm`).
+        """
+        return await self._safety_request("stop", timeout, STOP_REPEAT)
+
+    async def arm(self, *, timeout: float = 5.0) -> SafetyAck:
+        """Re-arm the robot after a stop (the drive holder only); ``ok`` False says why not."""
+        return await self._safety_request("arm", timeout, RESEND_AFTER)
+
+    async def take_drive(self, *, timeout: float = 5.0) -> SafetyAck:
+        """Take the drive (when free; an admin takes it over)."""
+        return await self._safety_request("take", timeout, RESEND_AFTER)
+
+    async def release_drive(self, *, timeout: float = 5.0) -> SafetyAck:
+        """Give the drive up (the robot stops)."""
+        return await self._safety_request("release", timeout, RESEND_AFTER)
+
+    async def _safety_request(self, kind: RequestType, timeout: float, repeat: float) -> SafetyAck:
+        request_id = next(self._safety_ids) % 2**32
+        acks: asyncio.Queue[SafetyAck] = asyncio.Queue()
+        self._safety_waiters[request_id] = acks
+        payload = SafetyRequest(kind, request_id).encode()
+        try:
+            async with asyncio.timeout(timeout):
+                while True:
+                    self._send(self._safety, payload)
+                    try:
+                        return await self._next(acks, repeat)
+                    except TimeoutError:
+                        continue  # lost one way or the other: say it again
+        finally:
+            self._safety_waiters.pop(request_id, None)
 
     # -- goals ----------------------------------------------------------------------
 
@@ -188,29 +262,48 @@ class RobotClient:
 
         Returns the final status (``succeeded``, ``failed``, ``cancelled`` or ``refused``).
         """
+        async with asyncio.timeout(timeout):
+            for attempt in range(UNMEASURED_RETRIES + 1):
+                update = await self._one_goal(x, y, yaw, on_update)
+                # Refused only because the robot has not measured the new call's round
+                # trip yet (just after set-up): ask again shortly, as chat does.
+                if not (update.status == "refused" and UNMEASURED in update.reason):
+                    return update
+                if attempt < UNMEASURED_RETRIES:
+                    await asyncio.sleep(RESEND_AFTER / 3)
+            return update
+
+    async def _one_goal(
+        self,
+        x: float,
+        y: float,
+        yaw: float | None,
+        on_update: Callable[[GoalUpdate], None] | None,
+    ) -> GoalUpdate:
         goal_id = next(self._goal_ids) % 2**32
         updates: asyncio.Queue[GoalUpdate] = asyncio.Queue()
         self._goal_waiters[goal_id] = updates
         start = GoalCommand("goal", goal_id, x, y, yaw).encode()
         query = GoalCommand("query", goal_id).encode()
         try:
-            async with asyncio.timeout(timeout):
-                self._send(self._goals, start)
-                heard = False
-                while True:
-                    try:
-                        update = await self._next(updates, REFRESH_AFTER if heard else RESEND_AFTER)
-                    except TimeoutError:
-                        self._send(self._goals, query if heard else start)
-                        continue
-                    if update.status == "unknown":
-                        self._send(self._goals, start)  # the goal itself was lost
-                        continue
-                    heard = True
-                    if on_update is not None:
-                        on_update(update)
-                    if update.final:
-                        return update
+            self._send(self._goals, start)
+            heard = False
+            while True:
+                try:
+                    update = await self._next(updates, REFRESH_AFTER if heard else RESEND_AFTER)
+                except TimeoutError:
+                    self._send(self._goals, query if heard else start)
+                    continue
+                if update.status == "unknown":
+                    self._send(self._goals, start)  # the goal itself was lost
+                    continue
+                heard = True
+                if on_update is not None and not (
+                    update.status == "refused" and UNMEASURED in update.reason
+                ):
+                    on_update(update)
+                if update.final:
+                    return update
         finally:
             self._goal_waiters.pop(goal_id, None)
 
@@ -293,6 +386,19 @@ class RobotClient:
             self.latest_pose.set(decode_pose(datagram.payload))
         except ProtocolError:
             self.rejected += 1
+
+    def _on_safety(self, datagram: ReceivedDatagram) -> None:
+        try:
+            message = decode_safety_reply(datagram.payload)
+        except ProtocolError:
+            self.rejected += 1
+            return
+        if isinstance(message, SafetyStatus):
+            self.latest_safety.set(message)
+            return
+        waiter = self._safety_waiters.get(message.id)
+        if waiter is not None:
+            waiter.put_nowait(message)
 
     def _on_telemetry(self, datagram: ReceivedDatagram) -> None:
         try:

@@ -24,17 +24,25 @@ from telebot.config import ServiceSettings
 from telebot.errors import ProtocolError, TelebotError
 from telebot.identity import Role
 from telebot.robot.nav import GoalHandle, GoalStatus, NavStack
+from telebot.safety import SafetyState
 from telebot.services.chat import ChatSession
 from telebot.services.mapxfer import MapService
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
 from telebot.services.proto.chat import ChatReply, decode_request
 from telebot.services.proto.mapxfer import EncodedMap, encode_map
+from telebot.services.proto.safety import (
+    SAFETY,
+    SafetyAck,
+    SafetyStatus,
+    decode_safety_request,
+)
 from telebot.services.proto.status import (
     GoalUpdate,
     PoseUpdate,
     Telemetry,
     decode_goal_command,
 )
+from telebot.services.supervision import SafetyDriver
 
 __all__ = ["CallServices", "EventSink", "RobotServer", "SteppedNavStack", "may_drive"]
 
@@ -74,8 +82,14 @@ class CallServices:
         self._goals_channel = call.channel(GOALS, lane=Lane.CONTROL)
         self._pose_channel = call.channel(POSE, lane=Lane.DATA, latest_only=True)
         self._telemetry_channel = call.channel(TELEMETRY, lane=Lane.DATA, latest_only=True)
+        self._safety_channel = call.channel(SAFETY, lane=Lane.CONTROL)
+        self.gate = server.safety.gate(call.id) if server.safety is not None else None
         self.chat = ChatSession(
-            nav, may_drive=may_drive(call.role), send=self._send_chat, user=call.peer
+            nav,
+            may_drive=may_drive(call.role),
+            send=self._send_chat,
+            user=call.peer,
+            gate=self.gate,
         )
         self.map = MapService(call.channel(MAP, lane=Lane.BULK), server.encoded_map)
         # Lossy channels: a user repeats a request until it hears back, so the robot
@@ -83,9 +97,53 @@ class CallServices:
         self._chat_replies: OrderedDict[int, list[str]] = OrderedDict()
         self._goals: OrderedDict[int, GoalHandle | GoalUpdate] = OrderedDict()
         self._goal_sent: dict[int, tuple[str, float]] = {}
+        self._safety_acks: OrderedDict[int, str] = OrderedDict()
         self.rejected = 0
         self._chat_channel.set_callback(self._on_chat)
         self._goals_channel.set_callback(self._on_goal_command)
+        self._safety_channel.set_callback(self._on_safety)
+
+    # -- safety ---------------------------------------------------------------------
+
+    def _on_safety(self, datagram: ReceivedDatagram) -> None:
+        request = self._decode(self._safety_channel, decode_safety_request, datagram)
+        if request is None:
+            return
+        earlier = self._safety_acks.get(request.id)
+        if earlier is not None:
+            if request.type == "stop":
+                self._stop(request.type)  # a stop is never skipped, even when repeated
+            self._send(self._safety_channel, earlier)
+            return
+        if request.type == "stop":
+            refusal = self._stop("stop key")
+        elif self.gate is None:
+            refusal = "this robot has no safety supervisor"
+        elif not may_drive(self.call.role):
+            refusal = _OBSERVER
+        elif request.type == "arm":
+            refusal = self.gate.rearm()
+        elif request.type == "take":
+            refusal = self.gate.take()
+        else:
+            refusal = self.gate.release()
+        ack = SafetyAck(request.id, refusal is None, refusal or "").encode()
+        _remember(self._safety_acks, request.id, ack)
+        self.server.emit(
+            {"event": "safety", "peer": self.call.peer, "type": request.type, "ok": refusal is None}
+        )
+        self._send(self._safety_channel, ack)
+
+    def _stop(self, reason: str) -> str | None:
+        if self.gate is not None:
+            self.gate.stop(reason)
+        else:
+            self.server.nav.stop()
+        return None
+
+    def send_safety_state(self, state: SafetyStatus) -> None:
+        """Tell this call the safety state (on every change and once a second)."""
+        self._send(self._safety_channel, state.encode())
 
     # -- chat -----------------------------------------------------------------------
 
@@ -129,8 +187,11 @@ class CallServices:
                 known.cancel()
             self._send_goal_status(command.id, force=True)
             return
-        if not may_drive(self.call.role):
-            _remember(self._goals, command.id, GoalUpdate(command.id, "refused", 0.0, _OBSERVER))
+        refusal = None if may_drive(self.call.role) else _OBSERVER
+        if refusal is None and self.gate is not None:
+            refusal = self.gate.motion(f"goal {command.x:g} {command.y:g}")
+        if refusal is not None:
+            _remember(self._goals, command.id, GoalUpdate(command.id, "refused", 0.0, refusal))
         else:
             try:
                 handle = self.server.nav.navigate_to(command.x, command.y, command.yaw)
@@ -200,6 +261,7 @@ class CallServices:
         status = nav.status()
         goal = nav.current_goal()
         rtt = self.call.stats.rtt
+        safety = self.server.safety_status()
         telemetry = Telemetry(
             t=self.server.now(),
             battery=battery.percent,
@@ -214,6 +276,9 @@ class CallServices:
             loss=self.call.stats.loss,
             role=str(self.call.role) if self.call.role is not None else "",
             diagnostics=dict(nav.diagnostics()),
+            armed=safety.armed,
+            stop_reason=safety.reason,
+            holder=safety.holder,
         )
         self._send(self._telemetry_channel, telemetry.encode())
 
@@ -262,8 +327,14 @@ class RobotServer:
         control_hz: float = 20.0,
         map_name: str = "map",
         emit: EventSink | None = None,
+        safety: SafetyDriver | None = None,
     ) -> None:
         self.nav = nav
+        #: The safety supervisor's driver; None runs the robot without one (tests of the
+        #: services alone): then nothing latches and roles alone decide who may drive.
+        self.safety = safety
+        if safety is not None:
+            safety.on_state = self._broadcast_safety
         self.settings = settings if settings is not None else ServiceSettings()
         self.control_hz = control_hz
         self.map_name = map_name
@@ -296,14 +367,20 @@ class RobotServer:
 
     def serve(self, call: Call) -> CallServices:
         """Open the service channels on ``call``."""
+        if self.safety is not None:
+            self.safety.join(call)
         services = CallServices(self, call)
         self.services[call.id] = services
+        if self.safety is not None:
+            services.send_safety_state(self.safety_status())
         self.emit({"event": "call", "id": call.id, "peer": call.peer, "role": str(call.role)})
         log.info("call %s from %s (%s)", call.id, call.peer, call.role)
 
         def on_end(_: asyncio.Future[Any]) -> None:
             self.services.pop(call.id, None)
             services.map.close()
+            if self.safety is not None:
+                self.safety.leave(call)
             end = call.end
             self.emit(
                 {
@@ -319,6 +396,19 @@ class RobotServer:
         asyncio.ensure_future(call.wait_ended()).add_done_callback(on_end)
         return services
 
+    def safety_status(self) -> SafetyStatus:
+        """The safety state as the users see it."""
+        if self.safety is None:
+            return SafetyStatus(True, "", None, self.nav.speed_limit, False)
+        state = self.safety.state()
+        holder = state.holder
+        return SafetyStatus(state.armed, state.reason, holder, state.cap, state.blocked)
+
+    def _broadcast_safety(self, state: SafetyState) -> None:
+        status = SafetyStatus(state.armed, state.reason, state.holder, state.cap, state.blocked)
+        for services in list(self.services.values()):
+            self._guarded(services.send_safety_state, status)
+
     async def run(self) -> None:
         """Step the robot and run the services until cancelled."""
         period = 1.0 / self.control_hz
@@ -330,6 +420,8 @@ class RobotServer:
             now = self.now()
             try:
                 self.nav.step(now)
+                if self.safety is not None:
+                    self.safety.tick()
             except Exception:
                 # Fail safe: a broken step must not leave the base driving.
                 log.exception("robot step failed: stopping the robot")
@@ -341,6 +433,8 @@ class RobotServer:
                     self._guarded(services.publish_pose)
                 if now >= next_telemetry:
                     self._guarded(services.publish_telemetry)
+                    status = self.safety_status()
+                    self._guarded(services.send_safety_state, status)
             if now >= next_pose:
                 next_pose = max(next_pose + pose_every, now)
             if now >= next_telemetry:
@@ -353,8 +447,8 @@ class RobotServer:
             await asyncio.sleep(max(delay, 0.0))
 
     @staticmethod
-    def _guarded(action: Callable[[], None]) -> None:
+    def _guarded(action: Callable[..., None], *args: Any) -> None:
         try:
-            action()
+            action(*args)
         except Exception:
             log.exception("service handler failed")

@@ -216,6 +216,10 @@ class SimNavStack:
         self._speed_limit = settings.max_linear_speed
         self._battery = 100.0
         self._collisions = 0
+        self._emergency_requests = 0
+        self._emergency_reason = ""
+        #: Emergency stops acted on (see :meth:`emergency_stop`).
+        self.emergency_stops = 0
         self._scan: LaserScan = self._laser.scan(self._base.pose, ())
 
     # ------------------------------------------------------------------ construction
@@ -426,6 +430,17 @@ class SimNavStack:
         self._teleop = False
         self._base.halt()
 
+    def emergency_stop(self, reason: str) -> None:
+        """Stop from any thread (a safety watchdog's): acted on before anything else moves.
+
+        Only a request counter moves here, and only callers of this method write it (the
+        stepping side writes its own "handled" counter), so no request is lost and no lock
+        is needed; the next :meth:`step` stops the robot before it integrates any motion.
+        A stalled caller means no steps, and without steps the simulated base does not move.
+        """
+        self._emergency_reason = reason or "emergency stop"
+        self._emergency_requests += 1
+
     def cancel(self) -> None:
         """Cancel the running goal, if any (the robot stops)."""
         if self._goal is not None:
@@ -492,6 +507,10 @@ class SimNavStack:
     def step(self, now: float) -> None:
         """Run one control cycle at ``now`` and move the base up to ``now``."""
         require_finite(now=now)
+        requests = self._emergency_requests
+        if requests != self.emergency_stops:
+            self.emergency_stops = requests
+            self.stop()
         dt_total = now - self._now
         if dt_total <= 0:
             return

@@ -39,6 +39,7 @@ __all__ = [
     "MAX_REQUEST_TEXT",
     "MAX_TURN_DEG",
     "USAGE",
+    "Arm",
     "BatteryQuery",
     "Cancel",
     "ChatReply",
@@ -53,9 +54,11 @@ __all__ = [
     "Left",
     "NavCam",
     "Places",
+    "ReleaseDrive",
     "Right",
     "Status",
     "Stop",
+    "TakeDrive",
     "Turn",
     "UserCam",
     "Where",
@@ -157,6 +160,21 @@ class Cancel:
 
 
 @dataclass(frozen=True, slots=True)
+class Arm:
+    """``arm``: re-arm the robot after a stop (the driver holding the drive only)."""
+
+
+@dataclass(frozen=True, slots=True)
+class TakeDrive:
+    """``take``: take the drive (a driver when nobody holds it; an admin always)."""
+
+
+@dataclass(frozen=True, slots=True)
+class ReleaseDrive:
+    """``release``: give the drive up (the robot stops)."""
+
+
+@dataclass(frozen=True, slots=True)
 class Places:
     """``places``: list the named places with their coordinates."""
 
@@ -192,6 +210,9 @@ Command: TypeAlias = (
     | UserCam
     | Stop
     | Cancel
+    | Arm
+    | TakeDrive
+    | ReleaseDrive
     | Places
     | Status
     | BatteryQuery
@@ -217,6 +238,9 @@ USAGE: dict[str, str] = {
     "usercam": "usage: usercam — select the user-interaction camera",
     "stop": "usage: stop — stop the robot now",
     "cancel": "usage: cancel — cancel the running goal",
+    "arm": "usage: arm — re-arm the robot after a stop (the driver holding the drive)",
+    "take": "usage: take — take the drive (if free; an admin takes it over)",
+    "release": "usage: release — give the drive up (the robot stops)",
     "places": "usage: places — list the named places",
     "status": "usage: status — what the robot is doing",
     "battery": "usage: battery — the battery charge",
@@ -256,6 +280,14 @@ _ALIASES: dict[str, str] = {
     "halt": "stop",
     "cancel": "cancel",
     "abort": "cancel",
+    "arm": "arm",
+    "rearm": "arm",
+    "re-arm": "arm",
+    "take": "take",
+    "take drive": "take",
+    "take over": "take",
+    "release": "release",
+    "release drive": "release",
     "places": "places",
     "status": "status",
     "battery": "battery",
@@ -330,6 +362,9 @@ _SIMPLE: dict[str, Command] = {
     "usercam": UserCam(),
     "stop": Stop(),
     "cancel": Cancel(),
+    "arm": Arm(),
+    "take": TakeDrive(),
+    "release": ReleaseDrive(),
     "places": Places(),
     "status": Status(),
     "battery": BatteryQuery(),

@@ -197,6 +197,10 @@ class Telemetry:
     loss: float
     role: str
     diagnostics: dict[str, str] = field(default_factory=dict)
+    #: The safety supervisor: armed or not (and why not), and who holds the drive.
+    armed: bool = False
+    stop_reason: str = ""
+    holder: str | None = None
 
     def encode(self) -> str:
         """The datagram text."""
@@ -212,12 +216,8 @@ def decode_telemetry(payload: str | bytes) -> Telemetry:
         isinstance(k, str) and isinstance(v, str) for k, v in diagnostics.items()
     ):
         raise ProtocolError("telemetry: 'diagnostics' must map names to text")
-    goal = msg.get("goal")
-    if goal is not None and not isinstance(goal, str):
-        raise ProtocolError("telemetry: 'goal' must be text or null")
-    battery_low = msg.get("battery_low")
-    if not isinstance(battery_low, bool):
-        raise ProtocolError("telemetry: 'battery_low' must be true or false")
+    goal = _optional_text(msg, "goal", what)
+    battery_low = _flag(msg, "battery_low", what)
     return Telemetry(
         t=finite_number(msg, "t", what=what),
         battery=finite_number(msg, "battery", what=what),
@@ -232,6 +232,9 @@ def decode_telemetry(payload: str | bytes) -> Telemetry:
         loss=finite_number(msg, "loss", what=what),
         role=_text(msg, "role", what),
         diagnostics=dict(diagnostics),
+        armed=_flag(msg, "armed", what),
+        stop_reason=_text(msg, "stop_reason", what, default=""),
+        holder=_optional_text(msg, "holder", what),
     )
 
 
@@ -246,3 +249,17 @@ def _optional_number(msg: dict[str, Any], key: str, what: str) -> float | None:
     if msg.get(key) is None:
         return None
     return finite_number(msg, key, what=what)
+
+
+def _flag(msg: dict[str, Any], key: str, what: str) -> bool:
+    value = msg.get(key)
+    if not isinstance(value, bool):
+        raise ProtocolError(f"{what}: {key!r} must be true or false")
+    return value
+
+
+def _optional_text(msg: dict[str, Any], key: str, what: str) -> str | None:
+    value = msg.get(key)
+    if value is not None and not isinstance(value, str):
+        raise ProtocolError(f"{what}: {key!r} must be text or null")
+    return value

@@ -1,0 +1,139 @@
+"""Messages of the ``safety`` channel (CONTROL lane, JSON text datagrams).
+
+User → robot, repeated (same ``id``) until acknowledged, so loss cannot eat a stop::
+
+    {"type": "stop", "id": 7}        anyone; never refused; idempotent
+    {"type": "arm", "id": 8}         re-arm after a stop (the drive holder)
+    {"type": "take", "id": 9}        take the drive (free, or an admin's takeover)
+    {"type": "release", "id": 10}    give the drive up (the robot stops)
+
+Robot → user: ``{"type": "ack", "id": 7, "ok": true, "reason": ""}`` for each request
+(again for each repeat), and the safety state on every change and once a second::
+
+    {"type": "state", "armed": false, "reason": "stop requested by alice",
+     "holder": "alice", "cap": 0.0, "blocked": false}
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal, cast
+
+from telebot.errors import ProtocolError
+from telebot.services.proto.messages import (
+    decode_object,
+    encode_object,
+    finite_number,
+    require_int,
+)
+
+__all__ = [
+    "SAFETY",
+    "SafetyAck",
+    "SafetyRequest",
+    "SafetyStatus",
+    "decode_safety_reply",
+    "decode_safety_request",
+]
+
+#: The channel's name.
+SAFETY = "safety"
+
+RequestType = Literal["stop", "arm", "take", "release"]
+_REQUEST_TYPES = ("stop", "arm", "take", "release")
+
+
+@dataclass(frozen=True, slots=True)
+class SafetyRequest:
+    """A user's stop, re-arm or drive hand-over request."""
+
+    type: RequestType
+    id: int
+
+    def encode(self) -> str:
+        """The datagram text."""
+        return encode_object({"type": self.type, "id": self.id})
+
+
+@dataclass(frozen=True, slots=True)
+class SafetyAck:
+    """The robot's answer to request ``id``."""
+
+    id: int
+    ok: bool
+    reason: str = ""
+
+    def encode(self) -> str:
+        """The datagram text."""
+        return encode_object({"type": "ack", "id": self.id, "ok": self.ok, "reason": self.reason})
+
+
+@dataclass(frozen=True, slots=True)
+class SafetyStatus:
+    """The supervisor's state as the users see it."""
+
+    armed: bool
+    reason: str
+    holder: str | None
+    cap: float
+    blocked: bool
+
+    def encode(self) -> str:
+        """The datagram text."""
+        return encode_object(
+            {
+                "type": "state",
+                "armed": self.armed,
+                "reason": self.reason,
+                "holder": self.holder,
+                "cap": round(self.cap, 3),
+                "blocked": self.blocked,
+            }
+        )
+
+
+def decode_safety_request(payload: str | bytes) -> SafetyRequest:
+    """Parse a user → robot ``safety`` datagram; ProtocolError when malformed."""
+    msg = decode_object(payload, what="safety")
+    kind = msg.get("type")
+    if kind not in _REQUEST_TYPES:
+        raise ProtocolError(f"safety: unknown type {kind!r}")
+    return SafetyRequest(cast(RequestType, kind), require_int(msg, "id", what="safety"))
+
+
+def decode_safety_reply(payload: str | bytes) -> SafetyAck | SafetyStatus:
+    """Parse a robot → user ``safety`` datagram; ProtocolError when malformed."""
+    msg = decode_object(payload, what="safety")
+    kind = msg.get("type")
+    if kind == "ack":
+        return SafetyAck(
+            require_int(msg, "id", what="safety"),
+            _bool(msg, "ok"),
+            _text(msg, "reason"),
+        )
+    if kind == "state":
+        holder = msg.get("holder")
+        if holder is not None and not isinstance(holder, str):
+            raise ProtocolError("safety: 'holder' must be text or null")
+        return SafetyStatus(
+            _bool(msg, "armed"),
+            _text(msg, "reason"),
+            holder,
+            finite_number(msg, "cap", what="safety"),
+            _bool(msg, "blocked"),
+        )
+    raise ProtocolError(f"safety: unknown type {kind!r}")
+
+
+def _bool(msg: dict[str, Any], key: str) -> bool:
+    value = msg.get(key)
+    if not isinstance(value, bool):
+        raise ProtocolError(f"safety: {key!r} must be true or false")
+    return value
+
+
+def _text(msg: dict[str, Any], key: str) -> str:
+    value = msg.get(key, "")
+    if not isinstance(value, str):
+        raise ProtocolError(f"safety: {key!r} must be text")
+    return value

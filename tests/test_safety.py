@@ -1,0 +1,656 @@
+"""The safety supervisor: every rule with explicit times, then a stateful Hypothesis model."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
+
+from telebot.errors import ConfigError
+from telebot.identity import Role
+from telebot.safety import (
+    CAP_STEP,
+    LOCAL,
+    NAVCAM,
+    Action,
+    Audit,
+    AuditRecord,
+    Decision,
+    SafetySupervisor,
+    SelectCamera,
+    SetSpeedCap,
+    StateChanged,
+    Stop,
+)
+
+TIMEOUT = 0.5
+MAX = 0.5
+RTT = 0.01
+
+
+def stops(actions: Sequence[Action]) -> list[Stop]:
+    return [a for a in actions if isinstance(a, Stop)]
+
+
+def audits(actions: Sequence[Action]) -> list[AuditRecord]:
+    return [a.record for a in actions if isinstance(a, Audit)]
+
+
+def caps(actions: Sequence[Action]) -> list[float]:
+    return [a.linear for a in actions if isinstance(a, SetSpeedCap)]
+
+
+def beat(
+    sup: SafetySupervisor, call: str, now: float, rtt: float | None = RTT, loss: float = 0.0
+) -> list[Action]:
+    return sup.heartbeat(call, now, rtt=rtt, loss=loss)
+
+
+def supervisor(**kwargs: float | bool) -> SafetySupervisor:
+    sup = SafetySupervisor(now=0.0, **kwargs)  # type: ignore[arg-type]
+    sup.tick(0.0)  # take the start-up actions out of the way
+    return sup
+
+
+def driving(now: float = 1.0, **kwargs: float | bool) -> SafetySupervisor:
+    """Alice joined as driver, her link is fresh, and she re-armed the robot."""
+    sup = supervisor(**kwargs)
+    sup.join("a", "alice", Role.DRIVER, now)
+    beat(sup, "a", now)
+    assert sup.rearm("a", now).allowed
+    return sup
+
+
+# -- start and latch ---------------------------------------------------------------------
+
+
+def test_starts_disarmed_and_its_first_actions_stop_the_robot() -> None:
+    sup = SafetySupervisor(now=5.0)
+    assert not sup.armed
+    assert sup.stop_reason == "not armed since start"
+    assert sup.holder is None and sup.speed_cap(5.0) == 0.0
+    first = sup.join("a", "alice", Role.DRIVER, 5.0)
+    # Whatever the NavStack was doing before a (re)start, it stops, and with a zero cap.
+    assert isinstance(first[0], Stop)
+    assert caps(first) == [0.0]
+    assert [r.what for r in audits(first)] == ["start", "join"]
+    again = sup.tick(5.1)
+    assert stops(again) == [] and caps(again) == []
+
+
+def test_motion_is_refused_until_the_holder_rearms() -> None:
+    sup = supervisor()
+    sup.join("a", "alice", Role.DRIVER, 1.0)
+    beat(sup, "a", 1.0)
+    refused = sup.request_motion("a", 1.0, "fwd 2")
+    assert not refused.allowed
+    assert "re-arm" in refused.reason and "not armed since start" in refused.reason
+    assert not any(isinstance(a, SelectCamera) for a in refused.actions)
+    rearmed = sup.rearm("a", 1.0)
+    assert rearmed.allowed and sup.armed
+    # Re-arming starts nothing: no camera switch, no motion, just the cap and the news.
+    assert caps(rearmed.actions) == [MAX]
+    assert not stops(rearmed.actions)
+    assert any(isinstance(a, StateChanged) and a.state.armed for a in rearmed.actions)
+    assert sup.request_motion("a", 1.0, "fwd 2").allowed
+
+
+def test_navcam_is_selected_when_motion_is_allowed_and_only_when_needed() -> None:
+    sup = driving()
+    first = sup.request_motion("a", 1.0, "fwd 1")
+    assert SelectCamera(NAVCAM) in first.actions
+    second = sup.request_motion("a", 1.0, "fwd 1")
+    assert SelectCamera(NAVCAM) not in second.actions
+    assert sup.request_camera("a", "usercam", False, 1.0).allowed
+    third = sup.request_motion("a", 1.0, "turn 90")
+    assert SelectCamera(NAVCAM) in third.actions
+
+
+def test_only_the_holder_may_rearm() -> None:
+    sup = supervisor()
+    sup.join("a", "alice", Role.DRIVER, 1.0)
+    sup.join("b", "bob", Role.DRIVER, 1.0)
+    sup.join("o", "olga", Role.OBSERVER, 1.0)
+    for call in "abo":
+        beat(sup, call, 1.0)
+    assert sup.holder == "alice" and sup.holder_call == "a"
+    bob = sup.rearm("b", 1.0)
+    assert not bob.allowed and bob.reason == "the drive is held by alice"
+    olga = sup.rearm("o", 1.0)
+    assert not olga.allowed and "observer" in olga.reason
+    assert not sup.rearm("x", 1.0).allowed
+    assert not sup.armed
+    assert sup.rearm("a", 1.0).allowed
+
+
+def test_rearm_needs_a_live_link() -> None:
+    sup = supervisor()
+    sup.join("a", "alice", Role.DRIVER, 1.0)
+    refused = sup.rearm("a", 1.0 + TIMEOUT)
+    assert not refused.allowed and "silent" in refused.reason and not sup.armed
+
+
+def test_observers_are_refused_everything_but_stop() -> None:
+    sup = driving()
+    sup.join("o", "olga", Role.OBSERVER, 1.0)
+    beat(sup, "o", 1.0)
+    for decision in (
+        sup.request_motion("o", 1.0, "fwd 1"),
+        sup.request_camera("o", "usercam", False, 1.0),
+        sup.rearm("o", 1.0),
+        sup.take_drive("o", 1.0),
+        sup.release_drive("o", 1.0),
+    ):
+        assert not decision.allowed and "observer" in decision.reason
+        assert not stops(decision.actions)
+    assert sup.armed
+    stop = sup.request_stop("o", 1.0)
+    assert stop.allowed and stops(stop.actions) and not sup.armed
+    assert sup.stop_reason == "stop requested by olga"
+
+
+def test_stop_is_idempotent_and_latches() -> None:
+    sup = driving()
+    first = sup.request_stop("a", 1.1, "stop key")
+    assert first.allowed and not sup.armed
+    assert first.actions[0] == Stop("stop key by alice")
+    assert caps(first.actions) == [0.0]
+    # A repeated stop stops again (nothing is lost by it) and changes nothing else.
+    second = sup.request_stop("a", 1.2)
+    assert second.allowed and stops(second.actions) == [Stop("stop requested by alice")]
+    assert not any(isinstance(a, StateChanged) for a in second.actions)
+    assert caps(second.actions) == []
+    assert sup.stop_reason == "stop key by alice"
+    assert "already stopped" in second.audit.detail
+    # Latched: time and fresh heartbeats do not restart anything.
+    for t in (1.3, 1.4, 2.0):
+        beat(sup, "a", t)
+        assert not stops(sup.tick(t)) and not sup.armed and sup.speed_cap(t) == 0.0
+    assert not sup.request_motion("a", 2.0, "fwd 1").allowed
+    assert sup.rearm("a", 2.0).allowed
+
+
+def test_stops_from_the_robot_itself_and_from_unknown_calls_are_honoured() -> None:
+    sup = driving()
+    local = sup.request_stop(None, 1.0, "SIGTERM")
+    assert local.allowed and stops(local.actions) and local.audit.who == LOCAL
+    assert sup.stop_reason == "SIGTERM by robot"
+    sup.rearm("a", 1.0)
+    # An unknown call id is a bookkeeping fault; refusing its stop would never be safer.
+    ghost = sup.request_stop("ghost", 1.0)
+    assert ghost.allowed and stops(ghost.actions) and not sup.armed
+    assert ghost.audit.who == "unknown call ghost"
+
+
+@pytest.mark.parametrize(("how", "words"), [("hung_up", "hung up"), ("dropped", "dropped")])
+def test_the_holder_leaving_stops_latches_and_frees_the_drive(how: str, words: str) -> None:
+    sup = driving()
+    actions = sup.leave("a", how, 1.2)  # type: ignore[arg-type]
+    assert isinstance(actions[0], Stop) and actions[0].reason == f"driver alice {words}"
+    assert not sup.armed and sup.holder is None and sup.participant("a") is None
+    record = audits(actions)[-1]
+    assert record.who == "alice" and record.outcome == "stopped"
+
+
+def test_an_observer_leaving_does_not_stop() -> None:
+    sup = driving()
+    sup.join("o", "olga", Role.OBSERVER, 1.0)
+    actions = sup.leave("o", "dropped", 1.1)
+    assert not stops(actions) and sup.armed
+    assert audits(actions)[-1].outcome == "noted"
+
+
+def test_deadman_fires_at_the_timeout_and_not_before() -> None:
+    sup = driving(now=1.0)
+    beat(sup, "a", 1.0, rtt=0.0)
+    before = sup.tick(1.0 + TIMEOUT - 1e-6)
+    assert not stops(before) and sup.armed and sup.speed_cap(1.0 + TIMEOUT - 1e-6) > 0
+    at = sup.tick(1.0 + TIMEOUT)
+    assert isinstance(at[0], Stop) and at[0].reason == "driver alice's link lost"
+    assert not sup.armed and sup.speed_cap(1.0 + TIMEOUT) == 0.0 and sup.state().cap == 0.0
+    # The cap announced just before was already rounded down to 0.
+    assert caps(before) == [0.0] and caps(at) == []
+    assert audits(at)[-1].what == "deadman" and audits(at)[-1].outcome == "stopped"
+    # The holder keeps the drive (the call may come back): it must re-arm.
+    assert sup.holder == "alice"
+    beat(sup, "a", 1.6)
+    assert not sup.request_motion("a", 1.6, "fwd 1").allowed
+    assert sup.rearm("a", 1.6).allowed
+
+
+def test_a_late_heartbeat_does_not_hide_a_missed_deadman() -> None:
+    sup = driving(now=1.0)
+    # No tick came in time (a busy loop): the next event, a heartbeat, still latches.
+    actions = beat(sup, "a", 1.7)
+    assert stops(actions) and not sup.armed
+
+
+def test_a_call_that_reappears_after_a_drop_stays_disarmed() -> None:
+    sup = driving()
+    sup.request_motion("a", 1.0, "goto lab")
+    sup.leave("a", "dropped", 1.5)
+    back = sup.join("a2", "alice", Role.DRIVER, 2.0)
+    beat(sup, "a2", 2.0)
+    assert sup.holder == "alice" and not sup.armed
+    assert not any(isinstance(a, SelectCamera) for a in back)
+    for t in (2.0, 2.1, 3.0):
+        beat(sup, "a2", t)
+        assert not sup.tick(t) or not sup.armed
+        assert sup.speed_cap(t) == 0.0
+    assert not sup.request_motion("a2", 3.0, "goto lab").allowed
+
+
+def test_an_admin_takeover_stops_and_latches() -> None:
+    sup = driving()
+    sup.join("z", "zoe", Role.ADMIN, 1.0)
+    sup.join("b", "bob", Role.DRIVER, 1.0)
+    beat(sup, "z", 1.0)
+    refused = sup.take_drive("b", 1.0)
+    assert not refused.allowed and refused.reason.startswith("the drive is held by alice")
+    taken = sup.take_drive("z", 1.1)
+    assert taken.allowed and taken.audit.detail == "taken over from alice"
+    assert isinstance(taken.actions[0], Stop) and not sup.armed
+    assert sup.holder == "zoe" and sup.state().holder_role is Role.ADMIN
+    lost = sup.request_motion("a", 1.1, "fwd 1")
+    assert not lost.allowed and lost.reason == "the drive is held by zoe"
+    assert sup.rearm("z", 1.1).allowed and sup.request_motion("z", 1.1, "fwd 1").allowed
+
+
+def test_release_stops_and_frees_the_drive_for_another_driver() -> None:
+    sup = driving()
+    sup.join("b", "bob", Role.DRIVER, 1.0)
+    assert not sup.release_drive("b", 1.0).allowed
+    released = sup.release_drive("a", 1.1)
+    assert released.allowed and stops(released.actions)
+    assert not sup.armed and sup.holder is None
+    free = sup.request_motion("b", 1.1, "fwd 1")
+    assert not free.allowed and "free" in free.reason
+    assert sup.take_drive("b", 1.2).allowed and sup.holder == "bob" and not sup.armed
+    assert sup.take_drive("b", 1.2).reason == "already yours"
+
+
+def test_usercam_while_moving_is_refused_unless_configured() -> None:
+    sup = driving()
+    refused = sup.request_camera("a", "usercam", True, 1.0)
+    assert not refused.allowed and "while the robot moves" in refused.reason
+    assert not any(isinstance(a, SelectCamera) for a in refused.actions)
+    assert sup.request_camera("a", NAVCAM, True, 1.0).allowed
+    still = sup.request_camera("a", "usercam", False, 1.0)
+    assert still.allowed and SelectCamera("usercam") in still.actions
+    relaxed = driving(usercam_while_moving=True)
+    assert relaxed.request_camera("a", "usercam", True, 1.0).allowed
+
+
+def test_speed_cap_shrinks_with_age_rtt_and_loss() -> None:
+    sup = driving(now=1.0)
+    beat(sup, "a", 1.0, rtt=0.0)
+    assert sup.speed_cap(1.0) == MAX
+    # delay = age + rtt; full speed up to the grace (0.1 s), 0 at the timeout.
+    assert sup.speed_cap(1.0625) == MAX
+    assert sup.speed_cap(1.3) == pytest.approx(MAX * 0.5)
+    assert sup.speed_cap(1.0 + TIMEOUT) == 0.0
+    ages = [sup.speed_cap(1.0 + 0.01 * i) for i in range(60)]
+    assert ages == sorted(ages, reverse=True) and ages[-1] == 0.0
+    beat(sup, "a", 1.0, rtt=0.2)
+    assert sup.speed_cap(1.0) == pytest.approx(MAX * 0.75)
+    assert sup.speed_cap(1.3) == 0.0  # age 0.3 + rtt 0.2 reaches the timeout
+    beat(sup, "a", 1.0, rtt=0.0, loss=0.25)
+    assert sup.speed_cap(1.0) == pytest.approx(MAX * 0.5)
+    beat(sup, "a", 1.0, rtt=0.0, loss=0.5)
+    assert sup.speed_cap(1.0) == 0.0
+    unmeasured = driving(now=1.0)
+    beat(unmeasured, "a", 1.0, rtt=None)
+    assert unmeasured.speed_cap(1.0) == 0.0
+    refused = unmeasured.request_motion("a", 1.0, "fwd 1")
+    assert not refused.allowed and "not measured" in refused.reason
+
+
+def test_speed_cap_is_zero_when_disarmed_and_too_poor_a_link_refuses_motion() -> None:
+    sup = driving()
+    sup.request_stop("a", 1.0)
+    assert sup.speed_cap(1.0) == 0.0
+    sup.rearm("a", 1.0)
+    beat(sup, "a", 1.0, rtt=0.6)
+    refused = sup.request_motion("a", 1.0, "fwd 1")
+    assert not refused.allowed and "too poor" in refused.reason
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    age=st.floats(0, 1),
+    more_age=st.floats(0, 1),
+    rtt=st.floats(0, 1),
+    more_rtt=st.floats(0, 1),
+    loss=st.floats(0, 1),
+    more_loss=st.floats(0, 1),
+)
+def test_a_worse_link_never_raises_the_cap(
+    age: float, more_age: float, rtt: float, more_rtt: float, loss: float, more_loss: float
+) -> None:
+    def cap(a: float, r: float, lo: float) -> float:
+        sup = driving(now=1.0)
+        beat(sup, "a", 1.0, rtt=r, loss=min(1.0, lo))
+        return sup.speed_cap(1.0 + a)
+
+    base = cap(age, rtt, loss)
+    assert 0.0 <= base <= MAX
+    assert cap(age + more_age, rtt, loss) <= base
+    assert cap(age, rtt + more_rtt, loss) <= base
+    assert cap(age, rtt, loss + more_loss) <= base
+    if age >= TIMEOUT:
+        assert base == 0.0
+
+
+def test_cap_announcements_are_rounded_down_and_not_repeated() -> None:
+    sup = driving(now=1.0)
+    beat(sup, "a", 1.0, rtt=0.0)
+    assert caps(sup.tick(1.0625)) == []  # still within the grace: unchanged
+    announced = caps(sup.tick(1.2345))
+    assert len(announced) == 1 and announced[0] <= sup.speed_cap(1.2345)
+    assert announced[0] == pytest.approx(math.floor(sup.speed_cap(1.2345) / CAP_STEP) * CAP_STEP)
+    assert caps(sup.tick(1.2345)) == []
+
+
+def test_obstacles_are_noted_not_latched() -> None:
+    sup = driving()
+    blocked = sup.obstacle(True, 1.0)
+    assert not stops(blocked) and sup.armed and sup.state().blocked
+    assert audits(blocked)[-1].detail == "obstacle ahead"
+    assert sup.obstacle(True, 1.0) == []  # no news, no record
+    allowed = sup.request_motion("a", 1.0, "turn 90")
+    assert allowed.allowed and allowed.audit.detail == "obstacle ahead"
+    assert audits(sup.obstacle(False, 1.0))[-1].detail == "obstacle cleared"
+
+
+def test_every_command_is_audited_with_who_when_and_outcome() -> None:
+    sup = supervisor()
+    sup.join("a", "alice", Role.DRIVER, 1.0)
+    beat(sup, "a", 1.0)
+    decisions: list[Decision] = [
+        sup.request_motion("a", 1.25, "fwd 2"),
+        sup.rearm("a", 1.25),
+        sup.request_motion("a", 1.25, "fwd 2"),
+        sup.request_camera("a", "usercam", True, 1.25),
+        sup.take_drive("a", 1.25),
+        sup.request_stop("a", 1.25),
+        sup.release_drive("a", 1.25),
+    ]
+    outcomes = [d.audit.outcome for d in decisions]
+    assert outcomes == ["refused", "allowed", "allowed", "refused", "allowed", "allowed", "allowed"]
+    for d in decisions:
+        assert d.audit.who == "alice" and d.audit.role == "driver" and d.audit.call == "a"
+        assert d.audit.t == 1.25
+        assert Audit(d.audit) in d.actions
+    line = decisions[0].audit.to_json()
+    assert "\n" not in line
+    assert json.loads(line) == {
+        "t": 1.25,
+        "who": "alice",
+        "role": "driver",
+        "call": "a",
+        "what": "motion: fwd 2",
+        "outcome": "refused",
+        "detail": decisions[0].reason,
+    }
+
+
+def test_unknown_call_ids_are_refused() -> None:
+    sup = driving()
+    for decision in (
+        sup.request_motion("x", 1.0, "fwd 1"),
+        sup.request_camera("x", NAVCAM, False, 1.0),
+        sup.rearm("x", 1.0),
+        sup.take_drive("x", 1.0),
+        sup.release_drive("x", 1.0),
+    ):
+        assert not decision.allowed and decision.reason == "unknown call"
+        assert decision.audit.who == "unknown call x"
+    left = sup.leave("x", "hung_up", 1.0)
+    assert audits(left)[-1].outcome == "refused" and sup.armed
+    assert beat(sup, "x", 1.0) == [] and sup.participant("x") is None
+
+
+def test_a_call_joining_twice_is_refused_and_stops_if_it_was_driving() -> None:
+    sup = driving()
+    actions = sup.join("a", "mallory", Role.ADMIN, 1.0)
+    assert stops(actions) and not sup.armed
+    assert audits(actions)[-1].outcome == "refused"
+    p = sup.participant("a")
+    assert p is not None and p.user == "alice" and p.role is Role.DRIVER
+
+
+def test_a_clock_fault_stops_and_time_never_runs_backwards() -> None:
+    sup = driving(now=1.0)
+    fault = sup.request_motion("a", math.nan, "fwd 1")
+    assert not fault.allowed and stops(fault.actions) and not sup.armed
+    assert sup.speed_cap(math.inf) == 0.0
+    assert stops(sup.tick(math.nan))
+    sup = driving(now=1.0)
+    sup.tick(2.0)  # the deadman fired at 2.0 …
+    assert not sup.armed
+    # … so a later command stamped earlier is handled at 2.0, and a sign of life stamped
+    # 1.2 is as old as its stamp says: the link is still stale.
+    beat(sup, "a", 1.2)
+    refused = sup.rearm("a", 1.2)
+    assert not refused.allowed and refused.audit.t == 2.0 and "silent" in refused.reason
+
+
+def test_actions_put_the_stop_first() -> None:
+    sup = driving()
+    sup.join("z", "zoe", Role.ADMIN, 1.0)
+    for actions in (
+        sup.take_drive("z", 1.0).actions,
+        sup.release_drive("z", 1.0).actions,
+    ):
+        assert isinstance(actions[0], Stop)
+        assert isinstance(actions[-1], Audit)
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"timeout": 0.0},
+        {"timeout": math.nan},
+        {"max_speed": -1.0},
+        {"grace": 0.5},
+        {"grace": -0.1},
+        {"now": math.inf},
+    ],
+)
+def test_bad_settings_are_config_errors(kwargs: dict[str, float]) -> None:
+    with pytest.raises(ConfigError):
+        SafetySupervisor(**{"now": 0.0, **kwargs})  # type: ignore[arg-type]
+
+
+# -- the stateful model --------------------------------------------------------------------
+
+CALLS = ("a", "b", "o", "z", "ghost")
+ROLES = {"a": Role.DRIVER, "b": Role.DRIVER, "o": Role.OBSERVER, "z": Role.ADMIN}
+DRIVING = {Role.DRIVER, Role.ADMIN}
+# Mostly the small steps of a live call, so that the robot gets armed and driven, with
+# steps onto and around the deadman's edge and some long silences.
+STEPS = st.one_of(
+    st.sampled_from([0.0, 0.01, 0.05, 0.05, 0.1]),
+    st.sampled_from([TIMEOUT - 1e-9, TIMEOUT, TIMEOUT + 1e-9]),
+    st.floats(0.0, 0.8),
+)
+# Mostly good links, sometimes unmeasured or bad ones.
+GOOD_RTT = st.floats(0.0, 0.05)
+RTTS = st.one_of(GOOD_RTT, GOOD_RTT, GOOD_RTT, st.none(), st.floats(0.0, 0.7))
+LOSSES = st.one_of(st.just(0.0), st.floats(0.0, 0.1), st.floats(0.0, 1.0))
+
+
+class SupervisorModel(RuleBasedStateMachine):
+    """Random sequences of events; after each, the robot may move only when it is safe."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.now = 0.0
+        self.sup = SafetySupervisor(now=0.0)
+        self.joined: set[str] = set()
+        # Kept by the test from what it fed in, not read back from the supervisor.
+        self.heard: dict[str, float] = {}
+        self.latched = True  # it starts stopped
+        self.was_armed = False
+        self.announced: float | None = None  # the cap in force in the NavStack
+
+    def advance(self, dt: float) -> None:
+        """Time passes; a holder silent for the timeout by now must be latched."""
+        self.now += dt
+        holder = self.sup.holder_call
+        if holder is not None and self.now - self.heard[holder] >= TIMEOUT:
+            self.latched = True
+
+    def check(self, actions: Sequence[Action], *, rearmed: bool = False) -> None:
+        """Stops latch; nothing but an allowed re-arm by the holder arms."""
+        if stops(actions):
+            assert not self.sup.armed
+            self.latched = True
+        if self.was_armed and not self.sup.armed:
+            assert stops(actions), "disarmed without telling the NavStack to stop"
+        if not self.was_armed and self.sup.armed:
+            assert rearmed, "armed by something other than a re-arm"
+        if self.latched:
+            assert not self.sup.armed
+        for cap in caps(actions):
+            self.announced = cap
+        # The NavStack's limit never exceeds what is safe now (stops announce 0 at once).
+        assert self.announced is not None
+        assert self.announced <= self.sup.speed_cap(self.now) + 1e-12
+        self.was_armed = self.sup.armed
+
+    def safe_to_move(self) -> bool:
+        holder = self.sup.holder_call
+        return (
+            self.sup.armed
+            and holder is not None
+            and holder in self.joined
+            and ROLES[holder] in DRIVING
+            and self.now - self.heard[holder] < TIMEOUT
+        )
+
+    @rule(dt=STEPS)
+    def tick(self, dt: float) -> None:
+        self.advance(dt)
+        self.check(self.sup.tick(self.now))
+
+    @rule(call=st.sampled_from(CALLS))
+    def join(self, call: str) -> None:
+        role = ROLES.get(call, Role.OBSERVER)
+        actions = self.sup.join(call, call.upper(), role, self.now)
+        if call not in self.joined:
+            self.joined.add(call)
+            self.heard[call] = self.now
+        self.check(actions)
+
+    @rule(call=st.sampled_from(CALLS), dropped=st.booleans())
+    def leave(self, call: str, dropped: bool) -> None:
+        holder = self.sup.holder_call
+        actions = self.sup.leave(call, "dropped" if dropped else "hung_up", self.now)
+        if call in self.joined and call == holder:
+            assert stops(actions) and self.sup.holder_call is None
+        self.joined.discard(call)
+        self.check(actions)
+
+    @rule(call=st.sampled_from(CALLS), rtt=RTTS, loss=LOSSES)
+    def heartbeat(self, call: str, rtt: float | None, loss: float) -> None:
+        actions = self.sup.heartbeat(call, self.now, rtt=rtt, loss=loss)
+        if call in self.joined:
+            self.heard[call] = self.now
+        self.check(actions)
+
+    @precondition(lambda self: self.sup.holder_call is not None)
+    @rule(dt=STEPS, rtt=RTTS, loss=LOSSES)
+    def holder_lives(self, dt: float, rtt: float | None, loss: float) -> None:
+        # Time passes and the holder's heartbeat arrives: mostly soon, sometimes after a
+        # silence that must latch even though no tick came in between.
+        holder = self.sup.holder_call
+        assert holder is not None
+        self.advance(dt)
+        self.heartbeat(holder, rtt, loss)
+
+    @rule(call=st.one_of(st.none(), st.sampled_from(CALLS)))
+    def stop(self, call: str | None) -> None:
+        decision = self.sup.request_stop(call, self.now)
+        assert decision.allowed and stops(decision.actions)
+        self.check(decision.actions)
+
+    @precondition(lambda self: self.sup.holder_call is not None)
+    @rule(rtt=GOOD_RTT)
+    def holder_drives(self, rtt: float) -> None:
+        # The holder, on a live link, re-arms if need be and drives: the paths that make
+        # the robot move, which the other rules then disturb.
+        holder = self.sup.holder_call
+        assert holder is not None
+        self.heartbeat(holder, rtt, 0.0)
+        if not self.sup.armed:
+            self.rearm(holder)
+        self.motion(holder)
+
+    @rule(call=st.sampled_from(CALLS))
+    def motion(self, call: str) -> None:
+        decision = self.sup.request_motion(call, self.now, "fwd 1")
+        if decision.allowed:
+            assert self.safe_to_move() and self.sup.holder_call == call
+            assert self.sup.speed_cap(self.now) > 0
+        self.check(decision.actions)
+
+    @rule(call=st.sampled_from(CALLS), camera=st.sampled_from([NAVCAM, "usercam"]))
+    def camera(self, call: str, camera: str) -> None:
+        decision = self.sup.request_camera(call, camera, self.sup.armed, self.now)
+        if decision.allowed:
+            assert self.sup.holder_call == call
+            assert camera == NAVCAM or not self.sup.armed
+        self.check(decision.actions)
+
+    @rule(call=st.sampled_from(CALLS))
+    def rearm(self, call: str) -> None:
+        holder = self.sup.holder_call
+        decision = self.sup.rearm(call, self.now)
+        if decision.allowed:
+            assert call == holder and ROLES[call] in DRIVING
+            self.latched = False
+        self.check(decision.actions, rearmed=decision.allowed)
+
+    @rule(call=st.sampled_from(CALLS))
+    def take(self, call: str) -> None:
+        holder = self.sup.holder_call
+        decision = self.sup.take_drive(call, self.now)
+        if decision.allowed:
+            assert ROLES[call] in DRIVING and self.sup.holder_call == call
+            if holder not in (None, call):
+                assert ROLES[call] is Role.ADMIN and stops(decision.actions)
+        self.check(decision.actions)
+
+    @rule(call=st.sampled_from(CALLS))
+    def release(self, call: str) -> None:
+        decision = self.sup.release_drive(call, self.now)
+        if decision.allowed:
+            assert self.sup.holder_call is None and stops(decision.actions)
+        self.check(decision.actions)
+
+    @precondition(lambda self: self.sup.armed)
+    @rule(blocked=st.booleans())
+    def obstacle(self, blocked: bool) -> None:
+        actions = self.sup.obstacle(blocked, self.now)
+        assert not stops(actions)
+        self.check(actions)
+
+    @invariant()
+    def moves_only_when_safe(self) -> None:
+        if self.sup.speed_cap(self.now) > 0:
+            assert self.safe_to_move()
+        assert 0.0 <= self.sup.speed_cap(self.now) <= MAX
+        if self.latched:
+            assert not self.sup.armed
+
+
+SupervisorModel.TestCase.settings = settings(
+    max_examples=300, stateful_step_count=50, deadline=None
+)
+test_supervisor_model = SupervisorModel.TestCase
