@@ -111,6 +111,7 @@ SANS_IO_SOURCES = sorted(
         *(SRC / "channels" / "proto").rglob("*.py"),
         *(SRC / "robot" / "sim").rglob("*.py"),
         *(SRC / "services" / "proto").rglob("*.py"),
+        SRC / "safety.py",
     ]
 )
 

@@ -28,6 +28,7 @@ __all__ = [
     "SimSettings",
     "StrictModel",
     "TransportSettings",
+    "VideoConfig",
     "ZenohSettings",
     "default_home",
     "format_validation_error",
@@ -212,6 +213,19 @@ class ServiceSettings(StrictModel):
     telemetry_hz: float = Field(default=1.0, gt=0, le=20)
 
 
+class VideoConfig(StrictModel):
+    """The video each call gets from the robot's active camera (JPEG over BULK datagrams)."""
+
+    width: int = Field(default=640, ge=16, le=4096)
+    height: int = Field(default=480, ge=16, le=4096)
+    #: Frame rate ceiling; the rate follows the link below it.
+    max_fps: float = Field(default=30.0, gt=0, le=30)
+    #: JPEG quality on a good link (1..100); it drops on a poor one.
+    quality: int = Field(default=80, ge=30, le=100)
+    #: False: fixed rate and quality whatever the link does.
+    adaptive: bool = True
+
+
 class SafetySettings(StrictModel):
     """The safety supervisor. Its deadman time is ``call.timeout``, its hard speed cap
     ``sim.max_linear_speed``."""
@@ -228,3 +242,4 @@ class RobotConfig(AppConfig):
     sim: SimSettings = Field(default_factory=SimSettings)
     services: ServiceSettings = Field(default_factory=ServiceSettings)
     safety: SafetySettings = Field(default_factory=SafetySettings)
+    video: VideoConfig = Field(default_factory=VideoConfig)

@@ -19,6 +19,7 @@ from telebot.identity import ContactBook, Identity
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.robot import EventSink, RobotServer
 from telebot.services.supervision import SafetyDriver
+from telebot.services.video import VideoSettings
 
 __all__ = ["SHUTDOWN_REASON", "serve_robot"]
 
@@ -66,6 +67,14 @@ async def serve_robot(
         map_name=Path(config.sim.map).stem,
         emit=emit,
         safety=safety,
+        video=VideoSettings(
+            width=config.video.width,
+            height=config.video.height,
+            max_fps=config.video.max_fps,
+            quality=config.video.quality,
+            min_quality=min(30, config.video.quality),
+            adaptive=config.video.adaptive,
+        ),
     )
     await server.prepare()
     with stop_on_signals(stop), safety:

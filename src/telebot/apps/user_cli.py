@@ -157,6 +157,46 @@ def build_parser() -> Parser:
     add_home_option(getmap, "user")
     add_connection_options(getmap)
 
+    video = commands.add_parser(
+        "video",
+        help="receive the robot's video: show fps and loss, record it, share it in memory",
+    )
+    video.add_argument("robot", type=name_arg, help="the robot's name")
+    video.add_argument(
+        "--record", type=Path, metavar="FILE.mp4", help="record to this MP4 file (OpenCV mp4v)"
+    )
+    video.add_argument(
+        "--shm",
+        metavar="NAME",
+        help="publish frames in the shared-memory ring NAME for local programs",
+    )
+    video.add_argument(
+        "--duration",
+        type=_positive_float,
+        metavar="S",
+        help="stop after S seconds (default: until Ctrl-C)",
+    )
+    add_home_option(video, "user")
+    add_connection_options(video)
+
+    video_log = commands.add_parser(
+        "video-log", help="record the frames another telebot-user shares in memory (video --shm)"
+    )
+    video_log.add_argument("name", help="the shared-memory ring's name (as given to video --shm)")
+    video_log.add_argument("-o", "--output", type=Path, required=True, help="MP4 file to write")
+    video_log.add_argument(
+        "--duration",
+        type=_positive_float,
+        metavar="S",
+        help="stop after S seconds (default: until the ring closes or Ctrl-C)",
+    )
+    video_log.add_argument(
+        "--fps", type=_positive_float, default=30.0, help="frame rate of the recording (default 30)"
+    )
+    video_log.add_argument(
+        "--wait", type=_positive_float, default=10.0, help="seconds to wait for the ring to appear"
+    )
+
     where = commands.add_parser("where", help="print the robot's pose in the map frame")
     where.add_argument("robot", type=name_arg, help="the robot's name")
     where.add_argument(
@@ -184,6 +224,23 @@ def main(argv: list[str] | None = None) -> int:
             return await _robots(args, home)
         if args.command == "ping":
             return await _ping(args, home)
+        if args.command == "video":
+            from telebot.apps.video_cli import video
+
+            return await video(
+                args.robot,
+                home=home,
+                config=app_config(args),
+                record=args.record,
+                shm=args.shm,
+                duration=args.duration,
+            )
+        if args.command == "video-log":
+            from telebot.apps.video_cli import video_log
+
+            return video_log(
+                args.name, args.output, duration=args.duration, fps=args.fps, wait=args.wait
+            )
         return await _talk(args, home)
 
     return run(PROG, command, args.log_level)

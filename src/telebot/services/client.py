@@ -45,6 +45,7 @@ from telebot.services.proto.status import (
     decode_pose,
     decode_telemetry,
 )
+from telebot.services.video import VideoReceiver, video_channel
 
 __all__ = ["ChatResult", "RobotClient", "connect"]
 
@@ -329,6 +330,14 @@ class RobotClient:
     ) -> MapDownload:
         """Download the robot's map (cropped PNG with its georeference)."""
         return await fetch_map(self._map, timeout=timeout, progress=progress)
+
+    def video(self, **options: Any) -> VideoReceiver:
+        """The robot's video: ``async with robot.video() as video: async for frame in video``.
+
+        Frames are decoded BGR numpy images with camera, frame id and capture time; the
+        robot sends video only while a receiver is open (it reports back every 0.2 s).
+        """
+        return VideoReceiver(video_channel(self.call), **options)
 
     async def hangup(self) -> None:
         """End the call."""

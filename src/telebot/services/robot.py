@@ -43,6 +43,7 @@ from telebot.services.proto.status import (
     decode_goal_command,
 )
 from telebot.services.supervision import SafetyDriver
+from telebot.services.video import VideoSender, VideoSettings
 
 __all__ = ["CallServices", "EventSink", "RobotServer", "SteppedNavStack", "may_drive"]
 
@@ -92,6 +93,8 @@ class CallServices:
             gate=self.gate,
         )
         self.map = MapService(call.channel(MAP, lane=Lane.BULK), server.encoded_map)
+        self.video = VideoSender.for_call(call, nav, server.video_settings)
+        self.video.start()
         # Lossy channels: a user repeats a request until it hears back, so the robot
         # answers a repeat with what it already said instead of running it twice.
         self._chat_replies: OrderedDict[int, list[str]] = OrderedDict()
@@ -279,6 +282,10 @@ class CallServices:
             armed=safety.armed,
             stop_reason=safety.reason,
             holder=safety.holder,
+            video_fps=round(self.video.fps, 2) if self.video.watched else 0.0,
+            video_width=self.video.width if self.video.watched else 0,
+            video_height=self.video.height if self.video.watched else 0,
+            video_quality=self.video.quality if self.video.watched else 0,
         )
         self._send(self._telemetry_channel, telemetry.encode())
 
@@ -328,8 +335,10 @@ class RobotServer:
         map_name: str = "map",
         emit: EventSink | None = None,
         safety: SafetyDriver | None = None,
+        video: VideoSettings | None = None,
     ) -> None:
         self.nav = nav
+        self.video_settings = video if video is not None else VideoSettings()
         #: The safety supervisor's driver; None runs the robot without one (tests of the
         #: services alone): then nothing latches and roles alone decide who may drive.
         self.safety = safety
@@ -379,6 +388,7 @@ class RobotServer:
         def on_end(_: asyncio.Future[Any]) -> None:
             self.services.pop(call.id, None)
             services.map.close()
+            services.video.stop()
             if self.safety is not None:
                 self.safety.leave(call)
             end = call.end

@@ -201,6 +201,11 @@ class Telemetry:
     armed: bool = False
     stop_reason: str = ""
     holder: str | None = None
+    #: The video sent to this call now: frame rate, size and JPEG quality (0: none).
+    video_fps: float = 0.0
+    video_width: int = 0
+    video_height: int = 0
+    video_quality: int = 0
 
     def encode(self) -> str:
         """The datagram text."""
@@ -235,6 +240,16 @@ def decode_telemetry(payload: str | bytes) -> Telemetry:
         armed=_flag(msg, "armed", what),
         stop_reason=_text(msg, "stop_reason", what, default=""),
         holder=_optional_text(msg, "holder", what),
+        video_fps=finite_number(msg, "video_fps", what=what) if "video_fps" in msg else 0.0,
+        video_width=require_int(msg, "video_width", what=what, high=65535)
+        if "video_width" in msg
+        else 0,
+        video_height=require_int(msg, "video_height", what=what, high=65535)
+        if "video_height" in msg
+        else 0,
+        video_quality=require_int(msg, "video_quality", what=what, high=100)
+        if "video_quality" in msg
+        else 0,
     )
 
 

@@ -1,0 +1,163 @@
+"""The safety supervisor's driver: NavStack actions, the watchdog thread, chat gating, audit."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from telebot.channels.proto.session import CallStats
+from telebot.config import SimSettings
+from telebot.identity import Role
+from telebot.robot.grid import OccupancyGrid
+from telebot.robot.nav import Pose2D
+from telebot.robot.sim.stack import SimNavStack
+from telebot.services.chat import ChatSession
+from telebot.services.proto.chat import ChatReply
+from telebot.services.supervision import SafetyDriver
+
+
+@dataclass
+class FakeCall:
+    """What the driver reads of a call: id, peer, role, last sign of life, link stats."""
+
+    id: str
+    peer: str
+    role: Role
+    last_heard: float = field(default_factory=time.monotonic)
+    stats: CallStats = field(default_factory=lambda: CallStats(rtt=0.002))
+    end: None = None
+
+
+def room() -> SimNavStack:
+    data = np.full((200, 240), -1, dtype=np.int8)
+    data[10:-10, 10:-10] = 100
+    data[14:-14, 14:-14] = 0
+    grid = OccupancyGrid(data, 0.05, 0.0, 0.0)
+    return SimNavStack(grid, {}, SimSettings(), start=Pose2D(3.0, 5.0, 0.0), now=time.monotonic())
+
+
+def drive_for(nav: SimNavStack, seconds: float, driver: SafetyDriver, call: FakeCall) -> None:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        call.last_heard = time.monotonic()
+        nav.step(time.monotonic())
+        driver.tick()
+        time.sleep(0.02)
+
+
+def armed_driver(tmp_path: Path) -> tuple[SimNavStack, SafetyDriver, FakeCall]:
+    nav = room()
+    driver = SafetyDriver(nav, timeout=0.5, max_speed=0.5, audit_path=tmp_path / "audit.jsonl")
+    alice = FakeCall("c1", "alice", Role.DRIVER)
+    driver.join(alice)  # type: ignore[arg-type]
+    driver.tick()
+    assert driver.gate("c1").rearm() is None
+    return nav, driver, alice
+
+
+def test_the_robot_starts_stopped_with_a_zero_speed_cap(tmp_path: Path) -> None:
+    nav = room()
+    driver = SafetyDriver(nav, timeout=0.5, max_speed=0.5)
+    assert nav.speed_limit == 0.0
+    assert not driver.state().armed
+    driver.close()
+
+
+def test_the_watchdog_thread_stops_the_robot_while_the_event_loop_is_stuck(
+    tmp_path: Path,
+) -> None:
+    nav, driver, alice = armed_driver(tmp_path)
+    with driver:
+        assert driver.gate("c1").motion("fwd 5") is None
+        nav.forward(5.0)
+        drive_for(nav, 1.0, driver, alice)
+        assert nav.velocity().linear > 0.3
+        # The driver goes silent and this "loop" is stuck: no tick, no step. Only the
+        # watchdog thread can notice.
+        time.sleep(0.8)
+        assert driver.watchdog_stops == 1
+        nav.step(time.monotonic())  # the loop comes back: the stop is acted on first
+        assert nav.velocity().linear == 0.0
+        assert nav.emergency_stops == 1
+        driver.tick()
+        assert not driver.state().armed
+        assert "silent" in driver.state().reason or "lost" in driver.state().reason
+
+
+def test_the_watchdog_leaves_a_live_driver_alone(tmp_path: Path) -> None:
+    nav, driver, alice = armed_driver(tmp_path)
+    with driver:
+        driver.gate("c1").motion("fwd 5")
+        nav.forward(5.0)
+        drive_for(nav, 1.0, driver, alice)
+        assert driver.watchdog_stops == 0
+        assert nav.velocity().linear > 0.3
+
+
+def test_chat_motion_needs_an_armed_robot_and_stop_latches(tmp_path: Path) -> None:
+    nav = room()
+    driver = SafetyDriver(nav, timeout=0.5, max_speed=0.5, audit_path=tmp_path / "audit.jsonl")
+    alice = FakeCall("c1", "alice", Role.DRIVER)
+    driver.join(alice)  # type: ignore[arg-type]
+    driver.tick()
+    replies: list[ChatReply] = []
+    chat = ChatSession(nav, may_drive=True, send=replies.append, gate=driver.gate("c1"))
+
+    def say(text: str) -> str:
+        replies.clear()
+        chat.handle_text(len(replies) + 1, text)
+        return replies[-1].text
+
+    assert say("fwd 1").startswith("refused: ")
+    assert nav.current_goal() is None
+    assert say("arm") == "armed: send a motion command to move"
+    assert say("fwd 3") == "Forward command received"
+    drive_for(nav, 0.5, driver, alice)
+    assert nav.velocity().linear > 0.1
+    assert say("stop") == "stopped"
+    assert nav.velocity().linear == 0.0
+    assert not driver.state().armed
+    assert say("fwd 1").startswith("refused: ")
+    assert say("release") == "drive released; the robot is stopped"
+    assert say("arm").startswith("refused: ")
+    assert say("take") == "you hold the drive (send arm to re-arm)"
+    driver.close()
+    lines = [json.loads(line) for line in (tmp_path / "audit.jsonl").read_text().splitlines()]
+    whats = [(line["what"], line["outcome"]) for line in lines]
+    assert ("stop", "allowed") in whats
+    assert ("rearm", "allowed") in whats
+    assert any(what == "rearm" and outcome == "refused" for what, outcome in whats)
+    assert all(line["t"] > 0 for line in lines)
+    assert {line["who"] for line in lines} >= {"alice", "robot"}
+
+
+def test_an_observer_may_stop_but_not_drive_or_arm(tmp_path: Path) -> None:
+    nav, driver, _ = armed_driver(tmp_path)
+    olga = FakeCall("c2", "olga", Role.OBSERVER)
+    driver.join(olga)  # type: ignore[arg-type]
+    replies: list[ChatReply] = []
+    chat = ChatSession(nav, may_drive=False, send=replies.append, gate=driver.gate("c2"))
+    chat.handle_text(1, "fwd 1")
+    assert replies[-1].text.startswith("refused: observers")
+    assert driver.gate("c2").rearm() is not None
+    assert driver.state().armed
+    chat.handle_text(2, "stop")
+    assert replies[-1].text == "stopped"
+    assert not driver.state().armed
+    driver.close()
+
+
+def test_the_holder_leaving_stops_and_latches(tmp_path: Path) -> None:
+    nav, driver, alice = armed_driver(tmp_path)
+    driver.gate("c1").motion("fwd 5")
+    nav.forward(5.0)
+    drive_for(nav, 0.6, driver, alice)
+    assert nav.velocity().linear > 0.1
+    driver.leave(alice)  # type: ignore[arg-type]
+    assert nav.velocity().linear == 0.0
+    assert not driver.state().armed and driver.state().holder is None
+    driver.close()
