@@ -29,6 +29,8 @@ bench: install
 	$(BIN)/python bench/channels.py
 	$(BIN)/python bench/nav.py
 	$(BIN)/python bench/mapxfer.py
+	$(BIN)/python bench/video.py
+	$(BIN)/python bench/safety.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache .hypothesis

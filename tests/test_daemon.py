@@ -380,3 +380,33 @@ def test_sigterm_stops_the_robot_hangs_up_and_exits_within_two_seconds(tmp_path:
         assert any('"stopping"' in line for line in events)
     finally:
         daemon.process.stop()
+
+
+async def test_video_follows_the_camera_switch_and_moving_forces_the_navcam(
+    robot: RobotClient,
+) -> None:
+    assert (await robot.chat("usercam")).ok
+    async with robot.video() as video:
+        async with asyncio.timeout(10):
+            async for frame in video:
+                if frame.camera == "usercam":
+                    break
+        assert frame.image.shape == (480, 640, 3)
+        usercam_image = frame.image
+        # Moving switches the driver's video to the navcam, and usercam is refused meanwhile.
+        replies = robot.chat_replies("fwd 1.5", timeout=30)
+        assert (await anext(replies)).text == "Forward command received"
+        async with asyncio.timeout(10):
+            async for frame in video:
+                if frame.camera == "navcam":
+                    break
+        assert not np.array_equal(frame.image, usercam_image)
+        refused = await robot.chat("usercam")
+        assert not refused.ok and refused.final_text.startswith("refused:")
+        async for reply in replies:
+            assert reply.ok, reply.text
+        await replies.aclose()
+    telemetry = await robot.telemetry()
+    assert telemetry.camera == "navcam"
+    back = await robot.chat("fwd -1.5", timeout=30)
+    assert back.ok
