@@ -23,6 +23,7 @@ lint: install
 	$(BIN)/mypy
 
 test: lint
+	.ci/install-browser
 	$(BIN)/pytest
 
 bench: install
@@ -31,6 +32,8 @@ bench: install
 	$(BIN)/python bench/mapxfer.py
 	$(BIN)/python bench/video.py
 	$(BIN)/python bench/safety.py
+	.ci/install-browser
+	$(BIN)/python bench/ui.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache .hypothesis

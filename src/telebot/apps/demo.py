@@ -1,22 +1,25 @@
-"""The demo behind ``make demo``: the robot daemon and the chat client in a real call.
+"""The demo behind ``make demo``: the robot daemon and the web UI in a real call.
 
 It creates a demo home (``.telebot-demo/`` in the current folder, kept between runs) with a
 robot key ``guiabot``, a user key ``alice`` and alice in the robot's contacts as a driver;
 starts ``telebot-robot run`` on the default 4000 × 4000 building map in its own process on
 the embedded zenoh peer default (a loopback endpoint, no router); and starts the user
-client, ``telebot-user chat guiabot``. On a terminal the chat is yours (type ``help``);
-with no terminal (CI, a pipe) the demo plays a short tour of the paper's Table I commands
-instead. At the end it stops the robot with SIGTERM and reports how fast it exited.
+client, ``telebot-user ui guiabot``, printing the URL to open (map, click-to-goal, any key
+stops, video, chat) until Ctrl-C. With no terminal (CI, a pipe) it checks that the page is
+served, closes the UI and plays a short tour of the paper's Table I commands in the chat
+client instead. At the end it stops the robot with SIGTERM and reports how fast it exited.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import signal
 import socket
 import subprocess
 import sys
 import time
+import urllib.request
 from pathlib import Path
 
 from telebot.identity import Role, create_paired_homes
@@ -56,6 +59,33 @@ def _homes() -> tuple[Path, Path]:
     return robot_home, user_home
 
 
+def _start_ui(user_home: Path, endpoint: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "telebot.apps.user_cli",
+            "ui",
+            "guiabot",
+            "--home",
+            str(user_home),
+            "--connect",
+            endpoint,
+            "--port",
+            str(_free_port()),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+
+
+def _ui_url(ui: subprocess.Popen[str]) -> str | None:
+    """The URL the UI prints on its first line ("open URL in a browser ...")."""
+    assert ui.stdout is not None
+    words = ui.stdout.readline().split()
+    return words[1] if len(words) > 1 and words[0] == "open" else None
+
+
 def main() -> int:
     """Run the demo; exit 0 when every step worked."""
     robot_home, user_home = _homes()
@@ -74,7 +104,7 @@ def main() -> int:
             endpoint,
             "--events",
             "--log-level",
-            "warning",
+            "error",
         ],
         stdout=subprocess.PIPE,
         text=True,
@@ -99,13 +129,28 @@ def main() -> int:
             "--map-dir",
             str(DEMO_HOME),
         ]
-        if sys.stdin.isatty():
-            print(
-                "chat with the robot: try 'where?', 'goto kitchen', 'fwd 2', 'getmap'; Ctrl-D ends"
-            )
-            chat = subprocess.run(user, check=False, text=True)
-        else:
-            print("no terminal: playing a tour of the chat commands")
+        chat: subprocess.CompletedProcess[str] = subprocess.CompletedProcess(user, 0)
+        ui = _start_ui(user_home, endpoint)
+        try:
+            url = _ui_url(ui)
+            if url is None:
+                print("demo: error: the web UI did not start", file=sys.stderr)
+                return 1
+            if sys.stdin.isatty():
+                print(f"web UI: open {url} in a browser ('re-arm', then click on the map)")
+                print("Ctrl-C ends the demo")
+                with contextlib.suppress(KeyboardInterrupt):
+                    ui.wait()
+            else:
+                with urllib.request.urlopen(url, timeout=5) as page:
+                    size = len(page.read())
+                print(f"web UI served at {url} ({size} bytes); no terminal, so closing it")
+        finally:
+            if ui.poll() is None:
+                ui.send_signal(signal.SIGTERM)
+                ui.wait(timeout=5)
+        if not sys.stdin.isatty():
+            print("playing a tour of the chat commands")
             chat = subprocess.run(user, input="\n".join(TOUR) + "\n", text=True, check=False)
         started = time.perf_counter()
         robot.send_signal(signal.SIGTERM)

@@ -36,6 +36,13 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _port(text: str) -> int:
+    value = int(text)
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"must be a TCP port 0..65535, got {value}")
+    return value
+
+
 def _positive_float(text: str) -> float:
     value = float(text)
     if not value > 0:
@@ -197,6 +204,28 @@ def build_parser() -> Parser:
         "--wait", type=_positive_float, default=10.0, help="seconds to wait for the ring to appear"
     )
 
+    ui = commands.add_parser(
+        "ui",
+        help="serve a local web page to drive the robot: map, click-to-goal, stop, video, chat",
+        description="Call the robot and serve its web UI at http://HOST:PORT/ (open it in a "
+        "browser). Any key on the page stops the robot; closing the page while it moves "
+        "stops it too. The robot starts stopped: re-arm it on the page.",
+    )
+    ui.add_argument("robot", type=name_arg, help="the robot's name")
+    ui.add_argument(
+        "--port",
+        type=_port,
+        default=8080,
+        help="TCP port of the page (default 8080; 0: any free port)",
+    )
+    ui.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to serve on (default 127.0.0.1: this machine only)",
+    )
+    add_home_option(ui, "user")
+    add_connection_options(ui)
+
     where = commands.add_parser("where", help="print the robot's pose in the map frame")
     where.add_argument("robot", type=name_arg, help="the robot's name")
     where.add_argument(
@@ -235,6 +264,19 @@ def main(argv: list[str] | None = None) -> int:
                 shm=args.shm,
                 duration=args.duration,
             )
+        if args.command == "ui":
+            from telebot.apps.web.server import serve_ui
+
+            try:
+                return await serve_ui(
+                    args.robot, home=home, config=app_config(args), host=args.host, port=args.port
+                )
+            except OSError as exc:
+                print(
+                    f"{PROG}: error: cannot serve on {args.host}:{args.port}: {exc.strerror or exc}",
+                    file=sys.stderr,
+                )
+                return EXIT_USAGE
         if args.command == "video-log":
             from telebot.apps.video_cli import video_log
 

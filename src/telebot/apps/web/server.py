@@ -1,0 +1,593 @@
+"""The web UI's server: an aiohttp app that serves the page and bridges it to a call.
+
+One :class:`WebUI` wraps one connected :class:`~telebot.services.client.RobotClient`
+and serves ``static/`` (no build step, nothing fetched from the internet), the robot's map
+as ``/map.png``, and a websocket at ``/ws``. Any number of pages may be open; the robot
+streams video while at least one is.
+
+Websocket protocol (JSON text messages unless stated)::
+
+    page → client
+      {"type": "stop"}                                  stop now (anyone, never refused)
+      {"type": "arm"} | {"type": "take"} | {"type": "release"}
+      {"type": "goal", "x": 1.0, "y": 2.0, "yaw": 0.5}   map frame; yaw may be null
+      {"type": "chat", "id": 3, "text": "fwd 1"}         a Table I command
+      {"type": "camera", "id": 4, "name": "usercam"}     switch camera (a chat command)
+      {"type": "ping", "t": 1234.5}                      answered with pong (page ↔ client)
+
+    client → page
+      {"type": "hello", "robot", "user", "role", "may_drive", "map": MAP | null}
+      {"type": "map", "url": "/map.png", "resolution", "origin_x", "origin_y",
+       "width", "height"}                                when the map has arrived
+      {"type": "pose", "x", "y", "yaw", "v", "w", "state", "detail", "goal", "t",
+       "recv": UNIX_MS}                                  recv: when the client got it
+      {"type": "telemetry", ...}                         the robot's Telemetry fields
+      {"type": "safety", "armed", "reason", "holder", "cap", "blocked"}
+      {"type": "link", "rtt": S | null, "loss": 0..1}    the call's heartbeats, every 0.5 s
+      {"type": "goal", "x", "y", "yaw", "status", "progress", "reason"}
+      {"type": "chat", "id", "text", "ok", "final"}      replies, to the page that asked
+      {"type": "ack", "what": "stop" | "arm" | ..., "ok", "reason"}
+      {"type": "pong", "t"}
+      binary: video frame = 4-byte big-endian header length, UTF-8 JSON header
+              {"camera", "frame_id", "capture_time"}, then the JPEG bytes as the robot
+              sent them (never decoded or re-encoded here)
+
+Safety: a ``stop`` is handed to :meth:`RobotClient.stop` at once (before anything else
+the message loop does). When a page's websocket closes (tab closed, browser crashed: the
+websocket heartbeat notices within 2 s) while the robot moves and this user may drive,
+the client stops the robot.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import math
+import struct
+import time
+from collections.abc import Callable, Coroutine
+from dataclasses import asdict
+from importlib import resources
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Self
+
+from aiohttp import WSMsgType, web
+
+from telebot.channels.channel import Channel, ReceivedDatagram
+from telebot.config import AppConfig
+from telebot.errors import CallEnded, TelebotError
+from telebot.services.client import RobotClient
+from telebot.services.mapxfer import MapDownload
+from telebot.services.proto.status import GoalUpdate, PoseUpdate
+from telebot.services.proto.video import CompleteFrame, Reassembler
+from telebot.services.video import REPORT_INTERVAL, video_channel
+
+__all__ = ["JpegStream", "WebUI", "serve_ui"]
+
+log = logging.getLogger("telebot.web")
+
+#: Where the page's files are (shipped as package data).
+STATIC = resources.files("telebot.apps.web") / "static"
+#: Seconds between websocket pings; a page silent for twice this is taken as gone.
+WS_HEARTBEAT = 1.0
+#: Seconds between link-quality messages to the pages.
+LINK_EVERY = 0.5
+_HEADER = struct.Struct(">I")
+
+
+def _now_ms() -> float:
+    return time.time() * 1000.0
+
+
+class JpegStream:
+    """Receives the robot's video as whole JPEG frames, without decoding them.
+
+    The same protocol as :class:`~telebot.services.video.VideoReceiver` (reassembly,
+    receiver reports every ``report_interval`` so the robot keeps sending, a *bye* on
+    close), but frames are handed to ``on_frame`` as the JPEG bytes the robot sent, for
+    forwarding to a browser that decodes them itself.
+    """
+
+    def __init__(
+        self,
+        channel: Channel,
+        on_frame: Callable[[CompleteFrame], None],
+        *,
+        report_interval: float = REPORT_INTERVAL,
+    ) -> None:
+        self.channel = channel
+        self.on_frame = on_frame
+        self.report_interval = report_interval
+        self.reassembler = Reassembler()
+        self._loop = asyncio.get_running_loop()
+        self._timer: asyncio.TimerHandle | None = None
+        self._started_at = 0.0
+        self._running = False
+
+    @property
+    def running(self) -> bool:
+        """True between :meth:`start` and :meth:`close` (or the end of the call)."""
+        return self._running
+
+    def start(self) -> None:
+        """Take the channel and ask for video (a report now, then periodically)."""
+        if self._running:
+            return
+        self._running = True
+        self._started_at = self._loop.time()
+        self.channel.set_callback(self._on_datagram)
+        self._on_timer()
+
+    def close(self) -> None:
+        """Stop receiving and tell the robot (a *bye* report); idempotent."""
+        if not self._running:
+            return
+        self._running = False
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        self.channel.set_callback(None)
+        bye = self.reassembler.report(int(self._loop.time() * 1000), bye=True)
+        with contextlib.suppress(TelebotError):
+            self.channel.send(bye.encode())
+
+    def _on_datagram(self, datagram: ReceivedDatagram) -> None:
+        if not self._running or datagram.received_at < self._started_at:
+            return
+        complete = self.reassembler.on_datagram(datagram.payload, self._loop.time())
+        if complete is not None:
+            self.on_frame(complete)
+
+    def _on_timer(self) -> None:
+        self._timer = None
+        if not self._running:
+            return
+        now = self._loop.time()
+        self.reassembler.poll(now)
+        try:
+            self.channel.send(self.reassembler.report(int(now * 1000)).encode())
+        except CallEnded:
+            self._running = False
+            return
+        except TelebotError as exc:  # a transport hiccup: the next report will do
+            log.debug("video report not sent: %s", exc)
+        self._timer = self._loop.call_later(self.report_interval, self._on_timer)
+
+
+class _Page:
+    """One open page: its websocket and what it asked for."""
+
+    def __init__(self, ws: web.WebSocketResponse) -> None:
+        self.ws = ws
+        self.sends: set[asyncio.Task[None]] = set()
+        #: The video frame being sent; a new frame skips the page while it is (latest wins).
+        self.frame: asyncio.Task[None] | None = None
+        self.frames_skipped = 0
+
+
+class WebUI:
+    """The web UI of one call: ``async with WebUI(client, port=8080) as ui: print(ui.url)``.
+
+    ``client`` is an already-connected :class:`RobotClient` (the caller owns it); ``user``
+    is this user's name as the robot knows it (to tell whether we hold the drive).
+    ``port`` 0 picks a free port. Every task is owned here and ends on exit.
+    """
+
+    def __init__(
+        self,
+        client: RobotClient,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        user: str = "",
+        map_timeout: float = 120.0,
+    ) -> None:
+        self.client = client
+        self.host = host
+        self.port = port
+        self.user = user
+        self.map_timeout = map_timeout
+        self.map: MapDownload | None = None
+        self.pages: set[_Page] = set()
+        #: Stops sent because a page closed while the robot moved (for tests and logs).
+        self.close_stops = 0
+        self._goal: dict[str, Any] | None = None
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._runner: web.AppRunner | None = None
+        self._video: JpegStream | None = None
+        self._closing = False
+
+    # -- lifecycle --------------------------------------------------------------------
+
+    @property
+    def may_drive(self) -> bool:
+        """Whether this user's role may drive (observers may only watch and stop)."""
+        return str(self.client.call.role) in ("driver", "admin")
+
+    @property
+    def url(self) -> str:
+        """The page's address."""
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"http://{host}:{self.port}/"
+
+    async def start(self) -> None:
+        """Serve the page and start following the robot's streams."""
+        app = web.Application()
+        app.router.add_get("/", self._index)
+        app.router.add_get("/map.png", self._map_png)
+        app.router.add_get("/ws", self._websocket)
+        app.router.add_static("/static/", Path(str(STATIC)), show_index=False)
+        self._runner = web.AppRunner(app, handle_signals=False, access_log=None)
+        await self._runner.setup()
+        site = web.TCPSite(self._runner, self.host, self.port)
+        await site.start()
+        if self.port == 0:
+            server = site._server
+            sockets = getattr(server, "sockets", None) or []
+            self.port = int(sockets[0].getsockname()[1])
+        for pump in (self._fetch_map, self._pump_pose, self._pump_telemetry, self._pump_safety):
+            self._spawn(pump())
+        self._spawn(self._pump_link())
+        log.info("web UI for %s at %s", self.client.robot, self.url)
+
+    async def close(self) -> None:
+        """Close the pages and the server, end every task; idempotent."""
+        if self._closing:
+            return
+        self._closing = True
+        if self._video is not None:
+            self._video.close()
+            self._video = None
+        for page in list(self.pages):
+            with contextlib.suppress(Exception):
+                await page.ws.close()
+        if self._runner is not None:
+            await self._runner.cleanup()
+        tasks = list(self._tasks)
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+
+    async def __aenter__(self) -> Self:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+    def _spawn(self, coro: Coroutine[Any, Any, Any]) -> asyncio.Task[Any]:
+        task = asyncio.get_running_loop().create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._task_done)
+        return task
+
+    def _task_done(self, task: asyncio.Task[Any]) -> None:
+        self._tasks.discard(task)
+        if task.cancelled():
+            return
+        exc = task.exception()
+        # A page that went away mid-send is no error (its close is handled elsewhere).
+        if exc is not None and not isinstance(exc, CallEnded | TimeoutError | ConnectionError):
+            log.error("web UI task failed", exc_info=exc)
+
+    # -- HTTP -------------------------------------------------------------------------
+
+    async def _index(self, request: web.Request) -> web.StreamResponse:
+        html = (STATIC / "index.html").read_text(encoding="utf-8")
+        return web.Response(
+            text=html, content_type="text/html", headers={"Cache-Control": "no-store"}
+        )
+
+    async def _map_png(self, request: web.Request) -> web.StreamResponse:
+        if self.map is None:
+            return web.Response(status=503, text="the map has not arrived yet")
+        return web.Response(body=self.map.png, content_type="image/png")
+
+    def _map_message(self) -> dict[str, Any] | None:
+        if self.map is None:
+            return None
+        return {
+            "type": "map",
+            "url": "/map.png",
+            "resolution": self.map.resolution,
+            "origin_x": self.map.origin_x,
+            "origin_y": self.map.origin_y,
+            "width": self.map.width,
+            "height": self.map.height,
+        }
+
+    # -- websocket --------------------------------------------------------------------
+
+    async def _websocket(self, request: web.Request) -> web.StreamResponse:
+        ws = web.WebSocketResponse(heartbeat=WS_HEARTBEAT, max_msg_size=1 << 16)
+        await ws.prepare(request)
+        page = _Page(ws)
+        self.pages.add(page)
+        self._video_wanted()
+        try:
+            await self._greet(page)
+            async for msg in ws:
+                if msg.type == WSMsgType.TEXT:
+                    self._on_message(page, msg.data)
+                elif msg.type == WSMsgType.ERROR:
+                    break
+        finally:
+            self.pages.discard(page)
+            self._video_wanted()
+            self._page_closed()
+        return ws
+
+    async def _greet(self, page: _Page) -> None:
+        client = self.client
+        await page.ws.send_json(
+            {
+                "type": "hello",
+                "robot": client.robot,
+                "user": self.user,
+                "role": str(client.call.role),
+                "may_drive": self.may_drive,
+                "map": self._map_message(),
+            }
+        )
+        # What the page would otherwise wait up to a second for.
+        if (pose := client.latest_pose.value) is not None:
+            await page.ws.send_json(self._pose_message(pose, _now_ms()))
+        if (safety := client.latest_safety.value) is not None:
+            await page.ws.send_json({"type": "safety", **asdict(safety)})
+        if (telemetry := client.latest_telemetry.value) is not None:
+            await page.ws.send_json({"type": "telemetry", **asdict(telemetry)})
+        if self._goal is not None:
+            await page.ws.send_json(self._goal)
+
+    def _on_message(self, page: _Page, text: str) -> None:
+        try:
+            msg = json.loads(text)
+            kind = msg["type"]
+        except (ValueError, KeyError, TypeError):
+            self._send(page, {"type": "error", "text": "not a JSON message with a type"})
+            return
+        if kind == "stop":
+            # First and without waiting: the stop's datagram leaves in this loop turn.
+            self._spawn(self._safety(page, "stop"))
+        elif kind in ("arm", "take", "release"):
+            self._spawn(self._safety(page, kind))
+        elif kind == "goal":
+            self._on_goal(page, msg)
+        elif kind == "chat":
+            self._spawn(self._chat(page, msg.get("id"), str(msg.get("text", ""))))
+        elif kind == "camera":
+            name = msg.get("name")
+            if name in ("navcam", "usercam"):
+                self._spawn(self._chat(page, msg.get("id"), name))
+        elif kind == "ping":
+            self._send(page, {"type": "pong", "t": msg.get("t")})
+        else:
+            self._send(page, {"type": "error", "text": f"unknown message type {kind!r}"})
+
+    def _on_goal(self, page: _Page, msg: dict[str, Any]) -> None:
+        try:
+            x, y = float(msg["x"]), float(msg["y"])
+            yaw = None if msg.get("yaw") is None else float(msg["yaw"])
+        except (KeyError, TypeError, ValueError):
+            self._send(page, {"type": "error", "text": "a goal needs numbers x, y (and yaw)"})
+            return
+        if not all(math.isfinite(v) for v in (x, y, yaw or 0.0)):
+            self._send(page, {"type": "error", "text": "a goal needs finite numbers"})
+            return
+        if not self.may_drive:
+            self._send(page, {"type": "error", "text": "observers may not send goals"})
+            return
+        self._spawn(self._run_goal(x, y, yaw))
+
+    async def _run_goal(self, x: float, y: float, yaw: float | None) -> None:
+        def update(status: GoalUpdate) -> None:
+            self._goal = {
+                "type": "goal",
+                "x": x,
+                "y": y,
+                "yaw": yaw,
+                "status": status.status,
+                "progress": status.progress,
+                "reason": status.reason,
+            }
+            self._broadcast(self._goal)
+
+        update(GoalUpdate(0, "sent"))
+        try:
+            final = await self.client.goto(x, y, yaw, on_update=update)
+        except CallEnded as exc:
+            update(GoalUpdate(0, "failed", reason=str(exc)))
+            return
+        update(final)
+
+    async def _safety(self, page: _Page, kind: str) -> None:
+        client = self.client
+        action = {
+            "stop": client.stop,
+            "arm": client.arm,
+            "take": client.take_drive,
+            "release": client.release_drive,
+        }[kind]
+        try:
+            ack = await action()
+        except TimeoutError:
+            self._send(page, {"type": "ack", "what": kind, "ok": False, "reason": "no answer"})
+            return
+        self._send(page, {"type": "ack", "what": kind, "ok": ack.ok, "reason": ack.reason})
+
+    async def _chat(self, page: _Page, request_id: Any, text: str) -> None:
+        text = text.strip()
+        if not text:
+            return
+        try:
+            async for reply in self.client.chat_replies(text, timeout=600.0):
+                self._send(
+                    page,
+                    {
+                        "type": "chat",
+                        "id": request_id,
+                        "text": reply.text,
+                        "ok": reply.ok,
+                        "final": reply.final,
+                    },
+                )
+        except TimeoutError:
+            self._send(
+                page,
+                {"type": "chat", "id": request_id, "text": "timed out", "ok": False, "final": True},
+            )
+
+    def moving(self) -> bool:
+        """Whether the robot moves, by its latest pose."""
+        pose = self.client.latest_pose.value
+        if pose is None:
+            return False
+        return pose.v != 0.0 or pose.w != 0.0 or pose.state == "moving"
+
+    def _page_closed(self) -> None:
+        if self._closing or not self.may_drive:
+            return
+        goal_active = self._goal is not None and self._goal["status"] in ("sent", "active")
+        if self.moving() or goal_active:
+            log.warning("a page closed while the robot moved: stopping it")
+            self.close_stops += 1
+            self._spawn(self.client.stop())
+
+    # -- sending ----------------------------------------------------------------------
+
+    def _send(self, page: _Page, message: dict[str, Any]) -> None:
+        if page.ws.closed:
+            return
+        task = self._spawn(page.ws.send_str(json.dumps(message)))
+        page.sends.add(task)
+        task.add_done_callback(page.sends.discard)
+
+    def _broadcast(self, message: dict[str, Any]) -> None:
+        text = json.dumps(message)
+        for page in list(self.pages):
+            if not page.ws.closed:
+                self._spawn(page.ws.send_str(text))
+
+    def _broadcast_bytes(self, data: bytes) -> None:
+        for page in list(self.pages):
+            if page.ws.closed:
+                continue
+            if page.frame is not None and not page.frame.done():
+                page.frames_skipped += 1  # a slow page gets fewer frames, never a queue
+                continue
+            page.frame = self._spawn(page.ws.send_bytes(data))
+
+    # -- streams ----------------------------------------------------------------------
+
+    @staticmethod
+    def _pose_message(pose: PoseUpdate, recv_ms: float) -> dict[str, Any]:
+        return {
+            "type": "pose",
+            "x": pose.x,
+            "y": pose.y,
+            "yaw": pose.yaw,
+            "v": pose.v,
+            "w": pose.w,
+            "state": pose.state,
+            "detail": pose.detail,
+            "goal": pose.goal,
+            "t": pose.t,
+            "recv": recv_ms,
+        }
+
+    async def _pump_pose(self) -> None:
+        latest = self.client.latest_pose
+        while True:
+            pose = await latest.next()
+            self._broadcast(self._pose_message(pose, _now_ms()))
+
+    async def _pump_telemetry(self) -> None:
+        latest = self.client.latest_telemetry
+        while True:
+            telemetry = await latest.next()
+            self._broadcast({"type": "telemetry", **asdict(telemetry)})
+
+    async def _pump_safety(self) -> None:
+        latest = self.client.latest_safety
+        while True:
+            state = await latest.next()
+            self._broadcast({"type": "safety", **asdict(state)})
+
+    async def _pump_link(self) -> None:
+        while True:
+            stats = self.client.call.stats
+            self._broadcast({"type": "link", "rtt": stats.rtt, "loss": stats.loss})
+            await asyncio.sleep(LINK_EVERY)
+
+    async def _fetch_map(self) -> None:
+        try:
+            self.map = await self.client.get_map(timeout=self.map_timeout)
+        except (TelebotError, TimeoutError) as exc:
+            log.error("the map did not arrive: %s", exc)
+            self._broadcast({"type": "error", "text": f"the map did not arrive: {exc}"})
+            return
+        message = self._map_message()
+        assert message is not None
+        self._broadcast(message)
+
+    def _video_wanted(self) -> None:
+        """Receive video while at least one page is open."""
+        if self.pages and self._video is None and not self._closing:
+            self._video = JpegStream(video_channel(self.client.call), self._on_frame)
+            self._video.start()
+        elif not self.pages and self._video is not None:
+            self._video.close()
+            self._video = None
+
+    def _on_frame(self, frame: CompleteFrame) -> None:
+        header = json.dumps(
+            {
+                "camera": frame.camera,
+                "frame_id": frame.frame_id,
+                "capture_time": frame.capture_time,
+            }
+        ).encode()
+        self._broadcast_bytes(_HEADER.pack(len(header)) + header + frame.data)
+
+
+async def serve_ui(
+    robot: str,
+    *,
+    home: Path,
+    config: AppConfig,
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    stop: asyncio.Event | None = None,
+    announce: Callable[[str], None] = print,
+) -> int:
+    """``telebot-user ui``: call ``robot``, serve the page until Ctrl-C / SIGTERM.
+
+    ``config`` is the user's :class:`~telebot.config.AppConfig`. The robot is stopped
+    if the client exits while it moves.
+    """
+    from telebot.apps.common import EXIT_OK, stop_on_signals
+    from telebot.identity import Identity
+    from telebot.services.client import connect
+
+    stop = stop or asyncio.Event()
+    user = Identity.load(home).name
+    timeout = config.call.connect_timeout
+    async with (
+        connect(robot, home=home, config=config, timeout=timeout) as client,
+        WebUI(client, host=host, port=port, user=user) as ui,
+    ):
+        announce(f"open {ui.url} in a browser (role {client.call.role}); Ctrl-C to quit")
+        with stop_on_signals(stop):
+            await stop.wait()
+        if ui.may_drive and ui.moving():
+            with contextlib.suppress(TelebotError, TimeoutError):
+                await client.stop(timeout=2.0)
+    return EXIT_OK

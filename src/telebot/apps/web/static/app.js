@@ -1,0 +1,368 @@
+// telebot web UI: map, click-to-goal, stop, video, chat, status. No build step, no
+// network access beyond this page's own server (see telebot/apps/web/server.py for the
+// websocket protocol).
+"use strict";
+
+(function () {
+  const $ = (id) => document.getElementById(id);
+  const now = () => performance.timeOrigin + performance.now();
+
+  const ui = {
+    state: {
+      robot: "", role: "", mayDrive: false, map: null, pose: null, goal: null,
+      safety: null, telemetry: null, link: null, connected: false,
+      frames: 0, camera: "", fps: 0, chat: [],
+    },
+    // Measurements for tests and benchmarks (wall-clock ms).
+    stats: { keyTimes: [], poseDraw: [], frameTimes: [] },
+  };
+  window.telebotUI = ui;
+
+  // ------------------------------------------------------------------ websocket
+  let ws = null;
+  let chatId = 0;
+  function connect() {
+    ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws");
+    ws.binaryType = "arraybuffer";
+    ws.onopen = () => { ui.state.connected = true; showConn(); };
+    ws.onclose = () => { ui.state.connected = false; showConn(); setTimeout(connect, 1000); };
+    ws.onmessage = (ev) => {
+      if (typeof ev.data === "string") onMessage(JSON.parse(ev.data));
+      else onFrame(ev.data);
+    };
+  }
+  function send(msg) {
+    if (ws && ws.readyState === WebSocket.OPEN) { ws.send(JSON.stringify(msg)); return true; }
+    return false;
+  }
+  ui.send = send;
+  function showConn() {
+    const el = $("conn");
+    el.textContent = ui.state.connected ? "connected" : "disconnected";
+    el.className = ui.state.connected ? "good" : "bad";
+  }
+
+  function stop(source) {
+    send({ type: "stop" });
+    ui.stats.keyTimes.push(now());
+    addChat("[" + source + ": stop]", "cmd");
+  }
+  ui.stop = stop;
+
+  function onMessage(m) {
+    switch (m.type) {
+      case "hello":
+        ui.state.robot = m.robot; ui.state.role = m.role; ui.state.mayDrive = m.may_drive;
+        $("robot-name").textContent = m.robot;
+        document.title = "telebot · " + m.robot;
+        $("role").textContent = m.role + (m.may_drive ? "" : " (observer: watch and stop)");
+        for (const b of document.querySelectorAll(".drive")) b.disabled = !m.may_drive;
+        if (m.map) loadMap(m.map);
+        break;
+      case "map": loadMap(m); break;
+      case "pose": {
+        ui.state.pose = m;
+        draw();
+        ui.stats.poseDraw.push(now() - m.recv);
+        if (ui.stats.poseDraw.length > 5000) ui.stats.poseDraw.shift();
+        showPose();
+        break;
+      }
+      case "telemetry": ui.state.telemetry = m; showTelemetry(); break;
+      case "safety": ui.state.safety = m; showSafety(); break;
+      case "link": ui.state.link = m; showLink(); break;
+      case "goal": ui.state.goal = m; showGoal(); draw(); break;
+      case "chat": {
+        addChat(m.text, m.ok || !m.final ? "" : "fail");
+        ui.state.chat.push(m);
+        break;
+      }
+      case "ack":
+        if (!m.ok) addChat(m.what + " refused: " + m.reason, "fail");
+        break;
+      case "error": addChat("error: " + m.text, "fail"); break;
+      default: break;
+    }
+  }
+
+  // ------------------------------------------------------------------ status
+  function showPose() {
+    const p = ui.state.pose;
+    $("pose-text").textContent = "x " + p.x.toFixed(2) + " m, y " + p.y.toFixed(2) + " m, " +
+      (p.yaw * 180 / Math.PI).toFixed(0) + "°";
+    $("moving").textContent = p.state + (p.v || p.w ? " " + p.v.toFixed(2) + " m/s" : "");
+  }
+  function showTelemetry() {
+    const t = ui.state.telemetry;
+    $("battery").textContent = Math.round(t.battery) + "%" + (t.battery_low ? " LOW" : "");
+    $("battery").className = t.battery_low ? "bad" : "";
+    $("camera").textContent = t.camera;
+    $("holder").textContent = t.holder || "nobody";
+  }
+  function showLink() {
+    const l = ui.state.link;
+    $("link").textContent = (l.rtt == null ? "rtt –" : "rtt " + (l.rtt * 1000).toFixed(1) + " ms") +
+      ", loss " + (l.loss * 100).toFixed(0) + "%";
+  }
+  function showSafety() {
+    const s = ui.state.safety;
+    const el = $("safety");
+    el.textContent = s.armed ? "armed" : "stopped";
+    el.className = s.armed ? "armed" : "stopped";
+    const parts = [];
+    if (!s.armed && s.reason) parts.push(s.reason);
+    if (s.blocked) parts.push("blocked by an obstacle");
+    parts.push("speed cap " + s.cap.toFixed(2) + " m/s");
+    $("safety-reason").textContent = parts.join(" · ");
+    $("holder").textContent = s.holder || "nobody";
+  }
+  function showGoal() {
+    const g = ui.state.goal;
+    $("goal").textContent = "(" + g.x.toFixed(2) + ", " + g.y.toFixed(2) + ") " + g.status +
+      (g.status === "active" ? " " + Math.round(g.progress * 100) + "%" : "") +
+      (g.reason ? " — " + g.reason : "");
+  }
+
+  // ------------------------------------------------------------------ map
+  const canvas = $("map");
+  const ctx = canvas.getContext("2d");
+  const mapImg = new Image();
+  let mapReady = false;
+  const view = { s: 1, tx: 0, ty: 0, follow: false };
+
+  function loadMap(m) {
+    ui.state.map = m;
+    mapImg.onload = () => { mapReady = true; fit(); };
+    mapImg.src = m.url + "?t=" + Date.now();
+  }
+  // World (map frame, metres) <-> map image pixels <-> canvas CSS pixels.
+  function worldToScreen(x, y) {
+    const m = ui.state.map;
+    const px = (x - m.origin_x) / m.resolution;
+    const py = m.height - (y - m.origin_y) / m.resolution;
+    return [px * view.s + view.tx, py * view.s + view.ty];
+  }
+  function screenToWorld(sx, sy) {
+    const m = ui.state.map;
+    const px = (sx - view.tx) / view.s;
+    const py = (sy - view.ty) / view.s;
+    return [m.origin_x + px * m.resolution, m.origin_y + (m.height - py) * m.resolution];
+  }
+  ui.worldToScreen = worldToScreen;
+  ui.screenToWorld = screenToWorld;
+  ui.mapReady = () => mapReady;
+
+  function resize() {
+    const dpr = window.devicePixelRatio || 1;
+    canvas.width = Math.round(canvas.clientWidth * dpr);
+    canvas.height = Math.round(canvas.clientHeight * dpr);
+    draw();
+  }
+  function fit() {
+    const m = ui.state.map;
+    if (!m) return;
+    const w = canvas.clientWidth, h = canvas.clientHeight;
+    view.s = Math.min(w / m.width, h / m.height) * 0.95;
+    view.tx = (w - m.width * view.s) / 2;
+    view.ty = (h - m.height * view.s) / 2;
+    draw();
+  }
+  function zoomAt(factor, sx, sy) {
+    const old = view.s;
+    view.s = Math.max(0.05, Math.min(old * factor, 100));
+    const ns = view.s / old;
+    view.tx = sx - (sx - view.tx) * ns;
+    view.ty = sy - (sy - view.ty) * ns;
+    draw();
+  }
+
+  let drag = null; // {kind: "goal"|"pan", x0, y0, x, y, tx, ty}
+  function draw() {
+    const dpr = window.devicePixelRatio || 1;
+    ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
+    ctx.fillStyle = "#444";
+    ctx.fillRect(0, 0, canvas.clientWidth, canvas.clientHeight);
+    const m = ui.state.map;
+    if (!m || !mapReady) return;
+    const p = ui.state.pose;
+    if (view.follow && p) {
+      const [sx, sy] = worldToScreen(p.x, p.y);
+      view.tx += canvas.clientWidth / 2 - sx;
+      view.ty += canvas.clientHeight / 2 - sy;
+    }
+    ctx.imageSmoothingEnabled = view.s < 1;
+    ctx.drawImage(mapImg, view.tx, view.ty, m.width * view.s, m.height * view.s);
+    const pxm = view.s / m.resolution; // screen pixels per metre
+    // Map origin (0, 0): a red dot.
+    const [ox, oy] = worldToScreen(0, 0);
+    ctx.fillStyle = "#e00";
+    ctx.beginPath(); ctx.arc(ox, oy, 4, 0, 2 * Math.PI); ctx.fill();
+    // Goal and the straight line to it (the robot does not send its planned path).
+    const g = ui.state.goal;
+    if (g && (g.status === "active" || g.status === "sent") && p) {
+      const [gx, gy] = worldToScreen(g.x, g.y);
+      const [rx, ry] = worldToScreen(p.x, p.y);
+      ctx.strokeStyle = "#0a0"; ctx.lineWidth = 2; ctx.setLineDash([6, 4]);
+      ctx.beginPath(); ctx.moveTo(rx, ry); ctx.lineTo(gx, gy); ctx.stroke();
+      ctx.setLineDash([]);
+    }
+    if (g) {
+      const [gx, gy] = worldToScreen(g.x, g.y);
+      ctx.strokeStyle = g.status === "succeeded" ? "#0a0" : (g.status === "active" || g.status === "sent") ? "#0c0" : "#c60";
+      ctx.lineWidth = 2;
+      ctx.beginPath(); ctx.arc(gx, gy, 7, 0, 2 * Math.PI); ctx.stroke();
+      ctx.beginPath(); ctx.moveTo(gx - 10, gy); ctx.lineTo(gx + 10, gy);
+      ctx.moveTo(gx, gy - 10); ctx.lineTo(gx, gy + 10); ctx.stroke();
+      if (g.yaw != null) arrow(gx, gy, g.yaw, 22, ctx.strokeStyle);
+    }
+    // The robot: a circle with a heading line.
+    if (p) {
+      const [rx, ry] = worldToScreen(p.x, p.y);
+      const r = Math.max(5, 0.25 * pxm);
+      ctx.fillStyle = "rgba(30,120,255,0.6)"; ctx.strokeStyle = "#05f"; ctx.lineWidth = 2;
+      ctx.beginPath(); ctx.arc(rx, ry, r, 0, 2 * Math.PI); ctx.fill(); ctx.stroke();
+      ctx.strokeStyle = "#fff";
+      ctx.beginPath(); ctx.moveTo(rx, ry);
+      ctx.lineTo(rx + Math.cos(p.yaw) * r * 1.6, ry - Math.sin(p.yaw) * r * 1.6); ctx.stroke();
+    }
+    // A goal being dragged: where, and the heading.
+    if (drag && drag.kind === "goal") {
+      ctx.strokeStyle = "#ff0"; ctx.lineWidth = 2;
+      ctx.beginPath(); ctx.arc(drag.x0, drag.y0, 7, 0, 2 * Math.PI); ctx.stroke();
+      if (Math.hypot(drag.x - drag.x0, drag.y - drag.y0) > 8) {
+        ctx.beginPath(); ctx.moveTo(drag.x0, drag.y0); ctx.lineTo(drag.x, drag.y); ctx.stroke();
+      }
+    }
+  }
+  ui.draw = draw;
+  function arrow(x, y, yaw, len, color) {
+    const ex = x + Math.cos(yaw) * len, ey = y - Math.sin(yaw) * len;
+    ctx.strokeStyle = color;
+    ctx.beginPath(); ctx.moveTo(x, y); ctx.lineTo(ex, ey);
+    ctx.lineTo(ex - Math.cos(yaw - 0.5) * 7, ey + Math.sin(yaw - 0.5) * 7);
+    ctx.moveTo(ex, ey);
+    ctx.lineTo(ex - Math.cos(yaw + 0.5) * 7, ey + Math.sin(yaw + 0.5) * 7);
+    ctx.stroke();
+  }
+
+  function local(ev) {
+    const r = canvas.getBoundingClientRect();
+    return [ev.clientX - r.left, ev.clientY - r.top];
+  }
+  canvas.addEventListener("contextmenu", (ev) => ev.preventDefault());
+  canvas.addEventListener("mousedown", (ev) => {
+    const [x, y] = local(ev);
+    if (ev.button === 0 && ui.state.mayDrive && ui.state.map) {
+      drag = { kind: "goal", x0: x, y0: y, x, y };
+    } else if (ev.button === 1 || ev.button === 2 || ev.button === 0) {
+      drag = { kind: "pan", x0: x, y0: y, x, y, tx: view.tx, ty: view.ty };
+      view.follow = false;
+    }
+    ev.preventDefault();
+  });
+  window.addEventListener("mousemove", (ev) => {
+    if (!drag) return;
+    const [x, y] = local(ev);
+    drag.x = x; drag.y = y;
+    if (drag.kind === "pan") { view.tx = drag.tx + x - drag.x0; view.ty = drag.ty + y - drag.y0; }
+    draw();
+  });
+  window.addEventListener("mouseup", (ev) => {
+    if (!drag) return;
+    const d = drag; drag = null;
+    if (d.kind === "goal") {
+      const [x, y] = local(ev);
+      const [wx, wy] = screenToWorld(d.x0, d.y0);
+      let yaw = null;
+      if (Math.hypot(x - d.x0, y - d.y0) > 8) yaw = Math.atan2(-(y - d.y0), x - d.x0);
+      sendGoal(wx, wy, yaw);
+    }
+    draw();
+  });
+  function sendGoal(x, y, yaw) {
+    ui.state.goal = { type: "goal", x, y, yaw, status: "sent", progress: 0, reason: "" };
+    showGoal();
+    send({ type: "goal", x, y, yaw });
+  }
+  ui.sendGoal = sendGoal;
+  canvas.addEventListener("wheel", (ev) => {
+    ev.preventDefault();
+    const [x, y] = local(ev);
+    zoomAt(ev.deltaY < 0 ? 1.2 : 1 / 1.2, x, y);
+  }, { passive: false });
+  $("zoom-in").onclick = () => zoomAt(1.25, canvas.clientWidth / 2, canvas.clientHeight / 2);
+  $("zoom-out").onclick = () => zoomAt(0.8, canvas.clientWidth / 2, canvas.clientHeight / 2);
+  $("zoom-fit").onclick = () => { view.follow = false; fit(); };
+  $("follow").onclick = () => { view.follow = !view.follow; draw(); };
+  window.addEventListener("resize", resize);
+
+  // ------------------------------------------------------------------ stop & safety
+  // Any key stops (in the chat input only Escape does, so commands can be typed). Capture
+  // phase, before anything else on the page sees the key.
+  document.addEventListener("keydown", (ev) => {
+    if (ev.target === $("chat-input")) {
+      if (ev.key === "Escape") { ev.preventDefault(); stop("Escape"); }
+      return;
+    }
+    ev.preventDefault();
+    stop("key " + ev.key);
+  }, true);
+  $("stop").onclick = () => stop("STOP button");
+  $("arm").onclick = () => send({ type: "arm" });
+  $("take").onclick = () => send({ type: "take" });
+  $("release").onclick = () => send({ type: "release" });
+
+  // ------------------------------------------------------------------ video
+  const video = $("video");
+  let videoUrl = null;
+  function onFrame(buf) {
+    const view8 = new DataView(buf);
+    const hlen = view8.getUint32(0);
+    const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buf, 4, hlen)));
+    const blob = new Blob([new Uint8Array(buf, 4 + hlen)], { type: "image/jpeg" });
+    const url = URL.createObjectURL(blob);
+    const old = videoUrl;
+    videoUrl = url;
+    video.src = url;
+    if (old) setTimeout(() => URL.revokeObjectURL(old), 1000);
+    const t = now();
+    ui.stats.frameTimes.push(t);
+    while (ui.stats.frameTimes.length && ui.stats.frameTimes[0] < t - 1000) ui.stats.frameTimes.shift();
+    ui.state.frames += 1;
+    ui.state.camera = header.camera;
+    ui.state.fps = ui.stats.frameTimes.length;
+    $("camera").textContent = header.camera;
+    $("fps").textContent = ui.state.fps;
+  }
+  setInterval(() => {
+    const t = now();
+    while (ui.stats.frameTimes.length && ui.stats.frameTimes[0] < t - 1000) ui.stats.frameTimes.shift();
+    ui.state.fps = ui.stats.frameTimes.length;
+    $("fps").textContent = ui.state.fps;
+  }, 500);
+  $("navcam").onclick = () => send({ type: "camera", id: ++chatId, name: "navcam" });
+  $("usercam").onclick = () => send({ type: "camera", id: ++chatId, name: "usercam" });
+
+  // ------------------------------------------------------------------ chat
+  function addChat(text, cls) {
+    const log = $("chat-log");
+    const div = document.createElement("div");
+    div.textContent = text;
+    if (cls) div.className = cls;
+    log.appendChild(div);
+    while (log.childNodes.length > 500) log.removeChild(log.firstChild);
+    log.scrollTop = log.scrollHeight;
+  }
+  $("chat-form").addEventListener("submit", (ev) => {
+    ev.preventDefault();
+    const input = $("chat-input");
+    const text = input.value.trim();
+    input.value = "";
+    if (!text) return;
+    addChat("> " + text, "cmd");
+    send({ type: "chat", id: ++chatId, text });
+  });
+
+  resize();
+  connect();
+})();

@@ -1,0 +1,342 @@
+"""The web UI (``telebot-user ui``) in a real browser: Debian's chromium driven by Playwright.
+
+The robot runs in this process (SimNavStack + SafetyDriver + RobotServer on a memory hub),
+so a test can read the base's velocity the moment it changes; the UI server bridges a
+:class:`RobotClient` on the same hub to a headless chromium at ``/usr/bin/chromium``.
+A screenshot of the page is saved under ``test-artifacts/``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import os
+import shutil
+import time
+from collections.abc import AsyncIterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from conftest import ROBOT, USER
+from telebot.apps.web.server import WebUI
+from telebot.channels.call import RobotEndpoint, UserEndpoint
+from telebot.channels.transports.memory import MemoryHub, MemoryTransport
+from telebot.config import ServiceSettings, SimSettings
+from telebot.identity import ContactBook, Identity, KnownRobots, Role, create_paired_homes
+from telebot.robot.sim.stack import SimNavStack
+from telebot.services.client import RobotClient
+from telebot.services.robot import RobotServer
+from telebot.services.supervision import SafetyDriver
+from telebot.services.video import VideoSettings
+
+CHROMIUM = "/usr/bin/chromium"
+ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts"
+
+import playwright.async_api as playwright_api  # noqa: E402
+
+# No silent skip: `make test` installs the browser first (.ci/install-browser), so a
+# missing browser is a broken set-up and fails loudly here.
+assert Path(CHROMIUM).exists(), "chromium missing: run .ci/install-browser"
+
+
+@dataclass
+class Rig:
+    """The in-process robot, the user's client, the UI server and the base's stop log."""
+
+    nav: SimNavStack
+    safety: SafetyDriver
+    client: RobotClient
+    ui: WebUI
+    #: Wall-clock times (s) at which the base's velocity became zero by a stop.
+    zeroed: list[float] = field(default_factory=list)
+
+
+def _watch_stops(nav: SimNavStack, zeroed: list[float]) -> None:
+    """Stamp the moment each stop leaves the base at zero velocity."""
+    original = nav.stop
+
+    def stop() -> None:
+        moving = nav.velocity().linear != 0.0 or nav.velocity().angular != 0.0
+        original()
+        velocity = nav.velocity()
+        if moving and velocity.linear == 0.0 and velocity.angular == 0.0:
+            zeroed.append(time.time())
+
+    nav.stop = stop  # type: ignore[method-assign]
+
+
+@contextlib.asynccontextmanager
+async def robot_rig(
+    base: Path, *, role: Role = Role.DRIVER, pose_hz: float = 20.0
+) -> AsyncIterator[Rig]:
+    """A fast simulated robot on the small map, a user in a call with it, the UI served."""
+    create_paired_homes(base, ROBOT, USER, role=role)
+    robot_home, user_home = base / "robot", base / "user"
+    loop = asyncio.get_running_loop()
+    settings = SimSettings(
+        map="small",
+        max_linear_speed=1.5,
+        linear_accel=3.0,
+        max_angular_speed=3.0,
+        angular_accel=8.0,
+        control_hz=50,
+    )
+    nav = SimNavStack.from_settings(settings, now=loop.time())
+    zeroed: list[float] = []
+    _watch_stops(nav, zeroed)
+    safety = SafetyDriver(nav, timeout=2.0, max_speed=settings.max_linear_speed)
+    server = RobotServer(
+        nav,
+        ServiceSettings(pose_hz=pose_hz),
+        control_hz=settings.control_hz,
+        map_name="small",
+        safety=safety,
+        video=VideoSettings(width=320, height=240, max_fps=15, quality=70, min_quality=30),
+    )
+    await server.prepare()
+    hub = MemoryHub(seed=7)
+    with safety:
+        async with (
+            MemoryTransport(hub, "robot") as robot_transport,
+            MemoryTransport(hub, "user") as user_transport,
+            RobotEndpoint(
+                robot_transport, Identity.load(robot_home), ContactBook.load(robot_home)
+            ) as endpoint,
+            UserEndpoint(
+                user_transport, Identity.load(user_home), KnownRobots.load(user_home)
+            ) as user,
+        ):
+            server.attach(endpoint)
+            runner = asyncio.create_task(server.run(), name="robot-loop")
+            try:
+                call = await user.call(ROBOT, timeout=10)
+                client = RobotClient(call)
+                async with WebUI(client, port=0, user=USER) as ui:
+                    yield Rig(nav, safety, client, ui, zeroed)
+                with contextlib.suppress(Exception):
+                    await call.hangup()
+            finally:
+                safety.stop(None, "test over")
+                runner.cancel()
+                await asyncio.gather(runner, return_exceptions=True)
+
+
+@contextlib.asynccontextmanager
+async def browser_page(url: str) -> AsyncIterator[Any]:
+    """A headless chromium page at ``url`` (Debian's chromium: never a downloaded one)."""
+    async with playwright_api.async_playwright() as pw:
+        args = ["--no-sandbox"] if os.geteuid() == 0 else []
+        browser = await pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=args)
+        try:
+            page = await browser.new_page(viewport={"width": 1280, "height": 800})
+            await page.goto(url)
+            yield page
+        finally:
+            await browser.close()
+
+
+async def wait_for(predicate: Any, timeout: float = 10.0, what: str = "condition") -> None:
+    """Poll ``predicate`` (sync or async) until true."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if asyncio.iscoroutine(value):
+            value = await value
+        if value:
+            return
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        await asyncio.sleep(0.02)
+
+
+async def page_ready(page: Any) -> None:
+    """Wait until the page has the map drawn and a pose."""
+    await page.wait_for_function(
+        "() => window.telebotUI && window.telebotUI.mapReady() && window.telebotUI.state.pose",
+        timeout=15000,
+    )
+
+
+async def arm(rig: Rig) -> None:
+    ack = await rig.client.arm()
+    assert ack.ok, ack.reason
+
+
+async def drive_forward(rig: Rig) -> None:
+    """Start a long straight move and wait until the base is moving."""
+    await arm(rig)
+    pose = rig.nav.pose().pose
+    rig.ui._spawn(rig.client.goto(pose.x + 8.0, pose.y))  # along the bottom corridor
+    await wait_for(lambda: rig.nav.velocity().linear > 0.3, what="the robot moving")
+
+
+@pytest.fixture
+async def rig(tmp_path: Path) -> AsyncIterator[Rig]:
+    async with robot_rig(tmp_path) as value:
+        yield value
+
+
+async def test_the_page_loads_and_shows_the_map(rig: Rig) -> None:
+    async with browser_page(rig.ui.url) as page:
+        await page_ready(page)
+        assert await page.title() == f"telebot · {ROBOT}"
+        # Sample the canvas: free cells are light, walls dark, and the robot is drawn blue.
+        counts = await page.evaluate(
+            """() => {
+              const c = document.getElementById('map');
+              const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+              let free = 0, wall = 0, blue = 0;
+              for (let i = 0; i < d.length; i += 4) {
+                const [r, g, b] = [d[i], d[i + 1], d[i + 2]];
+                if (r > 240 && g > 240 && b > 240) free++;
+                else if (r < 30 && g < 30 && b < 30) wall++;
+                if (b > 200 && r < 120) blue++;
+              }
+              return {free, wall, blue, total: d.length / 4};
+            }"""
+        )
+        assert counts["free"] > 0.1 * counts["total"], counts
+        assert counts["wall"] > 0.005 * counts["total"], counts
+        assert counts["blue"] > 20, counts
+        # The status bar: role, who holds the drive, link and battery.
+        assert "driver" in await page.inner_text("#role")
+        await page.wait_for_function(
+            "() => document.getElementById('battery').textContent.endsWith('%')"
+        )
+        await page.wait_for_function(
+            "() => document.getElementById('link').textContent.includes('ms')"
+        )
+        assert await page.inner_text("#holder") == USER
+        ARTIFACTS.mkdir(exist_ok=True)
+        await page.screenshot(path=str(ARTIFACTS / "web_ui.png"))
+
+
+async def test_a_click_moves_the_robot_there(rig: Rig) -> None:
+    await arm(rig)
+    async with browser_page(rig.ui.url) as page:
+        await page_ready(page)
+        await page.wait_for_function("() => window.telebotUI.state.safety?.armed")
+        target = (4.0, 1.2)  # bottom corridor of the small map, in sight of "start"
+        sx, sy = await page.evaluate(f"() => window.telebotUI.worldToScreen{target}")
+        box = await page.locator("#map").bounding_box()
+        await page.mouse.click(box["x"] + sx, box["y"] + sy)
+        await page.wait_for_function(
+            "() => window.telebotUI.state.goal?.status === 'succeeded'", timeout=20000
+        )
+        sent = await page.evaluate("() => window.telebotUI.state.goal")
+        # The click's world point is the target, to within a screen pixel.
+        scale = await page.evaluate(
+            "() => { const a = window.telebotUI.screenToWorld(0, 0);"
+            " const b = window.telebotUI.screenToWorld(1, 0); return b[0] - a[0]; }"
+        )
+        assert math.dist((sent["x"], sent["y"]), target) <= 1.5 * scale + 1e-6
+        await asyncio.sleep(0.2)  # the next pose update reaches the page
+        shown = await page.evaluate("() => window.telebotUI.state.pose")
+        real = rig.nav.pose().pose
+        assert math.dist((real.x, real.y), (sent["x"], sent["y"])) < 0.15
+        assert math.dist((shown["x"], shown["y"]), (real.x, real.y)) < 0.1
+        assert f"{real.x:.2f}"[:-1] in await page.inner_text("#pose-text")
+
+
+async def test_a_key_press_stops_the_robot_within_100_ms(rig: Rig) -> None:
+    async with browser_page(rig.ui.url) as page:
+        await page_ready(page)
+        await drive_forward(rig)
+        await page.locator("#map").focus()
+        await page.keyboard.press("k")
+        await wait_for(lambda: rig.zeroed, timeout=2.0, what="the base stopped")
+        pressed = (await page.evaluate("() => window.telebotUI.stats.keyTimes"))[-1] / 1000
+        delay = rig.zeroed[-1] - pressed
+        assert 0 <= delay < 0.1, f"stopped {delay * 1000:.1f} ms after the key"
+        assert rig.nav.velocity().linear == 0.0
+        await page.wait_for_function("() => window.telebotUI.state.safety?.armed === false")
+        assert "stopped" in await page.inner_text("#safety")
+        # Re-arm from the page.
+        await page.click("#arm")
+        await page.wait_for_function("() => window.telebotUI.state.safety?.armed === true")
+
+
+async def test_escape_in_the_chat_input_stops_but_typing_does_not(rig: Rig) -> None:
+    async with browser_page(rig.ui.url) as page:
+        await page_ready(page)
+        await drive_forward(rig)
+        await page.fill("#chat-input", "")
+        await page.type("#chat-input", "hello")
+        await asyncio.sleep(0.1)
+        assert rig.nav.velocity().linear > 0.0 and not rig.zeroed
+        await page.keyboard.press("Escape")
+        await wait_for(lambda: rig.zeroed, timeout=2.0, what="the base stopped")
+
+
+async def test_a_chat_command_round_trip(rig: Rig) -> None:
+    async with browser_page(rig.ui.url) as page:
+        await page_ready(page)
+        await page.fill("#chat-input", "where")
+        await page.press("#chat-input", "Enter")
+        await page.wait_for_function(
+            "() => window.telebotUI.state.chat.some(m => m.final)", timeout=10000
+        )
+        replies = await page.evaluate("() => window.telebotUI.state.chat")
+        assert replies[-1]["ok"], replies
+        log_text = await page.inner_text("#chat-log")
+        assert "> where" in log_text and replies[-1]["text"] in log_text
+
+
+async def test_video_frames_arrive_and_the_camera_switches(rig: Rig) -> None:
+    async with browser_page(rig.ui.url) as page:
+        await page_ready(page)
+        await page.wait_for_function("() => window.telebotUI.state.frames >= 5", timeout=10000)
+        size = await page.evaluate(
+            "() => [document.getElementById('video').naturalWidth,"
+            " document.getElementById('video').naturalHeight]"
+        )
+        assert size == [320, 240]
+        first = await page.evaluate("() => window.telebotUI.state.camera")
+        other = "usercam" if first == "navcam" else "navcam"
+        await page.click(f"#{other}")
+        await page.wait_for_function(
+            f"() => window.telebotUI.state.camera === '{other}'", timeout=10000
+        )
+        assert int(await page.inner_text("#fps")) > 0
+
+
+async def test_closing_the_page_while_driving_stops_the_robot(rig: Rig) -> None:
+    async with browser_page(rig.ui.url) as page:
+        await page_ready(page)
+        await drive_forward(rig)
+        await page.close()
+    await wait_for(lambda: rig.zeroed, timeout=3.0, what="the base stopped")
+    assert rig.ui.close_stops == 1
+    assert rig.nav.velocity().linear == 0.0
+
+
+async def test_an_observer_sees_the_page_with_driving_disabled_and_may_stop(
+    tmp_path: Path,
+) -> None:
+    async with robot_rig(tmp_path, role=Role.OBSERVER) as rig, browser_page(rig.ui.url) as page:
+        await page_ready(page)
+        assert "observer" in await page.inner_text("#role")
+        for button in ("arm", "take", "navcam", "usercam"):
+            assert await page.is_disabled(f"#{button}")
+        assert await page.is_enabled("#stop")
+        # A click on the map is no goal for an observer.
+        box = await page.locator("#map").bounding_box()
+        await page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+        await asyncio.sleep(0.2)
+        assert await page.evaluate("() => window.telebotUI.state.goal") is None
+        await page.click("#stop")
+        await page.wait_for_function("() => window.telebotUI.state.safety?.armed === false")
+
+
+def test_install_browser_script_is_idempotent() -> None:
+    script = Path(__file__).resolve().parent.parent / ".ci" / "install-browser"
+    assert os.access(script, os.X_OK)
+    if shutil.which("bash") and Path(CHROMIUM).exists():
+        import subprocess
+
+        result = subprocess.run([str(script)], capture_output=True, text=True, timeout=30)
+        assert result.returncode == 0, result.stderr
