@@ -142,7 +142,13 @@ def test_an_observer_may_stop_but_not_drive_or_arm(tmp_path: Path) -> None:
     replies: list[ChatReply] = []
     chat = ChatSession(nav, may_drive=False, send=replies.append, gate=driver.gate("c2"))
     chat.handle_text(1, "fwd 1")
-    assert replies[-1].text.startswith("refused: observers")
+    assert replies[-1].text == "refused: olga is an observer: observers may not drive"
+    refusals = [
+        json.loads(line)
+        for line in (tmp_path / "audit.jsonl").read_text().splitlines()
+        if '"olga"' in line and '"refused"' in line
+    ]
+    assert [r["what"] for r in refusals] == ["motion: fwd 1"]  # refusals are audited too
     assert driver.gate("c2").rearm() is not None
     assert driver.state().armed
     chat.handle_text(2, "stop")

@@ -21,11 +21,23 @@ from telebot.services.robot import EventSink, RobotServer
 from telebot.services.supervision import SafetyDriver
 from telebot.services.video import VideoSettings
 
-__all__ = ["SHUTDOWN_REASON", "serve_robot"]
+__all__ = ["SHUTDOWN_REASON", "deadman_time", "serve_robot"]
 
 log = logging.getLogger("telebot.daemon")
 
 SHUTDOWN_REASON = "robot shutting down"
+
+
+def deadman_time(config: RobotConfig) -> float:
+    """How long the driver may be silent before the robot stops.
+
+    The driver's last heartbeat may have left up to one heartbeat interval before its
+    link died, so the deadman fires that much before ``call.timeout``: the robot is then
+    stopped within ``call.timeout`` of the moment the driver went silent, not of its last
+    heartbeat. Never less than half the timeout, so a few lost heartbeats do not stop it.
+    """
+    timeout = config.call.timeout
+    return max(timeout - 1.0 / config.call.heartbeat_hz, timeout / 2)
 
 
 async def serve_robot(
@@ -55,7 +67,7 @@ async def serve_robot(
         audit = home / audit
     safety = SafetyDriver(
         nav,
-        timeout=config.call.timeout,
+        timeout=deadman_time(config),
         max_speed=config.sim.max_linear_speed,
         usercam_while_moving=config.safety.usercam_while_moving,
         audit_path=audit,

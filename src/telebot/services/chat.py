@@ -244,11 +244,17 @@ class ChatSession:
 
     def _execute(self, request_id: int, command: Command) -> None:
         nav = self._nav
+        gate = self._gate
         if isinstance(command, _DRIVING) and not self._may_drive:
             logger.info("chat from %s: refused %s (observer)", self._user, command)
-            self._reply(request_id, OBSERVER_REFUSAL, ok=False)
+            if gate is not None:
+                # The supervisor refuses observers too, and writes the refusal to the audit
+                # log: who tried what matters most when it was refused.
+                refusal = gate.motion(_describe(command))
+                self._reply(request_id, f"refused: {refusal or OBSERVER_REFUSAL}", ok=False)
+            else:
+                self._reply(request_id, OBSERVER_REFUSAL, ok=False)
             return
-        gate = self._gate
         if gate is not None and isinstance(command, _MOVING):
             refusal = gate.motion(_describe(command))
             if refusal is not None:

@@ -141,7 +141,7 @@ class RobotClient:
 
     async def chat_replies(
         self, command: str, *, timeout: float | None = None
-    ) -> AsyncIterator[ChatReply]:
+    ) -> AsyncGenerator[ChatReply, None]:
         """Send one chat command and yield each reply until the final one.
 
         Raises TimeoutError if the robot does not finish within ``timeout`` seconds and

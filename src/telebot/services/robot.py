@@ -122,8 +122,6 @@ class CallServices:
             refusal = self._stop("stop key")
         elif self.gate is None:
             refusal = "this robot has no safety supervisor"
-        elif not may_drive(self.call.role):
-            refusal = _OBSERVER
         elif request.type == "arm":
             refusal = self.gate.rearm()
         elif request.type == "take":
@@ -182,6 +180,8 @@ class CallServices:
             return
         if command.type == "cancel":
             if not may_drive(self.call.role):
+                if self.gate is not None:
+                    self.gate.motion(f"cancel goal {command.id}")  # refused, and audited
                 self._send(
                     self._goals_channel, GoalUpdate(command.id, "refused", 0.0, _OBSERVER).encode()
                 )
@@ -190,9 +190,10 @@ class CallServices:
                 known.cancel()
             self._send_goal_status(command.id, force=True)
             return
-        refusal = None if may_drive(self.call.role) else _OBSERVER
-        if refusal is None and self.gate is not None:
+        if self.gate is not None:  # it refuses observers too, and audits the refusal
             refusal = self.gate.motion(f"goal {command.x:g} {command.y:g}")
+        else:
+            refusal = None if may_drive(self.call.role) else _OBSERVER
         if refusal is not None:
             _remember(self._goals, command.id, GoalUpdate(command.id, "refused", 0.0, refusal))
         else:
