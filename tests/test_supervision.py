@@ -167,3 +167,42 @@ def test_the_holder_leaving_stops_and_latches(tmp_path: Path) -> None:
     assert nav.velocity().linear == 0.0
     assert not driver.state().armed and driver.state().holder is None
     driver.close()
+
+
+def test_usercam_is_refused_as_soon_as_a_goal_runs_even_before_the_base_moves(
+    tmp_path: Path,
+) -> None:
+    nav, driver, _ = armed_driver(tmp_path)
+    gate = driver.gate("c1")
+    assert gate.motion("fwd 2") is None
+    nav.forward(2.0)
+    assert nav.velocity().linear == 0.0  # accepted, not yet moving
+    refusal = gate.camera("usercam")
+    assert refusal is not None and "moves" in refusal
+    nav.stop()
+    assert gate.camera("usercam") is None
+    driver.close()
+
+
+async def test_a_failed_robot_step_stops_and_latches(tmp_path: Path) -> None:
+    import asyncio
+
+    from telebot.services.robot import RobotServer
+
+    nav, driver, alice = armed_driver(tmp_path)
+    driver.gate("c1").motion("fwd 5")
+    nav.forward(5.0)
+    drive_for(nav, 0.5, driver, alice)
+
+    def broken(now: float) -> None:
+        raise RuntimeError("simulated fault")
+
+    nav.step = broken  # type: ignore[method-assign]
+    server = RobotServer(nav, safety=driver)
+    runner = asyncio.create_task(server.run())
+    await asyncio.sleep(0.15)
+    runner.cancel()
+    await asyncio.gather(runner, return_exceptions=True)
+    assert nav.velocity().linear == 0.0
+    assert not driver.state().armed and "step failed" in driver.state().reason
+    driver.close()

@@ -240,7 +240,12 @@ class RobotClient:
         try:
             async with asyncio.timeout(timeout):
                 while True:
-                    self._send(self._safety, payload)
+                    try:
+                        self._send(self._safety, payload)
+                    except CallEnded:
+                        raise
+                    except TelebotError as exc:  # a transient send failure: keep trying
+                        log.warning("%s not sent (%s); trying again", kind, exc)
                     try:
                         return await self._next(acks, repeat)
                     except TimeoutError:

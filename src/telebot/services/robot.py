@@ -387,11 +387,13 @@ class RobotServer:
         log.info("call %s from %s (%s)", call.id, call.peer, call.role)
 
         def on_end(_: asyncio.Future[Any]) -> None:
-            self.services.pop(call.id, None)
-            services.map.close()
-            services.video.stop()
+            # The supervisor hears first: a driver's hang-up must stop the robot whatever
+            # happens in the clean-up after it.
             if self.safety is not None:
-                self.safety.leave(call)
+                self._guarded(self.safety.leave, call)
+            self.services.pop(call.id, None)
+            self._guarded(services.map.close)
+            self._guarded(services.video.stop)
             end = call.end
             self.emit(
                 {
@@ -406,6 +408,13 @@ class RobotServer:
 
         asyncio.ensure_future(call.wait_ended()).add_done_callback(on_end)
         return services
+
+    def _emergency(self, reason: str) -> None:
+        with contextlib.suppress(Exception):
+            self.nav.stop()
+        if self.safety is not None:
+            with contextlib.suppress(Exception):
+                self.safety.stop(None, reason)
 
     def safety_status(self) -> SafetyStatus:
         """The safety state as the users see it."""
@@ -431,13 +440,17 @@ class RobotServer:
             now = self.now()
             try:
                 self.nav.step(now)
-                if self.safety is not None:
-                    self.safety.tick()
             except Exception:
-                # Fail safe: a broken step must not leave the base driving.
+                # Fail safe: a broken step must not leave the base driving, and the stop
+                # latches like any other (a new motion needs a re-arm).
                 log.exception("robot step failed: stopping the robot")
-                with contextlib.suppress(Exception):
-                    self.nav.stop()
+                self._emergency("robot step failed")
+            if self.safety is not None:
+                try:
+                    self.safety.tick()
+                except Exception:
+                    log.exception("safety tick failed: stopping the robot")
+                    self._emergency("safety tick failed")
             for services in list(self.services.values()):
                 self._guarded(services.tick)
                 if now >= next_pose:

@@ -24,7 +24,7 @@ from typing import IO, Literal, Protocol
 
 from telebot.channels.call import Call
 from telebot.identity import Role
-from telebot.robot.nav import NavStack, NavState
+from telebot.robot.nav import NavStack, NavState, Velocity
 from telebot.safety import (
     Action,
     Audit,
@@ -195,14 +195,20 @@ class SafetyDriver:
 
     def _watchdog(self) -> None:
         while not self._stop_thread.wait(WATCHDOG_PERIOD):
-            watch = self._watch
-            if watch is None:
-                continue
-            call, timeout = watch
-            if time.monotonic() - call.last_heard > timeout:
-                self._watch = None
-                self.watchdog_stops += 1
-                self.nav.emergency_stop(f"driver {call.peer} silent for {timeout:g} s")
+            try:
+                self._watch_once()
+            except Exception:  # the watchdog must outlive any one failure
+                log.exception("safety watchdog check failed")
+
+    def _watch_once(self) -> None:
+        watch = self._watch
+        if watch is None:
+            return
+        call, timeout = watch
+        if time.monotonic() - call.last_heard > timeout:
+            self._watch = None
+            self.watchdog_stops += 1
+            self.nav.emergency_stop(f"driver {call.peer} silent for {timeout:g} s")
 
 
 class CallGate:
@@ -226,8 +232,9 @@ class CallGate:
 
     def camera(self, name: str) -> str | None:
         """May this call select camera ``name`` now?"""
-        velocity = self._driver.nav.velocity()
-        moving = velocity.linear != 0.0 or velocity.angular != 0.0
+        nav = self._driver.nav
+        # A goal just accepted, or held up by an obstacle, stands still but is about to move.
+        moving = nav.velocity() != Velocity() or nav.current_goal() is not None
         sup = self._driver.supervisor
         return self._decide(sup.request_camera(self.call_id, name, moving, self._driver._clock()))
 

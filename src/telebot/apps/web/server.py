@@ -418,8 +418,9 @@ class WebUI:
         }[kind]
         try:
             ack = await action()
-        except TimeoutError:
-            self._send(page, {"type": "ack", "what": kind, "ok": False, "reason": "no answer"})
+        except (TimeoutError, TelebotError) as exc:
+            reason = "no answer" if isinstance(exc, TimeoutError) else str(exc)
+            self._send(page, {"type": "ack", "what": kind, "ok": False, "reason": reason})
             return
         self._send(page, {"type": "ack", "what": kind, "ok": ack.ok, "reason": ack.reason})
 
@@ -456,7 +457,13 @@ class WebUI:
         if self._closing or not self.may_drive:
             return
         goal_active = self._goal is not None and self._goal["status"] in ("sent", "active")
-        if self.moving() or goal_active:
+        safety = self.client.latest_safety.value
+        # Fail safe: an armed robot may be about to move (a chat motion just sent, a goal
+        # blocked behind a person that will clear); with nobody watching, it must not.
+        armed = safety is not None and safety.armed
+        pose = self.client.latest_pose.value
+        blocked = pose is not None and pose.state == "blocked"
+        if self.moving() or goal_active or armed or blocked:
             log.warning("a page closed while the robot moved: stopping it")
             self.close_stops += 1
             self._spawn(self.client.stop())
