@@ -247,11 +247,14 @@ async def test_a_key_press_stops_the_robot_within_100_ms(rig: Rig) -> None:
         await page_ready(page)
         await drive_forward(rig)
         await page.locator("#map").focus()
+        rig.zeroed.clear()  # only the stop this key causes counts
         await page.keyboard.press("k")
         await wait_for(lambda: rig.zeroed, timeout=2.0, what="the base stopped")
         pressed = (await page.evaluate("() => window.telebotUI.stats.keyTimes"))[-1] / 1000
-        delay = rig.zeroed[-1] - pressed
-        assert 0 <= delay < 0.1, f"stopped {delay * 1000:.1f} ms after the key"
+        delay = rig.zeroed[0] - pressed
+        # The page's clock (performance.timeOrigin + now()) and Python's time.time() are
+        # both wall clock but may disagree by a millisecond or so: allow that much below 0.
+        assert -0.005 <= delay < 0.1, f"stopped {delay * 1000:.1f} ms after the key"
         assert rig.nav.velocity().linear == 0.0
         await page.wait_for_function("() => window.telebotUI.state.safety?.armed === false")
         assert "stopped" in await page.inner_text("#safety")
