@@ -29,20 +29,17 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import json
-import queue
 import socket
 import statistics
-import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
+from _child import Child
 from telebot.channels.call import Call, RobotEndpoint, UserEndpoint
 from telebot.channels.transports.base import Lane
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
@@ -127,48 +124,6 @@ async def robot_child(port: int, home: Path) -> None:
         "rejected": sum(s.rejected for s in services),
     }
     print(json.dumps(stats), flush=True)
-
-
-class Child:
-    """The robot child process; lines of its stdout are read by a thread."""
-
-    def __init__(self, port: int, home: Path) -> None:
-        command = [sys.executable, str(Path(__file__).resolve()), "--child", str(port), str(home)]
-        self._proc = subprocess.Popen(
-            command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
-        )
-        self._lines: queue.Queue[str | None] = queue.Queue()
-        threading.Thread(target=self._read, name="child-stdout", daemon=True).start()
-
-    def _read(self) -> None:
-        assert self._proc.stdout is not None
-        for line in self._proc.stdout:
-            self._lines.put(line.strip())
-        self._lines.put(None)
-
-    def next_line(self, timeout: float) -> str:
-        try:
-            line = self._lines.get(timeout=timeout)
-        except queue.Empty:
-            raise RuntimeError(f"the robot child said nothing for {timeout} s") from None
-        if line is None:
-            raise RuntimeError(f"the robot child exited with status {self._proc.wait()}")
-        return line
-
-    def close(self) -> dict[str, int]:
-        """Close its stdin (it stops serving), return its counters; kill it if it hangs."""
-        stats: dict[str, int] = {}
-        with contextlib.suppress(OSError, ValueError):
-            assert self._proc.stdin is not None
-            self._proc.stdin.close()
-        with contextlib.suppress(RuntimeError, ValueError):
-            stats = json.loads(self.next_line(10.0))
-        try:
-            self._proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            self._proc.kill()
-            self._proc.wait()
-        return stats
 
 
 # -- parent: the user -------------------------------------------------------------------
@@ -300,7 +255,7 @@ def main() -> None:
         homes = Path(tmp)
         create_paired_homes(homes, ROBOT, USER)
         port = free_port()
-        child = Child(port, homes / "robot")
+        child = Child(__file__, str(port), str(homes / "robot"))
         try:
             if child.next_line(60.0) != "ready":
                 raise RuntimeError("the robot child did not start")
