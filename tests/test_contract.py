@@ -333,3 +333,46 @@ async def test_call_again_after_a_drop(peer: Peer) -> None:
         assert second.channels == {}  # no ghost channels
         assert await echo(second.channel("chat"), "two") == "two"
         assert [c.id for c in user.calls] == [second.id]
+
+
+async def test_a_burst_travels_in_one_frame_and_arrives_in_order(peer: Peer) -> None:
+    async with User(peer) as user:
+        call = await user.call(ROBOT)
+        left, right = call.channel("left"), call.channel("right")
+        assert await echo(left, "open") == "open" and await echo(right, "open") == "open"
+        frames_before = call.stats.frames_sent
+        for i in range(100):
+            (left if i % 2 else right).send(f"#{i}")
+        # Nothing is published until the end of this event-loop turn ...
+        assert call.stats.frames_sent == frames_before
+        await asyncio.sleep(0)
+        # ... then the 100 datagrams go out as one BUNDLE (plus a heartbeat, perhaps).
+        assert 1 <= call.stats.frames_sent - frames_before <= 2
+        for channel, first in ((left, 1), (right, 0)):
+            echoed = [(await asyncio.wait_for(channel.receive(), 5.0)).payload for _ in range(50)]
+            assert echoed == [f"#{i}" for i in range(first, 100, 2)]
+
+
+async def test_control_datagrams_are_not_held_back(peer: Peer) -> None:
+    async with User(peer) as user:
+        call = await user.call(ROBOT)
+        stop = call.channel("stop", lane=Lane.CONTROL)
+        frames_before = call.stats.frames_sent
+        stop.send("stop")
+        stop.send("stop")
+        assert call.stats.frames_sent == frames_before + 2  # published at once, one frame each
+        assert (await asyncio.wait_for(stop.receive(), 5.0)).payload == "stop"
+
+
+async def test_datagrams_sent_before_a_hangup_go_out_before_it(peer: Peer) -> None:
+    async with User(peer) as user:
+        call = await user.call(ROBOT)
+        chat = call.channel("chat")
+        frames_before = call.stats.frames_sent
+        chat.send("last")
+        chat.send("words")
+        call.hangup_now("bye")
+        # one BUNDLE for the two datagrams, sealed before the HANGUP (sent 3 times)
+        assert call.stats.frames_sent - frames_before == 2
+        await asyncio.sleep(0.05)
+        assert call.stats.frames_sent - frames_before == 2  # nothing left to flush

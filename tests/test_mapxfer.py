@@ -104,6 +104,10 @@ async def silent(homes: Homes) -> AsyncIterator[Link]:
 
 async def test_map_transfer_completes_with_the_same_bytes_at_30_percent_loss(link: Link) -> None:
     link.hub.set_link("robot", "user", loss=0.3)  # both directions
+    # One chunk per loop turn, so one chunk per frame: the loss falls on single chunks
+    # rather than on whole bursts (which travel in one BUNDLE frame).
+    for service in link.robot.services:
+        service.burst = 1
     seen: list[tuple[int, int]] = []
     download = await fetch_map(
         map_channel(link.call), timeout=20.0, progress=lambda r, t: seen.append((r, t))

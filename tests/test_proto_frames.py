@@ -11,11 +11,14 @@ from hypothesis import strategies as st
 from telebot.channels.proto.frames import (
     CALL_ID_LEN,
     INSTANCE_LEN,
+    MAX_BUNDLE,
     MAX_CHANNEL_NAME,
     MAX_DATAGRAM,
     MAX_FRAME,
     NAME_PATTERN,
     VERSION,
+    Bundle,
+    Coalescer,
     DataFrame,
     Datagram,
     Hangup,
@@ -24,6 +27,7 @@ from telebot.channels.proto.frames import (
     Welcome,
     decode_frame,
     decode_message,
+    encode_bundle,
     encode_datagram,
     encode_hangup,
     encode_heartbeat,
@@ -125,6 +129,10 @@ def assert_valid_message(data: bytes, message: object) -> None:
         assert message.reason.encode() == data[1:]
         if len(data) <= 201:
             assert encode_hangup(message.reason) == data
+    elif isinstance(message, Bundle):
+        assert len(message.datagrams) >= 2 and len(data) <= MAX_BUNDLE
+        entries = [encode_datagram(d.channel.encode(), d.payload) for d in message.datagrams]
+        assert encode_bundle(entries) == data
     else:
         pytest.fail(f"decode_message returned {message!r}")
 
@@ -353,7 +361,7 @@ def test_unknown_frame_type_is_refused(kind: int) -> None:
         decode_frame(bytes([VERSION, kind]) + bytes(40))
 
 
-@pytest.mark.parametrize("kind", [0, 4, 5, 127, 255])
+@pytest.mark.parametrize("kind", [0, 5, 127, 255])
 def test_unknown_message_kind_is_refused(kind: int) -> None:
     with pytest.raises(ProtocolError, match="kind"):
         decode_message(bytes([kind]) + bytes(24))
@@ -439,7 +447,7 @@ def test_decode_frame_fuzz(data: bytes) -> None:
 
 message_like = st.binary(max_size=300) | st.builds(
     lambda kind, rest: bytes([kind]) + rest,
-    st.sampled_from([1, 2, 3]),
+    st.sampled_from([1, 2, 3, 4]),
     st.binary(max_size=300) | st.binary(min_size=24, max_size=24),
 )
 
@@ -448,6 +456,7 @@ message_like = st.binary(max_size=300) | st.builds(
 @given(data=message_like)
 @example(data=b"\x01\x01\x01c\xf0\x9f\x93\xb7")
 @example(data=b"\x02" + bytes(24))
+@example(data=b"\x04\x00\x04\x01\x00\x01a\x00\x04\x01\x01\x01b")
 def test_decode_message_fuzz(data: bytes) -> None:
     try:
         message = decode_message(data)
@@ -488,7 +497,12 @@ def test_truncated_frames_are_refused_or_decoded_consistently(
 @given(
     message=st.builds(encode_datagram, channel_names.map(str.encode), st.binary(max_size=64))
     | heartbeats.map(encode_heartbeat)
-    | st.text(max_size=40).map(encode_hangup),
+    | st.text(max_size=40).map(encode_hangup)
+    | st.lists(
+        st.builds(encode_datagram, channel_names.map(str.encode), st.binary(max_size=64)),
+        min_size=2,
+        max_size=5,
+    ).map(encode_bundle),
 )
 def test_truncated_messages_are_refused_or_decoded_consistently(message: bytes) -> None:
     for size in range(len(message)):
@@ -498,5 +512,107 @@ def test_truncated_messages_are_refused_or_decoded_consistently(message: bytes) 
         except ProtocolError:
             continue
         assert cut  # the empty message never decodes
-        assert cut[0] in (1, 3)  # heartbeats have a fixed size
+        assert cut[0] in (1, 3, 4)  # heartbeats have a fixed size
         assert_valid_message(cut, decoded)
+        if isinstance(decoded, Bundle):  # only whole entries survive a cut
+            full = decode_message(message)
+            assert isinstance(full, Bundle)
+            assert decoded.datagrams == full.datagrams[: len(decoded.datagrams)]
+
+
+# --------------------------------------------------------------------------- bundles
+
+small_datagrams = st.lists(
+    st.tuples(
+        channel_names, text_payloads.filter(lambda t: len(t) < 2000) | st.binary(max_size=2000)
+    ),
+    min_size=2,
+    max_size=12,
+)
+
+
+@SETTINGS
+@given(datagrams=small_datagrams)
+def test_bundle_round_trip(datagrams: list[tuple[str, str | bytes]]) -> None:
+    entries = [encode_datagram(name.encode(), payload) for name, payload in datagrams]
+    message = decode_message(encode_bundle(entries))
+    assert isinstance(message, Bundle)
+    assert [(d.channel, d.payload) for d in message.datagrams] == datagrams
+
+
+def test_bundle_layout() -> None:
+    first, second = encode_datagram(b"a", "x"), encode_datagram(b"bc", b"\x00")
+    assert encode_bundle([first, second]) == (
+        b"\x04" + len(first).to_bytes(2, "big") + first + len(second).to_bytes(2, "big") + second
+    )
+
+
+def test_encode_bundle_refuses_one_datagram_and_oversize() -> None:
+    one = encode_datagram(b"a", "x")
+    with pytest.raises(ValueError, match="at least two"):
+        encode_bundle([one])
+    big = encode_datagram(b"a", bytes(MAX_DATAGRAM // 2 + 200))
+    with pytest.raises(ValueError, match="over"):
+        encode_bundle([big, big, one])
+
+
+@pytest.mark.parametrize(
+    ("data", "match"),
+    [
+        (b"\x04", "fewer than two"),
+        (b"\x04\x00\x05" + encode_datagram(b"a", "x"), "fewer than two"),
+        (b"\x04\x00", "length truncated"),
+        (b"\x04\x00\x09\x01\x01\x01a", "entry truncated"),
+        (b"\x04\x00\x00\x00\x05" + encode_datagram(b"a", "x"), "not a DATAGRAM"),
+        (b"\x04\x00\x04\x03bye\x00\x05" + encode_datagram(b"a", "x"), "not a DATAGRAM"),
+        (
+            b"\x04\x00\x0f"
+            + encode_bundle([encode_datagram(b"a", "x")] * 2)
+            + b"\x00\x05"
+            + encode_datagram(b"a", "x"),
+            "not a DATAGRAM",
+        ),  # a BUNDLE does not nest
+        (b"\x04\x00\x03\x01\x00\x00\x00\x05" + encode_datagram(b"a", "x"), "channel name"),
+        (b"\x04" + bytes(MAX_BUNDLE), "over the limit"),
+    ],
+)
+def test_malformed_bundles_are_refused(data: bytes, match: str) -> None:
+    with pytest.raises(ProtocolError, match=match):
+        decode_message(data)
+
+
+def test_coalescer_sends_a_lone_datagram_as_itself() -> None:
+    coalescer = Coalescer()
+    assert not coalescer and coalescer.take() is None
+    datagram = encode_datagram(b"pose", b"xyz")
+    assert coalescer.add(datagram) is None and coalescer
+    assert coalescer.take() == datagram
+    assert not coalescer and coalescer.take() is None
+
+
+def test_coalescer_bundles_in_order() -> None:
+    coalescer = Coalescer()
+    sent = [encode_datagram(f"ch{i % 3}".encode(), f"#{i}") for i in range(50)]
+    assert all(coalescer.add(d) is None for d in sent)
+    message = decode_message(coalescer.take() or b"")
+    assert isinstance(message, Bundle)
+    assert [(d.channel, d.payload) for d in message.datagrams] == [
+        (f"ch{i % 3}", f"#{i}") for i in range(50)
+    ]
+
+
+@SETTINGS
+@given(sizes=st.lists(st.integers(0, MAX_DATAGRAM), min_size=1, max_size=12))
+def test_coalescer_never_builds_a_message_over_the_limit(sizes: list[int]) -> None:
+    coalescer = Coalescer()
+    sent = [encode_datagram(b"x" * (i % 255 + 1), bytes(size)) for i, size in enumerate(sizes)]
+    messages = [m for m in (coalescer.add(d) for d in sent) if m is not None]
+    last = coalescer.take()
+    assert last is not None
+    messages.append(last)
+    received: list[Datagram] = []
+    for message in messages:
+        assert len(message) <= MAX_BUNDLE
+        decoded = decode_message(message)
+        received.extend(decoded.datagrams if isinstance(decoded, Bundle) else [decoded])  # type: ignore[list-item]
+    assert [encode_datagram(d.channel.encode(), d.payload) for d in received] == sent

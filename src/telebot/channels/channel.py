@@ -21,9 +21,13 @@ __all__ = ["Channel", "ChannelStats", "ReceivedDatagram"]
 log = logging.getLogger("telebot.channel")
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class ReceivedDatagram:
-    """A datagram as a receiver gets it."""
+    """A datagram as a receiver gets it.
+
+    Not frozen: one is built for every datagram received, and a frozen dataclass takes
+    several times longer to build.
+    """
 
     channel: str
     #: The sender's name as this side knows it (a contact's name, or the robot's name).

@@ -16,6 +16,11 @@ Inside a DATA frame's plaintext the first byte says what it carries::
     DATAGRAM   kind=1 | flags u8 (bit 0: text) | name_len u8 | channel name | payload
     HEARTBEAT  kind=2 | seq u32 | sent_us u64 | echo_us u64 | echo_delay_us u32
     HANGUP     kind=3 | reason (UTF-8)
+    BUNDLE     kind=4 | 2 or more of (len u16 | DATAGRAM)
+
+A BUNDLE carries several datagrams sent in one event-loop turn on one lane in a single
+frame (one AEAD operation and one publish instead of one each); the receiver hands them
+to their channels one by one, as if they had come in separate frames.
 
 Decoders raise :class:`~telebot.errors.ProtocolError` on anything malformed.
 """
@@ -31,10 +36,13 @@ from telebot.errors import DatagramTooLarge, ProtocolError
 __all__ = [
     "CALL_ID_LEN",
     "INSTANCE_LEN",
+    "MAX_BUNDLE",
     "MAX_CHANNEL_NAME",
     "MAX_DATAGRAM",
     "NAME_PATTERN",
     "VERSION",
+    "Bundle",
+    "Coalescer",
     "DataFrame",
     "Datagram",
     "Hangup",
@@ -44,6 +52,7 @@ __all__ = [
     "Welcome",
     "decode_frame",
     "decode_message",
+    "encode_bundle",
     "encode_datagram",
     "encode_hangup",
     "encode_heartbeat",
@@ -67,6 +76,7 @@ TYPE_DATA = 3
 KIND_DATAGRAM = 1
 KIND_HEARTBEAT = 2
 KIND_HANGUP = 3
+KIND_BUNDLE = 4
 
 FLAG_TEXT = 0x01
 
@@ -77,6 +87,10 @@ _TAG_LEN = 16
 # A DATA frame's largest plaintext: a full datagram with the longest channel name.
 _MAX_PLAINTEXT = 3 + MAX_CHANNEL_NAME + MAX_DATAGRAM
 MAX_FRAME = DATA_HEADER_LEN + _MAX_PLAINTEXT + _TAG_LEN
+#: Largest BUNDLE plaintext: no bigger than the largest single datagram's, so a frame
+#: never grows past MAX_FRAME.
+MAX_BUNDLE = _MAX_PLAINTEXT
+_BUNDLE_ENTRY = struct.Struct(">H")
 _MAX_NOISE_MESSAGE = 2048
 
 
@@ -134,7 +148,7 @@ class Welcome:
         return bytes([VERSION, TYPE_WELCOME]) + self.call_id + self.noise_message
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class DataFrame:
     """An encrypted message of an established call."""
 
@@ -191,12 +205,23 @@ def decode_frame(data: bytes) -> Frame:
     raise ProtocolError(f"unknown frame type {kind}")
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class Datagram:
-    """A channel datagram: channel name and payload (``str`` if sent as text)."""
+    """A channel datagram: channel name and payload (``str`` if sent as text).
+
+    Not frozen: a frozen dataclass costs several times more to build, and this one is
+    built for every datagram received.
+    """
 
     channel: str
     payload: str | bytes
+
+
+@dataclass(slots=True)
+class Bundle:
+    """Several datagrams that travelled in one frame, in the order they were sent."""
+
+    datagrams: list[Datagram]
 
 
 @dataclass(frozen=True, slots=True)
@@ -221,7 +246,7 @@ class Hangup:
     reason: str
 
 
-Message = Datagram | Heartbeat | Hangup
+Message = Datagram | Heartbeat | Hangup | Bundle
 
 
 def encode_datagram(channel_name: bytes, payload: str | bytes) -> bytes:
@@ -241,6 +266,63 @@ def encode_datagram(channel_name: bytes, payload: str | bytes) -> bytes:
     return bytes([KIND_DATAGRAM, flags, len(channel_name)]) + channel_name + body
 
 
+def encode_bundle(datagrams: list[bytes]) -> bytes:
+    """Plaintext of a BUNDLE of DATAGRAM plaintexts (from :func:`encode_datagram`).
+
+    The caller keeps the total within :data:`MAX_BUNDLE` (:class:`Coalescer` does);
+    anything over raises ValueError rather than build a frame the peer would refuse.
+    """
+    if len(datagrams) < 2:
+        raise ValueError("a BUNDLE carries at least two datagrams")
+    pack = _BUNDLE_ENTRY.pack
+    parts = [bytes([KIND_BUNDLE])]
+    for datagram in datagrams:
+        parts.append(pack(len(datagram)))
+        parts.append(datagram)
+    plaintext = b"".join(parts)
+    if len(plaintext) > MAX_BUNDLE:
+        raise ValueError(f"BUNDLE of {len(plaintext)} bytes is over {MAX_BUNDLE}")
+    return plaintext
+
+
+class Coalescer:
+    """Gathers DATAGRAM plaintexts into as few DATA messages as fit. Sans-IO.
+
+    :meth:`add` each datagram as it is sent; :meth:`take` when the batch is over (the
+    end of an event-loop turn) gives one message for all of them: the DATAGRAM itself
+    if it is alone, else a BUNDLE. A datagram that would make the BUNDLE too large
+    makes :meth:`add` hand back what was gathered before it, to be sent first.
+    """
+
+    __slots__ = ("_datagrams", "_size")
+
+    def __init__(self) -> None:
+        self._datagrams: list[bytes] = []
+        self._size = 1  # the BUNDLE kind byte
+
+    def __bool__(self) -> bool:
+        return bool(self._datagrams)
+
+    def add(self, datagram: bytes) -> bytes | None:
+        """Gather ``datagram``; returns a message to send now if it did not fit, else None."""
+        added = _BUNDLE_ENTRY.size + len(datagram)
+        full = None
+        if self._datagrams and self._size + added > MAX_BUNDLE:
+            full = self.take()
+        self._datagrams.append(datagram)
+        self._size += added
+        return full
+
+    def take(self) -> bytes | None:
+        """The message carrying everything gathered (None if nothing), and start afresh."""
+        datagrams = self._datagrams
+        if not datagrams:
+            return None
+        self._datagrams = []
+        self._size = 1
+        return datagrams[0] if len(datagrams) == 1 else encode_bundle(datagrams)
+
+
 def encode_heartbeat(beat: Heartbeat) -> bytes:
     """Plaintext of a HEARTBEAT."""
     return _HEARTBEAT.pack(
@@ -258,28 +340,60 @@ def encode_hangup(reason: str) -> bytes:
     return bytes([KIND_HANGUP]) + cut.encode("utf-8")
 
 
+def _decode_datagram(plaintext: bytes, start: int, end: int) -> Datagram:
+    """The DATAGRAM in ``plaintext[start:end]`` (sliced once: payloads may be 32 KB)."""
+    if end - start < 3:
+        raise ProtocolError("DATAGRAM truncated")
+    flags, name_len = plaintext[start + 1], plaintext[start + 2]
+    if flags & ~FLAG_TEXT:
+        raise ProtocolError(f"DATAGRAM with unknown flags {flags:#x}")
+    name_end = start + 3 + name_len
+    if name_len == 0 or end < name_end:
+        raise ProtocolError("DATAGRAM with a missing or truncated channel name")
+    if end - name_end > MAX_DATAGRAM:
+        raise ProtocolError("DATAGRAM payload over the limit")
+    try:
+        channel = plaintext[start + 3 : name_end].decode("utf-8")
+        if flags & FLAG_TEXT:
+            return Datagram(channel, plaintext[name_end:end].decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ProtocolError("DATAGRAM text is not UTF-8") from exc
+    return Datagram(channel, plaintext[name_end:end])
+
+
+def _decode_bundle(plaintext: bytes) -> Bundle:
+    """The datagrams of a BUNDLE; one bad entry makes the whole BUNDLE malformed."""
+    if len(plaintext) > MAX_BUNDLE:
+        raise ProtocolError("BUNDLE over the limit")
+    datagrams: list[Datagram] = []
+    position, total = 1, len(plaintext)
+    unpack = _BUNDLE_ENTRY.unpack_from
+    while position < total:
+        if total - position < _BUNDLE_ENTRY.size:
+            raise ProtocolError("BUNDLE entry length truncated")
+        (length,) = unpack(plaintext, position)
+        start = position + _BUNDLE_ENTRY.size
+        end = start + length
+        if end > total:
+            raise ProtocolError("BUNDLE entry truncated")
+        if length == 0 or plaintext[start] != KIND_DATAGRAM:
+            raise ProtocolError("BUNDLE entry is not a DATAGRAM")
+        datagrams.append(_decode_datagram(plaintext, start, end))
+        position = end
+    if len(datagrams) < 2:
+        raise ProtocolError("BUNDLE with fewer than two datagrams")
+    return Bundle(datagrams)
+
+
 def decode_message(plaintext: bytes) -> Message:
     """Parse a DATA frame's plaintext; raise ProtocolError when malformed."""
     if not plaintext:
         raise ProtocolError("empty message")
     kind = plaintext[0]
     if kind == KIND_DATAGRAM:
-        if len(plaintext) < 3:
-            raise ProtocolError("DATAGRAM truncated")
-        flags, name_len = plaintext[1], plaintext[2]
-        if flags & ~FLAG_TEXT:
-            raise ProtocolError(f"DATAGRAM with unknown flags {flags:#x}")
-        if name_len == 0 or len(plaintext) < 3 + name_len:
-            raise ProtocolError("DATAGRAM with a missing or truncated channel name")
-        body = plaintext[3 + name_len :]
-        if len(body) > MAX_DATAGRAM:
-            raise ProtocolError("DATAGRAM payload over the limit")
-        try:
-            channel = plaintext[3 : 3 + name_len].decode("utf-8")
-            payload: str | bytes = body.decode("utf-8") if flags & FLAG_TEXT else body
-        except UnicodeDecodeError as exc:
-            raise ProtocolError("DATAGRAM text is not UTF-8") from exc
-        return Datagram(channel, payload)
+        return _decode_datagram(plaintext, 0, len(plaintext))
+    if kind == KIND_BUNDLE:
+        return _decode_bundle(plaintext)
     if kind == KIND_HEARTBEAT:
         if len(plaintext) != _HEARTBEAT.size:
             raise ProtocolError("HEARTBEAT of the wrong size")

@@ -145,6 +145,8 @@ class CallStats:
 
     frames_sent: int = 0
     frames_received: int = 0
+    #: Sealed frames the transport refused to publish (their datagrams are lost).
+    send_failures: int = 0
     #: Frames refused, by reason: "forged" (fails AEAD), "replayed", "malformed".
     rejected: Counter[str] = field(default_factory=Counter)
     #: Latest round-trip time in seconds, from heartbeats (None until measured).

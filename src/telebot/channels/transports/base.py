@@ -48,9 +48,13 @@ class Lane(enum.Enum):
     BULK = "bulk"
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class Sample:
-    """One received frame: the key it was published on and its bytes."""
+    """One received frame: the key it was published on and its bytes.
+
+    Not frozen: one is built for every frame received, and a frozen dataclass takes
+    several times longer to build.
+    """
 
     key: str
     payload: bytes

@@ -61,6 +61,7 @@ __all__ = [
 logger = logging.getLogger("telebot.transport.zenoh")
 
 _T = TypeVar("_T")
+_PUT = zenoh.SampleKind.PUT
 _E = TypeVar("_E", bound="_Entity")
 
 #: Publisher QoS of each lane, as keyword arguments of ``Session.declare_publisher``.
@@ -285,8 +286,12 @@ class ZenohSubscription(_Entity, Subscription):
         self._loop = loop
         self.pattern = pattern
         self._callback = callback
-        # deque(maxlen) drops the oldest by itself; we only count it.
-        self._queue: collections.deque[Sample] = collections.deque(maxlen=queue_size)
+        # A pattern without wildcards is the key of every sample it gets.
+        self._exact = "*" not in pattern
+        # Payloads (exact pattern) or (key, payload) pairs; deque(maxlen) drops the
+        # oldest by itself, we only count it.
+        self._queue: collections.deque[Any] = collections.deque(maxlen=queue_size)
+        self._queue_size = queue_size
         self._drain_scheduled = False
         # Written only by this subscription's zenoh thread; folded into the transport's
         # stats on the loop, so no lock is shared between the two threads.
@@ -297,18 +302,23 @@ class ZenohSubscription(_Entity, Subscription):
         self._raw: zenoh.Subscriber[None] | None = None
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        """zenoh thread: queue the sample, wake the loop once per batch. Never waits.
+        """zenoh thread: queue the payload, wake the loop once per batch. Never waits.
 
         No lock: deque appends and pops are atomic, and the flag is set here and cleared
         by the drain *before* it empties the queue, so a sample appended at any moment
-        is either taken by a drain already running or schedules the next one.
+        is either taken by a drain already running or schedules the next one. This runs
+        for every sample with the GIL held, so it does as little as it can: the key is
+        read only for wildcard patterns, the Sample is built on the loop.
         """
-        if self._closed or sample.kind != zenoh.SampleKind.PUT:
+        if self._closed or sample.kind != _PUT:
             return
         queue = self._queue
-        if len(queue) == queue.maxlen:
+        if len(queue) == self._queue_size:
             self._dropped += 1
-        queue.append(Sample(str(sample.key_expr), sample.payload.to_bytes()))
+        if self._exact:
+            queue.append(sample.payload.to_bytes())
+        else:
+            queue.append((str(sample.key_expr), sample.payload.to_bytes()))
         self._received += 1
         if not self._drain_scheduled:
             self._drain_scheduled = True
@@ -319,7 +329,12 @@ class ZenohSubscription(_Entity, Subscription):
         self._drain_scheduled = False
         queue = self._queue
         pop = queue.popleft
-        batch = [pop() for _ in range(len(queue))]
+        count = len(queue)
+        if self._exact:
+            key = self.pattern
+            batch = [Sample(key, pop()) for _ in range(count)]
+        else:
+            batch = [Sample(*pop()) for _ in range(count)]
         self._report()
         if self._closed or not batch:
             return
