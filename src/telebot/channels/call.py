@@ -216,20 +216,21 @@ class Call:
     def send_plaintext(self, plaintext: bytes, lane: Lane) -> None:
         """Seal the DATAGRAM ``plaintext`` into a DATA frame and publish it on ``lane``.
 
-        CONTROL datagrams (a stop) go out at once. DATA and BULK ones go out at the end
-        of the current event-loop turn, all those of one lane in one frame: a burst of
-        small datagrams then costs one seal and one publish instead of one each, and
-        none waits longer than the code that sent it keeps the loop busy.
+        CONTROL datagrams (a stop) go out at once, one frame each. So does the first
+        DATA or BULK datagram of an event-loop turn; the ones that follow it in the same
+        turn are gathered and go out at the end of the turn, all those of one lane in
+        one BUNDLE frame. A lone datagram therefore waits for nothing, and a burst of
+        small ones costs one seal and one publish instead of one each.
         """
         outbox = self._outboxes.get(lane)
-        if outbox is None:
+        if outbox is None or self._flush_handle is None:
             self._put(self._session.seal(plaintext), lane)
+            if outbox is not None:  # this turn has begun sending: gather what follows
+                self._flush_handle = self._loop.call_soon(self._flush)
             return
         full = outbox.add(plaintext)
         if full is not None:
             self._put(self._session.seal(full), lane)
-        if self._flush_handle is None:
-            self._flush_handle = self._loop.call_soon(self._flush)
 
     def _flush(self) -> None:
         """Send what the outboxes gathered (loop callback, and before a hang-up)."""

@@ -5,21 +5,26 @@ find each other by multicast scouting. Client mode with ``connect`` endpoints re
 robots across networks through zenoh routers (TLS and ACL come from ``config_file`` or
 ``options``).
 
-Threading. zenoh-python runs every Python callback on a thread of its own: by default
-one ``pyo3-closure`` Python thread per declaration, fed by zenoh's network threads
-through a small bounded channel (about 256 samples in 1.10). A callback that blocks
-therefore stalls the receive path of the whole session, for every key, once that
-channel is full. Our callbacks only append to a bounded deque under a lock and, at most
-once per batch, wake the event loop with ``call_soon_threadsafe``; everything else
-happens on the loop. A slow consumer therefore costs dropped samples (oldest first,
-counted in ``stats.dropped``), never a stalled zenoh thread.
+Threading. A subscription is declared with a bounded zenoh FIFO channel (256 samples,
+the size zenoh-python gives its own callback channel) and has one daemon reader thread.
+The reader waits in ``recv()`` with the GIL released; when samples come it takes every
+one already waiting under a single hold of the GIL, appends the payloads to a bounded
+deque and wakes the event loop once with ``call_soon_threadsafe``; everything else
+happens on the loop. A callback per sample (zenoh's default) takes the GIL once per
+sample, and a burst then costs a GIL hand-over between zenoh's thread and the loop
+for every few samples; batching the hand-over is what lets the loop keep up with a
+flood. The reader never waits on anything but the GIL, so a slow consumer costs
+dropped samples (oldest first, counted in ``stats.dropped``), never a stalled zenoh
+thread.
 
-Lifetime. Callback subscribers are declared in zenoh's "background" mode: dropping the
-Python object does *not* undeclare them, and their ``pyo3-closure`` thread is not a
-daemon thread, so a subscriber that is never undeclared keeps the interpreter from
-exiting. Liveliness tokens and publishers, on the contrary, *are* undeclared when the
-Python object is garbage collected. The transport therefore keeps a reference to every
-entity it declared and undeclares them all in :meth:`ZenohTransport.close`.
+Lifetime. Presence watches use callbacks, declared in zenoh's "background" mode:
+dropping the Python object does *not* undeclare them, and their ``pyo3-closure`` thread
+is not a daemon thread, so a watch that is never undeclared keeps the interpreter from
+exiting. Subscribers, liveliness tokens and publishers, on the contrary, *are*
+undeclared when the Python object is garbage collected. The transport therefore keeps
+a reference to every entity it declared and undeclares them all in
+:meth:`ZenohTransport.close`; undeclaring a subscriber closes its channel, which ends
+its reader thread.
 """
 
 from __future__ import annotations
@@ -62,6 +67,11 @@ logger = logging.getLogger("telebot.transport.zenoh")
 
 _T = TypeVar("_T")
 _PUT = zenoh.SampleKind.PUT
+#: Samples zenoh may hold for a subscription's reader thread (zenoh's own default for
+#: callbacks). Larger ones hold more shared-memory buffers and can starve a publisher.
+_ZENOH_CHANNEL_SIZE = 256
+#: A reader thread wakes the loop at least this often during a long burst.
+_READ_BATCH = 256
 _E = TypeVar("_E", bound="_Entity")
 
 #: Publisher QoS of each lane, as keyword arguments of ``Session.declare_publisher``.
@@ -270,8 +280,8 @@ class ZenohPublisher(_Entity, Publisher):
 class ZenohSubscription(_Entity, Subscription):
     """Delivers matching samples to a callback on the loop, in batches.
 
-    zenoh's thread appends to a bounded deque and schedules one drain per batch; the
-    drain, on the loop, hands everything queued to the callback in one call.
+    The reader thread appends to a bounded deque and schedules one drain per batch;
+    the drain, on the loop, hands everything queued to the callback in one call.
     """
 
     def __init__(
@@ -299,27 +309,43 @@ class ZenohSubscription(_Entity, Subscription):
         self._dropped = 0
         self._reported = (0, 0)
         self._closed = False
-        self._raw: zenoh.Subscriber[None] | None = None
+        self._raw: zenoh.Subscriber[zenoh.handlers.Handler[zenoh.Sample]] | None = None
 
-    def _on_sample(self, sample: zenoh.Sample) -> None:
-        """zenoh thread: queue the payload, wake the loop once per batch. Never waits.
+    def _read(self, handler: Any) -> None:
+        """Reader thread: move samples from zenoh's channel to the queue, in batches.
 
-        No lock: deque appends and pops are atomic, and the flag is set here and cleared
-        by the drain *before* it empties the queue, so a sample appended at any moment
-        is either taken by a drain already running or schedules the next one. This runs
-        for every sample with the GIL held, so it does as little as it can: the key is
-        read only for wildcard patterns, the Sample is built on the loop.
+        ``recv()`` waits with the GIL released; once a sample is there, every sample
+        already waiting is taken with ``try_recv()`` under one hold of the GIL, and the
+        loop is woken once for all of them. No lock: deque appends and pops are atomic,
+        and the flag is set here and cleared by the drain *before* it empties the
+        queue, so a sample appended at any moment is either taken by a drain already
+        running or schedules the next one. Ends when the subscriber is undeclared.
         """
-        if self._closed or sample.kind != _PUT:
-            return
-        queue = self._queue
-        if len(queue) == self._queue_size:
-            self._dropped += 1
-        if self._exact:
-            queue.append(sample.payload.to_bytes())
-        else:
-            queue.append((str(sample.key_expr), sample.payload.to_bytes()))
-        self._received += 1
+        recv, try_recv = handler.recv, handler.try_recv
+        queue, exact = self._queue, self._exact
+        while True:
+            try:
+                sample = recv()
+            except zenoh.ZError:  # "channel is empty and closed": undeclared
+                return
+            taken = 0
+            while sample is not None:
+                if sample.kind == _PUT and not self._closed:
+                    if len(queue) == self._queue_size:
+                        self._dropped += 1
+                    payload = sample.payload.to_bytes()
+                    queue.append(payload if exact else (str(sample.key_expr), payload))
+                    taken += 1
+                    if taken % _READ_BATCH == 0:  # a long burst: let the loop start on it
+                        self._received += _READ_BATCH
+                        self._wake()
+                sample = try_recv()
+            self._received += taken % _READ_BATCH
+            if taken:
+                self._wake()
+
+    def _wake(self) -> None:
+        """Reader thread: schedule one drain on the loop unless one is pending."""
         if not self._drain_scheduled:
             self._drain_scheduled = True
             _call_soon(self._loop, self._drain)
@@ -527,9 +553,17 @@ class ZenohTransport(Transport):
         assert self._loop is not None
         sub = ZenohSubscription(self, self._loop, pattern, callback, self.settings.queue_size)
         try:
-            sub._raw = session.declare_subscriber(pattern, sub._on_sample)
+            raw = session.declare_subscriber(
+                pattern, zenoh.handlers.FifoChannel(_ZENOH_CHANNEL_SIZE)
+            )
         except zenoh.ZError as exc:
             raise TransportError(f"cannot subscribe to {pattern!r}: {_reason(exc)}") from exc
+        sub._raw = raw
+        # The reader waits on the subscriber's handler, not on the subscriber: undeclaring
+        # the subscriber while another thread waits in its recv() fails in zenoh-python.
+        threading.Thread(
+            target=sub._read, args=(raw.handler,), name=f"zenoh-sub {pattern}", daemon=True
+        ).start()
         return self._remember(sub)
 
     def declare_presence(self, key: str) -> ZenohPresence:
