@@ -386,6 +386,31 @@ async def test_closed_subscription_gets_nothing(
     assert inbox.batches == []
 
 
+def reader_threads(key: str) -> list[threading.Thread]:
+    """The transport's reader threads for subscriptions on ``key``."""
+    return [t for t in threading.enumerate() if t.name == f"zenoh-sub {key}"]
+
+
+async def test_each_subscription_has_one_reader_thread_that_ends_with_it(
+    pair: tuple[ZenohTransport, ZenohTransport],
+) -> None:
+    listener, connector = pair
+    key, other = f"test/{uuid.uuid4().hex}/in", f"test/{uuid.uuid4().hex}/in"
+    inbox = Inbox()
+    subscription = listener.subscribe(key, inbox)
+    listener.subscribe(other, Inbox())
+    await warm_up(connector.publisher(key).put, inbox)
+    (reader,) = reader_threads(key)
+    assert reader.daemon and reader.is_alive() and len(reader_threads(other)) == 1
+    subscription.close()
+    await asyncio.to_thread(reader.join, 2.0)
+    assert not reader.is_alive()  # undeclaring closed zenoh's channel, which ends it
+    (remaining,) = reader_threads(other)
+    await listener.close()  # closing the transport ends the others
+    await asyncio.to_thread(remaining.join, 2.0)
+    assert not remaining.is_alive()
+
+
 async def test_callback_error_is_logged_and_delivery_goes_on(
     pair: tuple[ZenohTransport, ZenohTransport], caplog: pytest.LogCaptureFixture
 ) -> None:
