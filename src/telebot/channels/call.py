@@ -119,8 +119,8 @@ class Call:
         self.role = role
         self._peer_inbox = peer_inbox
         self._publishers: dict[Lane, Publisher] = {}
-        # DATA and BULK datagrams wait here until the end of the loop turn they were
-        # sent in, then go out together (one BUNDLE frame: one seal, one publish).
+        # DATA and BULK datagrams sent after the first of a loop turn wait here until
+        # the end of that turn, then go out together (one BUNDLE: one seal, one publish).
         self._outboxes: dict[Lane, Coalescer] = {Lane.DATA: Coalescer(), Lane.BULK: Coalescer()}
         self._flush_handle: asyncio.Handle | None = None
         self._channels: dict[str, Channel] = {}
@@ -238,8 +238,8 @@ class Call:
             self._flush_handle.cancel()
             self._flush_handle = None
         for lane, outbox in self._outboxes.items():
-            message = outbox.take()
-            if message is None or self.end is not None:
+            message = outbox.take()  # (an ended call emptied them and cancelled this)
+            if message is None:
                 continue
             try:
                 self._put(self._session.seal(message), lane)
