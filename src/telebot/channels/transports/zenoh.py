@@ -301,7 +301,6 @@ class ZenohSubscription(_Entity, Subscription):
         # Payloads (exact pattern) or (key, payload) pairs; deque(maxlen) drops the
         # oldest by itself, we only count it.
         self._queue: collections.deque[Any] = collections.deque(maxlen=queue_size)
-        self._queue_size = queue_size
         self._drain_scheduled = False
         # Written only by this subscription's zenoh thread; folded into the transport's
         # stats on the loop, so no lock is shared between the two threads.
@@ -331,16 +330,17 @@ class ZenohSubscription(_Entity, Subscription):
             taken = 0
             while sample is not None:
                 if sample.kind == _PUT and not self._closed:
-                    if len(queue) == self._queue_size:
+                    if len(queue) == queue.maxlen:
                         self._dropped += 1
                     payload = sample.payload.to_bytes()
                     queue.append(payload if exact else (str(sample.key_expr), payload))
                     taken += 1
-                    if taken % _READ_BATCH == 0:  # a long burst: let the loop start on it
-                        self._received += _READ_BATCH
+                    if taken == _READ_BATCH:  # a long burst: let the loop start on it
+                        self._received += taken
+                        taken = 0
                         self._wake()
                 sample = try_recv()
-            self._received += taken % _READ_BATCH
+            self._received += taken
             if taken:
                 self._wake()
 
