@@ -11,15 +11,18 @@ B. telebot throughput. The same flood through an authenticated call: this proces
    a DATA-lane channel from asyncio (yielding to the loop every ``YIELD_EVERY`` sends, so
    heartbeats still flow); the child counts what reaches the channel's asyncio callback.
 C. Round trip of 64 B, one ping in flight, ``WARMUP_PINGS`` then ``PINGS`` measured.
-   Raw: the child's subscriber callback re-publishes each ping; here the pong
-   subscriber hands the reply to the event loop with ``call_soon_threadsafe`` and the
-   loop awaits it before the next ping. telebot: the child robot echoes on a channel
-   and this process awaits each echo in asyncio.
+   Raw zenoh bridged into asyncio at both ends, as telebot is: the child's subscriber
+   callback hands each ping to its event loop with ``call_soon_threadsafe``, the loop
+   re-publishes it; here the pong subscriber hands the reply to this process's loop
+   the same way, and the loop awaits it before the next ping. telebot: the child robot
+   echoes on a channel from its loop and this process awaits each echo in asyncio.
+   The pings of all three kinds (with the informational one below) alternate in
+   ``PING_ROUNDS`` rounds, so the load of a shared machine falls on them alike.
 
 Two informational measurements help to tell where telebot's time goes: the flood of A
 received by a bare ``ZenohTransport.subscribe`` (zenoh thread -> bounded queue ->
-asyncio batch callback, no call, no crypto), and the raw ping-pong with the echo also
-answered from an asyncio loop, as telebot's robot does.
+asyncio batch callback, no call, no crypto), and a third ping-pong, raw with the echo
+answered straight from the child's zenoh callback (no loop on that side).
 
 Both processes run zenoh in peer mode over TCP on 127.0.0.1 with multicast scouting
 off: the child listens on a free port, this process connects. The receiver's count is
@@ -66,10 +69,10 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Coroutine, Sequence
+from collections.abc import Callable, Coroutine, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Generic, NamedTuple, TypeVar
 
 import zenoh
 
@@ -89,6 +92,8 @@ CHECK_CLOCK_EVERY = 32  # the raw sender reads the clock after this many puts
 PING_SIZE = 64
 WARMUP_PINGS = 100
 PINGS = 2000
+PING_ROUNDS = 10  # the measured pings of each kind come in this many alternating rounds
+assert PINGS % PING_ROUNDS == 0, "every round has as many pings"
 PING_TIMEOUT = 1.0  # a ping without reply after this long counts as lost
 
 ROBOT = "benchbot"
@@ -96,7 +101,7 @@ USER = "benchuser"
 RAW_DATA_KEY = "bench/raw/data"
 RAW_PING_KEY = "bench/raw/ping"
 RAW_PONG_KEY = "bench/raw/pong"
-RAW_LOOP_PING_KEY = "bench/raw/loop-ping"  # echoed from an asyncio loop (informational)
+RAW_LOOP_PING_KEY = "bench/raw/loop-ping"  # echoed from an asyncio loop: C's baseline
 RAW_LOOP_PONG_KEY = "bench/raw/loop-pong"
 PING_CHANNEL = "ping"
 DATA_QOS: dict[str, Any] = LANE_QOS[Lane.DATA]
@@ -109,6 +114,7 @@ _SEQ = struct.Struct(">I")
 PAYLOADS: dict[int, bytes] = {size: os.urandom(size) for size in SIZES}
 
 Counters = dict[str, int]
+_T = TypeVar("_T")
 
 
 # -- shared helpers ---------------------------------------------------------------------
@@ -418,6 +424,18 @@ class Pings:
     def p(self, q: float) -> float:
         return percentile(self.rtts_us, q)
 
+    def add(self, other: Pings) -> None:
+        self.rtts_us += other.rtts_us
+        self.lost += other.lost
+
+
+class RoundTrips(NamedTuple, Generic[_T]):
+    """One value per kind of ping in C."""
+
+    raw: _T  # raw zenoh, bridged into asyncio at both ends: the baseline
+    raw_callback: _T  # raw zenoh, echoed from the child's zenoh callback (info)
+    telebot: _T
+
 
 async def await_route(send: Callable[[], None], child: Child, timeout: float = 10.0) -> None:
     """Send until something arrives, let it drain, zero the counters: set-up is over."""
@@ -466,9 +484,13 @@ def raw_floods(child: Child, port: int) -> dict[int, Flood]:
 
 
 class Pinger:
-    """Sends pings one at a time; ``on_reply(seq)`` (on the loop) completes the current one."""
+    """Sends pings one at a time; ``on_reply(seq)`` (on the loop) completes the current one.
+
+    Sequence numbers go on across runs, so a late reply never completes a later ping.
+    """
 
     def __init__(self) -> None:
+        self._seq = 0
         self._waiting: tuple[int, asyncio.Future[None]] | None = None
 
     def on_reply(self, seq: int) -> None:
@@ -476,11 +498,11 @@ class Pinger:
         if waiting is not None and waiting[0] == seq and not waiting[1].done():
             waiting[1].set_result(None)
 
-    async def run(self, send: Callable[[bytes], None]) -> Pings:
+    async def run(self, send: Callable[[bytes], None], count: int) -> Pings:
+        """Send ``count`` pings, each after the reply to the last (or its timeout)."""
         loop = asyncio.get_running_loop()
-        rtts: list[float] = []
-        lost = 0
-        for seq in range(WARMUP_PINGS + PINGS):
+        pings = Pings([], 0)
+        for seq in range(self._seq, self._seq + count):
             future: asyncio.Future[None] = loop.create_future()
             self._waiting = (seq, future)
             payload = ping_payload(seq)
@@ -489,18 +511,20 @@ class Pinger:
             try:
                 await asyncio.wait_for(future, PING_TIMEOUT)
             except TimeoutError:
-                lost += seq >= WARMUP_PINGS
+                pings.lost += 1
                 continue
-            if seq >= WARMUP_PINGS:
-                rtts.append((time.perf_counter_ns() - start) / 1000)
+            pings.rtts_us.append((time.perf_counter_ns() - start) / 1000)
+        self._seq += count
         self._waiting = None
-        return Pings(rtts, lost)
+        return pings
 
 
-async def raw_pings(session: Any, ping_key: str, pong_key: str) -> Pings:
+@contextlib.contextmanager
+def raw_ping_route(
+    session: Any, ping_key: str, pong_key: str, pinger: Pinger
+) -> Iterator[Callable[[bytes], None]]:
     """C, raw: replies reach the loop from zenoh's thread by ``call_soon_threadsafe``."""
     loop = asyncio.get_running_loop()
-    pinger = Pinger()
 
     def on_pong(sample: Any) -> None:
         (seq,) = _SEQ.unpack_from(sample.payload.to_bytes())
@@ -509,25 +533,59 @@ async def raw_pings(session: Any, ping_key: str, pong_key: str) -> Pings:
     subscriber = session.declare_subscriber(pong_key, on_pong)
     publisher = session.declare_publisher(ping_key, **DATA_QOS)
     try:
-        await asyncio.sleep(SETTLE)  # let the subscription reach the child
-        return await pinger.run(publisher.put)
+        yield publisher.put
     finally:
         subscriber.undeclare()
         publisher.undeclare()
 
 
-def measure_raw() -> tuple[dict[int, Flood], Pings, Pings]:
-    """A and raw C, plus the informational ping echoed from an asyncio loop."""
+@contextlib.contextmanager
+def telebot_ping_route(call: Call, pinger: Pinger) -> Iterator[Callable[[bytes], None]]:
+    """C, telebot: ping on a channel; the child robot echoes every datagram."""
+    channel = call.channel(PING_CHANNEL)
+
+    def on_echo(datagram: ReceivedDatagram) -> None:
+        assert isinstance(datagram.payload, bytes)
+        pinger.on_reply(_SEQ.unpack_from(datagram.payload)[0])
+
+    channel.set_callback(on_echo)
+    try:
+        yield channel.send
+    finally:
+        channel.set_callback(None)
+
+
+async def round_trips(call: Call, raw_session: Any) -> RoundTrips[Pings]:
+    """C: the three kinds of ping, warmed up, then alternating in ``PING_ROUNDS`` rounds."""
+    pingers = RoundTrips(Pinger(), Pinger(), Pinger())
+    with contextlib.ExitStack() as routes:
+        sends = RoundTrips(
+            routes.enter_context(
+                raw_ping_route(raw_session, RAW_LOOP_PING_KEY, RAW_LOOP_PONG_KEY, pingers.raw)
+            ),
+            routes.enter_context(
+                raw_ping_route(raw_session, RAW_PING_KEY, RAW_PONG_KEY, pingers.raw_callback)
+            ),
+            routes.enter_context(telebot_ping_route(call, pingers.telebot)),
+        )
+        await asyncio.sleep(SETTLE)  # let the raw subscriptions reach the child
+        for pinger, send in zip(pingers, sends, strict=True):
+            await pinger.run(send, WARMUP_PINGS)
+        results = RoundTrips(Pings([], 0), Pings([], 0), Pings([], 0))
+        for _ in range(PING_ROUNDS):
+            for pinger, send, pings in zip(pingers, sends, results, strict=True):
+                pings.add(await pinger.run(send, PINGS // PING_ROUNDS))
+    return results
+
+
+def measure_raw() -> dict[int, Flood]:
+    """A: raw floods into a raw child."""
     port = free_port()
     child = Child(["raw", str(port)])
     try:
-        floods = raw_floods(child, port)
-        with contextlib.closing(open_session(connect_settings(port))) as session:
-            pings = asyncio.run(raw_pings(session, RAW_PING_KEY, RAW_PONG_KEY))
-            loop_pings = asyncio.run(raw_pings(session, RAW_LOOP_PING_KEY, RAW_LOOP_PONG_KEY))
+        return raw_floods(child, port)
     finally:
         child.close()
-    return floods, pings, loop_pings
 
 
 def measure_transport() -> dict[int, Flood]:
@@ -561,25 +619,9 @@ async def telebot_flood(call: Call, child: Child, size: int) -> Flood:
     return flood
 
 
-async def telebot_pings(call: Call) -> Pings:
-    """C, telebot: ping on a channel; the child robot echoes every datagram."""
-    channel = call.channel(PING_CHANNEL)
-    pinger = Pinger()
-
-    def on_echo(datagram: ReceivedDatagram) -> None:
-        assert isinstance(datagram.payload, bytes)
-        pinger.on_reply(_SEQ.unpack_from(datagram.payload)[0])
-
-    channel.set_callback(on_echo)
-    try:
-        return await pinger.run(channel.send)
-    finally:
-        channel.set_callback(None)
-
-
 async def telebot_measurements(
-    port: int, user_home: Path, child: Child
-) -> tuple[dict[int, Flood], Pings]:
+    port: int, user_home: Path, child: Child, raw_port: int
+) -> tuple[dict[int, Flood], RoundTrips[Pings]]:
     identity = Identity.load(user_home)
     known = KnownRobots.load(user_home)
     async with (
@@ -589,23 +631,27 @@ async def telebot_measurements(
         call = await user.call(ROBOT, timeout=10.0)
         try:
             floods = {size: await telebot_flood(call, child, size) for size in SIZES}
-            pings = await telebot_pings(call)
+            raw_session = await asyncio.to_thread(open_session, connect_settings(raw_port))
+            try:
+                pings = await round_trips(call, raw_session)
+            finally:
+                await asyncio.to_thread(raw_session.close)
         finally:
             await call.hangup("benchmark done")
     return floods, pings
 
 
-def measure_telebot(profile: bool) -> tuple[dict[int, Flood], Pings]:
-    """B and telebot C against one robot child, with keys in a temporary directory."""
+def measure_telebot(profile: bool) -> tuple[dict[int, Flood], RoundTrips[Pings]]:
+    """B against a robot child, then C against it and a raw echo child side by side."""
     with tempfile.TemporaryDirectory(prefix="telebot-bench-") as tmp:
         create_paired_homes(Path(tmp), ROBOT, USER)
         robot_home, user_home = Path(tmp) / "robot", Path(tmp) / "user"
-        port = free_port()
-        child = Child(["telebot", str(port), str(robot_home)], profile=profile)
-        try:
-            return asyncio.run(telebot_measurements(port, user_home, child))
-        finally:
-            child.close()
+        port, raw_port = free_port(), free_port()
+        with contextlib.ExitStack() as children:
+            child = Child(["telebot", str(port), str(robot_home)], profile=profile)
+            children.callback(child.close)
+            children.callback(Child(["raw", str(raw_port)]).close)
+            return asyncio.run(telebot_measurements(port, user_home, child, raw_port))
 
 
 # -- report -----------------------------------------------------------------------------
@@ -616,9 +662,7 @@ class Results:
     raw: dict[int, Flood]
     transport: dict[int, Flood]
     telebot: dict[int, Flood]
-    raw_pings: Pings
-    raw_loop_pings: Pings
-    telebot_pings: Pings
+    pings: RoundTrips[Pings]
 
 
 def verdict(ok: bool) -> str:
@@ -669,22 +713,25 @@ def report(res: Results, elapsed: float) -> list[str]:
         "(a BUNDLE frame carries many datagrams); "
         "q.drop: dropped by the transport's bounded queue (the loop fell behind)",
         "",
-        f"C. Round trip: {PING_SIZE} B, one in flight, {PINGS} pings after {WARMUP_PINGS} warm-up",
+        f"C. Round trip: {PING_SIZE} B, one in flight, {PINGS} pings after {WARMUP_PINGS} "
+        f"warm-up, in {PING_ROUNDS} alternating rounds",
         f"{'':>4} | {'raw µs':>9} | {'telebot µs':>10} | {'ratio':>6}  target "
-        f"| {'raw, echo via loop (info)':>25}",
+        f"| {'raw, echo in callback (info)':>28}",
     ]
+    pings = res.pings
     rtt_ratios: dict[str, float] = {}
     for name, q in (("p50", 50.0), ("p99", 99.0)):
-        raw_us, tb_us = res.raw_pings.p(q), res.telebot_pings.p(q)
+        raw_us, tb_us = pings.raw.p(q), pings.telebot.p(q)
         rtt_ratios[name] = ratio = tb_us / raw_us
         target = RTT_TARGETS[name]
         lines.append(
             f"{name:>4} | {raw_us:>9.1f} | {tb_us:>10.1f} | {ratio:>6.3f}  "
-            f"<= {target:.1f} {verdict(ratio <= target)} | {res.raw_loop_pings.p(q):>22.1f} µs"
+            f"<= {target:.1f} {verdict(ratio <= target)} | {pings.raw_callback.p(q):>25.1f} µs"
         )
     lines += [
-        f"lost pings: raw {res.raw_pings.lost}, telebot {res.telebot_pings.lost}, "
-        f"raw via loop {res.raw_loop_pings.lost}",
+        "  raw: zenoh bridged into asyncio at both ends (call_soon_threadsafe), as telebot is",
+        f"lost pings: raw {pings.raw.lost}, telebot {pings.telebot.lost}, "
+        f"raw echo in callback {pings.raw_callback.lost}",
         f"(took {elapsed:.1f} s)",
         f"RESULT ratio_64={ratios[64]:.3f} ratio_1k={ratios[1024]:.3f} "
         f"ratio_32k={ratios[32768]:.3f} rtt_p50_ratio={rtt_ratios['p50']:.3f} "
@@ -704,13 +751,13 @@ def main() -> None:
         run_child(args.child, args.profile)
         return
     started = time.monotonic()
-    print("raw zenoh: floods and pings ...", flush=True)
-    raw, raw_pings_, raw_loop_pings = measure_raw()
+    print("raw zenoh: floods ...", flush=True)
+    raw = measure_raw()
     print("zenoh transport only: floods ...", flush=True)
     transport = measure_transport()
-    print("telebot call: floods and pings ...", flush=True)
-    telebot, telebot_pings_ = measure_telebot(args.profile)
-    results = Results(raw, transport, telebot, raw_pings_, raw_loop_pings, telebot_pings_)
+    print("telebot call: floods, then pings alternating with raw zenoh ...", flush=True)
+    telebot, pings = measure_telebot(args.profile)
+    results = Results(raw, transport, telebot, pings)
     print("\n".join(report(results, time.monotonic() - started)))
 
 

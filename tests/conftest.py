@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import queue
@@ -11,14 +12,24 @@ import socket
 import subprocess
 import sys
 import threading
-from collections.abc import AsyncIterator, Iterator
+import time
+from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import pytest
+from hypothesis import settings
 
+from telebot.channels.call import RobotEndpoint, UserEndpoint
+from telebot.channels.transports.memory import MemoryHub, MemoryTransport
+from telebot.config import CallSettings
 from telebot.identity import ContactBook, Identity, KnownRobots, create_paired_homes
+
+# No per-example time limit: on a shared 2-core machine one preempted example would fail
+# a property test ("DeadlineExceeded") for no fault of the code. Speed is the benchmarks'.
+settings.register_profile("telebot", deadline=None)
+settings.load_profile("telebot")
 
 ROBOT = "guiabot"
 USER = "alice"
@@ -29,6 +40,18 @@ def free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         return int(sock.getsockname()[1])
+
+
+async def wait_until(condition: Callable[[], bool], timeout: float = 5.0) -> None:
+    """Wait until ``condition()`` holds, checking every 10 ms; AssertionError after ``timeout``.
+
+    Waiting on the condition itself, never a fixed sleep: a loaded machine is slow.
+    """
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"condition not met within {timeout} s")
+        await asyncio.sleep(0.01)
 
 
 @dataclass
@@ -54,6 +77,20 @@ def homes(tmp_path: Path) -> Homes:
     robot, user = create_paired_homes(tmp_path, ROBOT, USER)
     robot_home, user_home = tmp_path / "robot", tmp_path / "user"
     return Homes(robot_home, user_home, robot, user)
+
+
+@contextlib.asynccontextmanager
+async def memory_endpoints(
+    homes: Homes, hub: MemoryHub, settings: CallSettings | None = None
+) -> AsyncIterator[tuple[RobotEndpoint, UserEndpoint]]:
+    """The robot's and the user's endpoints on ``hub`` (nodes "robot" and "user"), started."""
+    async with (
+        MemoryTransport(hub, "robot") as robot_transport,
+        MemoryTransport(hub, "user") as user_transport,
+        RobotEndpoint(robot_transport, homes.robot, homes.contacts, settings=settings) as robot,
+        UserEndpoint(user_transport, homes.user, homes.known, settings=settings) as user,
+    ):
+        yield robot, user
 
 
 def write_config(path: Path, *, lease_ms: int | None = None, timeout: float | None = None) -> Path:

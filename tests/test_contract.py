@@ -16,7 +16,7 @@ from typing import Any
 
 import pytest
 
-from conftest import ROBOT, USER, Homes, Process, free_port, write_config
+from conftest import ROBOT, USER, Homes, Process, free_port, memory_endpoints, write_config
 from telebot.apps.echo import STATS_CHANNEL, echo_call
 from telebot.channels.call import Call, RobotEndpoint, UserEndpoint
 from telebot.channels.channel import Channel
@@ -24,7 +24,7 @@ from telebot.channels.proto.frames import MAX_DATAGRAM
 from telebot.channels.transports import Lane, Sample, Transport
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.config import CallSettings, ZenohSettings
-from telebot.errors import CallEnded, CallRejected, CallTimeout, DatagramTooLarge
+from telebot.errors import CallEnded, CallError, CallRejected, CallTimeout, DatagramTooLarge
 from telebot.identity import Identity, KnownRobots
 
 
@@ -378,3 +378,53 @@ async def test_datagrams_sent_before_a_hangup_go_out_before_it(peer: Peer) -> No
         assert call.stats.frames_sent - frames_before == 3
         await asyncio.sleep(0.05)
         assert call.stats.frames_sent - frames_before == 3  # nothing left to flush
+
+
+# --- closing (memory only: the test needs the robot endpoint in this process) ---------
+
+
+async def test_a_closing_robot_hangs_up_and_refuses_new_calls_with_a_reason(homes: Homes) -> None:
+    async with memory_endpoints(homes, MemoryHub(seed=2)) as (robot, user):
+        robot.on_call = lambda call: echo_call(call, robot, lambda event: None)
+        first = await user.call(ROBOT)
+        closing = asyncio.create_task(robot.close())
+        await asyncio.sleep(0)  # close has hung up and waits before going offline
+        assert not closing.done()
+        end = await asyncio.wait_for(first.wait_ended(), 5)
+        assert (end.kind, end.by_peer, end.detail) == ("hung_up", True, "shutting down")
+        # A call made now would outlive the robot's endpoint: it is refused, with a reason.
+        with pytest.raises(CallRejected, match=f"{ROBOT} is shutting down"):
+            await user.call(ROBOT, timeout=5)
+        await closing
+        assert robot.calls == [] and robot.stats.rejected["closing"] == 1
+
+
+async def test_a_cancelled_close_still_takes_the_robot_offline(homes: Homes) -> None:
+    async with memory_endpoints(homes, MemoryHub(seed=2)) as (robot, user):
+        robot.on_call = lambda call: echo_call(call, robot, lambda event: None)
+        assert [p.name for p in await user.robots_online(wait=0.1)] == [ROBOT]
+        call = await user.call(ROBOT)
+        closing = asyncio.create_task(robot.close())
+        await asyncio.sleep(0)
+        closing.cancel()  # e.g. the task running close is cancelled during the pause
+        with pytest.raises(asyncio.CancelledError):
+            await closing
+        end = await asyncio.wait_for(call.wait_ended(), 5)
+        assert end.kind == "hung_up"
+        assert await user.robots_online(wait=0.1) == []
+
+
+async def test_closing_a_user_endpoint_fails_a_call_being_set_up_and_later_calls(
+    homes: Homes,
+) -> None:
+    hub = MemoryHub(seed=2)
+    async with memory_endpoints(homes, hub) as (robot, user):
+        robot.on_call = lambda call: echo_call(call, robot, lambda event: None)
+        hub.link("robot", "user").loss = 1.0  # the robot's answers never arrive
+        calling = asyncio.create_task(user.call(ROBOT, timeout=30))
+        await asyncio.sleep(0.1)
+        await user.close()
+        with pytest.raises(CallError, match="closed while calling"):
+            await asyncio.wait_for(calling, 1)  # at once, not after the 30 s timeout
+        with pytest.raises(CallError, match="closed"):
+            await user.call(ROBOT)

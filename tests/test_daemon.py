@@ -185,11 +185,10 @@ async def test_goto_a_place_arrives_and_where_reports_the_pose(robot: RobotClien
     where = await robot.chat("where?")
     assert where.ok
     assert f"x {x:.2f} m" in where.final_text or abs(float(where.final_text.split()[1]) - x) < 0.05
-    assert (
-        "heading 90°" in where.final_text
-        or "heading 89°" in where.final_text
-        or "heading 91°" in where.final_text
-    )
+    # room-b faces 90°; the controller stops within its yaw tolerance (2°), and the
+    # reply rounds to whole degrees.
+    heading = float(where.final_text.rsplit("heading", 1)[1].strip().rstrip("°"))
+    assert abs(heading - 90.0) <= 3.0
     back = await robot.chat("goto start", timeout=60)
     assert back.ok
 

@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import ROBOT, Homes
-from telebot.channels.call import Call, RobotEndpoint, UserEndpoint
-from telebot.channels.transports.memory import MemoryHub, MemoryTransport
+from conftest import ROBOT, Homes, memory_endpoints
+from telebot.channels.call import Call
+from telebot.channels.transports.memory import MemoryHub
 from telebot.config import CallSettings
 from telebot.errors import CallEnded, ProtocolError
 from telebot.robot.grid import OccupancyGrid
@@ -68,14 +68,7 @@ async def linked(
     """A robot and a user on one memory hub, in a call; the robot serves ``encoded``."""
     hub = MemoryHub(seed=21)
     robot = Robot(encoded, chunk_size)
-    async with (
-        MemoryTransport(hub, "robot") as robot_transport,
-        MemoryTransport(hub, "user") as user_transport,
-        RobotEndpoint(
-            robot_transport, homes.robot, homes.contacts, settings=settings
-        ) as robot_endpoint,
-        UserEndpoint(user_transport, homes.user, homes.known, settings=settings) as user,
-    ):
+    async with memory_endpoints(homes, hub, settings) as (robot_endpoint, user):
         robot_endpoint.on_call = robot.on_call
         call = await user.call(ROBOT)
         try:

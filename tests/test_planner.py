@@ -414,3 +414,23 @@ def test_building_plans_between_far_corners_and_to_every_place() -> None:
     for goal in free[1:]:
         path = costmap.plan(home, goal)
         assert_collision_free(costmap, path)
+
+
+def test_touching_a_wall_is_exact_geometry_where_is_free_keeps_a_margin() -> None:
+    costmap = Costmap.from_grid(grid_of(room()), RADIUS)
+    # The floor starts at y = 0.7: a centre closer than the radius to it touches.
+    x = 3.0
+    assert costmap.touches_wall(x, 0.7 + RADIUS - 0.01)
+    assert not costmap.touches_wall(x, 0.7 + RADIUS + 0.01)
+    # Diagonally off a box's corner, exactly.
+    grid = room()
+    grid[cells(3.0) : cells(3.5), cells(3.0) : cells(3.5)] = 100  # a box, corner (3.5, 3.5)
+    boxed = Costmap.from_grid(grid_of(grid), RADIUS)
+    corner_x = corner_y = 3.5
+    gap = RADIUS + 0.02
+    px, py = corner_x + gap / math.sqrt(2), corner_y + gap / math.sqrt(2)
+    assert not boxed.touches_wall(px, py)
+    assert boxed.touches_wall(corner_x + 0.15, corner_y + 0.15)  # 0.21 m from the corner
+    assert not boxed.touches_wall(corner_x + 0.18, corner_y + 0.18)  # 0.255 m
+    # Off the known map (and non-numbers) always touch.
+    assert costmap.touches_wall(-5.0, 3.0) and costmap.touches_wall(math.nan, 3.0)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import ROBOT, USER, Homes, Process, free_port, write_config
+from conftest import ROBOT, USER, Homes, Process, free_port, wait_until, write_config
 from telebot.apps.echo import echo_call
 from telebot.channels.call import Call, RobotEndpoint, UserEndpoint
 from telebot.channels.transports.zenoh import ZenohTransport
@@ -54,8 +54,10 @@ async def robot_here(homes: Homes) -> AsyncIterator[tuple[RobotEndpoint, asyncio
         await transport.close()
 
 
-def start_user_ping(homes: Homes, port: int, config: Path, processes: list[Process]) -> Process:
-    """``telebot-user ping`` holding a call open for a long time."""
+def start_user_ping(
+    homes: Homes, port: int, config: Path, processes: list[Process], count: int = 100_000
+) -> Process:
+    """``telebot-user ping`` holding a call open for ``count`` pings (a long time by default)."""
     process = Process(
         [
             "telebot.apps.user_cli",
@@ -68,7 +70,7 @@ def start_user_ping(homes: Homes, port: int, config: Path, processes: list[Proce
             "--connect",
             f"tcp/127.0.0.1:{port}",
             "--count",
-            "100000",
+            str(count),
             "--interval",
             "0.05",
         ]
@@ -97,8 +99,8 @@ async def test_frozen_user_is_dropped_by_the_robot(
     )
     call = await asyncio.wait_for(calls.get(), 15)
     assert call.peer == USER
-    await asyncio.sleep(0.3)  # the call is live: pings flow
-    assert call.channels["ping"].stats.received > 0
+    # The call is live: pings flow (the channel opens with the first one).
+    await wait_until(lambda: "ping" in call.channels and call.channels["ping"].stats.received > 0)
     user.signal(signal.SIGSTOP)
     kind, took = await timed_end(call, 10)
     assert kind == "dropped"
@@ -145,6 +147,22 @@ async def test_user_sigterm_hangs_up_and_exits_within_2s(
     assert returncode == 128 + signal.SIGTERM
     end = await asyncio.wait_for(call.wait_ended(), 5)
     assert end.kind == "hung_up" and end.by_peer
+
+
+async def test_a_user_that_hangs_up_and_exits_at_once_is_seen_hanging_up(
+    homes: Homes,
+    robot_here: tuple[RobotEndpoint, asyncio.Queue[Call], int],
+    tmp_path: Path,
+    processes: list[Process],
+) -> None:
+    # ping hangs up when done and closes its endpoint straight after: the withdrawal of
+    # its presence must not overtake the hang-up.
+    _, calls, port = robot_here
+    user = start_user_ping(homes, port, write_config(tmp_path / "user.toml"), processes, count=3)
+    call = await asyncio.wait_for(calls.get(), 15)
+    assert await asyncio.to_thread(user.popen.wait, 10) == 0
+    end = await asyncio.wait_for(call.wait_ended(), 5)
+    assert (end.kind, end.by_peer, end.detail) == ("hung_up", True, "ping done")
 
 
 @pytest.fixture

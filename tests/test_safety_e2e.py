@@ -28,9 +28,8 @@ from typing import Any
 
 import pytest
 
-from conftest import ROBOT, USER, Homes, Process, free_port, write_config
-from telebot.channels.call import RobotEndpoint, UserEndpoint
-from telebot.channels.transports.memory import MemoryHub, MemoryTransport
+from conftest import ROBOT, USER, Homes, Process, free_port, memory_endpoints, write_config
+from telebot.channels.transports.memory import MemoryHub
 from telebot.config import AppConfig, SimSettings, ZenohSettings
 from telebot.identity import ContactBook, Identity, KnownRobots, Role, create_paired_homes
 from telebot.robot.nav import Velocity
@@ -242,15 +241,22 @@ async def safety_state(
 
 
 async def assert_at_rest(client: RobotClient, seconds: float, *, armed: bool) -> None:
-    """Every pose for ``seconds`` shows the robot at rest, and the armed state is ``armed``."""
-    loop = asyncio.get_running_loop()
-    end = loop.time() + seconds
-    poses = 0
-    while loop.time() < end:
-        pose = await client.pose()
+    """Every pose for ``seconds`` of the robot's clock shows the robot at rest, and the
+    armed state is ``armed``.
+
+    Measured by the poses' own stamps, not by how many came: a stalled observer gets
+    only the newest pose (the stream is latest-only). So that a move between two poses
+    seen cannot hide, every pose must also be where the first was (to within the
+    localisation noise's bounds, 3 × 1 cm on each axis for each of the two).
+    """
+    first = await client.pose()
+    pose = first
+    while True:
         assert still(pose), pose
-        poses += 1
-    assert poses >= seconds * 5  # the pose stream (10 Hz) really was watched
+        assert math.hypot(pose.x - first.x, pose.y - first.y) < 0.1, (first, pose)
+        if pose.t - first.t >= seconds:
+            break
+        pose = await client.pose()
     state = client.latest_safety.value
     assert state is not None and state.armed is armed, state
 
@@ -470,12 +476,7 @@ async def lossy(homes: Homes) -> AsyncIterator[LossyRobot]:
     nav = SimNavStack.from_settings(settings, now=loop.time())
     safety = SafetyDriver(nav, timeout=TIMEOUT, max_speed=settings.max_linear_speed)
     server = RobotServer(nav, safety=safety)
-    async with (
-        MemoryTransport(hub, "robot") as robot_transport,
-        MemoryTransport(hub, "user") as user_transport,
-        RobotEndpoint(robot_transport, homes.robot, homes.contacts) as robot_endpoint,
-        UserEndpoint(user_transport, homes.user, homes.known) as user_endpoint,
-    ):
+    async with memory_endpoints(homes, hub) as (robot_endpoint, user_endpoint):
         server.attach(robot_endpoint)
         runner = asyncio.create_task(server.run(), name="robot-loop")
         with safety:

@@ -3,6 +3,7 @@ go and crash, torn copies detected, the segment removed when the writer goes."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -25,6 +26,7 @@ from telebot.services.shm import (
     VERSION,
     FrameRingReader,
     FrameRingWriter,
+    RingNotReady,
     validate_ring_name,
 )
 
@@ -41,11 +43,8 @@ def picture(value: int, height: int = 48, width: int = 64) -> np.ndarray:
 
 
 def exists(name: str) -> bool:
-    try:
-        FrameRingReader(name).close()
-    except FileNotFoundError:
-        return False
-    return True
+    """Whether a segment of that name is there at all, ring or not (Linux names them)."""
+    return Path("/dev/shm", name).exists()
 
 
 def test_frames_written_are_read_back_with_their_metadata(name: str) -> None:
@@ -125,6 +124,17 @@ def test_names_and_sizes_are_checked(name: str) -> None:
         FrameRingReader(name)
 
 
+def dead_pid() -> int:
+    """The pid of a process that has exited (a dead writer's, for these tests)."""
+    child = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"],
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    return int(child.stdout)
+
+
 def untracked_segment(name: str, size: int) -> shared_memory.SharedMemory:
     shm = shared_memory.SharedMemory(name, create=True, size=size)
     resource_tracker.unregister(shm._name, "shared_memory")  # type: ignore[attr-defined]
@@ -134,15 +144,10 @@ def untracked_segment(name: str, size: int) -> shared_memory.SharedMemory:
 def test_a_segment_left_by_a_dead_writer_is_reclaimed_and_a_foreign_one_is_not(
     name: str,
 ) -> None:
-    dead = subprocess.run(
-        [sys.executable, "-c", "import os; print(os.getpid())"],
-        check=True,
-        capture_output=True,
-        text=True,
-    )
+    dead = dead_pid()
     stale = untracked_segment(name, 4096)
     assert stale.buf is not None
-    HEADER.pack_into(stale.buf, 0, MAGIC, VERSION, 2, 8, 8, 192, 9, int(dead.stdout), 0)
+    HEADER.pack_into(stale.buf, 0, MAGIC, VERSION, 2, 8, 8, 192, 9, dead, 0)
     stale.close()
     with FrameRingWriter(name, 8, 8) as writer:
         writer.write(picture(1, 8, 8), frame_id=1)
@@ -150,6 +155,8 @@ def test_a_segment_left_by_a_dead_writer_is_reclaimed_and_a_foreign_one_is_not(
             frame = reader.latest()
             assert frame is not None and frame.frame_id == 1 and frame.number == 0
     foreign = untracked_segment(name, 4096)
+    assert foreign.buf is not None
+    foreign.buf[:8] = b"NOTARING"  # (all zeros would read as a ring still being set up)
     try:
         with pytest.raises(FileExistsError, match="not a frame ring"):
             FrameRingWriter(name, 8, 8)
@@ -158,6 +165,82 @@ def test_a_segment_left_by_a_dead_writer_is_reclaimed_and_a_foreign_one_is_not(
     finally:
         foreign.close()
         foreign.unlink()
+
+
+def test_a_ring_still_being_set_up_is_not_there_yet_for_readers_and_busy_for_writers(
+    name: str,
+) -> None:
+    import _posixshmem
+
+    # A writer creates the name, then sizes it, then fills in the header: a reader or a
+    # second writer can look in between each step.
+    fd = _posixshmem.shm_open("/" + name, os.O_CREAT | os.O_EXCL | os.O_RDWR, mode=0o600)
+    try:
+        with pytest.raises(RingNotReady, match="still being created"):
+            FrameRingReader(name)
+        with pytest.raises(FileExistsError, match="being set up by another process"):
+            FrameRingWriter(name, 8, 8)
+        os.ftruncate(fd, 4096)  # sized: all zeros, no magic yet
+        with pytest.raises(RingNotReady, match="not a frame ring yet"):
+            FrameRingReader(name)
+        with pytest.raises(FileExistsError, match="being set up by another process"):
+            FrameRingWriter(name, 8, 8)
+        assert issubclass(RingNotReady, FileNotFoundError)  # loops waiting for a ring wait on
+        # The header without its magic, from a live writer: in use; from a dead one (it
+        # died while setting up): reclaimed.
+        with open(f"/proc/{os.getpid()}/fd/{fd}", "r+b", buffering=0) as segment:
+            segment.write(HEADER.pack(bytes(8), VERSION, 2, 8, 8, 192, 0, os.getpid(), 0))
+            with pytest.raises(FileExistsError, match=f"in use by process {os.getpid()}"):
+                FrameRingWriter(name, 8, 8)
+            dead = dead_pid()
+            segment.seek(0)
+            segment.write(HEADER.pack(bytes(8), VERSION, 2, 8, 8, 192, 0, dead, 0))
+        with FrameRingWriter(name, 8, 8) as writer, FrameRingReader(name) as reader:
+            writer.write(picture(7, 8, 8), frame_id=7)
+            frame = reader.latest()
+            assert frame is not None and frame.frame_id == 7
+    finally:
+        os.close(fd)
+        with contextlib.suppress(FileNotFoundError):  # the writer above removed it
+            _posixshmem.shm_unlink("/" + name)
+
+
+RECREATE = textwrap.dedent(
+    """
+    import sys, time
+    from telebot.services.shm import FrameRingWriter
+    deadline = time.monotonic() + float(sys.argv[2])
+    rounds = 0
+    while time.monotonic() < deadline:
+        FrameRingWriter(sys.argv[1], 8, 8, slots=2).close()
+        rounds += 1
+    print(rounds, flush=True)
+    """
+)
+
+
+def test_readers_attaching_while_a_writer_comes_and_goes_see_a_whole_ring_or_none(
+    name: str,
+) -> None:
+    writer = subprocess.Popen(
+        [sys.executable, "-c", RECREATE, name, "1.0"],
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONPATH": SRC},
+    )
+    attached = absent = 0
+    try:
+        while writer.poll() is None:
+            try:
+                with FrameRingReader(name) as reader:
+                    assert reader.max_size == (8, 8)
+                    attached += 1
+            except FileNotFoundError:
+                absent += 1  # none yet, or gone again: what a waiting reader retries on
+    finally:
+        out, _ = writer.communicate(timeout=10)
+    assert writer.returncode == 0 and int(out) > 10
+    assert attached > 0 and absent > 0  # both cases happened, neither raised anything else
 
 
 READER = textwrap.dedent(
@@ -172,6 +255,8 @@ READER = textwrap.dedent(
             if not (frame.image == frame.frame_id % 251).all():
                 bad += 1
             frames += 1
+            if frames == 20:
+                print("reading", flush=True)
         result = {"frames": frames, "bad": bad, "torn": ring.torn, "skipped": ring.skipped}
         print(json.dumps(result), flush=True)
     """
@@ -227,7 +312,8 @@ def test_a_writer_and_two_reader_processes_one_killed_mid_read(
         for proc in (survivor, victim):
             assert proc.stdout is not None
             assert proc.stdout.readline().strip() == "attached", proc.stderr
-        time.sleep(0.3)  # both are copying frames in a tight loop
+        # Both are copying frames in a tight loop, so the kill lands mid-copy or near it.
+        assert victim.stdout is not None and victim.stdout.readline().strip() == "reading"
         victim.send_signal(signal.SIGKILL)
         victim.wait(timeout=10)
         written = writer.frames_written
@@ -236,7 +322,8 @@ def test_a_writer_and_two_reader_processes_one_killed_mid_read(
         late = start_reader(name)  # readers come at any time
         readers.append(late)
         assert late.stdout is not None and late.stdout.readline().strip() == "attached"
-        time.sleep(0.2)
+        for proc in (survivor, late):  # both have whole frames to show for it
+            assert proc.stdout is not None and proc.stdout.readline().strip() == "reading"
     finally:
         stop.set()
         thread.join()
@@ -248,7 +335,7 @@ def test_a_writer_and_two_reader_processes_one_killed_mid_read(
         assert proc.returncode == 0, err
         results.append(json.loads(out.strip().splitlines()[-1]))
     for result in results:
-        assert result["frames"] > 10
+        assert result["frames"] >= 20
         assert result["bad"] == 0  # no torn or mixed frame ever returned
     assert victim.returncode == -signal.SIGKILL
     assert not exists(name)

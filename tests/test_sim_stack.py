@@ -7,14 +7,14 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from telebot.config import SimSettings
 from telebot.errors import InvalidCommand, MapError, RobotError, UnknownCamera, UnknownPlace
 from telebot.robot.grid import OccupancyGrid
-from telebot.robot.nav import GoalStatus, NavStack, NavState, Pose2D, normalize_angle
-from telebot.robot.sim.stack import SimNavStack
+from telebot.robot.nav import GoalStatus, NavStack, NavState, Pose2D, Velocity, normalize_angle
+from telebot.robot.sim.stack import REPLANS_IN_PLACE, SimNavStack
 from telebot.robot.sim.world import Obstacle
 
 TICK = 0.05
@@ -166,8 +166,30 @@ def random_maps_and_goals(
     return world, start, world.center_of(int(gr), int(gc)), speed
 
 
+def room_with_boxes(*boxes: tuple[int, int, int, int]) -> OccupancyGrid:
+    """The 8 m room of :func:`random_maps_and_goals` with ``(row0, row1, col0, col1)`` boxes."""
+    room = open_room(8.0, 8.0)
+    data = room.data.copy()
+    for row0, row1, col0, col1 in boxes:
+        data[row0:row1, col0:col1] = 100
+    return OccupancyGrid(data, room.resolution, room.origin_x, room.origin_y)
+
+
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(random_maps_and_goals())
+# Cases this test found. A start in a passage barely wider than the base: the physics
+# counted a touch when the base was still a few centimetres clear of the box.
+@example(
+    case=(
+        room_with_boxes((22, 24, 20, 22), (27, 29, 35, 55)),
+        Pose2D(2.625, 1.075, 0.15625),
+        (3.775, 1.025),
+        0.25,
+    )
+)
+# A corner just before a goal near a wall, at 1 m/s: progress along the path jumped a
+# waypoint at a time and the base braked too late, overshooting into the wall.
+@example(case=(open_room(8.0, 8.0), Pose2D(5.775, 1.875, 0.0), (1.225, 0.975), 1.0))
 def test_the_speed_limit_is_never_exceeded_on_random_maps_and_goals(
     case: tuple[OccupancyGrid, Pose2D, tuple[float, float], float],
 ) -> None:
@@ -185,12 +207,26 @@ def test_the_speed_limit_is_never_exceeded_on_random_maps_and_goals(
         peak = max(peak, abs(stack.velocity().linear))
         peak_turn = max(peak_turn, abs(stack.velocity().angular))
 
-    run(stack, 40, until=lambda: goal.status.done, on_step=record)
+    if goal.status is GoalStatus.FAILED:
+        assert goal.reason.startswith("no path to")
+        return
+    assert goal.tracker is not None
+    # Twice the time the path takes at top speed, plus time to turn and to accelerate.
+    budget = 2.0 * goal.tracker.length / top_speed + 15.0
+    run(stack, budget, until=lambda: goal.status.done, on_step=record)
     assert peak <= top_speed + 1e-9
     assert peak_turn <= stack.settings.max_angular_speed + 1e-9
     assert stack.collisions == 0
-    if goal.status is GoalStatus.FAILED:
-        assert goal.reason.startswith("no path to")
+    if goal.status is not GoalStatus.SUCCEEDED:
+        # Never "moving" for good: a goal that has not arrived is held by the laser, or
+        # gave up after replanning in place. In tight spots that is a known limit: the
+        # laser sweeps straight ahead while the path curves, so each replan finds the
+        # same path blocked.
+        if goal.status is GoalStatus.FAILED:
+            assert "no way past it" in goal.reason, goal.reason
+        else:
+            assert goal.status is GoalStatus.ACTIVE, (goal.status, goal.reason)
+            assert stack.status().state is NavState.BLOCKED, stack.status()
 
 
 def test_an_obstacle_ahead_stops_the_robot_and_it_resumes_when_removed() -> None:
@@ -235,6 +271,46 @@ def test_a_goal_blocked_with_no_way_around_fails_with_the_reason() -> None:
     assert stack.collisions == 0
 
 
+def test_a_goal_the_laser_keeps_blocking_where_replanning_cannot_help_gives_up(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # Something only the laser sees (the planner's map stays clear): each replan finds
+    # the same path, and the base never gets anywhere. The goal must not wait for ever.
+    stack = room_stack(blocked_timeout=2.0)
+    goal = stack.navigate_to(10.0, 5.0)
+    run(stack, 2.0)
+    start = stack.true_pose
+    monkeypatch.setattr(stack, "_front_blocked", lambda direction, remaining: (True, False))
+    took = run(stack, 60, until=lambda: goal.status.done)
+    assert goal.status is GoalStatus.FAILED
+    assert goal.reason == "stopped: obstacle ahead, no way past it (6 s blocked in one place)"
+    assert goal.replans == REPLANS_IN_PLACE
+    assert 3 * 2.0 <= took < 3 * 2.0 + 2.0  # three timeouts, not more
+    assert math.hypot(stack.true_pose.x - start.x, stack.true_pose.y - start.y) < 0.3
+    assert stack.status().state is NavState.FAILED
+
+
+def test_a_blocked_goal_that_gets_somewhere_between_replans_keeps_going(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The laser blocks for a while, lets the base drive on a bit, blocks again, and so
+    # on: each timeout finds the base somewhere new, so the goal never gives up.
+    stack = room_stack(blocked_timeout=1.0)
+    goal = stack.navigate_to(10.0, 5.0)
+    run(stack, 1.0)
+    real_laser = stack._front_blocked
+    t0 = stack.now
+
+    def laser(direction: float, remaining: float) -> tuple[bool, bool]:
+        cycle = (stack.now - t0) % 3.0
+        return (True, False) if cycle < 1.5 else real_laser(direction, remaining)
+
+    monkeypatch.setattr(stack, "_front_blocked", laser)
+    run(stack, 120, until=lambda: goal.status.done)
+    assert goal.status is GoalStatus.SUCCEEDED, goal.reason
+    assert goal.replans > REPLANS_IN_PLACE  # replanned often, but never twice in one place
+
+
 def test_forward_into_a_wall_stops_before_it_and_says_why() -> None:
     stack = room_stack(start=Pose2D(9.0, 5.0, 0.0))
     goal = stack.forward(10.0)
@@ -244,6 +320,34 @@ def test_forward_into_a_wall_stops_before_it_and_says_why() -> None:
     assert stack.collisions == 0
     assert stack.true_pose.x < 11.3 - 0.25  # the wall's inner face is at x = 11.3
     assert stack.status().state is NavState.FAILED
+
+
+def test_if_the_laser_misses_a_wall_the_physics_stops_the_base_and_the_goal_ends(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    stack = room_stack(start=Pose2D(9.0, 5.0, 0.0))
+    monkeypatch.setattr(stack, "_front_blocked", lambda direction, remaining: (False, False))
+    goal = stack.forward(10.0)
+    run(stack, 30, until=lambda: goal.status.done)
+    # Not "moving" for ever against the wall: the refusal counts as a wall ahead.
+    assert goal.status is GoalStatus.FAILED and goal.reason == "stopped: obstacle ahead"
+    assert stack.collisions >= 1
+    assert stack.velocity() == Velocity()
+    assert 11.3 - 0.25 - 0.1 < stack.true_pose.x <= 11.3 - 0.25  # at the wall, not in it
+
+
+def test_backing_away_right_after_the_physics_stopped_the_base_is_not_blocked(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    stack = room_stack(start=Pose2D(9.0, 5.0, 0.0))
+    monkeypatch.setattr(stack, "_front_blocked", lambda direction, remaining: (False, False))
+    stack.forward(10.0)
+    run(stack, 30, until=lambda: stack.collisions >= 1)
+    at_wall = stack.true_pose.x
+    back = stack.forward(-1.0)  # issued before another step: the refusal is fresh
+    run(stack, 30, until=lambda: back.status.done)
+    assert back.status is GoalStatus.SUCCEEDED, back.reason
+    assert stack.true_pose.x == pytest.approx(at_wall - 1.0, abs=0.1)
 
 
 def test_the_base_watchdog_stops_manual_driving_that_is_not_refreshed() -> None:

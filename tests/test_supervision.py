@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pytest
 
+from conftest import ROBOT, Homes, memory_endpoints
 from telebot.channels.proto.session import CallStats
+from telebot.channels.transports.memory import MemoryHub
 from telebot.config import SimSettings
 from telebot.identity import Role
 from telebot.robot.grid import OccupancyGrid
@@ -78,7 +83,9 @@ def test_the_watchdog_thread_stops_the_robot_while_the_event_loop_is_stuck(
         assert nav.velocity().linear > 0.3
         # The driver goes silent and this "loop" is stuck: no tick, no step. Only the
         # watchdog thread can notice.
-        time.sleep(0.8)
+        deadline = time.monotonic() + 5.0
+        while driver.watchdog_stops == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
         assert driver.watchdog_stops == 1
         nav.step(time.monotonic())  # the loop comes back: the stop is acted on first
         assert nav.velocity().linear == 0.0
@@ -206,3 +213,58 @@ async def test_a_failed_robot_step_stops_and_latches(tmp_path: Path) -> None:
     assert nav.velocity().linear == 0.0
     assert not driver.state().armed and "step failed" in driver.state().reason
     driver.close()
+
+
+async def test_a_call_whose_services_fail_is_hung_up_and_leaves_the_supervisor(
+    tmp_path: Path, homes: Homes, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from telebot.services import robot
+
+    def broken(*args: object) -> None:
+        raise RuntimeError("simulated set-up fault")
+
+    monkeypatch.setattr(robot, "CallServices", broken)
+    nav = room()
+    driver = SafetyDriver(nav, timeout=0.5, max_speed=0.5)
+    server = robot.RobotServer(nav, safety=driver)
+    hub = MemoryHub(seed=1)
+    async with memory_endpoints(homes, hub) as (robot_endpoint, user_endpoint):
+        server.attach(robot_endpoint)
+        call = await user_endpoint.call(ROBOT)
+        end = await asyncio.wait_for(call.wait_ended(), 5)
+        assert end.kind == "hung_up" and end.by_peer and "could not be served" in end.detail
+        await asyncio.sleep(0)  # one more turn, in case the server's end watcher has not run yet
+        # No ghost: the call is gone from the endpoint and from the supervisor.
+        assert robot_endpoint.calls == []
+        assert driver.supervisor.participants() == () and driver.state().holder is None
+    driver.close()
+
+
+def open_paths() -> set[str]:
+    """The files this process has open now."""
+    fds = Path("/proc/self/fd")
+    paths = set()
+    for fd in fds.iterdir():
+        try:
+            paths.add(os.readlink(fd))
+        except OSError:  # closed while listing
+            continue
+    return paths
+
+
+@pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="lists open files through /proc")
+async def test_a_robot_that_fails_to_start_closes_its_audit_log(
+    tmp_path: Path, homes: Homes, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from telebot.apps import robot_daemon
+    from telebot.config import RobotConfig
+
+    async def broken(self: object) -> None:
+        raise RuntimeError("simulated start-up fault")
+
+    monkeypatch.setattr(robot_daemon.RobotServer, "prepare", broken)
+    audit = tmp_path / "audit.jsonl"
+    with pytest.raises(RuntimeError, match="start-up fault"):
+        await robot_daemon.serve_robot(RobotConfig(), homes.robot, homes.contacts, home=tmp_path)
+    assert audit.exists()  # it was opened (the start-up stop is audited) ...
+    assert str(audit) not in open_paths()  # ... and closed again

@@ -15,14 +15,13 @@ import contextlib
 import io
 import json
 import os
-import socket
 import statistics
 import subprocess
 import sys
 import threading
 import time
 import uuid
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,8 +29,9 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import ROBOT, Homes
-from telebot.apps.video_cli import video, video_log
+from conftest import ROBOT, Homes, free_port, memory_endpoints, wait_until
+from telebot.apps import video_cli
+from telebot.apps.video_cli import MAX_FILL, Recorder, video, video_log
 from telebot.channels.call import Call, RobotEndpoint, UserEndpoint
 from telebot.channels.channel import ReceivedDatagram
 from telebot.channels.transports.base import Lane
@@ -41,7 +41,7 @@ from telebot.identity import ContactBook, Identity
 from telebot.robot.nav import CameraFrame, CameraInfo
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.proto.video import encode_jpeg, fragment
-from telebot.services.shm import FrameRingReader, FrameRingWriter
+from telebot.services.shm import FrameRingReader, FrameRingWriter, RingFrame
 from telebot.services.video import (
     VIDEO,
     VideoFrame,
@@ -76,12 +76,7 @@ async def linked(homes: Homes, *, seed: int = 5, timeout: float = 2.0) -> AsyncI
     hub = MemoryHub(seed=seed)
     settings = CallSettings(timeout=timeout)
     robot_calls: list[Call] = []
-    async with (
-        MemoryTransport(hub, "robot") as robot_transport,
-        MemoryTransport(hub, "user") as user_transport,
-        RobotEndpoint(robot_transport, homes.robot, homes.contacts, settings=settings) as robot,
-        UserEndpoint(user_transport, homes.user, homes.known, settings=settings) as user,
-    ):
+    async with memory_endpoints(homes, hub, settings) as (robot, user):
         robot.on_call = robot_calls.append
         call = await user.call(ROBOT)
         try:
@@ -92,15 +87,6 @@ async def linked(homes: Homes, *, seed: int = 5, timeout: float = 2.0) -> AsyncI
 
 async def take(receiver: VideoReceiver, n: int, timeout: float = 10.0) -> list[VideoFrame]:
     return [await receiver.next_frame(timeout) for _ in range(n)]
-
-
-async def eventually(condition: Callable[[], bool], timeout: float = 5.0) -> None:
-    """Wait until ``condition()`` holds; AssertionError after ``timeout`` seconds."""
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"condition not met within {timeout} s")
-        await asyncio.sleep(0.01)
 
 
 def diff(a: np.ndarray, b: np.ndarray) -> float:
@@ -183,7 +169,7 @@ async def test_video_is_sent_only_while_someone_watches(homes: Homes, nav: SimNa
         async with VideoReceiver(video_channel(link.call), report_interval=0.1) as receiver:
             await take(receiver, 3)
         # The receiver is gone: it said bye (and its reports stop), and so does the video.
-        await eventually(lambda: not sender.watched)
+        await wait_until(lambda: not sender.watched)
         sent = sender.stats.frames
         await asyncio.sleep(0.2)
         assert sender.stats.frames == sent
@@ -222,7 +208,7 @@ async def test_both_ends_stop_when_the_call_ends(homes: Homes, nav: SimNavStack)
                     seen += 1
                     if seen == 3:
                         await link.call.hangup("done")
-            await eventually(lambda: not sender.running)
+            await wait_until(lambda: not sender.running)
         finally:
             await sender.close()
     assert seen >= 3
@@ -240,7 +226,7 @@ async def test_corrupt_frames_and_garbage_are_dropped_and_counted(
             waiting = asyncio.ensure_future(receiver.next_frame(5.0))
             for datagram in [b"\x01garbage", "text", *fragment(1, "navcam", time.time(), corrupt)]:
                 robot.send(datagram)
-            await eventually(lambda: receiver.reassembler.stats.corrupt == 1)
+            await wait_until(lambda: receiver.reassembler.stats.corrupt == 1)
             for datagram in fragment(2, "navcam", time.time(), good, 9000):
                 robot.send(datagram)
             frame = await waiting
@@ -398,23 +384,68 @@ async def test_the_video_command_records_and_shares_frames(
     assert size == (640, 480) and count >= 15  # about a second at 30 fps
 
 
-def test_video_log_records_a_shared_ring(tmp_path: Path) -> None:
+def test_the_recorder_keeps_real_time_repeating_over_gaps_and_cutting_outages(
+    tmp_path: Path,
+) -> None:
+    out = tmp_path / "gaps.mp4"
+    recorder = Recorder(out, 10.0)
+
+    def shade(value: int) -> np.ndarray:
+        return np.full((48, 64, 3), value, dtype=np.uint8)
+
+    recorder.write(shade(0), 100.0)
+    recorder.write(shade(50), 100.3)  # 0.3 s later: two repeats fill the gap
+    assert recorder.written == 4
+    recorder.write(shade(60), 100.31)  # faster than 10 fps: no slot of its own
+    assert recorder.written == 4
+    recorder.write(shade(90), 100.3 + MAX_FILL + 60)  # a long outage: cut, not filled
+    assert recorder.written == 5
+    recorder.write(shade(120), 100.5 + MAX_FILL + 60)  # and real time again after it
+    assert recorder.written == 7 and recorder.seconds == pytest.approx(0.7)
+    recorder.close()
+    capture = cv2.VideoCapture(str(out))
+    try:
+        shades = []
+        while True:
+            ok, image = capture.read()
+            if not ok:
+                break
+            shades.append(int(round(float(image.mean()), -1)))
+    finally:
+        capture.release()
+    assert shades == [0, 0, 0, 50, 90, 90, 120]
+
+
+def test_video_log_records_a_shared_ring(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     ring_name = f"tb-log-{uuid.uuid4().hex[:8]}"
     out = tmp_path / "log.mp4"
     log = io.StringIO()
     result: list[int] = []
+    logged: list[int] = []  # frame ids the logger read, in order
+
+    class WatchedReader(FrameRingReader):
+        def read_next(self, timeout: float | None = None) -> RingFrame | None:
+            frame = super().read_next(timeout)
+            if frame is not None:
+                logged.append(frame.frame_id)
+            return frame
+
+    monkeypatch.setattr(video_cli, "FrameRingReader", WatchedReader)
     thread = threading.Thread(
         target=lambda: result.append(video_log(ring_name, out, fps=10.0, stream=log))
     )
     thread.start()
     with FrameRingWriter(ring_name, 320, 240) as writer:
-        time.sleep(0.3)  # the logger is waiting for the ring to appear
         start = time.time()
         for i in range(20):
             image = np.full((240, 320, 3), i * 10, dtype=np.uint8)
             writer.write(image, frame_id=i, capture_time=start + i / 10, camera="navcam")
-            time.sleep(0.01)
-        time.sleep(0.2)
+            # Each frame once the logger has it: a ring keeps only the newest, and how
+            # fast a loaded machine runs the logger is not what this test is about.
+            deadline = time.monotonic() + 10
+            while logged[-1:] != [i] and time.monotonic() < deadline:
+                time.sleep(0.002)
+        assert logged == list(range(20))
     thread.join(timeout=20)
     assert result == [0], log.getvalue()
     capture = cv2.VideoCapture(str(out))
@@ -422,9 +453,9 @@ def test_video_log_records_a_shared_ring(tmp_path: Path) -> None:
         count = capture.get(cv2.CAP_PROP_FRAME_COUNT)
     finally:
         capture.release()
-    # Frames were written ten times faster than their capture times: the log keeps their
-    # time (20 frames of a 10 fps camera = 2 s), repeating whatever it did not see.
-    assert 15 <= count <= 21, log.getvalue()
+    # Frames were written far faster than their capture times: the log keeps their
+    # time (20 frames of a 10 fps camera = 2 s), one video frame per camera frame.
+    assert count == 20, log.getvalue()
     assert video_log("bad/name", out, stream=log) == 2
     assert video_log(f"tb-none-{uuid.uuid4().hex[:6]}", out, wait=0.1, stream=log) == 1
 
@@ -433,13 +464,6 @@ def test_video_log_records_a_shared_ring(tmp_path: Path) -> None:
 
 FLOOD_PINGS = 20
 STOP = "stop"
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-    return port
 
 
 class NoiseNav:
@@ -526,10 +550,14 @@ async def test_a_video_flood_does_not_hold_up_stop_commands(homes: Homes) -> Non
             stop = call.channel(STOP, lane=Lane.CONTROL)
             echoes: asyncio.Queue[ReceivedDatagram] = asyncio.Queue()
             stop.set_callback(echoes.put_nowait)
-            await eventually(lambda: fragments >= 200, 10.0)  # the flood is on
+            await wait_until(lambda: fragments >= 200, 10.0)  # the flood is on
             before = fragments
-            rtts = []
-            for i in range(FLOOD_PINGS):
+            rtts: list[float] = []
+            # At least FLOOD_PINGS stops, and on until 100 fragments came meanwhile: a
+            # count, not a rate (a loaded machine encodes slower). Bounded all the same.
+            while len(rtts) < FLOOD_PINGS or fragments - before < 100:
+                assert len(rtts) < 20 * FLOOD_PINGS, f"the flood dried up: {fragments - before}"
+                i = len(rtts)
                 sent = time.perf_counter()
                 stop.send(f"stop {i}")
                 echo = await asyncio.wait_for(echoes.get(), 5.0)
@@ -546,8 +574,8 @@ async def test_a_video_flood_does_not_hold_up_stop_commands(homes: Homes) -> Non
             child.kill()
             child.wait()
         child.stdout.close()
-    # Every stop came back while the video kept flowing: hundreds of fragments meanwhile.
-    assert during > 100
+    # Every stop came back while the video kept flowing.
+    assert during >= 100 and len(rtts) >= FLOOD_PINGS
     print(
         f"stop round trip under a video flood: p50 {statistics.median(rtts) * 1000:.2f} ms, "
         f"max {max(rtts) * 1000:.2f} ms; {during} video fragments meanwhile"

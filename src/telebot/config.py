@@ -132,7 +132,8 @@ class SimSettings(StrictModel):
     laser_range: float = Field(default=10.0, gt=0, le=50.0)
     #: Clearance kept in front of the base beyond its braking distance (m).
     stop_margin: float = Field(default=0.15, ge=0, le=2.0)
-    #: How long a goal may stay blocked by an obstacle before it replans (or fails) (s).
+    #: How long a goal may stay blocked by an obstacle before it replans (or fails) (s);
+    #: the third time in a row in one place it gives up.
     blocked_timeout: float = Field(default=10.0, gt=0, le=600)
     #: The base stops by itself when velocity commands are older than this (s).
     cmd_vel_timeout: float = Field(default=0.5, gt=0, le=5.0)

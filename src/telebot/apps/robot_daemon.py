@@ -72,60 +72,64 @@ async def serve_robot(
         usercam_while_moving=config.safety.usercam_while_moving,
         audit_path=audit,
     )
-    server = RobotServer(
-        nav,
-        config.services,
-        control_hz=config.sim.control_hz,
-        map_name=Path(config.sim.map).stem,
-        emit=emit,
-        safety=safety,
-        video=VideoSettings(
-            width=config.video.width,
-            height=config.video.height,
-            max_fps=config.video.max_fps,
-            quality=config.video.quality,
-            min_quality=min(30, config.video.quality),
-            adaptive=config.video.adaptive,
-        ),
-    )
-    await server.prepare()
-    with stop_on_signals(stop), safety:
-        async with (
-            create_transport(config.transport) as transport,
-            RobotEndpoint(
-                transport, identity, contacts, settings=config.call, namespace=config.namespace
-            ) as endpoint,
-        ):
-            server.attach(endpoint)
-            runner = asyncio.create_task(server.run(), name="robot-loop")
-            pose = nav.pose().pose
-            log.info(
-                "robot %s ready on map %s at (%.2f, %.2f)",
-                identity.name,
-                config.sim.map,
-                pose.x,
-                pose.y,
-            )
-            emit(
-                {
-                    "event": "ready",
-                    "robot": identity.name,
-                    "map": config.sim.map,
-                    "places": sorted(nav.places()),
-                }
-            )
-            try:
-                stopped = asyncio.create_task(stop.wait())
-                done, _ = await asyncio.wait({runner, stopped}, return_when=asyncio.FIRST_COMPLETED)
-                if runner in done:
-                    runner.result()  # a crashed loop is an error, not a quiet exit
-            finally:
-                # Fail safe order: the robot stops before anything else happens.
-                safety.stop(None, SHUTDOWN_REASON)
-                emit({"event": "stopping", "calls": len(endpoint.calls)})
-                runner.cancel()
-                stopped.cancel()
-                await asyncio.gather(runner, stopped, return_exceptions=True)
-                for call in endpoint.calls:
-                    call.hangup_now(SHUTDOWN_REASON)
-                await asyncio.sleep(0.05)  # let the hang-ups leave before the transport closes
+    with safety:  # from here on the watchdog runs, and the audit log is closed at the end
+        server = RobotServer(
+            nav,
+            config.services,
+            control_hz=config.sim.control_hz,
+            map_name=Path(config.sim.map).stem,
+            emit=emit,
+            safety=safety,
+            video=VideoSettings(
+                width=config.video.width,
+                height=config.video.height,
+                max_fps=config.video.max_fps,
+                quality=config.video.quality,
+                min_quality=min(30, config.video.quality),
+                adaptive=config.video.adaptive,
+            ),
+        )
+        await server.prepare()
+        with stop_on_signals(stop):
+            async with (
+                create_transport(config.transport) as transport,
+                RobotEndpoint(
+                    transport, identity, contacts, settings=config.call, namespace=config.namespace
+                ) as endpoint,
+            ):
+                server.attach(endpoint)
+                runner = asyncio.create_task(server.run(), name="robot-loop")
+                pose = nav.pose().pose
+                log.info(
+                    "robot %s ready on map %s at (%.2f, %.2f)",
+                    identity.name,
+                    config.sim.map,
+                    pose.x,
+                    pose.y,
+                )
+                emit(
+                    {
+                        "event": "ready",
+                        "robot": identity.name,
+                        "map": config.sim.map,
+                        "places": sorted(nav.places()),
+                    }
+                )
+                try:
+                    stopped = asyncio.create_task(stop.wait())
+                    done, _ = await asyncio.wait(
+                        {runner, stopped}, return_when=asyncio.FIRST_COMPLETED
+                    )
+                    if runner in done:
+                        runner.result()  # a crashed loop is an error, not a quiet exit
+                finally:
+                    # Fail safe order: the robot stops before anything else happens, its loop
+                    # ends, and the calls are hung up before the event loop runs again (close
+                    # hangs up before its first await and takes no new call), so no driver
+                    # can re-arm it in between.
+                    safety.stop(None, SHUTDOWN_REASON)
+                    runner.cancel()
+                    stopped.cancel()
+                    emit({"event": "stopping", "calls": len(endpoint.calls)})
+                    await endpoint.close(SHUTDOWN_REASON)
+                    await asyncio.gather(runner, stopped, return_exceptions=True)

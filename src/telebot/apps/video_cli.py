@@ -77,8 +77,8 @@ class Recorder:
         if gap < 0:
             return  # faster than the recording's rate: this frame has no slot of its own
         if gap > MAX_FILL * self.fps:  # a long outage: cut it rather than fill minutes
-            self._start += (gap - 1) / self.fps
-            gap = 0
+            self._start += gap / self.fps  # this frame takes the next slot, and time
+            gap = 0  # runs on from it
         if self._last is not None:
             for _ in range(gap):
                 self._writer.write(self._last)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import os
 import time
 from collections import Counter, OrderedDict
@@ -41,7 +42,7 @@ from telebot.channels.proto.frames import (
     encode_hangup,
     validate_name,
 )
-from telebot.channels.proto.noise import InitiatorHandshake
+from telebot.channels.proto.noise import InitiatorHandshake, ResponderHandshake
 from telebot.channels.proto.session import (
     Answer,
     CallSession,
@@ -80,6 +81,10 @@ DEFAULT_NAMESPACE = "telebot"
 HELLO_RETRY_INTERVAL = 0.25
 #: How many times a HANGUP is sent (it is not acknowledged; the peer's timeout is the backstop).
 HANGUP_REPEATS = 3
+#: How long after its last hang-up a closing endpoint withdraws its presence. zenoh
+#: sends the withdrawal at its control priority, above every lane, so without the pause
+#: it can overtake the hang-up and the peer sees a drop instead.
+HANGUP_GRACE = 0.05
 _TIMER_SLACK = 0.001  # fire just after a deadline, never just before it
 
 
@@ -198,14 +203,16 @@ class Call:
         """:meth:`hangup` for code that cannot await (signal handlers, callbacks)."""
         if self.end is not None:
             return
-        self._flush()  # what was sent before the hang-up goes out before it
-        frame = self._session.seal(encode_hangup(reason))
         try:
+            self._flush()  # what was sent before the hang-up goes out before it
+            frame = self._session.seal(encode_hangup(reason))
             for _ in range(HANGUP_REPEATS):
                 self._put(frame, Lane.CONTROL)
         except TelebotError as exc:  # the peer's own timeout will notice instead
             log.warning("call %s: hang-up not sent: %s", self.id, exc)
-        self._finish(CallEnd("hung_up", by_peer=False, detail=reason))
+        finally:  # ended here whatever happened on the way out
+            self._endpoint._last_hangup = self._loop.time()
+            self._finish(CallEnd("hung_up", by_peer=False, detail=reason))
 
     async def wait_ended(self) -> CallEnd:
         """Wait until the call ends; returns why."""
@@ -364,6 +371,7 @@ class _Endpoint:
         self._subscription: Subscription | None = None
         self._presence: Presence | None = None
         self._closed = False
+        self._last_hangup = -math.inf  # event-loop time of the last HANGUP sent
 
     # Subclasses name their inbox and presence keys.
     inbox: str
@@ -387,16 +395,31 @@ class _Endpoint:
         self._presence = self.transport.declare_presence(self.presence_key)
 
     async def close(self, reason: str = "shutting down") -> None:
-        """Hang up every call, withdraw presence and stop listening; idempotent."""
+        """Hang up every call, withdraw presence and stop listening; idempotent.
+
+        The calls are hung up before the first await, and no call is set up once
+        ``close`` is called (a robot refuses it: "<robot> is shutting down").
+        Presence is withdrawn :data:`HANGUP_GRACE` after the last hang-up this
+        endpoint sent, and is withdrawn even if ``close`` is cancelled meanwhile.
+        """
         if self._closed:
             return
         self._closed = True
-        for call in list(self._calls.values()):
-            await call.hangup(reason)
-        if self._presence is not None:
-            self._presence.close()
-        if self._subscription is not None:
-            self._subscription.close()
+        try:
+            for call in list(self._calls.values()):
+                try:
+                    call.hangup_now(reason)
+                except Exception:  # one call's fault must not leave the others up
+                    log.exception("call %s: hang-up failed", call.id)
+            # Also after a call hung up just before close (a one-shot client).
+            pause = self._last_hangup + HANGUP_GRACE - asyncio.get_running_loop().time()
+            if pause > 0:
+                await asyncio.sleep(pause)
+        finally:
+            if self._presence is not None:
+                self._presence.close()
+            if self._subscription is not None:
+                self._subscription.close()
 
     @property
     def calls(self) -> list[Call]:
@@ -521,17 +544,16 @@ class RobotEndpoint(_Endpoint):
         if contact is None:
             log.warning("refused a call from %r: key not in the contact list", frame.caller)
             self.stats.rejected["not_a_contact"] += 1
-            answer = Answer(
-                False, self.identity.name, reason=f"not in the contact list of {self.identity.name}"
-            )
-            welcome, _ = answer_hello(handshake, frame.call_id, answer)
-            self._remember(frame.call_id, raw, welcome.encode())
-            self._reply(frame, welcome.encode())
+            self._refuse(frame, raw, handshake, f"not in the contact list of {self.identity.name}")
             return
         if offer.timestamp_ns <= self._latest_hello.get(offer.caller_public_key, -1):
             self.stats.rejected["replayed_hello"] += 1
             return
         self._latest_hello[offer.caller_public_key] = offer.timestamp_ns
+        if self._closed:  # hanging up its calls: a new one would outlive the endpoint
+            self.stats.rejected["closing"] += 1
+            self._refuse(frame, raw, handshake, f"{self.identity.name} is shutting down")
+            return
         welcome, keys = answer_hello(
             handshake, frame.call_id, Answer(True, self.identity.name, role=contact.role.value)
         )
@@ -556,12 +578,24 @@ class RobotEndpoint(_Endpoint):
         self._reply(frame, welcome.encode())
         log.info("answered call %s from %s (%s)", call.id, contact.name, contact.role.value)
         if self.on_call is not None:
-            self.on_call(call)
+            try:
+                self.on_call(call)
+            except Exception:  # a call nobody serves must not stay up
+                log.exception("serving call %s from %s failed; hanging up", call.id, contact.name)
+                call.hangup_now("robot error: the call could not be served")
         elif self._incoming.full():
             self.stats.rejected["incoming_queue_full"] += 1
             call.hangup_now("robot busy")
         else:
             self._incoming.put_nowait(call)
+
+    def _refuse(self, frame: Hello, raw: bytes, handshake: ResponderHandshake, reason: str) -> None:
+        """Answer ``frame`` with a refusal naming ``reason`` (repeated if the HELLO is)."""
+        welcome, _ = answer_hello(
+            handshake, frame.call_id, Answer(False, self.identity.name, reason=reason)
+        )
+        self._remember(frame.call_id, raw, welcome.encode())
+        self._reply(frame, welcome.encode())
 
     def _remember(self, call_id: bytes, hello: bytes, welcome: bytes) -> None:
         self._answered[call_id] = (hello, welcome)
@@ -608,6 +642,13 @@ class UserEndpoint(_Endpoint):
         self._pending: dict[bytes, tuple[InitiatorHandshake, asyncio.Future[Call]]] = {}
         self._pending_robot: dict[bytes, str] = {}
 
+    async def close(self, reason: str = "shutting down") -> None:
+        """:meth:`_Endpoint.close`; a call still being set up fails with CallError."""
+        for _, future in self._pending.values():
+            if not future.done():
+                future.set_exception(CallError("the user endpoint closed while calling"))
+        await super().close(reason)
+
     async def call(self, robot: str, *, timeout: float | None = None) -> Call:
         """Call ``robot``; returns the call once the robot accepted it.
 
@@ -615,6 +656,8 @@ class UserEndpoint(_Endpoint):
         or CallError when the robot is not in known_robots.
         """
         validate_name(robot, "robot name")
+        if self._closed:
+            raise CallError("this user endpoint is closed")
         robot_key = self.known_robots.get(robot)
         if robot_key is None:
             raise CallError(

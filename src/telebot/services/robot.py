@@ -377,23 +377,16 @@ class RobotServer:
 
     def serve(self, call: Call) -> CallServices:
         """Open the service channels on ``call``."""
-        if self.safety is not None:
-            self.safety.join(call)
-        services = CallServices(self, call)
-        self.services[call.id] = services
-        if self.safety is not None:
-            services.send_safety_state(self.safety_status())
-        self.emit({"event": "call", "id": call.id, "peer": call.peer, "role": str(call.role)})
-        log.info("call %s from %s (%s)", call.id, call.peer, call.role)
 
         def on_end(_: asyncio.Future[Any]) -> None:
             # The supervisor hears first: a driver's hang-up must stop the robot whatever
             # happens in the clean-up after it.
             if self.safety is not None:
                 self._guarded(self.safety.leave, call)
-            self.services.pop(call.id, None)
-            self._guarded(services.map.close)
-            self._guarded(services.video.stop)
+            ended = self.services.pop(call.id, None)
+            if ended is not None:  # None: setting the services up failed
+                self._guarded(ended.map.close)
+                self._guarded(ended.video.stop)
             end = call.end
             self.emit(
                 {
@@ -406,7 +399,17 @@ class RobotServer:
             )
             log.info("call %s from %s ended: %s", call.id, call.peer, end)
 
+        if self.safety is not None:
+            self.safety.join(call)
+        # Before the services: if setting them up fails, the endpoint hangs up, and the
+        # call must still leave the supervisor (or it would hold the drive for good).
         asyncio.ensure_future(call.wait_ended()).add_done_callback(on_end)
+        services = CallServices(self, call)
+        self.services[call.id] = services
+        if self.safety is not None:
+            services.send_safety_state(self.safety_status())
+        self.emit({"event": "call", "id": call.id, "peer": call.peer, "role": str(call.role)})
+        log.info("call %s from %s (%s)", call.id, call.peer, call.role)
         return services
 
     def _emergency(self, reason: str) -> None:

@@ -20,6 +20,9 @@ writer never waits for anyone: a slow reader only retries, a reader that crashes
 the middle of a copy) leaves nothing to clean up, and readers attach and detach at any
 time. The writer unlinks the segment on :meth:`~FrameRingWriter.close` (also at
 interpreter exit and on ``with``); readers then see :attr:`FrameRingReader.writer_closed`.
+A writer sets a ring up in steps (name, size, header, magic last); a reader that looks in
+between gets :class:`RingNotReady`, a FileNotFoundError, exactly as if there were no ring
+yet, so a loop that waits for the ring waits through it.
 
 Layout (little-endian, every field naturally aligned)::
 
@@ -63,7 +66,13 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["FrameRingReader", "FrameRingWriter", "RingFrame", "validate_ring_name"]
+__all__ = [
+    "FrameRingReader",
+    "FrameRingWriter",
+    "RingFrame",
+    "RingNotReady",
+    "validate_ring_name",
+]
 
 MAGIC: Final = b"TBVRING1"
 VERSION: Final = 1
@@ -108,8 +117,29 @@ def _layout(slots: int, slot_bytes: int) -> tuple[int, int]:
 _untracked_lock = threading.Lock()
 
 
+class RingNotReady(FileNotFoundError):
+    """The segment exists but its writer has not finished setting it up: try again soon.
+
+    A FileNotFoundError, so code that waits for a ring to appear waits through this too.
+    """
+
+
 def _open_untracked(name: str) -> shared_memory.SharedMemory:
-    """Attach to an existing segment without making this process its owner."""
+    """Attach to an existing segment without making this process its owner.
+
+    Raises :class:`RingNotReady` for a segment that is still empty: its creator has
+    named it but not yet sized it (``shm_open`` and ``ftruncate`` are two steps).
+    """
+    try:
+        return _attach_untracked(name)
+    except ValueError:  # mmap refuses an empty file; SharedMemory raises nothing else here
+        pass
+    # Raised out here: an error raised in the handler would keep the half-made
+    # SharedMemory (and its open descriptor) alive through its context's traceback.
+    raise RingNotReady(f"shared memory {name!r} is still being created")
+
+
+def _attach_untracked(name: str) -> shared_memory.SharedMemory:
     if sys.version_info >= (3, 13):
         return shared_memory.SharedMemory(name, track=False)  # type: ignore[call-arg,unused-ignore]
     # Before 3.13 SharedMemory always registers the segment with the resource tracker,
@@ -165,10 +195,16 @@ class _Ring:
         buf = shm.buf
         assert buf is not None
         (magic, version, slots, width, height, slot_bytes, _, _, _) = HEADER.unpack_from(buf)
+        # The writer stores the magic last. (A zero slot count with the magic: a CPU that
+        # reorders stores, such as arm64, showed the magic first. Also not ready.)
+        if magic == bytes(len(MAGIC)) or (magic == MAGIC and slots == 0):
+            raise RingNotReady(f"shared memory {shm.name!r} is not a frame ring yet")
         if magic != MAGIC or version != VERSION:
             raise ValueError(f"shared memory {shm.name!r} is not a telebot frame ring")
         data_at, size = _layout(slots, slot_bytes)
-        if not 0 < slots <= 1024 or shm.size < size or slot_bytes < width * height * 3:
+        # len(buf), not shm.size: SharedMemory reads the size before mmap does, and a
+        # segment sized in between is mapped whole but reported as 0 bytes.
+        if not 0 < slots <= 1024 or len(buf) < size or slot_bytes < width * height * 3:
             raise ValueError(f"shared memory {shm.name!r}: inconsistent frame ring header")
         self.slots = int(slots)
         self.max_width = int(width)
@@ -212,8 +248,8 @@ class FrameRingWriter:
 
     ``width`` × ``height`` is the largest picture a slot holds; a larger frame is shrunk
     to fit (keeping its aspect ratio), a smaller one is stored as it is. If a segment of
-    that name exists from a writer that died, it is replaced; if its writer lives,
-    FileExistsError.
+    that name exists from a writer that died, it is replaced; if its writer lives or is
+    still setting it up, FileExistsError.
     """
 
     def __init__(self, name: str, width: int, height: int, *, slots: int = DEFAULT_SLOTS) -> None:
@@ -229,8 +265,9 @@ class FrameRingWriter:
         buf = self._shm.buf
         assert buf is not None
         HEADER.pack_into(
-            buf, 0, MAGIC, VERSION, slots, width, height, slot_bytes, 0, os.getpid(), 0
+            buf, 0, bytes(len(MAGIC)), VERSION, slots, width, height, slot_bytes, 0, os.getpid(), 0
         )
+        buf[: len(MAGIC)] = MAGIC  # last: a reader that sees the magic sees the whole header
         self._ring = _Ring(self._shm)
         self._closed = False
         # Unlinked at the latest when the writer is collected or the interpreter exits.
@@ -243,20 +280,36 @@ class FrameRingWriter:
         except FileExistsError:
             pass
         # A segment of that name exists: reclaim it only if its writer is gone.
-        old = _open_untracked(name)
+        busy = False
         try:
-            buf = old.buf
-            assert buf is not None
-            if old.size < HEADER.size:
-                raise FileExistsError(f"shared memory {name!r} exists and is not a frame ring")
-            magic, *_, pid, closed = HEADER.unpack_from(buf)
-            if magic != MAGIC:
-                raise FileExistsError(f"shared memory {name!r} exists and is not a frame ring")
-            if not closed and _pid_alive(pid):
-                raise FileExistsError(f"shared memory {name!r} is in use by process {pid}")
-        finally:
-            old.close()
-        _unlink_untracked(name)
+            old = _open_untracked(name)
+        except RingNotReady:
+            old, busy = None, True
+        except FileNotFoundError:
+            old = None  # its writer closed it meanwhile: the name is free again
+        if old is not None:
+            try:
+                buf = old.buf
+                assert buf is not None
+                if len(buf) < HEADER.size:
+                    raise FileExistsError(f"shared memory {name!r} exists and is not a frame ring")
+                magic, *_, pid, closed = HEADER.unpack_from(buf)
+                unfinished = magic == bytes(len(MAGIC))  # a writer has not stored it yet
+                if magic != MAGIC and not unfinished:
+                    raise FileExistsError(f"shared memory {name!r} exists and is not a frame ring")
+                busy = unfinished and not pid  # not even its writer's pid: just created
+                if not busy and not closed and _pid_alive(pid):
+                    raise FileExistsError(f"shared memory {name!r} is in use by process {pid}")
+            finally:
+                old.close()
+        if busy:
+            # Only a writer that died in its first microseconds leaves this for good.
+            raise FileExistsError(
+                f"shared memory {name!r} is being set up by another process "
+                f"(if none is, remove /dev/shm/{name})"
+            )
+        if old is not None:
+            _unlink_untracked(name)
         return shared_memory.SharedMemory(name, create=True, size=size)
 
     @property
@@ -366,8 +419,9 @@ def _unlink_untracked(name: str) -> None:
 class FrameRingReader:
     """Reads the newest frames of the named ring; attach and detach at any time.
 
-    Raises FileNotFoundError when no ring of that name exists (yet), ValueError when the
-    segment is not a frame ring. Lock-free: reading never blocks the writer.
+    Raises FileNotFoundError when no ring of that name exists yet (:class:`RingNotReady`
+    while its writer is still setting it up), ValueError when the segment is not a frame
+    ring. Lock-free: reading never blocks the writer.
     """
 
     def __init__(self, name: str) -> None:

@@ -25,14 +25,25 @@ undeclared when the Python object is garbage collected. The transport therefore 
 a reference to every entity it declared and undeclares them all in
 :meth:`ZenohTransport.close`; undeclaring a subscriber closes its channel, which ends
 its reader thread.
+
+Memory. Payloads are copied out of zenoh on the reader thread and freed on the loop,
+a burst at a time. glibc's default is to hand the freed top of a heap back to the
+kernel as soon as 128 KB are free, so the next burst page-faults its buffers in again:
+at 32 KB per sample that costs more than the copy, and a reader that falls behind once
+stays behind (measured: 40,000 instead of 200,000 samples/s, from one run to the
+next). Opening a transport therefore sets glibc's mmap and trim thresholds, once per
+process (:func:`keep_freed_memory`).
 """
 
 from __future__ import annotations
 
 import asyncio
 import collections
+import ctypes
 import json
 import logging
+import os
+import platform
 import re
 import threading
 from collections.abc import Callable
@@ -61,6 +72,7 @@ __all__ = [
     "ZenohSubscription",
     "ZenohTransport",
     "build_zenoh_config",
+    "keep_freed_memory",
 ]
 
 logger = logging.getLogger("telebot.transport.zenoh")
@@ -72,7 +84,17 @@ _PUT = zenoh.SampleKind.PUT
 _ZENOH_CHANNEL_SIZE = 256
 #: A reader thread wakes the loop at least this often during a long burst.
 _READ_BATCH = 256
+#: How long closing a subscription waits for its reader thread to end (seconds).
+READER_EXIT_TIMEOUT = 1.0
 _E = TypeVar("_E", bound="_Entity")
+#: glibc ``mallopt`` parameters (malloc.h) and the values :func:`keep_freed_memory` sets.
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+_TRIM_THRESHOLD = 64 << 20
+#: glibc refuses more than half its heap size: 32 MB on 64-bit builds, 512 KB on 32-bit.
+_MMAP_THRESHOLD = 32 << 20 if ctypes.sizeof(ctypes.c_void_p) == 8 else 512 << 10
+#: Allocator settings a user may have chosen; :func:`keep_freed_memory` leaves them be.
+_MALLOC_ENV = ("MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TOP_PAD_")
+_allocator_tuned: bool | None = None  # None: not tried yet in this process
 
 #: Publisher QoS of each lane, as keyword arguments of ``Session.declare_publisher``.
 #: Every lane drops under congestion (a stale pose or video frame is worth nothing, and a
@@ -160,6 +182,40 @@ def build_zenoh_config(settings: ZenohSettings) -> zenoh.Config:
     for path, value in settings.options.items():
         _insert(config, path, value, f"option {path!r} =")
     return config
+
+
+def keep_freed_memory() -> bool:
+    """Make glibc reuse freed heap instead of handing it back to the kernel at once.
+
+    Blocks up to 32 MB (512 KB on 32-bit builds) then come from the heap rather than
+    from a fresh mmap each, and each arena keeps up to 64 MB free at the top of its heap
+    before trimming it (glibc's defaults: 128 KB, then adjusted as it goes). See
+    "Memory" in this module's docstring for why. The first :meth:`ZenohTransport.open`
+    of a process calls it; later calls return the first one's answer. Returns whether
+    the settings are in effect; it changes nothing and returns False on a C library
+    other than glibc, or when the user chose allocator settings of their own
+    (``MALLOC_*_THRESHOLD_``, ``MALLOC_TOP_PAD_`` or ``glibc.malloc`` tunables).
+    """
+    global _allocator_tuned
+    if _allocator_tuned is None:
+        _allocator_tuned = _set_malloc_thresholds()
+    return _allocator_tuned
+
+
+def _set_malloc_thresholds() -> bool:
+    user_choice = any(name in os.environ for name in _MALLOC_ENV)
+    if user_choice or "glibc.malloc" in os.environ.get("GLIBC_TUNABLES", ""):
+        return False
+    if platform.libc_ver()[0] != "glibc":
+        return False
+    mallopt = ctypes.CDLL(None).mallopt
+    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
+    # The mmap threshold first: setting the trim threshold also stops glibc adjusting
+    # the mmap threshold, and it must not then stay at 128 KB.
+    if mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD) and mallopt(_M_TRIM_THRESHOLD, _TRIM_THRESHOLD):
+        return True
+    logger.warning("glibc refused the malloc settings; large samples may be slow")
+    return False
 
 
 def _call_soon(loop: asyncio.AbstractEventLoop, fn: Callable[..., object], *args: Any) -> bool:
@@ -309,6 +365,7 @@ class ZenohSubscription(_Entity, Subscription):
         self._reported = (0, 0)
         self._closed = False
         self._raw: zenoh.Subscriber[zenoh.handlers.Handler[zenoh.Sample]] | None = None
+        self._reader: threading.Thread | None = None
 
     def _read(self, handler: Any) -> None:
         """Reader thread: move samples from zenoh's channel to the queue, in batches.
@@ -318,7 +375,8 @@ class ZenohSubscription(_Entity, Subscription):
         loop is woken once for all of them. No lock: deque appends and pops are atomic,
         and the flag is set here and cleared by the drain *before* it empties the
         queue, so a sample appended at any moment is either taken by a drain already
-        running or schedules the next one. Ends when the subscriber is undeclared.
+        running or schedules the next one. Ends when the subscriber is undeclared, which
+        closes zenoh's channel under ``recv()`` or ``try_recv()`` alike.
         """
         recv, try_recv = handler.recv, handler.try_recv
         queue, exact = self._queue, self._exact
@@ -339,7 +397,10 @@ class ZenohSubscription(_Entity, Subscription):
                         self._received += taken
                         taken = 0
                         self._wake()
-                sample = try_recv()
+                try:
+                    sample = try_recv()
+                except zenoh.ZError:  # undeclared mid-batch: deliver what was taken, then end
+                    sample = None
             self._received += taken
             if taken:
                 self._wake()
@@ -383,6 +444,12 @@ class ZenohSubscription(_Entity, Subscription):
 
     def _undeclare(self) -> None:
         _undeclare(self._raw, f"subscriber {self.pattern}")
+        # Undeclaring wakes the reader, which then ends. Wait for that: a reader still
+        # inside zenoh when the interpreter exits is killed there, which aborts the
+        # process ("FATAL: exception not rethrown").
+        reader = self._reader
+        if reader is not None and reader is not threading.current_thread():
+            reader.join(READER_EXIT_TIMEOUT)
 
 
 class ZenohPresence(_Entity, Presence):
@@ -478,6 +545,7 @@ class ZenohTransport(Transport):
         if self._session is not None or self._opening:
             raise TransportError("zenoh transport is already open")
         config = build_zenoh_config(self.settings)
+        keep_freed_memory()
         self._loop = asyncio.get_running_loop()
         self._opening = True
         task = asyncio.ensure_future(asyncio.to_thread(zenoh.open, config))
@@ -561,9 +629,10 @@ class ZenohTransport(Transport):
         sub._raw = raw
         # The reader waits on the subscriber's handler, not on the subscriber: undeclaring
         # the subscriber while another thread waits in its recv() fails in zenoh-python.
-        threading.Thread(
+        sub._reader = threading.Thread(
             target=sub._read, args=(raw.handler,), name=f"zenoh-sub {pattern}", daemon=True
-        ).start()
+        )
+        sub._reader.start()
         return self._remember(sub)
 
     def declare_presence(self, key: str) -> ZenohPresence:

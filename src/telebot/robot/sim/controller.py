@@ -30,6 +30,10 @@ ROTATE_IN_PLACE_ABOVE = math.radians(40.0)
 LOOKAHEAD = 0.6
 #: Proportional gain of heading corrections (1/s).
 HEADING_GAIN = 2.5
+#: Share of the base's deceleration a path plans to brake with into its goal. The rest
+#: is reserve: the base answers a command one control step late, and the way left
+#: shrinks faster than the base drives while it cuts the path's last corner.
+BRAKING_SHARE = 0.8
 
 
 @dataclass(frozen=True, slots=True)
@@ -101,23 +105,31 @@ class PathTracker:
         return float(self.waypoints[-1, 0]), float(self.waypoints[-1, 1])
 
     def travelled(self, pose: Pose2D) -> float:
-        """Distance along the path to the point nearest ``pose`` (never goes backwards)."""
+        """Distance along the path to the point nearest ``pose`` (searched ahead only)."""
         # Search a window ahead of the last match only, so a path that doubles back near
         # itself cannot make progress jump.
         hi = min(self._index + 40, len(self.waypoints))
         window = self.waypoints[self._index : hi]
         dists = np.hypot(window[:, 0] - pose.x, window[:, 1] - pose.y)
         self._index += int(np.argmin(dists))
-        # Project onto the segment after the nearest waypoint for a smooth figure.
-        along = float(self._cumulative[self._index])
-        if self._index + 1 < len(self.waypoints):
-            ax, ay = self.waypoints[self._index]
-            bx, by = self.waypoints[self._index + 1]
+        # Project onto the nearer of the segments before and after the nearest waypoint:
+        # the one after alone would put a base still short of that waypoint on it, and
+        # progress would jump by a segment at a time (braking into the goal needs it smooth).
+        best_along, best_gap = float(self._cumulative[self._index]), math.inf
+        for first in (self._index - 1, self._index):
+            if first < 0 or first + 1 >= len(self.waypoints):
+                continue
+            ax, ay = self.waypoints[first]
+            bx, by = self.waypoints[first + 1]
             seg = math.hypot(bx - ax, by - ay)
-            if seg > 0:
-                t = ((pose.x - ax) * (bx - ax) + (pose.y - ay) * (by - ay)) / (seg * seg)
-                along += max(0.0, min(1.0, t)) * seg
-        return along
+            if seg <= 0:
+                continue
+            t = ((pose.x - ax) * (bx - ax) + (pose.y - ay) * (by - ay)) / (seg * seg)
+            t = max(0.0, min(1.0, t))
+            gap = math.hypot(pose.x - (ax + t * (bx - ax)), pose.y - (ay + t * (by - ay)))
+            if gap < best_gap:
+                best_along, best_gap = float(self._cumulative[first]) + t * seg, gap
+        return best_along
 
     def remaining(self, pose: Pose2D) -> float:
         """Distance still to drive along the path from ``pose``."""
@@ -142,10 +154,13 @@ class PathTracker:
         alpha = normalize_angle(math.atan2(dy, dx) - pose.yaw)
         if abs(alpha) > ROTATE_IN_PLACE_ABOVE:
             return Velocity(0.0, rotate_command(alpha, limits))
-        to_go = self.remaining(pose)
+        # Pure pursuit cuts corners, so near a corner the base drives less than the path
+        # length: brake for the way it takes (straight to the lookahead point, then along
+        # the path), or a corner just before the goal carries it past the goal.
+        to_go = min(self.remaining(pose), distance + self.length - target_s)
         speed = min(
             limits.linear_speed * max(math.cos(alpha), 0.0),
-            braking_speed(to_go, limits.linear_accel),
+            braking_speed(to_go, BRAKING_SHARE * limits.linear_accel),
         )
         # Pure pursuit: curvature 2·sin(α)/L through the lookahead point.
         curvature = 2.0 * math.sin(alpha) / max(distance, 1e-3)

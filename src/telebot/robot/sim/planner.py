@@ -223,6 +223,34 @@ class Costmap:
         cell = self._region_cell(x, y)
         return cell is not None and bool(np.isfinite(self._weights[cell]))
 
+    def touches_wall(self, x: float, y: float) -> bool:
+        """Whether the robot's disc at world ``(x, y)`` overlaps a wall, unknown space or
+        the outside of the map: exact geometry against the cells' squares.
+
+        :meth:`is_free` is the planner's conservative test (it measures between cell
+        centres, so it can refuse a point a few centimetres clear of every wall);
+        this one is what touching means, for the simulated physics.
+        """
+        if not (math.isfinite(x) and math.isfinite(y)):
+            return True
+        u, v = self._to_cells(x, y)
+        reach = self._radius / self._grid.resolution  # in cells
+        row_lo, row_hi = math.floor(v - reach), math.floor(v + reach)
+        col_lo, col_hi = math.floor(u - reach), math.floor(u + reach)
+        rows, cols = self._dist.shape
+        if row_lo < 0 or col_lo < 0 or row_hi >= rows or col_hi >= cols:
+            return True  # the disc reaches past the known region, which is lethal
+        window = self._dist[row_lo : row_hi + 1, col_lo : col_hi + 1]
+        lethal_rows, lethal_cols = np.nonzero(window == 0)
+        if lethal_rows.size == 0:
+            return False
+        # Distance from (u, v) to each lethal cell's square [col, col+1] x [row, row+1].
+        cells_u = lethal_cols + col_lo
+        cells_v = lethal_rows + row_lo
+        du = np.maximum(np.maximum(cells_u - u, u - (cells_u + 1)), 0.0)
+        dv = np.maximum(np.maximum(cells_v - v, v - (cells_v + 1)), 0.0)
+        return bool(np.any(du * du + dv * dv < reach * reach))
+
     def clearance(self, x: float, y: float) -> float:
         """Distance (metres) from world ``(x, y)``'s cell to the nearest lethal cell's edge.
 

@@ -17,6 +17,7 @@ import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import MappingProxyType
+from typing import Literal
 
 import numpy as np
 
@@ -57,6 +58,9 @@ MAX_RELATIVE_MOVE = 100.0
 MAX_TURN = 2.0 * math.pi
 #: Time constant of the localisation error's random walk (seconds).
 NOISE_TIME_CONSTANT = 2.0
+#: Replans a blocked path goal makes without getting anywhere before it gives up: a new
+#: plan from the same spot that the laser blocks again will not do better the next time.
+REPLANS_IN_PLACE = 2
 
 
 class _Kind(enum.Enum):
@@ -95,6 +99,11 @@ class SimGoal:
         self.last_yaw = 0.0
         self.blocked_since: float | None = None
         self.replans = 0
+        # Where the base was at the first of a run of blocked timeouts, and how many
+        # timeouts in a row found it still there (within its radius): measured from the
+        # first, so creeping a little each time does not count as getting anywhere.
+        self.stuck_at: Pose2D | None = None
+        self.stuck_count = 0
 
     @property
     def goal_id(self) -> int:
@@ -216,6 +225,9 @@ class SimNavStack:
         self._speed_limit = settings.max_linear_speed
         self._battery = 100.0
         self._collisions = 0
+        # What the physics guard refused the last step's move for, and which way the
+        # base was driving (+1 forward, -1 backward), if it did.
+        self._refused: tuple[Literal["wall", "obstacle"], float] | None = None
         self._emergency_requests = 0
         self._emergency_reason = ""
         #: Emergency stops acted on (see :meth:`emergency_stop`).
@@ -624,8 +636,14 @@ class SimNavStack:
         if command.linear != 0.0 or self._base.velocity.linear != 0.0:
             direction = math.copysign(1.0, command.linear or self._base.velocity.linear)
             blocked, static = self._front_blocked(direction, remaining)
+            refused = self._refused
+            if refused is not None and refused[1] == direction:
+                # The physics stopped the base going this way: the laser missed something.
+                blocked, static = True, static or refused[0] == "wall"
             if blocked:
-                command = Velocity(0.0, 0.0)
+                # Turning on the spot keeps the disc where it is: keep turning towards
+                # the path, so a base facing a wall beside its goal can still face away.
+                command = Velocity(0.0, command.angular)
                 if goal.blocked_since is None:
                     goal.blocked_since = now
                 if goal.kind is _Kind.STRAIGHT and static:
@@ -643,6 +661,21 @@ class SimNavStack:
         if goal.kind is not _Kind.PATH or goal.tracker is None:
             self._end_goal(goal, GoalStatus.FAILED, "stopped: obstacle ahead")
             return
+        stuck = goal.stuck_at
+        if stuck is None or math.hypot(here.x - stuck.x, here.y - stuck.y) >= (
+            self._settings.robot_radius
+        ):
+            goal.stuck_at, goal.stuck_count = here, 1
+        else:
+            goal.stuck_count += 1
+        if goal.stuck_count > REPLANS_IN_PLACE:
+            waited = goal.stuck_count * self._settings.blocked_timeout
+            self._end_goal(
+                goal,
+                GoalStatus.FAILED,
+                f"stopped: obstacle ahead, no way past it ({waited:g} s blocked in one place)",
+            )
+            return
         costmap = self._costmap.with_obstacles(tuple(self._obstacles.values()))
         try:
             path = costmap.plan((here.x, here.y), goal.tracker.goal)
@@ -656,7 +689,7 @@ class SimNavStack:
         goal.replans += 1
 
     def _front_blocked(self, direction: float, remaining: float) -> tuple[bool, bool]:
-        """Whether a laser hit lies in the strip the base will sweep before it can stop.
+        """Whether a laser hit lies in the area the base will sweep before it can stop.
 
         Returns ``(blocked, static)``; ``static`` when a blocking hit is on a map wall.
         """
@@ -665,24 +698,36 @@ class SimNavStack:
         reach = braking_speed_distance(speed, settings.linear_accel) + settings.stop_margin
         # Near the goal only the distance still to drive matters, so a goal just in front
         # of a wall is reachable.
-        reach = min(reach, remaining + 0.02)
-        length = settings.robot_radius + max(reach, 0.0)
+        reach = max(min(reach, remaining), 0.0)
+        radius = settings.robot_radius
         points = self._scan.points()
         if points.size == 0:
             return False, False
+        # The area the base's disc sweeps ahead while it drives ``reach``: a strip as wide
+        # as the base, ended by the disc where it stops (a box there would also take in
+        # walls beside a goal that the base never comes near). Against walls that disc is
+        # allowed half a map cell of overlap, as the planner is: it measures clearance
+        # between cell centres, so a goal it accepts can be that close to a wall's corner.
         ahead = points[:, 0] * direction
-        mask = (ahead > 0.0) & (ahead <= length) & (np.abs(points[:, 1]) < settings.robot_radius)
-        if not mask.any():
-            return False, False
+        side = np.abs(points[:, 1])
+        in_strip = (ahead <= reach) & (side < radius)
+        to_end = np.hypot(ahead - reach, side)
+        in_end = to_end < radius - 0.5 * self._grid.resolution
         pose = self._base.pose
         cos_y, sin_y = math.cos(pose.yaw), math.sin(pose.yaw)
-        static = False
-        for px, py in points[mask]:
+
+        def on_person(px: float, py: float) -> bool:
+            """Whether the hit at ``(px, py)`` (base frame) is on a dynamic obstacle."""
             wx = pose.x + px * cos_y - py * sin_y
             wy = pose.y + px * sin_y + py * cos_y
-            if not self._near_dynamic_obstacle(wx, wy):
-                static = True
-                break
+            return self._near_dynamic_obstacle(wx, wy)
+
+        for index in np.flatnonzero((to_end < radius) & ~in_end & (ahead > 0.0)):
+            in_end[index] = on_person(*points[index])  # people get no slack
+        mask = (ahead > 0.0) & (in_strip | in_end)
+        if not mask.any():
+            return False, False
+        static = any(not on_person(px, py) for px, py in points[mask])
         return True, static
 
     def _near_dynamic_obstacle(self, x: float, y: float) -> bool:
@@ -715,8 +760,13 @@ class SimNavStack:
             after = self._base.advance(target, dt, self._speed_limit)
             if self._pose_allowed(before, after, obstacles):
                 self._base.commit(after)
+                self._refused = None
             else:
                 self._collisions += 1
+                what: Literal["wall", "obstacle"] = "wall" if self._in_wall(after) else "obstacle"
+                self._refused = (what, math.copysign(1.0, target.linear))
+                # The turn is kept: turning on the spot does not move the disc.
+                self._base.commit(Pose2D(before.x, before.y, after.yaw))
                 self._base.halt()
             speed_share = abs(self._base.velocity.linear) / settings.max_linear_speed
             idle_rate = 100.0 / (settings.battery_idle_hours * 3600.0)
@@ -731,10 +781,20 @@ class SimNavStack:
             self._teleop = False
             self._base.halt()
 
+    def _in_wall(self, pose: Pose2D) -> bool:
+        costmap = self._costmap
+        return not costmap.is_free(pose.x, pose.y) and costmap.touches_wall(pose.x, pose.y)
+
     def _pose_allowed(self, before: Pose2D, after: Pose2D, obstacles: Sequence[Obstacle]) -> bool:
-        """Physics guard: the base never moves into a wall or an obstacle."""
-        free_after = self._costmap.is_free(after.x, after.y)
-        if not free_after and self._costmap.is_free(before.x, before.y):
+        """Physics guard: the base never moves into a wall or an obstacle.
+
+        Against walls, a pose is refused when the base's disc overlaps one *and* the
+        planner's test (:meth:`Costmap.is_free`) refuses it too. The planner measures
+        between cell centres, so it can refuse a point a few centimetres clear of a wall
+        (the base drifting that far off a path in a tight passage touches nothing), and
+        at a corner it can pass one a centimetre or so inside (its paths stay drivable).
+        """
+        if self._in_wall(after) and not self._in_wall(before):
             return False
         radius = self._settings.robot_radius
         for obs in obstacles:
