@@ -61,6 +61,9 @@ class ZenohSettings(StrictModel):
     close_timeout: float = Field(default=2.0, gt=0, le=60)
     #: Samples buffered between zenoh's threads and the event loop; the oldest drop beyond.
     queue_size: int = Field(default=4096, ge=16, le=1_000_000)
+    #: ...and at most this many bytes per subscription (8 MB: 256 full 32 KB frames), so a
+    #: flood costs bounded memory whatever its frame size.
+    queue_bytes: int = Field(default=8 << 20, ge=64 << 10, le=1 << 30)
 
 
 class MemorySettings(StrictModel):

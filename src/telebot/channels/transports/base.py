@@ -9,6 +9,12 @@ Threading contract: every callback a transport invokes (``subscribe``'s batch ca
 on, never on a foreign thread. Received samples are delivered in batches, so a burst
 costs one loop wake-up, through a bounded queue that drops the oldest sample when the
 consumer falls behind (counted in :attr:`TransportStats.dropped`).
+
+Each subscription may carry :class:`ReceiveLimits`: its own queue bound in samples *and*
+bytes, and the largest payload it takes. A payload over the limit is dropped before it
+is copied out of the transport (it cannot be an authentic frame), and a subscription
+hands at most ``batch`` samples to its callback per event-loop turn, so that one flooded
+subscription cannot hold the loop while another (a call's control frames) waits.
 """
 
 from __future__ import annotations
@@ -27,8 +33,10 @@ __all__ = [
     "Lane",
     "Presence",
     "Publisher",
+    "ReceiveLimits",
     "Sample",
     "Subscription",
+    "SubscriptionStats",
     "Transport",
     "TransportStats",
 ]
@@ -67,6 +75,41 @@ class TransportStats:
     published: int = 0
     received: int = 0
     dropped: int = 0  # received but discarded because the consumer fell behind
+    oversized: int = 0  # discarded uncopied: over a subscription's ``max_payload``
+
+
+@dataclass(frozen=True, slots=True)
+class ReceiveLimits:
+    """Bounds of one subscription's receive path (see the module docstring).
+
+    ``max_samples`` and ``max_bytes`` bound the queue between the transport's threads and
+    the loop (the oldest sample is dropped beyond either); ``max_payload`` is the largest
+    payload taken at all (larger ones are dropped uncopied, counted as oversized);
+    ``batch`` is the most samples delivered per callback, the rest following on the next
+    loop turn. ``None`` for a bound means the transport's default.
+    """
+
+    max_samples: int | None = None
+    max_bytes: int | None = None
+    max_payload: int | None = None
+    batch: int = 256
+
+    def __post_init__(self) -> None:
+        for name in ("max_samples", "max_bytes", "max_payload"):
+            value = getattr(self, name)
+            if value is not None and value < 1:
+                raise ValueError(f"ReceiveLimits.{name} must be at least 1, not {value}")
+        if self.batch < 1:
+            raise ValueError(f"ReceiveLimits.batch must be at least 1, not {self.batch}")
+
+
+@dataclass(slots=True)
+class SubscriptionStats:
+    """Counters of one subscription (also summed into the transport's stats)."""
+
+    received: int = 0  # samples delivered or queued for delivery
+    dropped: int = 0  # queued, then discarded because the consumer fell behind
+    oversized: int = 0  # discarded uncopied: larger than ``ReceiveLimits.max_payload``
 
 
 SampleBatchCallback = Callable[[Sequence[Sample]], None]
@@ -87,6 +130,9 @@ class Publisher(abc.ABC):
 
 class Subscription(abc.ABC):
     """A live subscription or presence watch; ``close()`` stops callbacks."""
+
+    #: This subscription's own counters (a presence watch leaves them at zero).
+    stats: SubscriptionStats
 
     @abc.abstractmethod
     def close(self) -> None:
@@ -131,8 +177,18 @@ class Transport(abc.ABC):
         """Declare a publisher on ``key`` with the QoS of ``lane``."""
 
     @abc.abstractmethod
-    def subscribe(self, pattern: str, callback: SampleBatchCallback) -> Subscription:
-        """Deliver samples on keys matching ``pattern`` to ``callback`` on the loop, in batches."""
+    def subscribe(
+        self,
+        pattern: str,
+        callback: SampleBatchCallback,
+        *,
+        limits: ReceiveLimits | None = None,
+    ) -> Subscription:
+        """Deliver samples on keys matching ``pattern`` to ``callback`` on the loop, in batches.
+
+        ``limits`` bounds this subscription's queue and payloads (default: the transport's
+        own queue bound, any payload size, batches of 256).
+        """
 
     @abc.abstractmethod
     def declare_presence(self, key: str) -> Presence:

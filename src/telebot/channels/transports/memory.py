@@ -33,6 +33,7 @@ import heapq
 import itertools
 import math
 import random
+import sys
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -43,9 +44,11 @@ from telebot.channels.transports.base import (
     Presence,
     PresenceCallback,
     Publisher,
+    ReceiveLimits,
     Sample,
     SampleBatchCallback,
     Subscription,
+    SubscriptionStats,
     Transport,
 )
 from telebot.config import TransportSettings
@@ -332,11 +335,17 @@ class _MemoryPublisher(Publisher):
 
 class _MemorySubscription(Subscription):
     def __init__(
-        self, transport: MemoryTransport, pattern: str, callback: SampleBatchCallback
+        self,
+        transport: MemoryTransport,
+        pattern: str,
+        callback: SampleBatchCallback,
+        limits: ReceiveLimits,
     ) -> None:
         self._transport = transport
         self.pattern = pattern
         self.callback = callback
+        self.max_payload = limits.max_payload or sys.maxsize
+        self.stats = SubscriptionStats()
         self.closed = False
 
     def close(self) -> None:
@@ -353,6 +362,7 @@ class _MemoryWatch(Subscription):
         self.pattern = pattern
         self.callback = callback
         self.seen: set[str] = set()  # keys last reported alive
+        self.stats = SubscriptionStats()  # presence changes are not samples: stays zero
         self.closed = False
 
     def close(self) -> None:
@@ -468,11 +478,22 @@ class MemoryTransport(Transport):
         _check_key_expr(key, wildcards=False)
         return _MemoryPublisher(self, key, lane)
 
-    def subscribe(self, pattern: str, callback: SampleBatchCallback) -> Subscription:
-        """Call ``callback`` on the loop with batches of samples whose key matches ``pattern``."""
+    def subscribe(
+        self,
+        pattern: str,
+        callback: SampleBatchCallback,
+        *,
+        limits: ReceiveLimits | None = None,
+    ) -> Subscription:
+        """Call ``callback`` on the loop with batches of samples whose key matches ``pattern``.
+
+        Of ``limits`` only ``max_payload`` applies (larger payloads are dropped and counted
+        as oversized): the queue is the node's, bounded by ``queue_size``, and everything
+        due is delivered in one turn.
+        """
         self._check_open()
         _check_key_expr(pattern, wildcards=True)
-        sub = _MemorySubscription(self, pattern, callback)
+        sub = _MemorySubscription(self, pattern, callback, limits or ReceiveLimits())
         self._subs.append(sub)
         return sub
 
@@ -570,6 +591,10 @@ class MemoryTransport(Transport):
                 stats.delivered += 1
             for sub in self._subs:
                 if key_matches(sub.pattern, sample.key):
+                    if len(sample.payload) > sub.max_payload:
+                        sub.stats.oversized += 1
+                        self.stats.oversized += 1
+                        continue
                     batches.setdefault(sub, []).append(sample)
         if self._inbox:
             self._arm(self._inbox[0][0])
@@ -577,6 +602,7 @@ class MemoryTransport(Transport):
             if sub.closed:  # closed by an earlier callback of this batch
                 continue
             self.stats.received += len(samples)
+            sub.stats.received += len(samples)
             try:
                 sub.callback(samples)
             except Exception as exc:  # one faulty consumer must not starve the others

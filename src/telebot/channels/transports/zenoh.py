@@ -45,6 +45,7 @@ import logging
 import os
 import platform
 import re
+import sys
 import threading
 from collections.abc import Callable
 from typing import Any, Final, Protocol, Self, TypeVar
@@ -56,9 +57,11 @@ from telebot.channels.transports.base import (
     Presence,
     PresenceCallback,
     Publisher,
+    ReceiveLimits,
     Sample,
     SampleBatchCallback,
     Subscription,
+    SubscriptionStats,
     Transport,
 )
 from telebot.config import TransportSettings, ZenohSettings
@@ -336,8 +339,10 @@ class ZenohPublisher(_Entity, Publisher):
 class ZenohSubscription(_Entity, Subscription):
     """Delivers matching samples to a callback on the loop, in batches.
 
-    The reader thread appends to a bounded deque and schedules one drain per batch;
-    the drain, on the loop, hands everything queued to the callback in one call.
+    The reader thread appends to a queue bounded in samples and bytes and schedules one
+    drain per batch; the drain, on the loop, hands at most ``limits.batch`` samples to
+    the callback and schedules itself again for the rest, so other subscriptions'
+    drains run in between.
     """
 
     def __init__(
@@ -346,23 +351,28 @@ class ZenohSubscription(_Entity, Subscription):
         loop: asyncio.AbstractEventLoop,
         pattern: str,
         callback: SampleBatchCallback,
-        queue_size: int,
+        limits: ReceiveLimits,
     ) -> None:
         self._transport = transport
         self._loop = loop
         self.pattern = pattern
         self._callback = callback
+        self.limits = limits
         # A pattern without wildcards is the key of every sample it gets.
         self._exact = "*" not in pattern
-        # Payloads (exact pattern) or (key, payload) pairs; deque(maxlen) drops the
-        # oldest by itself, we only count it.
-        self._queue: collections.deque[Any] = collections.deque(maxlen=queue_size)
+        # Payloads (exact pattern) or (key, payload) pairs. Both threads pop from it (the
+        # reader drops the oldest), so the drain tolerates finding it emptier than it was.
+        self._queue: collections.deque[Any] = collections.deque()
         self._drain_scheduled = False
-        # Written only by this subscription's zenoh thread; folded into the transport's
-        # stats on the loop, so no lock is shared between the two threads.
-        self._received = 0
-        self._dropped = 0
-        self._reported = (0, 0)
+        # Each counter is written by one thread only (no lock shared between the reader
+        # and the loop); queued bytes are what came in minus what left either way.
+        self._bytes_in = 0  # reader
+        self._bytes_dropped = 0  # reader
+        self._bytes_out = 0  # loop
+        self._received = 0  # reader
+        self._dropped = 0  # reader
+        self._oversized = 0  # reader
+        self.stats = SubscriptionStats()
         self._closed = False
         self._raw: zenoh.Subscriber[zenoh.handlers.Handler[zenoh.Sample]] | None = None
         self._reader: threading.Thread | None = None
@@ -372,14 +382,18 @@ class ZenohSubscription(_Entity, Subscription):
 
         ``recv()`` waits with the GIL released; once a sample is there, every sample
         already waiting is taken with ``try_recv()`` under one hold of the GIL, and the
-        loop is woken once for all of them. No lock: deque appends and pops are atomic,
-        and the flag is set here and cleared by the drain *before* it empties the
-        queue, so a sample appended at any moment is either taken by a drain already
-        running or schedules the next one. Ends when the subscriber is undeclared, which
-        closes zenoh's channel under ``recv()`` or ``try_recv()`` alike.
+        loop is woken once for all of them. A payload over ``max_payload`` is dropped
+        before it is copied: a 1 MB sample sent by a stranger costs a length check, not
+        a megabyte. No lock: deque appends and pops are atomic, and the flag is set here
+        and cleared by the drain *before* it takes from the queue, so a sample appended
+        at any moment is either taken by a drain already running or schedules the next
+        one. Ends when the subscriber is undeclared, which closes zenoh's channel under
+        ``recv()`` or ``try_recv()`` alike.
         """
         recv, try_recv = handler.recv, handler.try_recv
         queue, exact = self._queue, self._exact
+        max_samples, max_bytes = self._max_samples, self._max_bytes
+        max_payload = self.limits.max_payload or sys.maxsize
         while True:
             try:
                 sample = recv()
@@ -388,15 +402,26 @@ class ZenohSubscription(_Entity, Subscription):
             taken = 0
             while sample is not None:
                 if sample.kind == _PUT and not self._closed:
-                    if len(queue) == queue.maxlen:
-                        self._dropped += 1
-                    payload = sample.payload.to_bytes()
-                    queue.append(payload if exact else (str(sample.key_expr), payload))
-                    taken += 1
-                    if taken == _READ_BATCH:  # a long burst: let the loop start on it
-                        self._received += taken
-                        taken = 0
-                        self._wake()
+                    raw = sample.payload
+                    size = len(raw)
+                    if size > max_payload:
+                        self._oversized += 1
+                    else:
+                        while queue and (
+                            len(queue) >= max_samples
+                            or self._bytes_in - self._bytes_dropped - self._bytes_out + size
+                            > max_bytes
+                        ):
+                            self._drop_oldest()
+                        payload = raw.to_bytes()
+                        self._bytes_in += size
+                        queue.append(payload if exact else (str(sample.key_expr), payload))
+                        taken += 1
+                        if taken == _READ_BATCH:  # a long burst: let the loop start on it
+                            self._received += taken
+                            taken = 0
+                            self._wake()
+                del sample
                 try:
                     sample = try_recv()
                 except zenoh.ZError:  # undeclared mid-batch: deliver what was taken, then end
@@ -405,6 +430,23 @@ class ZenohSubscription(_Entity, Subscription):
             if taken:
                 self._wake()
 
+    @property
+    def _max_samples(self) -> int:
+        return self.limits.max_samples or self._transport.settings.queue_size
+
+    @property
+    def _max_bytes(self) -> int:
+        return self.limits.max_bytes or self._transport.settings.queue_bytes
+
+    def _drop_oldest(self) -> None:
+        """Reader thread: discard the oldest queued sample (the loop may have taken it)."""
+        try:
+            item = self._queue.popleft()
+        except IndexError:
+            return
+        self._dropped += 1
+        self._bytes_dropped += len(item if self._exact else item[1])
+
     def _wake(self) -> None:
         """Reader thread: schedule one drain on the loop unless one is pending."""
         if not self._drain_scheduled:
@@ -412,16 +454,27 @@ class ZenohSubscription(_Entity, Subscription):
             _call_soon(self._loop, self._drain)
 
     def _drain(self) -> None:
-        """Loop: deliver everything queued so far as one batch."""
+        """Loop: deliver up to ``limits.batch`` queued samples; schedule the rest."""
         self._drain_scheduled = False
         queue = self._queue
         pop = queue.popleft
-        count = len(queue)
-        if self._exact:
-            key = self.pattern
-            batch = [Sample(key, pop()) for _ in range(count)]
-        else:
-            batch = [Sample(*pop()) for _ in range(count)]
+        batch: list[Sample] = []
+        size = 0
+        exact, key = self._exact, self.pattern
+        for _ in range(min(len(queue), self.limits.batch)):
+            try:
+                item = pop()
+            except IndexError:  # the reader dropped the oldest meanwhile
+                break
+            if exact:
+                size += len(item)
+                batch.append(Sample(key, item))
+            else:
+                size += len(item[1])
+                batch.append(Sample(*item))
+        self._bytes_out += size
+        if queue and not self._closed:  # the rest after other callbacks had their turn
+            self._wake()
         self._report()
         if self._closed or not batch:
             return
@@ -432,11 +485,12 @@ class ZenohSubscription(_Entity, Subscription):
             logger.exception("subscriber callback for %r raised", self.pattern)
 
     def _report(self) -> None:
-        received, dropped = self._received, self._dropped
-        stats = self._transport.stats
-        stats.received += received - self._reported[0]
-        stats.dropped += dropped - self._reported[1]
-        self._reported = (received, dropped)
+        stats, total = self.stats, self._transport.stats
+        received, dropped, oversized = self._received, self._dropped, self._oversized
+        total.received += received - stats.received
+        total.dropped += dropped - stats.dropped
+        total.oversized += oversized - stats.oversized
+        stats.received, stats.dropped, stats.oversized = received, dropped, oversized
 
     def _mark_closed(self) -> None:
         self._closed = True
@@ -479,6 +533,7 @@ class ZenohPresenceWatch(_Entity, Subscription):
         self._loop = loop
         self.pattern = pattern
         self._callback = callback
+        self.stats = SubscriptionStats()  # presence changes are not samples: stays zero
         self._closed = False
         self._raw: zenoh.Subscriber[None] | None = None
 
@@ -615,11 +670,18 @@ class ZenohTransport(Transport):
             raise TransportError(f"cannot publish on {key!r}: {_reason(exc)}") from exc
         return self._remember(ZenohPublisher(self, raw, key, lane))
 
-    def subscribe(self, pattern: str, callback: SampleBatchCallback) -> ZenohSubscription:
+    def subscribe(
+        self,
+        pattern: str,
+        callback: SampleBatchCallback,
+        *,
+        limits: ReceiveLimits | None = None,
+    ) -> ZenohSubscription:
         """Deliver samples matching ``pattern`` to ``callback(batch)`` on the loop."""
         session = self._require_open()
         assert self._loop is not None
-        sub = ZenohSubscription(self, self._loop, pattern, callback, self.settings.queue_size)
+        limits = limits if limits is not None else ReceiveLimits()
+        sub = ZenohSubscription(self, self._loop, pattern, callback, limits)
         try:
             raw = session.declare_subscriber(
                 pattern, zenoh.handlers.FifoChannel(_ZENOH_CHANNEL_SIZE)
