@@ -65,7 +65,14 @@ from telebot.channels.transports.base import (
     Transport,
 )
 from telebot.config import CallSettings
-from telebot.errors import CallError, CallRejected, CallTimeout, ProtocolError, TelebotError
+from telebot.errors import (
+    CallError,
+    CallRejected,
+    CallTimeout,
+    IncompatiblePeer,
+    ProtocolError,
+    TelebotError,
+)
 from telebot.identity import ContactBook, Identity, KnownRobots, Role, decode_key, encode_key
 
 __all__ = [
@@ -383,6 +390,7 @@ class _Endpoint:
         self._presence: Presence | None = None
         self._closed = False
         self._last_hangup = -math.inf  # event-loop time of the last HANGUP sent
+        self._incompatible_seen: set[str] = set()  # warned about once each
 
     # Subclasses name their inbox and presence keys.
     inbox: str
@@ -471,6 +479,13 @@ class _Endpoint:
                         pass
                 else:
                     self._on_handshake(frame)
+            except IncompatiblePeer as exc:
+                # A peer of another version: say so once (its HELLO repeats 4 times a
+                # second), then count it like any other frame that does not decode.
+                self.stats.rejected[type(exc).__name__] += 1
+                if str(exc) not in self._incompatible_seen and len(self._incompatible_seen) < 64:
+                    self._incompatible_seen.add(str(exc))
+                    log.warning("dropped a frame on %s: %s", sample.key, exc)
             except ProtocolError as exc:
                 # Garbage, forgeries and replays are counted and dropped, never raised.
                 self.stats.rejected[type(exc).__name__] += 1

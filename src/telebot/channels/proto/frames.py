@@ -38,7 +38,7 @@ import re
 import struct
 from dataclasses import dataclass
 
-from telebot.errors import DatagramTooLarge, ProtocolError
+from telebot.errors import DatagramTooLarge, IncompatiblePeer, ProtocolError
 
 __all__ = [
     "CALL_ID_LEN",
@@ -225,7 +225,7 @@ def decode_frame(data: bytes) -> Frame:
             raise ProtocolError("RETRY frame of the wrong size")
         return Retry(call_id, data[10])
     if kind == TYPE_LEGACY_HELLO:
-        raise ProtocolError(
+        raise IncompatiblePeer(
             "HELLO without cipher suite negotiation (frame type 1): the caller runs an "
             "older telebot and must be upgraded"
         )

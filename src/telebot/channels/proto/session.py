@@ -46,7 +46,7 @@ from telebot.channels.proto.noise import (
     TransportKeys,
 )
 from telebot.channels.proto.replay import ReplayWindow
-from telebot.errors import AuthenticationError, ProtocolError
+from telebot.errors import AuthenticationError, IncompatiblePeer, ProtocolError
 
 __all__ = [
     "Answer",
@@ -170,7 +170,9 @@ def read_hello(static_private: bytes, hello: Hello) -> tuple[Offer, ResponderHan
     the caller's business to check first (:func:`choose_suite`).
     """
     if hello.suite not in _KNOWN_SUITES:
-        raise ProtocolError(f"HELLO written with unknown cipher suite {hello.suite}")
+        raise IncompatiblePeer(
+            f"HELLO written with cipher suite {hello.suite}, unknown here (a newer telebot?)"
+        )
     handshake = ResponderHandshake(static_private, hello.prologue, suite=Suite(hello.suite))
     payload = handshake.read_message(hello.noise_message)
     assert handshake.remote_static is not None
