@@ -25,7 +25,8 @@ A+AEAD. The encrypted baseline: A again, but the publisher seals every payload w
    18-byte header like a DATA frame's (counter nonce, header as associated data), and the
    child's zenoh callback opens it. Raw zenoh's shared memory moves 32 KB faster than any
    cipher can touch it, so this, not A, is the physical limit of an encrypted channel on
-   this CPU; ``ratio_32k_aead`` is telebot's 32 KB rate against it.
+   this CPU; ``ratio_32k_aead`` is telebot's 32 KB rate against it. (Small datagrams
+   can beat it: telebot seals a BUNDLE of many in one AEAD operation.)
 
 Two informational measurements help to tell where telebot's time goes: the flood of A
 received by a bare ``ZenohTransport.subscribe`` (zenoh thread -> bounded queue ->
