@@ -19,6 +19,15 @@ C. Round trip of 64 B, one ping in flight, ``WARMUP_PINGS`` then ``PINGS`` measu
    The pings of all three kinds (with the informational one below) alternate in
    ``PING_ROUNDS`` rounds, so the load of a shared machine falls on them alike.
 
+A+AEAD. The encrypted baseline: A again, but the publisher seals every payload with the
+   AEAD of the cipher suite telebot negotiates on this machine (AES-256-GCM with AES
+   instructions, ChaCha20-Poly1305 without: ``suite_preference("auto")``) under an
+   18-byte header like a DATA frame's (counter nonce, header as associated data), and the
+   child's zenoh callback opens it. Raw zenoh's shared memory moves 32 KB faster than any
+   cipher can touch it, so this, not A, is the physical limit of an encrypted channel on
+   this CPU; ``ratio_32k_aead`` is telebot's 32 KB rate against it. (Small datagrams
+   can beat it: telebot seals a BUNDLE of many in one AEAD operation.)
+
 Two informational measurements help to tell where telebot's time goes: the flood of A
 received by a bare ``ZenohTransport.subscribe`` (zenoh thread -> bounded queue ->
 asyncio batch callback, no call, no crypto), and a third ping-pong, raw with the echo
@@ -44,7 +53,8 @@ RTT (lower is better; targets ≤ 1.5 for p50 and ≤ 2 for p99). PASS/MISS is
 informational; the exit status is non-zero only when the benchmark itself broke.
 The last line (``RESULT ...``) is meant for scripts.
 
-Children (internal): ``--child raw|transport PORT`` and ``--child telebot PORT HOME``.
+Children (internal): ``--child raw|transport PORT``, ``--child raw-aead PORT SUITE KEY``
+and ``--child telebot PORT HOME``.
 They talk to this process by lines: it sends ``reset``, ``count`` or ``quit`` on their
 stdin; they answer ``ready``, ``ok`` or one JSON object of counters on stdout.
 ``--profile`` runs the telebot child under cProfile and prints its hottest functions
@@ -78,6 +88,10 @@ import zenoh
 
 from telebot.channels.call import Call, RobotEndpoint, UserEndpoint
 from telebot.channels.channel import ReceivedDatagram
+from telebot.channels.proto.frames import DataFrame
+from telebot.channels.proto.noise import Suite
+from telebot.channels.proto.session import choose_suite
+from telebot.channels.suites import suite_preference
 from telebot.channels.transports.base import Lane, Sample
 from telebot.channels.transports.zenoh import LANE_QOS, ZenohTransport, build_zenoh_config
 from telebot.config import ZenohSettings
@@ -293,6 +307,9 @@ def run_child(argv: Sequence[str], profile: bool) -> None:
     kind, port = argv[0], int(argv[1])
     if kind == "raw":
         raw_child(port)
+        return
+    if kind == "raw-aead":
+        raw_aead_child(port, Suite[argv[2]], bytes.fromhex(argv[3]))
         return
     child: Coroutine[Any, Any, None] = (
         transport_child(port) if kind == "transport" else telebot_child(port, Path(argv[2]))
@@ -629,6 +646,8 @@ async def telebot_measurements(
         UserEndpoint(transport, identity, known) as user,
     ):
         call = await user.call(ROBOT, timeout=10.0)
+        if call.suite is not bench_suite():  # A+AEAD would not be its baseline
+            raise RuntimeError(f"the call uses {call.suite.label}, not {bench_suite().label}")
         try:
             floods = {size: await telebot_flood(call, child, size) for size in SIZES}
             raw_session = await asyncio.to_thread(open_session, connect_settings(raw_port))
@@ -654,6 +673,121 @@ def measure_telebot(profile: bool) -> tuple[dict[int, Flood], RoundTrips[Pings]]
             return asyncio.run(telebot_measurements(port, user_home, child, raw_port))
 
 
+# -- baseline: raw zenoh + AEAD ---------------------------------------------------------
+
+
+def bench_suite() -> Suite:
+    """The suite two telebot ends with ``cipher = "auto"`` on this machine agree on."""
+    preference = suite_preference("auto")
+    suite = choose_suite(preference, preference)
+    assert suite is not None
+    return suite
+
+
+def raw_aead_child(port: int, suite: Suite, key: bytes) -> None:
+    """Raw zenoh + AEAD: opens every sample of ``RAW_DATA_KEY`` in the zenoh callback."""
+    session = open_session(listen_settings(port))
+    opener, nonce = suite.aead(key), suite.nonce
+    delivered = forged = 0
+
+    def on_data(sample: Any) -> None:
+        nonlocal delivered, forged
+        data = sample.payload.to_bytes()
+        header = data[:18]
+        try:
+            opener.decrypt(nonce(int.from_bytes(data[10:18], "big")), data[18:], header)
+        except Exception:  # InvalidTag: never expected, but counted rather than hidden
+            forged += 1
+            return
+        delivered += 1
+
+    subscriber = session.declare_subscriber(RAW_DATA_KEY, on_data)
+    reply("ready")
+    try:
+        for line in sys.stdin:
+            command = line.strip()
+            if command == "reset":
+                delivered = forged = 0
+                reply("ok")
+            elif command == "count":
+                reply(json.dumps({"delivered": delivered, "forged": forged}))
+            elif command == "quit":
+                break
+    finally:
+        subscriber.undeclare()
+        session.close()
+
+
+class Sealer:
+    """Seals payloads as DATA frames are sealed: 18-byte header, counter nonce."""
+
+    def __init__(self, suite: Suite, key: bytes) -> None:
+        self._aead, self._nonce = suite.aead(key), suite.nonce
+        self._counter = 0
+        self._call_id = os.urandom(8)
+
+    def seal(self, payload: bytes) -> bytes:
+        counter = self._counter
+        self._counter = counter + 1
+        header = DataFrame.make_header(self._call_id, counter)
+        return header + self._aead.encrypt(self._nonce(counter), payload, header)
+
+
+def raw_aead_flood(publisher: Any, sealer: Sealer, child: Child, size: int) -> Flood:
+    """A+AEAD: seal and put as fast as possible for DURATION seconds."""
+    payload = PAYLOADS[size]
+    seal, put = sealer.seal, publisher.put
+    asyncio.run(await_route(lambda: put(seal(payload)), child))
+    sent = 0
+    start = time.perf_counter()
+    end = start + DURATION
+    while time.perf_counter() < end:
+        for _ in range(CHECK_CLOCK_EVERY):
+            put(seal(payload))
+        sent += CHECK_CLOCK_EVERY
+    return finish_flood(child, sent, time.perf_counter() - start)
+
+
+def measure_raw_aead(suite: Suite) -> dict[int, Flood]:
+    """A+AEAD: sealed raw floods into a child that opens them in its zenoh callback."""
+    port, key = free_port(), os.urandom(32)
+    child = Child(["raw-aead", str(port), suite.name, key.hex()])
+    try:
+        with contextlib.closing(open_session(connect_settings(port))) as session:
+            publisher = session.declare_publisher(RAW_DATA_KEY, **DATA_QOS)
+            try:
+                sealer = Sealer(suite, key)
+                return {size: raw_aead_flood(publisher, sealer, child, size) for size in SIZES}
+            finally:
+                publisher.undeclare()
+    finally:
+        child.close()
+
+
+def raw_aead_report(res: Results) -> tuple[list[str], float]:
+    """The A+AEAD table, and telebot's 32 KB rate against it."""
+    lines = [
+        "",
+        f"A+AEAD. Encrypted baseline: raw zenoh, sealed with {res.suite.label} before each "
+        "put and opened in the child's zenoh callback",
+        f"{'size':>6} | {'sent':>10} {'arrived':>10} {'msg/s':>10} {'÷ raw':>6} | "
+        f"{'telebot ÷ it':>12}",
+    ]
+    for size in SIZES:
+        aead, raw, tb = res.raw_aead[size], res.raw[size], res.telebot[size]
+        if aead.counts.get("forged"):
+            raise RuntimeError(f"{aead.counts['forged']} sealed samples failed to open")
+        lines.append(
+            f"{size_label(size):>6} | {aead.sent:>10,} {aead.arrived:>10,} {aead.rate:>10,.0f} "
+            f"{aead.rate / raw.rate:>6.3f} | {tb.rate / aead.rate:>12.3f}"
+        )
+    lines.append(
+        "  the physical limit of an encrypted channel on this CPU: one AEAD operation "
+        "per message on each side, nothing else"
+    )
+    return lines, res.telebot[32768].rate / res.raw_aead[32768].rate
+
+
 # -- report -----------------------------------------------------------------------------
 
 
@@ -663,6 +797,8 @@ class Results:
     transport: dict[int, Flood]
     telebot: dict[int, Flood]
     pings: RoundTrips[Pings]
+    suite: Suite  # the cipher of the telebot call and of the A+AEAD baseline
+    raw_aead: dict[int, Flood]
 
 
 def verdict(ok: bool) -> str:
@@ -691,6 +827,8 @@ def report(res: Results, elapsed: float) -> list[str]:
             f"{tb.sent:>12,} {tb.arrived:>10,} {tb.rate:>10,.0f} | {ratio:>6.3f}  "
             f">= {target:.2f} {verdict(ratio >= target)}"
         )
+    aead_lines, ratio_32k_aead = raw_aead_report(res)
+    lines += aead_lines
     lines += [
         "",
         "Where the receive side stops (info). Late = delivered after the read-out.",
@@ -735,7 +873,7 @@ def report(res: Results, elapsed: float) -> list[str]:
         f"(took {elapsed:.1f} s)",
         f"RESULT ratio_64={ratios[64]:.3f} ratio_1k={ratios[1024]:.3f} "
         f"ratio_32k={ratios[32768]:.3f} rtt_p50_ratio={rtt_ratios['p50']:.3f} "
-        f"rtt_p99_ratio={rtt_ratios['p99']:.3f}",
+        f"rtt_p99_ratio={rtt_ratios['p99']:.3f} ratio_32k_aead={ratio_32k_aead:.3f}",
     ]
     return lines
 
@@ -753,11 +891,14 @@ def main() -> None:
     started = time.monotonic()
     print("raw zenoh: floods ...", flush=True)
     raw = measure_raw()
+    suite = bench_suite()
+    print(f"raw zenoh + AEAD ({suite.label}): floods ...", flush=True)
+    raw_aead = measure_raw_aead(suite)
     print("zenoh transport only: floods ...", flush=True)
     transport = measure_transport()
     print("telebot call: floods, then pings alternating with raw zenoh ...", flush=True)
     telebot, pings = measure_telebot(args.profile)
-    results = Results(raw, transport, telebot, pings)
+    results = Results(raw, transport, telebot, pings, suite, raw_aead)
     print("\n".join(report(results, time.monotonic() - started)))
 
 

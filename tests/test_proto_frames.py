@@ -24,6 +24,7 @@ from telebot.channels.proto.frames import (
     Hangup,
     Heartbeat,
     Hello,
+    Retry,
     Welcome,
     decode_frame,
     decode_message,
@@ -73,7 +74,20 @@ byte_payloads = st.binary(max_size=MAX_DATAGRAM) | st.sampled_from(
 payloads = text_payloads | byte_payloads
 heartbeats = st.builds(Heartbeat, u32, u64, u64, u32)
 
-hellos = st.builds(Hello, call_ids, names, instances, noise_messages)
+# Offers: 1-8 distinct non-zero suite numbers (unknown ones too); the suite is one of them.
+offer_lists = st.lists(st.integers(1, 255), min_size=1, max_size=8, unique=True).map(tuple)
+hellos = st.builds(
+    lambda call_id, name, instance, noise, offers, pick: Hello(
+        call_id, name, instance, noise, offers[pick % len(offers)], offers
+    ),
+    call_ids,
+    names,
+    instances,
+    noise_messages,
+    offer_lists,
+    st.integers(0, 7),
+)
+retries = st.builds(Retry, call_ids, st.integers(0, 255))
 welcomes = st.builds(Welcome, call_ids, noise_messages)
 data_frames = st.builds(
     lambda call_id, counter, ct: DataFrame(
@@ -85,7 +99,7 @@ data_frames = st.builds(
 )
 
 
-def frame_bytes(frame: Hello | Welcome | DataFrame) -> bytes:
+def frame_bytes(frame: Hello | Welcome | DataFrame | Retry) -> bytes:
     if isinstance(frame, DataFrame):
         return frame.header + frame.ciphertext
     return frame.encode()
@@ -95,15 +109,19 @@ def assert_valid_frame(data: bytes, frame: object) -> None:
     """A decoded frame re-encodes to exactly the bytes it came from."""
     assert data[0] == VERSION
     if isinstance(frame, Hello):
-        assert data[1] == 1
+        assert data[1] == 4
         assert NAME_PATTERN.fullmatch(frame.caller)
         assert len(frame.instance) == INSTANCE_LEN
+        assert 1 <= len(frame.offers) <= 8 and frame.suite in frame.offers
         assert 1 <= len(frame.noise_message) <= 2048
         assert frame.encode() == data
         assert frame.prologue == data[: len(data) - len(frame.noise_message)]
     elif isinstance(frame, Welcome):
         assert data[1] == 2
         assert 1 <= len(frame.noise_message) <= 2048
+        assert frame.encode() == data
+    elif isinstance(frame, Retry):
+        assert data[1] == 5 and len(data) == 11
         assert frame.encode() == data
     elif isinstance(frame, DataFrame):
         assert data[1] == 3
@@ -144,7 +162,7 @@ def assert_valid_message(data: bytes, message: object) -> None:
 @given(hello=hellos)
 def test_hello_round_trip(hello: Hello) -> None:
     data = hello.encode()
-    assert data[:2] == bytes([VERSION, 1])
+    assert data[:2] == bytes([VERSION, 4])
     assert decode_frame(data) == hello
     assert_valid_frame(data, hello)
 
@@ -155,6 +173,14 @@ def test_welcome_round_trip(welcome: Welcome) -> None:
     data = welcome.encode()
     assert data[:2] == bytes([VERSION, 2])
     assert decode_frame(data) == welcome
+
+
+@SETTINGS
+@given(retry=retries)
+def test_retry_round_trip(retry: Retry) -> None:
+    data = retry.encode()
+    assert data == bytes([VERSION, 5]) + retry.call_id + bytes([retry.suite])
+    assert decode_frame(data) == retry
 
 
 @SETTINGS
@@ -173,9 +199,36 @@ def test_data_header_layout() -> None:
 
 
 def test_hello_layout_and_prologue() -> None:
-    hello = Hello(b"\x00" * 7 + b"\x01", "alice", b"instance", b"noise")
-    assert hello.prologue == b"\x01\x01" + b"\x00" * 7 + b"\x01" + b"\x05alice" + b"instance"
+    hello = Hello(b"\x00" * 7 + b"\x01", "alice", b"instance", b"noise", 2, (2, 1))
+    assert hello.prologue == (
+        b"\x01\x04" + b"\x00" * 7 + b"\x01" + b"\x05alice" + b"instance" + b"\x02\x02\x02\x01"
+    )
     assert hello.encode() == hello.prologue + b"noise"
+    # The defaults: ChaChaPoly alone.
+    assert Hello(bytes(8), "a", bytes(8), b"n").prologue.endswith(b"\x01\x01\x01")
+
+
+def test_hello_of_the_protocol_before_suites_is_refused_with_a_clear_error() -> None:
+    old = b"\x01\x01" + bytes(8) + b"\x05alice" + bytes(8) + bytes(96)
+    with pytest.raises(ProtocolError, match="older telebot"):
+        decode_frame(old)
+
+
+@pytest.mark.parametrize(
+    ("suite", "offers", "match"),
+    [
+        (1, (), "list of cipher suites"),
+        (1, (1, 1), "list of cipher suites"),
+        (1, (0, 1), "list of cipher suites"),
+        (1, tuple(range(1, 10)), "list of cipher suites"),
+        (2, (1,), "does not offer"),
+        (0, (1, 2), "does not offer"),
+    ],
+)
+def test_hello_with_bad_suites_is_refused(suite: int, offers: tuple[int, ...], match: str) -> None:
+    data = Hello(bytes(8), "alice", bytes(8), bytes(96), suite, offers).encode()
+    with pytest.raises(ProtocolError, match=match):
+        decode_frame(data)
 
 
 @SETTINGS
@@ -343,19 +396,20 @@ def test_invalid_names(name: str) -> None:
 
 
 @pytest.mark.parametrize("version", [0, 2, 3, 255])
-@pytest.mark.parametrize("kind", [1, 2, 3])
+@pytest.mark.parametrize("kind", [2, 3, 4, 5])
 def test_unknown_version_is_refused(version: int, kind: int) -> None:
     valid = {
-        1: Hello(bytes(8), "alice", bytes(8), b"n").encode(),
+        4: Hello(bytes(8), "alice", bytes(8), b"n").encode(),
         2: Welcome(bytes(8), b"n").encode(),
         3: DataFrame.make_header(bytes(8), 0) + bytes(16),
+        5: Retry(bytes(8), 1).encode(),
     }[kind]
     decode_frame(valid)  # fine as it is
     with pytest.raises(ProtocolError, match="version"):
         decode_frame(bytes([version]) + valid[1:])
 
 
-@pytest.mark.parametrize("kind", [0, 4, 5, 127, 255])
+@pytest.mark.parametrize("kind", [0, 6, 127, 255])
 def test_unknown_frame_type_is_refused(kind: int) -> None:
     with pytest.raises(ProtocolError, match="type"):
         decode_frame(bytes([VERSION, kind]) + bytes(40))
@@ -400,14 +454,22 @@ def test_malformed_messages_are_refused(data: bytes, match: str) -> None:
         (b"", "too short"),
         (bytes([1, 3]) + bytes(7), "too short"),
         (bytes([1, 3]) + bytes(8 + 8 + 15), "DATA frame too short"),
-        (bytes([1, 1]) + bytes(8), "HELLO frame too short"),
-        (bytes([1, 1]) + bytes(8) + b"\x05alice" + bytes(8), "truncated"),  # no noise message
-        (bytes([1, 1]) + bytes(8) + b"\x05ali", "truncated"),
-        (bytes([1, 1]) + bytes(8) + b"\x00" + bytes(9), "caller name"),  # empty name
-        (bytes([1, 1]) + bytes(8) + b"\x03a b" + bytes(9), "caller name"),
-        (bytes([1, 1]) + bytes(8) + b"\x02\xc3\xa9" + bytes(9), "caller name"),  # é
-        (bytes([1, 1]) + bytes(8) + b"\x41" + b"a" * 65 + bytes(9), "caller name"),  # 65 chars
-        (bytes([1, 1]) + bytes(8) + b"\x01a" + bytes(8) + bytes(2049), "too long"),
+        (bytes([1, 4]) + bytes(8), "HELLO frame too short"),
+        (bytes([1, 4]) + bytes(8) + b"\x05alice" + bytes(8), "truncated"),  # no suites
+        (bytes([1, 4]) + bytes(8) + b"\x05alice" + bytes(8) + b"\x01", "truncated"),
+        (bytes([1, 4]) + bytes(8) + b"\x05alice" + bytes(8) + b"\x01\x01\x01", "truncated"),
+        (bytes([1, 4]) + bytes(8) + b"\x05alice" + bytes(8) + b"\x01\x02\x01", "truncated"),
+        (bytes([1, 4]) + bytes(8) + b"\x05ali", "truncated"),
+        (bytes([1, 4]) + bytes(8) + b"\x00" + bytes(11), "caller name"),  # empty name
+        (bytes([1, 4]) + bytes(8) + b"\x03a b" + bytes(11), "caller name"),
+        (bytes([1, 4]) + bytes(8) + b"\x02\xc3\xa9" + bytes(11), "caller name"),  # é
+        (bytes([1, 4]) + bytes(8) + b"\x41" + b"a" * 65 + bytes(11), "caller name"),  # 65 chars
+        (
+            bytes([1, 4]) + bytes(8) + b"\x01a" + bytes(8) + b"\x01\x01\x01" + bytes(2049),
+            "too long",
+        ),
+        (bytes([1, 5]) + bytes(8), "RETRY frame of the wrong size"),
+        (bytes([1, 5]) + bytes(10), "RETRY frame of the wrong size"),
         (bytes([1, 2]) + bytes(8), "missing"),
         (bytes([1, 2]) + bytes(8) + bytes(2049), "too long"),
     ],
@@ -429,14 +491,14 @@ def test_longest_handshake_messages_are_accepted() -> None:
 # Random bytes rarely start with a valid version and type, so half start with one.
 frame_like = st.binary(max_size=300) | st.builds(
     lambda kind, rest: bytes([VERSION, kind]) + rest,
-    st.sampled_from([1, 2, 3]) | st.integers(0, 255),
+    st.sampled_from([1, 2, 3, 4, 5]) | st.integers(0, 255),
     st.binary(max_size=300),
 )
 
 
 @FUZZ
 @given(data=frame_like)
-@example(data=b"\x01\x01" + bytes(8) + b"\x05alice" + bytes(9))
+@example(data=b"\x01\x04" + bytes(8) + b"\x05alice" + bytes(8) + b"\x01\x01\x01\x00")
 def test_decode_frame_fuzz(data: bytes) -> None:
     try:
         frame = decode_frame(data)
@@ -466,9 +528,9 @@ def test_decode_message_fuzz(data: bytes) -> None:
 
 
 @SETTINGS
-@given(frame=hellos | welcomes | data_frames, data=st.data())
+@given(frame=hellos | welcomes | data_frames | retries, data=st.data())
 def test_truncated_frames_are_refused_or_decoded_consistently(
-    frame: Hello | Welcome | DataFrame, data: st.DataObject
+    frame: Hello | Welcome | DataFrame | Retry, data: st.DataObject
 ) -> None:
     full = frame_bytes(frame)
     cuts = {0, 1, 9, 10, 11, 17, 18, len(full) - 1}
@@ -486,6 +548,7 @@ def test_truncated_frames_are_refused_or_decoded_consistently(
         if isinstance(frame, Hello):
             assert isinstance(decoded, Hello)
             assert (decoded.caller, decoded.instance) == (frame.caller, frame.instance)
+            assert (decoded.suite, decoded.offers) == (frame.suite, frame.offers)
             assert frame.noise_message.startswith(decoded.noise_message)
         elif isinstance(frame, DataFrame):
             assert isinstance(decoded, DataFrame)

@@ -1,4 +1,5 @@
-"""The Noise IK handshake: interoperability with ``noiseprotocol``, failures, fuzzing."""
+"""The Noise IK handshake: interoperability with ``noiseprotocol`` (both cipher suites),
+failures, fuzzing."""
 
 from __future__ import annotations
 
@@ -7,17 +8,17 @@ import warnings
 
 import pytest
 from cryptography.exceptions import InvalidTag
-from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
+from cryptography.hazmat.primitives.ciphers.aead import AESGCM, ChaCha20Poly1305
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from noise.connection import Keypair, NoiseConnection
 
 from telebot.channels.proto.noise import (
     DH_LEN,
-    PROTOCOL_NAME,
     TAG_LEN,
     InitiatorHandshake,
     ResponderHandshake,
+    Suite,
     TransportKeys,
     aead_nonce,
     public_key_of,
@@ -42,6 +43,7 @@ keys = st.binary(min_size=32, max_size=32)
 prologues = st.binary(max_size=128)
 payloads = st.binary(max_size=512)
 FAST = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+SUITES = pytest.mark.parametrize("suite", list(Suite), ids=lambda s: s.label)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -54,9 +56,10 @@ def their_side(
     prologue: bytes,
     remote_static: bytes | None = None,
     ephemeral_private: bytes | None = None,
+    suite: Suite = Suite.CHACHAPOLY,
 ) -> NoiseConnection:
-    """A started ``noiseprotocol`` handshake of our protocol name."""
-    conn = NoiseConnection.from_name(PROTOCOL_NAME)
+    """A started ``noiseprotocol`` handshake of the protocol name of ``suite``."""
+    conn = NoiseConnection.from_name(suite.protocol_name)
     if initiator:
         conn.set_as_initiator()
     else:
@@ -79,13 +82,14 @@ def their_side(
 def assert_keys_match_theirs(ours: TransportKeys, theirs: NoiseConnection) -> None:
     """``theirs`` is our peer: both directions agree, with Noise's nonces 0 and 1."""
     assert ours.handshake_hash == bytes(theirs.get_handshake_hash())
-    # Theirs -> ours: their cipher state, our receive key.
+    suite = ours.suite
+    # Theirs -> ours: their cipher state, our receive key (nonce 1 tells LE from BE).
     for n, text in enumerate([b"first from noiseprotocol", b"second"]):
         sealed = bytes(theirs.encrypt(text))
-        assert ChaCha20Poly1305(ours.receive_key).decrypt(aead_nonce(n), sealed, None) == text
+        assert suite.aead(ours.receive_key).decrypt(suite.nonce(n), sealed, None) == text
     # Ours -> theirs: our send key, their cipher state.
     for n, text in enumerate([b"first from telebot", b"second"]):
-        sealed = ChaCha20Poly1305(ours.send_key).encrypt(aead_nonce(n), text, None)
+        sealed = suite.aead(ours.send_key).encrypt(suite.nonce(n), text, None)
         assert bytes(theirs.decrypt(sealed)) == text
     # The two directions use different keys.
     assert ours.send_key != ours.receive_key
@@ -115,13 +119,14 @@ def flip(data: bytes, bit: int) -> bytes:
 # --------------------------------------------------------------------------- interoperability
 
 
+@SUITES
 @FAST
 @given(i_s=keys, r_s=keys, prologue=prologues, p1=payloads, p2=payloads)
 def test_our_initiator_with_their_responder(
-    i_s: bytes, r_s: bytes, prologue: bytes, p1: bytes, p2: bytes
+    suite: Suite, i_s: bytes, r_s: bytes, prologue: bytes, p1: bytes, p2: bytes
 ) -> None:
-    theirs = their_side(initiator=False, static_private=r_s, prologue=prologue)
-    ours = InitiatorHandshake(i_s, public_key_of(r_s), prologue)
+    theirs = their_side(initiator=False, static_private=r_s, prologue=prologue, suite=suite)
+    ours = InitiatorHandshake(i_s, public_key_of(r_s), prologue, suite=suite)
 
     msg1 = ours.write_message(p1)
     assert len(msg1) == MSG1_OVERHEAD + len(p1)
@@ -134,18 +139,24 @@ def test_our_initiator_with_their_responder(
     payload, transport = ours.read_message(msg2)
     assert payload == p2
     assert theirs.handshake_finished
+    assert transport.suite is suite
     assert_keys_match_theirs(transport, theirs)
 
 
+@SUITES
 @FAST
 @given(i_s=keys, r_s=keys, prologue=prologues, p1=payloads, p2=payloads)
 def test_their_initiator_with_our_responder(
-    i_s: bytes, r_s: bytes, prologue: bytes, p1: bytes, p2: bytes
+    suite: Suite, i_s: bytes, r_s: bytes, prologue: bytes, p1: bytes, p2: bytes
 ) -> None:
     theirs = their_side(
-        initiator=True, static_private=i_s, prologue=prologue, remote_static=public_key_of(r_s)
+        initiator=True,
+        static_private=i_s,
+        prologue=prologue,
+        remote_static=public_key_of(r_s),
+        suite=suite,
     )
-    ours = ResponderHandshake(r_s, prologue)
+    ours = ResponderHandshake(r_s, prologue, suite=suite)
     assert ours.remote_static is None
 
     assert ours.read_message(bytes(theirs.write_message(p1))) == p1
@@ -157,27 +168,36 @@ def test_their_initiator_with_our_responder(
     assert_keys_match_theirs(transport, theirs)
 
 
+@SUITES
 @settings(max_examples=10, deadline=None)
 @given(i_s=keys, r_s=keys, i_e=keys, r_e=keys, prologue=prologues, p1=payloads, p2=payloads)
 def test_fixed_ephemerals_give_byte_identical_messages(
-    i_s: bytes, r_s: bytes, i_e: bytes, r_e: bytes, prologue: bytes, p1: bytes, p2: bytes
+    suite: Suite,
+    i_s: bytes,
+    r_s: bytes,
+    i_e: bytes,
+    r_e: bytes,
+    prologue: bytes,
+    p1: bytes,
+    p2: bytes,
 ) -> None:
     r_pub = public_key_of(r_s)
-    our_init = InitiatorHandshake(i_s, r_pub, prologue, ephemeral_private=i_e)
+    our_init = InitiatorHandshake(i_s, r_pub, prologue, suite=suite, ephemeral_private=i_e)
     their_init = their_side(
         initiator=True,
         static_private=i_s,
         prologue=prologue,
         remote_static=r_pub,
         ephemeral_private=i_e,
+        suite=suite,
     )
     msg1 = our_init.write_message(p1)
     assert msg1 == bytes(their_init.write_message(p1))
     assert msg1[:DH_LEN] == public_key_of(i_e)
 
-    our_resp = ResponderHandshake(r_s, prologue, ephemeral_private=r_e)
+    our_resp = ResponderHandshake(r_s, prologue, suite=suite, ephemeral_private=r_e)
     their_resp = their_side(
-        initiator=False, static_private=r_s, prologue=prologue, ephemeral_private=r_e
+        initiator=False, static_private=r_s, prologue=prologue, ephemeral_private=r_e, suite=suite
     )
     assert our_resp.read_message(msg1) == p1
     assert bytes(their_resp.read_message(msg1)) == p1
@@ -206,11 +226,45 @@ def test_fixed_handshake_is_deterministic_and_ephemerals_differ_otherwise() -> N
     assert a != b
 
 
-def test_protocol_name_and_nonce_layout() -> None:
-    assert PROTOCOL_NAME == b"Noise_IK_25519_ChaChaPoly_BLAKE2s"
-    assert aead_nonce(0) == bytes(12)
-    assert aead_nonce(1) == bytes(4) + b"\x01" + bytes(7)
-    assert aead_nonce(2**64 - 1) == bytes(4) + b"\xff" * 8
+def test_protocol_names_nonce_layouts_and_aeads() -> None:
+    assert Suite.CHACHAPOLY.protocol_name == b"Noise_IK_25519_ChaChaPoly_BLAKE2s"
+    assert Suite.AESGCM.protocol_name == b"Noise_IK_25519_AESGCM_BLAKE2s"
+    assert [int(s) for s in Suite] == [1, 2]  # their numbers on the wire
+    assert [s.label for s in Suite] == ["chachapoly", "aesgcm"]
+    assert aead_nonce is Suite.CHACHAPOLY.nonce
+    for nonce in (Suite.CHACHAPOLY.nonce, Suite.AESGCM.nonce):
+        assert nonce(0) == bytes(12)
+        assert nonce(2**64 - 1) == bytes(4) + b"\xff" * 8
+    # ChaChaPoly writes the counter little-endian, AESGCM big-endian (Noise section 12).
+    assert Suite.CHACHAPOLY.nonce(1) == bytes(4) + b"\x01" + bytes(7)
+    assert Suite.AESGCM.nonce(1) == bytes(11) + b"\x01"
+    assert isinstance(Suite.CHACHAPOLY.aead(bytes(32)), ChaCha20Poly1305)
+    assert isinstance(Suite.AESGCM.aead(bytes(32)), AESGCM)
+
+
+@pytest.mark.parametrize(("ours", "theirs"), [(a, b) for a in Suite for b in Suite if a != b])
+def test_the_suite_is_bound_into_the_handshake(ours: Suite, theirs: Suite) -> None:
+    """Same keys, ephemerals and prologue: another suite fails, in both directions."""
+    i_s, r_s, i_e, r_e = (bytes([n]) * 32 for n in (1, 2, 3, 4))
+    msg1 = InitiatorHandshake(
+        i_s, public_key_of(r_s), b"p", suite=ours, ephemeral_private=i_e
+    ).write_message(b"x")
+    with pytest.raises(AuthenticationError):
+        ResponderHandshake(r_s, b"p", suite=theirs).read_message(msg1)
+    # An initiator of the other suite refuses the genuine answer.
+    initiator = InitiatorHandshake(i_s, public_key_of(r_s), b"p", suite=ours, ephemeral_private=i_e)
+    initiator.write_message(b"x")
+    responder = ResponderHandshake(r_s, b"p", suite=ours, ephemeral_private=r_e)
+    responder.read_message(msg1)
+    msg2, keys = responder.write_message(b"y")
+    other = InitiatorHandshake(i_s, public_key_of(r_s), b"p", suite=theirs, ephemeral_private=i_e)
+    other.write_message(b"x")
+    with pytest.raises(AuthenticationError):
+        other.read_message(msg2)
+    # The genuine pair agrees, and its keys are not those of the other suite.
+    payload, initiator_keys = initiator.read_message(msg2)
+    assert payload == b"y" and initiator_keys.suite is keys.suite is ours
+    assert initiator_keys.send_key == keys.receive_key
 
 
 # --------------------------------------------------------------------------- failures

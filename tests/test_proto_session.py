@@ -23,7 +23,7 @@ from telebot.channels.proto.frames import (
     encode_hangup,
     encode_heartbeat,
 )
-from telebot.channels.proto.noise import InitiatorHandshake, ResponderHandshake
+from telebot.channels.proto.noise import InitiatorHandshake, ResponderHandshake, Suite
 from telebot.channels.proto.replay import WINDOW, ReplayWindow
 from telebot.channels.proto.session import (
     Answer,
@@ -34,7 +34,7 @@ from telebot.channels.proto.session import (
     read_hello,
     start_call,
 )
-from telebot.errors import AuthenticationError, ProtocolError
+from telebot.errors import AuthenticationError, IncompatiblePeer, ProtocolError
 from telebot.identity import Identity
 
 ALICE = Identity.generate("alice")
@@ -61,6 +61,7 @@ def make_pair(
     interval: float = INTERVAL,
     timeout: float = TIMEOUT,
     answer: Answer | None = None,
+    suite: Suite = Suite.CHACHAPOLY,
 ) -> Pair:
     """Two sides of a call set up through the real handshake, frames serialized in between."""
     call_id = os.urandom(8) if call_id is None else call_id
@@ -71,6 +72,7 @@ def make_pair(
         instance=os.urandom(8),
         call_id=call_id,
         wall_time_ns=1_700_000_000_000_000_000,
+        offers=(suite,),
     )
     received_hello = decode_frame(hello.encode())
     assert isinstance(received_hello, Hello)
@@ -182,6 +184,78 @@ def test_changed_hello_header_fails_authentication(old: bytes, new: bytes) -> No
     assert changed.noise_message == hello.noise_message
     with pytest.raises(AuthenticationError):
         read_hello(ROBOT.private_key, changed)
+
+
+@pytest.mark.parametrize(
+    ("offers", "suite", "tampered"),
+    [
+        ((Suite.AESGCM, Suite.CHACHAPOLY), Suite.CHACHAPOLY, (Suite.CHACHAPOLY,)),  # strip
+        ((Suite.CHACHAPOLY, Suite.AESGCM), Suite.CHACHAPOLY, (Suite.CHACHAPOLY,)),
+        ((Suite.CHACHAPOLY, Suite.AESGCM), Suite.AESGCM, (Suite.AESGCM, Suite.CHACHAPOLY)),
+    ],
+)
+def test_changed_offers_fail_authentication(
+    offers: tuple[Suite, ...], suite: Suite, tampered: tuple[Suite, ...]
+) -> None:
+    """A downgrade: whoever strips or reorders the offers breaks the handshake."""
+    hello, _ = start_call(
+        ALICE.private_key,
+        ROBOT.public_key,
+        caller="alice",
+        instance=bytes(8),
+        call_id=bytes(8),
+        wall_time_ns=1,
+        offers=offers,
+        suite=suite,
+    )
+    read_hello(ROBOT.private_key, hello)  # untouched, it authenticates
+    changed = decode_frame(
+        Hello(hello.call_id, "alice", hello.instance, hello.noise_message, suite, tampered).encode()
+    )
+    assert isinstance(changed, Hello)
+    with pytest.raises(AuthenticationError):
+        read_hello(ROBOT.private_key, changed)
+
+
+def test_changed_suite_fails_authentication() -> None:
+    """Claiming the HELLO was written with the other (offered) suite breaks it too."""
+    offers = (Suite.AESGCM, Suite.CHACHAPOLY)
+    hello, _ = start_call(
+        ALICE.private_key,
+        ROBOT.public_key,
+        caller="alice",
+        instance=bytes(8),
+        call_id=bytes(8),
+        wall_time_ns=1,
+        offers=offers,
+    )
+    assert hello.suite == Suite.AESGCM
+    changed = Hello(
+        hello.call_id, "alice", hello.instance, hello.noise_message, Suite.CHACHAPOLY, offers
+    )
+    with pytest.raises(AuthenticationError):
+        read_hello(ROBOT.private_key, changed)
+
+
+def test_start_call_writes_with_an_offered_suite_only() -> None:
+    with pytest.raises(ValueError, match="not among the offers"):
+        start_call(
+            ALICE.private_key,
+            ROBOT.public_key,
+            caller="alice",
+            instance=bytes(8),
+            call_id=bytes(8),
+            wall_time_ns=1,
+            offers=(Suite.CHACHAPOLY,),
+            suite=Suite.AESGCM,
+        )
+
+
+def test_hello_written_with_an_unknown_suite_is_an_incompatible_peer() -> None:
+    _, hello = _hello_bytes()
+    newer = Hello(hello.call_id, "alice", hello.instance, hello.noise_message, 9, (9, 1))
+    with pytest.raises(IncompatiblePeer, match="cipher suite 9, unknown here"):
+        read_hello(ROBOT.private_key, newer)
 
 
 def test_hello_with_renamed_caller_of_other_length_fails() -> None:
@@ -306,8 +380,10 @@ def test_authentic_welcome_with_bad_payload_is_a_protocol_error(body: bytes) -> 
 # --------------------------------------------------------------------------- sealing and opening
 
 
-def test_seal_and_open_both_ways() -> None:
-    pair = make_pair()
+@pytest.mark.parametrize("suite", list(Suite), ids=lambda s: s.label)
+def test_seal_and_open_both_ways(suite: Suite) -> None:
+    pair = make_pair(suite=suite)
+    assert pair.caller.suite is pair.robot.suite is suite
     sealed = pair.caller.seal(datagram("hi robot"))
     assert sealed[:2] == b"\x01\x03"
     assert sealed[2:10] == pair.caller.call_id
@@ -319,6 +395,16 @@ def test_seal_and_open_both_ways() -> None:
     assert pair.caller.stats.frames_received == 1
     assert pair.robot.stats.frames_received == 1
     assert not pair.robot.stats.rejected
+
+
+def test_the_suites_seal_differently_and_do_not_open_each_other() -> None:
+    """Same inputs, other suite: other keys, so a frame of one never opens in the other."""
+    chacha = make_pair(call_id=bytes(8), suite=Suite.CHACHAPOLY)
+    aes = make_pair(call_id=bytes(8), suite=Suite.AESGCM)
+    sealed = aes.caller.seal(datagram("x"))
+    assert aes.robot.open(frame(sealed), now=0.0) == Datagram("chat", "x")
+    with pytest.raises(AuthenticationError):
+        chacha.robot.open(frame(sealed), now=0.0)
 
 
 def test_counters_increase_from_zero() -> None:

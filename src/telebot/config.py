@@ -21,6 +21,7 @@ __all__ = [
     "HARD_MAX_LINEAR_SPEED",
     "AppConfig",
     "CallSettings",
+    "CipherChoice",
     "MemorySettings",
     "RobotConfig",
     "SafetySettings",
@@ -84,8 +85,12 @@ class TransportSettings(StrictModel):
     options: dict[str, Any] = Field(default_factory=dict)
 
 
+#: ``[call] cipher``: the cipher suites an end accepts (see ``telebot.channels.suites``).
+CipherChoice = Literal["auto", "aesgcm", "chachapoly"]
+
+
 class CallSettings(StrictModel):
-    """Timing of calls: heartbeats, drop detection and set-up."""
+    """Timing of calls: heartbeats, drop detection and set-up; the cipher suite."""
 
     #: Heartbeats sent per second on the control lane (20 Hz by default).
     heartbeat_hz: float = Field(default=20.0, gt=0, le=1000)
@@ -93,6 +98,10 @@ class CallSettings(StrictModel):
     timeout: float = Field(default=0.5, gt=0, le=60)
     #: How long a caller waits for the robot to answer (seconds).
     connect_timeout: float = Field(default=5.0, gt=0, le=600)
+    #: Cipher suite: "auto" accepts both, AES-256-GCM preferred when this CPU has AES
+    #: instructions (ChaCha20-Poly1305 otherwise); "aesgcm" or "chachapoly" accepts only
+    #: that one (a peer that accepts only the other cannot call or be called).
+    cipher: CipherChoice = "auto"
 
 
 #: No configuration may make the simulated base faster than this (m/s).

@@ -12,7 +12,8 @@ foreign libraries (zenoh, cryptography, pydantic) are mapped at the boundary wit
     │   ├── UnknownTransport(LookupError) no transport registered under that name
     │   └── TransportTimeout(TimeoutError)
     ├── ProtocolError(ValueError)         a frame or message that does not decode (sans-IO)
-    │   └── AuthenticationError           a frame that fails AEAD / handshake verification
+    │   ├── AuthenticationError           a frame that fails AEAD / handshake verification
+    │   └── IncompatiblePeer              a peer of another protocol version or cipher suites
     ├── DatagramTooLarge(ValueError)      payload over 32,768 bytes, raised before any I/O
     ├── CallError                         a call could not be set up, or it ended
     │   ├── CallRejected                  the robot refused the call (reason given by it)
@@ -37,6 +38,7 @@ __all__ = [
     "ConfigError",
     "DatagramTooLarge",
     "IdentityError",
+    "IncompatiblePeer",
     "InvalidCommand",
     "MapError",
     "NoPath",
@@ -85,6 +87,11 @@ class AuthenticationError(ProtocolError):
 
 class DatagramTooLarge(TelebotError, ValueError):
     """A datagram payload is larger than the 32,768 bytes a channel carries."""
+
+
+class IncompatiblePeer(ProtocolError):
+    """A well-formed frame from a peer that speaks another version of the protocol
+    (an older or newer telebot) or has no cipher suite in common with this end."""
 
 
 class CallError(TelebotError):

@@ -37,21 +37,25 @@ from telebot.channels.proto.frames import (
     Datagram,
     Hangup,
     Hello,
+    Retry,
     Welcome,
     decode_frame,
     encode_hangup,
     validate_name,
 )
-from telebot.channels.proto.noise import InitiatorHandshake, ResponderHandshake
+from telebot.channels.proto.noise import InitiatorHandshake, ResponderHandshake, Suite
 from telebot.channels.proto.session import (
     Answer,
     CallSession,
     CallStats,
     answer_hello,
+    choose_suite,
+    describe_suites,
     finish_call,
     read_hello,
     start_call,
 )
+from telebot.channels.suites import suite_preference
 from telebot.channels.transports.base import (
     Lane,
     Presence,
@@ -61,7 +65,14 @@ from telebot.channels.transports.base import (
     Transport,
 )
 from telebot.config import CallSettings
-from telebot.errors import CallError, CallRejected, CallTimeout, ProtocolError, TelebotError
+from telebot.errors import (
+    CallError,
+    CallRejected,
+    CallTimeout,
+    IncompatiblePeer,
+    ProtocolError,
+    TelebotError,
+)
 from telebot.identity import ContactBook, Identity, KnownRobots, Role, decode_key, encode_key
 
 __all__ = [
@@ -156,6 +167,11 @@ class Call:
     def stats(self) -> CallStats:
         """Frame counters, rejections by reason, round-trip time and loss."""
         return self._session.stats
+
+    @property
+    def suite(self) -> Suite:
+        """The cipher suite the two ends agreed for this call."""
+        return self._session.suite
 
     @property
     def last_heard(self) -> float:
@@ -365,6 +381,8 @@ class _Endpoint:
         self.transport = transport
         self.identity = identity
         self.settings = settings or CallSettings()
+        #: The cipher suites this end accepts, preferred first (from ``settings.cipher``).
+        self.suites = suite_preference(self.settings.cipher)
         self.namespace = namespace
         self.stats = EndpointStats()
         self._calls: dict[bytes, Call] = {}
@@ -372,6 +390,7 @@ class _Endpoint:
         self._presence: Presence | None = None
         self._closed = False
         self._last_hangup = -math.inf  # event-loop time of the last HANGUP sent
+        self._incompatible_seen: set[str] = set()  # warned about once each
 
     # Subclasses name their inbox and presence keys.
     inbox: str
@@ -460,6 +479,13 @@ class _Endpoint:
                         pass
                 else:
                     self._on_handshake(frame)
+            except IncompatiblePeer as exc:
+                # A peer of another version: say so once (its HELLO repeats 4 times a
+                # second), then count it like any other frame that does not decode.
+                self.stats.rejected[type(exc).__name__] += 1
+                if str(exc) not in self._incompatible_seen and len(self._incompatible_seen) < 64:
+                    self._incompatible_seen.add(str(exc))
+                    log.warning("dropped a frame on %s: %s", sample.key, exc)
             except ProtocolError as exc:
                 # Garbage, forgeries and replays are counted and dropped, never raised.
                 self.stats.rejected[type(exc).__name__] += 1
@@ -468,7 +494,7 @@ class _Endpoint:
                 self.stats.rejected["internal_error"] += 1
                 log.exception("error handling a frame on %s", sample.key)
 
-    def _on_handshake(self, frame: Hello | Welcome) -> None:
+    def _on_handshake(self, frame: Hello | Welcome | Retry) -> None:
         raise ProtocolError(f"unexpected {type(frame).__name__} frame")
 
 
@@ -512,9 +538,9 @@ class RobotEndpoint(_Endpoint):
         while True:
             yield await self._incoming.get()
 
-    def _on_handshake(self, frame: Hello | Welcome) -> None:
+    def _on_handshake(self, frame: Hello | Welcome | Retry) -> None:
         if not isinstance(frame, Hello):
-            raise ProtocolError("a robot does not take WELCOME frames")
+            raise ProtocolError(f"a robot does not take {type(frame).__name__} frames")
         raw = frame.encode()
         cached = self._answered.get(frame.call_id)
         if cached is not None:
@@ -535,6 +561,13 @@ class RobotEndpoint(_Endpoint):
                 )
             self._reply(frame, cached[1])
             return
+        suite = choose_suite(frame.offers, self.suites)
+        if suite is not None and suite != frame.suite:
+            # Before any cryptography: cheap, stateless, and it tells nothing that the
+            # offers do not. The handshake with the HELLO written again proves our pick.
+            self.stats.rejected["cipher_retry"] += 1
+            self._reply(frame, Retry(frame.call_id, suite).encode())
+            return
         offer, handshake = read_hello(self.identity.private_key, frame)
         if offer.user != frame.caller:
             raise ProtocolError(
@@ -545,6 +578,24 @@ class RobotEndpoint(_Endpoint):
             log.warning("refused a call from %r: key not in the contact list", frame.caller)
             self.stats.rejected["not_a_contact"] += 1
             self._refuse(frame, raw, handshake, f"not in the contact list of {self.identity.name}")
+            return
+        if suite is None:
+            offered, accepted = describe_suites(frame.offers), describe_suites(self.suites)
+            log.warning(
+                "refused a call from %s: no common cipher suite (it offers %s, this robot "
+                "accepts %s: see [call] cipher)",
+                contact.name,
+                offered,
+                accepted,
+            )
+            self.stats.rejected["no_common_cipher"] += 1
+            self._refuse(
+                frame,
+                raw,
+                handshake,
+                f"no common cipher suite: {frame.caller} offers {offered}, "
+                f"{self.identity.name} accepts {accepted}",
+            )
             return
         if offer.timestamp_ns <= self._latest_hello.get(offer.caller_public_key, -1):
             self.stats.rejected["replayed_hello"] += 1
@@ -576,7 +627,13 @@ class RobotEndpoint(_Endpoint):
             peer_presence=f"{self.namespace}/presence/user/{frame.caller}/{instance}",
         )
         self._reply(frame, welcome.encode())
-        log.info("answered call %s from %s (%s)", call.id, contact.name, contact.role.value)
+        log.info(
+            "answered call %s from %s (%s, %s)",
+            call.id,
+            contact.name,
+            contact.role.value,
+            session.suite.label,
+        )
         if self.on_call is not None:
             try:
                 self.on_call(call)
@@ -641,6 +698,8 @@ class UserEndpoint(_Endpoint):
         self.presence_key = f"{namespace}/presence/user/{identity.name}/{self.instance.hex()}"
         self._pending: dict[bytes, tuple[InitiatorHandshake, asyncio.Future[Call]]] = {}
         self._pending_robot: dict[bytes, str] = {}
+        # The HELLO each pending call repeats (another one after a RETRY).
+        self._pending_hello: dict[bytes, bytes] = {}
 
     async def close(self, reason: str = "shutting down") -> None:
         """:meth:`_Endpoint.close`; a call still being set up fails with CallError."""
@@ -673,16 +732,17 @@ class UserEndpoint(_Endpoint):
             instance=self.instance,
             call_id=call_id,
             wall_time_ns=time.time_ns(),
+            offers=self.suites,
         )
         future: asyncio.Future[Call] = asyncio.get_running_loop().create_future()
         self._pending[call_id] = (handshake, future)
         self._pending_robot[call_id] = robot
+        self._pending_hello[call_id] = hello.encode()
         publisher = self.transport.publisher(f"{self.namespace}/robot/{robot}/in", Lane.CONTROL)
-        frame = hello.encode()
         try:
             async with asyncio.timeout(timeout):
                 while True:
-                    publisher.put(frame)
+                    publisher.put(self._pending_hello[call_id])
                     with contextlib.suppress(TimeoutError):
                         return await asyncio.wait_for(asyncio.shield(future), HELLO_RETRY_INTERVAL)
         except BaseException as exc:
@@ -701,8 +761,56 @@ class UserEndpoint(_Endpoint):
             publisher.close()
             self._pending.pop(call_id, None)
             self._pending_robot.pop(call_id, None)
+            self._pending_hello.pop(call_id, None)
 
-    def _on_handshake(self, frame: Hello | Welcome) -> None:
+    def _on_retry(self, retry: Retry) -> None:
+        """The robot picked another cipher suite: write the HELLO again with it."""
+        pending = self._pending.get(retry.call_id)
+        if pending is None or pending[1].done():
+            self.stats.rejected["unexpected_retry"] += 1
+            return
+        handshake, future = pending
+        if retry.suite == handshake.suite:  # the answer to an earlier copy of the HELLO
+            return
+        robot = self._pending_robot[retry.call_id]
+        if retry.suite not in self.suites:  # the robot picks among the offers: a forgery
+            self.stats.rejected["unexpected_retry"] += 1
+            return
+        if handshake.suite != self.suites[0]:
+            # A robot's pick never changes, so one of the RETRYs was forged; the
+            # handshake would fail anyway, so say why now rather than time out.
+            future.set_exception(
+                CallError(
+                    f"cipher suite negotiation with {robot} failed: it asked for "
+                    f"{handshake.suite.label}, then {describe_suites([retry.suite])}"
+                )
+            )
+            return
+        robot_key = self.known_robots.get(robot)
+        assert robot_key is not None  # call() checked it
+        hello, new_handshake = start_call(
+            self.identity.private_key,
+            robot_key,
+            caller=self.identity.name,
+            instance=self.instance,
+            call_id=retry.call_id,
+            wall_time_ns=time.time_ns(),
+            offers=self.suites,
+            suite=Suite(retry.suite),
+        )
+        log.debug("%s picked cipher suite %s: calling again", robot, new_handshake.suite.label)
+        self._pending[retry.call_id] = (new_handshake, future)
+        self._pending_hello[retry.call_id] = frame = hello.encode()
+        publisher = self.transport.publisher(f"{self.namespace}/robot/{robot}/in", Lane.CONTROL)
+        try:
+            publisher.put(frame)
+        finally:
+            publisher.close()
+
+    def _on_handshake(self, frame: Hello | Welcome | Retry) -> None:
+        if isinstance(frame, Retry):
+            self._on_retry(frame)
+            return
         if not isinstance(frame, Welcome):
             raise ProtocolError("a user client does not take HELLO frames")
         pending = self._pending.get(frame.call_id)

@@ -3,13 +3,20 @@
 Every frame starts with a version byte and a type byte, then the 8-byte call id that
 the caller picked at random. Integers are big-endian unless said otherwise::
 
-    HELLO    ver=1 | type=1 | call_id[8] | name_len u8 | name | instance[8] | noise_msg1
+    HELLO    ver=1 | type=4 | call_id[8] | name_len u8 | name | instance[8]
+                   | suite u8 | offer_len u8 | offers[offer_len] | noise_msg1
     WELCOME  ver=1 | type=2 | call_id[8] | noise_msg2
     DATA     ver=1 | type=3 | call_id[8] | counter u64 | AEAD(ciphertext + 16-byte tag)
+    RETRY    ver=1 | type=5 | call_id[8] | suite u8
 
 HELLO's header (everything before ``noise_msg1``) is the Noise prologue, so a frame
-whose header was changed in flight fails the handshake. DATA's 18-byte header is the
-AEAD's associated data and its counter is the nonce (see :mod:`.noise`).
+whose header was changed in flight fails the handshake. Its ``offers`` are the cipher
+suites the caller accepts, in its order of preference, and ``suite`` (one of them) the
+one ``noise_msg1`` is written with; a robot that picks another answers RETRY, and the
+caller sends the HELLO again with that suite (see ``session.py``). DATA's 18-byte
+header is the AEAD's associated data and its counter is the nonce (see :mod:`.noise`).
+Type 1 was the HELLO of telebot before cipher suites were negotiated; it is refused
+with an error that says so.
 
 Inside a DATA frame's plaintext the first byte says what it carries::
 
@@ -31,7 +38,7 @@ import re
 import struct
 from dataclasses import dataclass
 
-from telebot.errors import DatagramTooLarge, ProtocolError
+from telebot.errors import DatagramTooLarge, IncompatiblePeer, ProtocolError
 
 __all__ = [
     "CALL_ID_LEN",
@@ -49,6 +56,7 @@ __all__ = [
     "Heartbeat",
     "Hello",
     "Message",
+    "Retry",
     "Welcome",
     "decode_frame",
     "decode_message",
@@ -69,9 +77,13 @@ MAX_CHANNEL_NAME = 255
 #: Robot and user names: they become zenoh key chunks, so no ``/ * $ ? #`` and no spaces.
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 
-TYPE_HELLO = 1
+TYPE_LEGACY_HELLO = 1  # before cipher suite negotiation: refused, with a clear error
 TYPE_WELCOME = 2
 TYPE_DATA = 3
+TYPE_HELLO = 4
+TYPE_RETRY = 5
+#: Most cipher suites a HELLO may offer.
+MAX_OFFERS = 8
 
 KIND_DATAGRAM = 1
 KIND_HEARTBEAT = 2
@@ -116,19 +128,28 @@ def validate_channel_name(name: str) -> bytes:
 
 @dataclass(frozen=True, slots=True)
 class Hello:
-    """A caller asks for a call: its name, its client instance and Noise message 1."""
+    """A caller asks for a call: its name, its client instance, the cipher suites it
+    offers (by number, preferred first), the one Noise message 1 uses, and that message.
+    """
 
     call_id: bytes
     caller: str
     instance: bytes
     noise_message: bytes
+    suite: int = 1
+    offers: tuple[int, ...] = (1,)
 
     @property
     def prologue(self) -> bytes:
         """The header bytes, bound into the handshake as the Noise prologue."""
         name = self.caller.encode("ascii")
         return (
-            bytes([VERSION, TYPE_HELLO]) + self.call_id + bytes([len(name)]) + name + self.instance
+            bytes([VERSION, TYPE_HELLO])
+            + self.call_id
+            + bytes([len(name)])
+            + name
+            + self.instance
+            + bytes([self.suite, len(self.offers), *self.offers])
         )
 
     def encode(self) -> bytes:
@@ -163,7 +184,23 @@ class DataFrame:
         return _DATA_HEADER.pack(VERSION, TYPE_DATA, call_id, counter)
 
 
-Frame = Hello | Welcome | DataFrame
+@dataclass(frozen=True, slots=True)
+class Retry:
+    """The robot's answer to a HELLO written with another suite than the one it picks.
+
+    Not authenticated (it comes before any handshake); the caller sends its HELLO
+    again with ``suite``, and the handshake then proves that the robot did pick it.
+    """
+
+    call_id: bytes
+    suite: int
+
+    def encode(self) -> bytes:
+        """The frame's bytes."""
+        return bytes([VERSION, TYPE_RETRY]) + self.call_id + bytes([self.suite])
+
+
+Frame = Hello | Welcome | DataFrame | Retry
 
 
 def decode_frame(data: bytes) -> Frame:
@@ -182,27 +219,49 @@ def decode_frame(data: bytes) -> Frame:
         counter = int.from_bytes(data[10:18], "big")
         return DataFrame(call_id, counter, bytes(data[:DATA_HEADER_LEN]), bytes(data[18:]))
     if kind == TYPE_HELLO:
-        if len(data) < 11:
-            raise ProtocolError("HELLO frame too short")
-        name_len = data[10]
-        name_end = 11 + name_len
-        noise_start = name_end + INSTANCE_LEN
-        if len(data) <= noise_start:
-            raise ProtocolError("HELLO frame truncated")
-        try:
-            caller = validate_name(bytes(data[11:name_end]).decode("ascii"), "caller name")
-        except (UnicodeDecodeError, ValueError) as exc:
-            raise ProtocolError("HELLO frame with an invalid caller name") from exc
-        noise_message = bytes(data[noise_start:])
-        if len(noise_message) > _MAX_NOISE_MESSAGE:
-            raise ProtocolError("HELLO handshake message too long")
-        return Hello(call_id, caller, bytes(data[name_end:noise_start]), noise_message)
+        return _decode_hello(data, call_id)
+    if kind == TYPE_RETRY:
+        if len(data) != 2 + CALL_ID_LEN + 1:
+            raise ProtocolError("RETRY frame of the wrong size")
+        return Retry(call_id, data[10])
+    if kind == TYPE_LEGACY_HELLO:
+        raise IncompatiblePeer(
+            "HELLO without cipher suite negotiation (frame type 1): the caller runs an "
+            "older telebot and must be upgraded"
+        )
     if kind == TYPE_WELCOME:
         noise_message = bytes(data[10:])
         if not noise_message or len(noise_message) > _MAX_NOISE_MESSAGE:
             raise ProtocolError("WELCOME handshake message missing or too long")
         return Welcome(call_id, noise_message)
     raise ProtocolError(f"unknown frame type {kind}")
+
+
+def _decode_hello(data: bytes, call_id: bytes) -> Hello:
+    if len(data) < 11:
+        raise ProtocolError("HELLO frame too short")
+    name_len = data[10]
+    name_end = 11 + name_len
+    suite_at = name_end + INSTANCE_LEN
+    if len(data) < suite_at + 2:
+        raise ProtocolError("HELLO frame truncated")
+    try:
+        caller = validate_name(bytes(data[11:name_end]).decode("ascii"), "caller name")
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise ProtocolError("HELLO frame with an invalid caller name") from exc
+    suite, offer_len = data[suite_at], data[suite_at + 1]
+    noise_start = suite_at + 2 + offer_len
+    if len(data) <= noise_start:
+        raise ProtocolError("HELLO frame truncated")
+    offers = tuple(data[suite_at + 2 : noise_start])
+    if not 1 <= offer_len <= MAX_OFFERS or len(set(offers)) != offer_len or 0 in offers:
+        raise ProtocolError(f"HELLO with an invalid list of cipher suites {list(offers)}")
+    if suite not in offers:
+        raise ProtocolError(f"HELLO written with cipher suite {suite}, which it does not offer")
+    noise_message = bytes(data[noise_start:])
+    if len(noise_message) > _MAX_NOISE_MESSAGE:
+        raise ProtocolError("HELLO handshake message too long")
+    return Hello(call_id, caller, bytes(data[name_end:suite_at]), noise_message, suite, offers)
 
 
 @dataclass(slots=True)

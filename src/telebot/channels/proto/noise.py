@@ -1,4 +1,4 @@
-"""The Noise IK handshake (Noise_IK_25519_ChaChaPoly_BLAKE2s), sans-IO.
+"""The Noise IK handshake (Noise_IK_25519_{ChaChaPoly,AESGCM}_BLAKE2s), sans-IO.
 
 This is the pattern WireGuard uses: the caller (initiator) already knows the robot's
 static public key, as ssh knows a host key from ``known_hosts``; its first message
@@ -12,9 +12,12 @@ prove their keys in one round trip::
 
 It follows the Noise Protocol Framework, revision 34 (https://noiseprotocol.org/noise.html),
 section 5 (CipherState, SymmetricState, HandshakeState) with the primitives of the
-``cryptography`` package: X25519, ChaCha20-Poly1305 and BLAKE2s (HMAC-BLAKE2s for HKDF).
-Nothing here is new cryptography; the interoperability test checks it byte for byte
-against the independent ``noiseprotocol`` implementation.
+``cryptography`` package: X25519, ChaCha20-Poly1305 or AES-256-GCM, and BLAKE2s
+(HMAC-BLAKE2s for HKDF). The cipher is a :class:`Suite`, agreed per call (see
+``session.py``); it is part of the Noise protocol name, so the two suites' handshakes
+have different hashes and keys. Nothing here is new cryptography; the interoperability
+test checks both suites byte for byte against the independent ``noiseprotocol``
+implementation.
 
 After the handshake, :meth:`split` gives two 32-byte keys, one per direction. telebot's
 datagrams use them with explicit 64-bit counters as nonces (see ``frames.py``), as
@@ -23,31 +26,73 @@ WireGuard's transport messages do, because datagrams may be lost or reordered.
 
 from __future__ import annotations
 
+import enum
 import hashlib
 import hmac
+from collections.abc import Callable
 
 from cryptography.exceptions import InvalidTag
 from cryptography.hazmat.primitives.asymmetric.x25519 import X25519PrivateKey, X25519PublicKey
-from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
+from cryptography.hazmat.primitives.ciphers.aead import AESGCM, ChaCha20Poly1305
 from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
 
 from telebot.errors import AuthenticationError, ProtocolError
 
 __all__ = [
     "DH_LEN",
-    "PROTOCOL_NAME",
     "TAG_LEN",
+    "Aead",
     "InitiatorHandshake",
     "ResponderHandshake",
+    "Suite",
     "TransportKeys",
     "aead_nonce",
     "public_key_of",
 ]
 
-PROTOCOL_NAME = b"Noise_IK_25519_ChaChaPoly_BLAKE2s"
 HASH_LEN = 32
 DH_LEN = 32
 TAG_LEN = 16
+
+#: What ChaCha20Poly1305 and AESGCM of ``cryptography`` have in common.
+Aead = ChaCha20Poly1305 | AESGCM
+
+
+class Suite(enum.IntEnum):
+    """A Noise cipher suite, by its number on the wire (HELLO's ``suite`` and offers).
+
+    Both use X25519 and BLAKE2s; they differ in the AEAD. AES-256-GCM is the faster
+    where the CPU has AES instructions, ChaCha20-Poly1305 everywhere else (and it has
+    no table lookups to leak timing without them).
+    """
+
+    CHACHAPOLY = 1
+    AESGCM = 2
+
+    @property
+    def protocol_name(self) -> bytes:
+        """The Noise protocol name, which starts the handshake hash."""
+        return _PROTOCOL_NAMES[self]
+
+    @property
+    def label(self) -> str:
+        """The name people and config files use: ``"chachapoly"`` or ``"aesgcm"``."""
+        return self.name.lower()
+
+    def aead(self, key: bytes) -> Aead:
+        """The AEAD of this suite under ``key`` (32 bytes)."""
+        return ChaCha20Poly1305(key) if self is Suite.CHACHAPOLY else AESGCM(key)
+
+    @property
+    def nonce(self) -> Callable[[int], bytes]:
+        """The suite's 12-byte nonce for a 64-bit counter (see :func:`aead_nonce`)."""
+        return aead_nonce if self is Suite.CHACHAPOLY else _aesgcm_nonce
+
+
+_PROTOCOL_NAMES = {
+    Suite.CHACHAPOLY: b"Noise_IK_25519_ChaChaPoly_BLAKE2s",
+    Suite.AESGCM: b"Noise_IK_25519_AESGCM_BLAKE2s",
+}
 
 
 def public_key_of(private_key: bytes) -> bytes:
@@ -62,6 +107,11 @@ def public_key_of(private_key: bytes) -> bytes:
 def aead_nonce(counter: int) -> bytes:
     """Noise's ChaChaPoly nonce: 32 zero bits then the counter as 64-bit little-endian."""
     return b"\x00\x00\x00\x00" + counter.to_bytes(8, "little")
+
+
+def _aesgcm_nonce(counter: int) -> bytes:
+    """Noise's AESGCM nonce: 32 zero bits then the counter as 64-bit big-endian."""
+    return b"\x00\x00\x00\x00" + counter.to_bytes(8, "big")
 
 
 def _hash(data: bytes) -> bytes:
@@ -89,13 +139,13 @@ def _dh(private_key: X25519PrivateKey, public_key: bytes) -> bytes:
 class _SymmetricState:
     """Noise's SymmetricState with its embedded CipherState (section 5.2)."""
 
-    def __init__(self, prologue: bytes) -> None:
-        # Names longer than HASHLEN (ours is 33 bytes) are hashed, shorter ones padded.
-        if len(PROTOCOL_NAME) <= HASH_LEN:
-            self.h = PROTOCOL_NAME.ljust(HASH_LEN, b"\x00")
-        else:
-            self.h = _hash(PROTOCOL_NAME)
+    def __init__(self, prologue: bytes, suite: Suite) -> None:
+        # Names longer than HASHLEN are hashed (ChaChaPoly's, 33 bytes), shorter ones
+        # padded with zeros (AESGCM's, 29 bytes).
+        name = suite.protocol_name
+        self.h = name.ljust(HASH_LEN, b"\x00") if len(name) <= HASH_LEN else _hash(name)
         self.ck = self.h
+        self.suite = suite
         self._key: bytes | None = None
         self._nonce = 0
         self.mix_hash(prologue)
@@ -109,7 +159,9 @@ class _SymmetricState:
 
     def encrypt_and_hash(self, plaintext: bytes) -> bytes:
         assert self._key is not None, "IK always has a key before the first encryption"
-        ciphertext = ChaCha20Poly1305(self._key).encrypt(aead_nonce(self._nonce), plaintext, self.h)
+        ciphertext = self.suite.aead(self._key).encrypt(
+            self.suite.nonce(self._nonce), plaintext, self.h
+        )
         self._nonce += 1
         self.mix_hash(ciphertext)
         return ciphertext
@@ -117,8 +169,8 @@ class _SymmetricState:
     def decrypt_and_hash(self, ciphertext: bytes) -> bytes:
         assert self._key is not None, "IK always has a key before the first decryption"
         try:
-            plaintext = ChaCha20Poly1305(self._key).decrypt(
-                aead_nonce(self._nonce), ciphertext, self.h
+            plaintext = self.suite.aead(self._key).decrypt(
+                self.suite.nonce(self._nonce), ciphertext, self.h
             )
         except InvalidTag as exc:
             raise AuthenticationError("handshake message failed authentication") from exc
@@ -132,19 +184,28 @@ class _SymmetricState:
     def copy(self) -> _SymmetricState:
         clone = object.__new__(_SymmetricState)
         clone.h, clone.ck, clone._key, clone._nonce = self.h, self.ck, self._key, self._nonce
+        clone.suite = self.suite
         return clone
 
 
 class TransportKeys:
     """The two per-call keys a finished handshake yields, seen from one side."""
 
-    __slots__ = ("handshake_hash", "receive_key", "send_key")
+    __slots__ = ("handshake_hash", "receive_key", "send_key", "suite")
 
-    def __init__(self, send_key: bytes, receive_key: bytes, handshake_hash: bytes) -> None:
+    def __init__(
+        self,
+        send_key: bytes,
+        receive_key: bytes,
+        handshake_hash: bytes,
+        suite: Suite = Suite.CHACHAPOLY,
+    ) -> None:
         self.send_key = send_key
         self.receive_key = receive_key
         #: Noise's h after the handshake: a unique, secret-dependent id of this call.
         self.handshake_hash = handshake_hash
+        #: The cipher suite of the handshake; the call's frames use its AEAD.
+        self.suite = suite
 
 
 def _ephemeral(ephemeral_private: bytes | None) -> X25519PrivateKey:
@@ -167,12 +228,14 @@ class InitiatorHandshake:
         responder_static_public: bytes,
         prologue: bytes,
         *,
+        suite: Suite = Suite.CHACHAPOLY,
         ephemeral_private: bytes | None = None,
     ) -> None:
+        self.suite = suite
         self._s = X25519PrivateKey.from_private_bytes(static_private)
         self._rs = responder_static_public
         self._e = _ephemeral(ephemeral_private)
-        self._state = _SymmetricState(prologue)
+        self._state = _SymmetricState(prologue, suite)
         self._state.mix_hash(responder_static_public)  # pre-message "<- s"
         self._written = False
 
@@ -203,18 +266,26 @@ class InitiatorHandshake:
         st.mix_key(_dh(self._s, re))
         payload = st.decrypt_and_hash(message[DH_LEN:])
         initiator_to_responder, responder_to_initiator = st.split()
-        return payload, TransportKeys(initiator_to_responder, responder_to_initiator, st.h)
+        return payload, TransportKeys(
+            initiator_to_responder, responder_to_initiator, st.h, self.suite
+        )
 
 
 class ResponderHandshake:
     """The robot's side: reads HELLO's Noise message, writes WELCOME's."""
 
     def __init__(
-        self, static_private: bytes, prologue: bytes, *, ephemeral_private: bytes | None = None
+        self,
+        static_private: bytes,
+        prologue: bytes,
+        *,
+        suite: Suite = Suite.CHACHAPOLY,
+        ephemeral_private: bytes | None = None,
     ) -> None:
+        self.suite = suite
         self._s = X25519PrivateKey.from_private_bytes(static_private)
         self._e = _ephemeral(ephemeral_private)
-        self._state = _SymmetricState(prologue)
+        self._state = _SymmetricState(prologue, suite)
         self._state.mix_hash(_public(self._s))  # pre-message "<- s"
         self._re: bytes | None = None
         #: The caller's static public key, known once the first message is read.
@@ -248,4 +319,6 @@ class ResponderHandshake:
         st.mix_key(_dh(self._e, self.remote_static))
         message = e_pub + st.encrypt_and_hash(payload)
         initiator_to_responder, responder_to_initiator = st.split()
-        return message, TransportKeys(responder_to_initiator, initiator_to_responder, st.h)
+        return message, TransportKeys(
+            responder_to_initiator, initiator_to_responder, st.h, self.suite
+        )

@@ -8,6 +8,13 @@ encrypted and authenticated) are small JSON objects::
     WELCOME payload  {"accepted": true, "robot": "guiabot", "role": "driver"}
                      {"accepted": false, "robot": "guiabot", "reason": "not in the contact list of guiabot"}
 
+Cipher suites (:class:`~.noise.Suite`) are negotiated in the HELLO: the caller offers
+the suites it accepts, preferred first, and writes Noise message 1 with the first; the
+robot picks one with :func:`choose_suite`. If it picks another, it answers with a RETRY
+naming it and the caller sends the HELLO again written with that suite. The offers are in
+the prologue and the suite names the Noise protocol, so an attacker who strips an offer,
+or forges a RETRY, makes the handshake fail instead of changing the cipher.
+
 :class:`CallSession` is one side of an established call: it seals and opens DATA
 frames with the per-call keys, refuses replays, and keeps heartbeat bookkeeping
 (when the next heartbeat is due, when the peer counts as gone, round-trip time, loss).
@@ -17,11 +24,11 @@ from __future__ import annotations
 
 import json
 from collections import Counter, deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from cryptography.exceptions import InvalidTag
-from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 
 from telebot.channels.proto.frames import (
     DataFrame,
@@ -35,11 +42,11 @@ from telebot.channels.proto.frames import (
 from telebot.channels.proto.noise import (
     InitiatorHandshake,
     ResponderHandshake,
+    Suite,
     TransportKeys,
-    aead_nonce,
 )
 from telebot.channels.proto.replay import ReplayWindow
-from telebot.errors import AuthenticationError, ProtocolError
+from telebot.errors import AuthenticationError, IncompatiblePeer, ProtocolError
 
 __all__ = [
     "Answer",
@@ -47,12 +54,15 @@ __all__ = [
     "CallStats",
     "Offer",
     "answer_hello",
+    "choose_suite",
+    "describe_suites",
     "finish_call",
     "read_hello",
     "start_call",
 ]
 
 _MAX_COUNTER = 2**64 - 1
+_KNOWN_SUITES = frozenset(Suite)  # IntEnum members equal their numbers
 _LOSS_WINDOW = 40  # heartbeats over which loss is estimated (2 s at 20 Hz)
 
 
@@ -85,6 +95,32 @@ def _json_payload(data: bytes, what: str) -> dict[str, Any]:
     return value
 
 
+def choose_suite(offers: Sequence[int], allowed: Sequence[Suite]) -> Suite | None:
+    """The suite a robot that allows ``allowed`` (preferred first) picks from ``offers``.
+
+    Both ends' first choice if it is the same (AESGCM when both have AES instructions);
+    otherwise ChaChaPoly if both accept it (it is fast on any CPU); otherwise the
+    caller's first offer that the robot allows; None when they have none in common.
+    Unknown suite numbers in ``offers`` are ignored.
+    """
+    if not offers or not allowed:
+        return None
+    if offers[0] == allowed[0]:
+        return allowed[0]
+    if Suite.CHACHAPOLY in offers and Suite.CHACHAPOLY in allowed:
+        return Suite.CHACHAPOLY
+    for number in offers:
+        if number in allowed:
+            return Suite(number)
+    return None
+
+
+def describe_suites(numbers: Sequence[int]) -> str:
+    """Suite numbers as people read them, e.g. ``"aesgcm, chachapoly"``."""
+    names = [Suite(n).label if n in _KNOWN_SUITES else f"suite {n}" for n in numbers]
+    return ", ".join(names) or "none"
+
+
 def start_call(
     static_private: bytes,
     robot_public: bytes,
@@ -93,12 +129,25 @@ def start_call(
     instance: bytes,
     call_id: bytes,
     wall_time_ns: int,
+    offers: Sequence[Suite] = (Suite.CHACHAPOLY,),
+    suite: Suite | None = None,
 ) -> tuple[Hello, InitiatorHandshake]:
-    """The caller's HELLO (send it, and again if no answer comes) and its handshake state."""
-    unsigned = Hello(call_id, caller, instance, b"")
-    handshake = InitiatorHandshake(static_private, robot_public, unsigned.prologue)
+    """The caller's HELLO (send it, and again if no answer comes) and its handshake state.
+
+    ``offers`` are the suites the caller accepts, preferred first; the HELLO is written
+    with ``suite`` (default: the first offer; after a RETRY, the one the robot named).
+    """
+    suite = offers[0] if suite is None else suite
+    if suite not in offers:
+        raise ValueError(f"cipher suite {suite.label} is not among the offers")
+    offered = tuple(int(s) for s in offers)
+    unsigned = Hello(call_id, caller, instance, b"", suite, offered)
+    handshake = InitiatorHandshake(
+        static_private, robot_public, unsigned.prologue, suite=Suite(suite)
+    )
     payload = json.dumps({"user": caller, "ts": wall_time_ns}).encode()
-    return Hello(call_id, caller, instance, handshake.write_message(payload)), handshake
+    message = handshake.write_message(payload)
+    return Hello(call_id, caller, instance, message, suite, offered), handshake
 
 
 def finish_call(handshake: InitiatorHandshake, welcome: Welcome) -> tuple[Answer, TransportKeys]:
@@ -115,8 +164,16 @@ def finish_call(handshake: InitiatorHandshake, welcome: Welcome) -> tuple[Answer
 
 
 def read_hello(static_private: bytes, hello: Hello) -> tuple[Offer, ResponderHandshake]:
-    """Authenticate a HELLO: who is calling (their static key) and when they started."""
-    handshake = ResponderHandshake(static_private, hello.prologue)
+    """Authenticate a HELLO: who is calling (their static key) and when they started.
+
+    The handshake runs with the HELLO's suite; whether that suite is the one to use is
+    the caller's business to check first (:func:`choose_suite`).
+    """
+    if hello.suite not in _KNOWN_SUITES:
+        raise IncompatiblePeer(
+            f"HELLO written with cipher suite {hello.suite}, unknown here (a newer telebot?)"
+        )
+    handshake = ResponderHandshake(static_private, hello.prologue, suite=Suite(hello.suite))
     payload = handshake.read_message(hello.noise_message)
     assert handshake.remote_static is not None
     data = _json_payload(payload, "HELLO")
@@ -168,8 +225,11 @@ class CallSession:
         now: float,
     ) -> None:
         self.call_id = call_id
-        self._sealer = ChaCha20Poly1305(keys.send_key)
-        self._opener = ChaCha20Poly1305(keys.receive_key)
+        #: The cipher suite of this call.
+        self.suite = keys.suite
+        self._sealer = keys.suite.aead(keys.send_key)
+        self._opener = keys.suite.aead(keys.receive_key)
+        self._nonce = keys.suite.nonce
         self._send_counter = 0
         self._replay = ReplayWindow()
         self.heartbeat_interval = heartbeat_interval
@@ -191,7 +251,7 @@ class CallSession:
         self._send_counter = counter + 1
         header = DataFrame.make_header(self.call_id, counter)
         self.stats.frames_sent += 1
-        return header + self._sealer.encrypt(aead_nonce(counter), plaintext, header)
+        return header + self._sealer.encrypt(self._nonce(counter), plaintext, header)
 
     def heartbeat_due(self, now: float) -> bool:
         """Whether a heartbeat should be sent now."""
@@ -224,7 +284,7 @@ class CallSession:
             raise AuthenticationError(f"replayed or too old frame (counter {frame.counter})")
         try:
             plaintext = self._opener.decrypt(
-                aead_nonce(frame.counter), frame.ciphertext, frame.header
+                self._nonce(frame.counter), frame.ciphertext, frame.header
             )
         except InvalidTag as exc:
             self.stats.rejected["forged"] += 1
