@@ -22,6 +22,7 @@ __all__ = [
     "AppConfig",
     "CallSettings",
     "MemorySettings",
+    "ReconnectSettings",
     "RobotConfig",
     "SafetySettings",
     "ServiceSettings",
@@ -90,6 +91,27 @@ class CallSettings(StrictModel):
     timeout: float = Field(default=0.5, gt=0, le=60)
     #: How long a caller waits for the robot to answer (seconds).
     connect_timeout: float = Field(default=5.0, gt=0, le=600)
+
+
+class ReconnectSettings(StrictModel):
+    """What a user client does when its call drops (``telebot.connect``, ``chat``, ``ui``).
+
+    It calls the robot again, waiting ``base`` seconds before the first attempt and
+    doubling the wait after each failed one up to ``cap`` (each wait is shortened by a
+    random share of up to a half, so many clients do not call back in step). Each attempt
+    keeps calling for ``call.connect_timeout`` seconds. A refusal (no longer a contact)
+    or ``give_up_after`` seconds without a call end it. The robot stays stopped whatever
+    happens: its driver re-arms it.
+    """
+
+    #: Call the robot again after a drop (a hang-up is never redialled).
+    enabled: bool = True
+    #: Seconds before the first attempt; the wait doubles after each failed attempt ...
+    base: float = Field(default=0.1, gt=0, le=60)
+    #: ... up to this many seconds.
+    cap: float = Field(default=2.0, gt=0, le=600)
+    #: Stop trying after this many seconds without a call (0: never).
+    give_up_after: float = Field(default=300.0, ge=0)
 
 
 #: No configuration may make the simulated base faster than this (m/s).
@@ -203,6 +225,8 @@ class AppConfig(StrictModel):
     namespace: str = Field(default="telebot", pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
     transport: TransportSettings = Field(default_factory=TransportSettings)
     call: CallSettings = Field(default_factory=CallSettings)
+    #: The user's side: calling the robot again after a drop (the robot ignores it).
+    reconnect: ReconnectSettings = Field(default_factory=ReconnectSettings)
 
 
 class ServiceSettings(StrictModel):
