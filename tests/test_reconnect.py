@@ -196,6 +196,13 @@ async def test_a_dropped_call_comes_back_with_its_streams_and_the_robot_stays_st
         await asyncio.gather(follower, return_exceptions=True)
 
 
+async def drain(iterator: AsyncIterator[Any]) -> None:
+    """Read ``iterator`` until it raises (within 5 s)."""
+    async with asyncio.timeout(5):
+        while True:
+            await anext(iterator)
+
+
 async def test_a_hangup_is_not_redialled_and_iterators_end(tmp_path: Path) -> None:
     async with rig(tmp_path) as r:
         poses = r.client.poses()
@@ -203,9 +210,7 @@ async def test_a_hangup_is_not_redialled_and_iterators_end(tmp_path: Path) -> No
         robot_call = r.endpoint.calls[0]
         await robot_call.hangup("robot going home")
         with pytest.raises(CallEnded):
-            async with asyncio.timeout(5):
-                while True:
-                    await anext(poses)
+            await drain(poses)
         assert r.client.finished and r.client.reconnects == 0
         assert [e.state for _, e in r.events] == ["ended"]
 
@@ -256,7 +261,9 @@ class Toy:
             self.channel.send(b"echo:" + bytes(datagram.payload))
 
     def tick(self, now: float) -> None:
-        self.log.ticks[self.call.id + self.side] = self.log.ticks.get(self.call.id + self.side, 0) + 1
+        self.log.ticks[self.call.id + self.side] = (
+            self.log.ticks.get(self.call.id + self.side, 0) + 1
+        )
 
     def close(self) -> None:
         self.log.entries.append((self.side, "close", self.call.id))
@@ -384,7 +391,9 @@ async def test_chat_says_reconnecting_and_carries_on_with_the_next_command(
 ) -> None:
     hub = MemoryHub.named(hub_name)
     config = AppConfig(
-        transport=TransportSettings(kind="memory", memory=MemorySettings(hub=hub_name, node="user")),
+        transport=TransportSettings(
+            kind="memory", memory=MemorySettings(hub=hub_name, node="user")
+        ),
         reconnect=FAST,
     )
     async with robot_on_hub(tmp_path, hub) as (nav, safety, _, _):
@@ -406,3 +415,143 @@ async def test_chat_says_reconnecting_and_carries_on_with_the_next_command(
     assert "! fwd 3: interrupted, the call dropped (not resent)" in lines
     assert lines[-2] == "> where?" and lines[-1].startswith("x ")
     assert "[reconnecting… (" in err and "[reconnected after " in err
+
+
+# -- zenoh: the robot daemon in its own process, the user through a TCP proxy ---------------
+
+
+class TcpProxy:
+    """A TCP relay on 127.0.0.1 to ``target``; :meth:`stop` cuts every connection."""
+
+    def __init__(self, target: int) -> None:
+        self.target = target
+        self.port = free_port()
+        self._server: asyncio.Server | None = None
+        self._writers: set[asyncio.StreamWriter] = set()
+        self._handlers: set[asyncio.Task[None]] = set()
+
+    @property
+    def endpoint(self) -> str:
+        return f"tcp/127.0.0.1:{self.port}"
+
+    async def start(self) -> None:
+        self._server = await asyncio.start_server(
+            self._handle, "127.0.0.1", self.port, reuse_address=True
+        )
+
+    async def stop(self) -> None:
+        assert self._server is not None
+        self._server.close()
+        for writer in list(self._writers):
+            writer.transport.abort()  # as a dead Wi-Fi link: no goodbye
+        await self._server.wait_closed()
+        await asyncio.gather(*self._handlers, return_exceptions=True)
+        self._server = None
+
+    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        task = asyncio.current_task()
+        assert task is not None
+        self._handlers.add(task)
+        self._writers.add(writer)
+        try:
+            up_reader, up_writer = await asyncio.open_connection("127.0.0.1", self.target)
+        except OSError:
+            writer.transport.abort()
+            return
+        self._writers.add(up_writer)
+        try:
+            await asyncio.gather(_pipe(reader, up_writer), _pipe(up_reader, writer))
+        finally:
+            for w in (writer, up_writer):
+                w.transport.abort()
+                self._writers.discard(w)
+            self._handlers.discard(task)
+
+
+async def _pipe(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    with contextlib.suppress(OSError, asyncio.IncompleteReadError):
+        while data := await reader.read(65536):
+            writer.write(data)
+            await writer.drain()
+    writer.transport.abort()
+
+
+@pytest.mark.zenoh
+async def test_over_zenoh_the_call_comes_back_when_the_proxy_does(
+    tmp_path: Path, processes: list[Any]
+) -> None:
+    from test_daemon import Daemon
+
+    daemon = Daemon(tmp_path)
+    processes.append(daemon.process)
+    assert '"ready"' in await asyncio.to_thread(daemon.process.next_line, 60)
+    proxy = TcpProxy(daemon.port)
+    await proxy.start()
+    config = AppConfig.model_validate(
+        {
+            "transport": {
+                "zenoh": {
+                    # A client connects only where it is told (a peer could find the
+                    # robot's own port behind the proxy's back).
+                    "mode": "client",
+                    "connect": [proxy.endpoint],
+                    "multicast_scouting": False,
+                    # zenoh retries its connect endpoints by itself; do it often.
+                    "options": {
+                        "connect/retry": {
+                            "period_init_ms": 100,
+                            "period_max_ms": 250,
+                            "period_increase_factor": 1.5,
+                        }
+                    },
+                }
+            },
+            "reconnect": FAST.model_dump(),
+        }
+    )
+    loop = asyncio.get_running_loop()
+    events: list[tuple[float, ConnectionEvent]] = []
+    try:
+        async with connect(ROBOT, home=daemon.user_home, config=config, timeout=20) as client:
+            client.on_connection.append(lambda event: events.append((loop.time(), event)))
+            assert (await client.arm()).ok
+            poses: list[float] = []
+
+            async def follow() -> None:
+                async for _ in client.poses():
+                    poses.append(loop.time())
+
+            follower = asyncio.create_task(follow())
+            try:
+                replies = client.chat_replies("fwd 3")
+                assert (await anext(replies)).text == "Forward command received"
+                first = client.call
+                await proxy.stop()
+                with pytest.raises(CallEnded):
+                    async for _ in replies:
+                        pass
+                await wait_until(lambda: any(e.state == "reconnecting" for _, e in events))
+                await asyncio.sleep(OUTAGE)  # the outage itself
+                await proxy.start()
+                healed = loop.time()
+                await wait_until(lambda: client.reconnects == 1, timeout=20)
+                await wait_until(lambda: any(t > healed for t in poses), timeout=10)
+                back = next(t for t in poses if t > healed)
+                assert back - healed < 1.0 + SLACK, f"first pose {back - healed:.2f} s after"
+                assert client.call is not first and not follower.done()
+                await wait_until(
+                    lambda: (
+                        client.latest_safety.value is not None
+                        and not client.latest_safety.value.armed
+                    )
+                )
+                pose = await client.pose()
+                assert pose.goal is None and pose.v == 0.0  # stopped, nothing resumed
+                stopped = await client.telemetry()
+                assert not stopped.armed and stopped.stop_reason
+            finally:
+                follower.cancel()
+                await asyncio.gather(follower, return_exceptions=True)
+    finally:
+        if proxy._server is not None:
+            await proxy.stop()
