@@ -55,6 +55,7 @@ import json
 import logging
 import math
 import struct
+import sys
 import time
 from collections.abc import Callable, Coroutine
 from dataclasses import asdict
@@ -550,6 +551,7 @@ async def serve_ui(
         connect(robot, home=home, config=config, timeout=timeout) as client,
         WebUI(client, host=host, port=port, user=user) as ui,
     ):
+        client.on_connection.append(lambda event: print(f"[{event}]", file=sys.stderr))
         announce(f"open {ui.url} in a browser (role {client.call.role}); Ctrl-C to quit")
         with stop_on_signals(stop):
             await stop.wait()
