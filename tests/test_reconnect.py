@@ -12,6 +12,7 @@ import asyncio
 import contextlib
 import io
 import json
+import random
 import uuid
 from collections.abc import AsyncIterator, Iterator
 from dataclasses import dataclass, field
@@ -39,7 +40,7 @@ from telebot.identity import ContactBook, Identity, Role, create_paired_homes
 from telebot.robot.nav import Velocity
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.base import ServiceRegistry
-from telebot.services.client import ConnectionEvent, RobotClient, connect
+from telebot.services.client import ConnectionEvent, RobotClient, backoff_delay, connect
 from telebot.services.robot import RobotServer
 from telebot.services.supervision import SafetyDriver
 from telebot.services.video import VideoSettings
@@ -231,6 +232,29 @@ async def test_reconnection_off_ends_the_client_at_the_drop(tmp_path: Path) -> N
         assert client.reconnects == 0
 
 
+async def test_a_robot_that_refuses_the_new_call_ends_the_client(tmp_path: Path) -> None:
+    async with rig(tmp_path) as r:
+        r.hub.cut("robot", "user")
+        await wait_until(lambda: bool(times(r, "reconnecting")))
+        assert r.endpoint.contacts.remove(USER)  # the admin took alice off meanwhile
+        r.hub.heal("robot", "user")
+        end = await asyncio.wait_for(r.client.wait_finished(), 10)
+        assert end.kind == "dropped" and r.client.reconnects == 0
+        last = r.events[-1][1]
+        assert last.state == "ended" and "not in the contact list" in last.detail
+        with pytest.raises(CallEnded):
+            await r.client.chat("where?")
+
+
+def test_the_back_off_doubles_up_to_its_cap_with_jitter() -> None:
+    settings = ReconnectSettings(base=0.1, cap=2.0)
+    rng = random.Random(1)
+    for attempt, ceiling in [(0, 0.1), (1, 0.2), (3, 0.8), (5, 2.0), (60, 2.0)]:
+        delays = [backoff_delay(attempt, settings, rng) for _ in range(200)]
+        assert all(ceiling / 2 <= d <= ceiling for d in delays), attempt
+        assert max(delays) - min(delays) > ceiling / 4  # jittered, not in step
+
+
 # -- the service seam: a toy service on both sides ------------------------------------------
 
 
@@ -363,9 +387,11 @@ async def test_the_page_shows_the_reconnection_and_gets_pose_and_video_again(
             await wait_until(lambda: any(kind == "frame" for _, kind, _ in got), timeout=10)
             healed = await blip(r.hub)
             await wait_until(lambda: ui.connection["state"] == "reconnected", timeout=10)
-            await wait_until(
-                lambda: any(t > healed and kind == "frame" for t, kind, _ in got), timeout=10
-            )
+
+            def after_heal(wanted: str) -> bool:
+                return any(t > healed and kind == wanted for t, kind, _ in got)
+
+            await wait_until(lambda: after_heal("frame") and after_heal("pose"), timeout=10)
             states = [m["state"] for _, kind, m in got if kind == "connection"]
             assert states[0] == "connected" and states[-2:] == ["reconnecting", "reconnected"]
             back = next(t for t, kind, _ in got if t > healed and kind == "pose")
