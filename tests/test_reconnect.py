@@ -581,3 +581,43 @@ async def test_over_zenoh_the_call_comes_back_when_the_proxy_does(
     finally:
         if proxy._server is not None:
             await proxy.stop()
+
+
+async def test_in_a_browser_the_page_says_reconnecting_and_resumes_without_a_reload(
+    tmp_path: Path,
+) -> None:
+    from test_web_ui import browser_page, page_ready
+
+    async with (
+        rig(tmp_path) as r,
+        WebUI(r.client, port=0, user=USER) as ui,
+        browser_page(ui.url) as page,
+    ):
+        await page_ready(page)
+        await page.wait_for_function("() => window.telebotUI.state.frames > 0", timeout=10_000)
+        r.hub.cut("robot", "user")
+        await page.wait_for_function(
+            "() => document.getElementById('conn').textContent === 'reconnecting…'",
+            timeout=10_000,
+        )
+        await asyncio.sleep(OUTAGE)  # the outage itself
+        before = await page.evaluate(
+            "() => [window.telebotUI.state.frames, window.telebotUI.state.pose.t]"
+        )
+        r.hub.heal("robot", "user")
+        await page.wait_for_function(
+            "() => document.getElementById('conn').textContent.startsWith('reconnected after')",
+            timeout=10_000,
+        )
+        # Same page, no reload: video frames and poses come again.
+        await page.wait_for_function(
+            "([frames, t]) => window.telebotUI.state.frames > frames"
+            " && window.telebotUI.state.pose.t > t",
+            arg=before,
+            timeout=10_000,
+        )
+        assert await page.evaluate("() => window.telebotUI.mapReady()")
+        assert not r.safety.state().armed
+        await page.wait_for_function(
+            "() => document.getElementById('safety').textContent === 'stopped'", timeout=10_000
+        )
