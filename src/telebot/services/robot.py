@@ -247,7 +247,7 @@ class CallServices:
     def tick(self, now: float | None = None) -> None:
         """After each robot step: chat reports, goal status changes; pose and telemetry
         at their rates (``now``: loop time; None reports chat and goals only)."""
-        self.report()
+        self.server._guarded(self.report)  # a failing report must not stop the pose stream
         if now is None:
             return
         settings = self.server.settings
