@@ -23,6 +23,7 @@ __all__ = [
     "CallSettings",
     "CipherChoice",
     "MemorySettings",
+    "ReconnectSettings",
     "RobotConfig",
     "SafetySettings",
     "ServiceSettings",
@@ -102,6 +103,27 @@ class CallSettings(StrictModel):
     #: instructions (ChaCha20-Poly1305 otherwise); "aesgcm" or "chachapoly" accepts only
     #: that one (a peer that accepts only the other cannot call or be called).
     cipher: CipherChoice = "auto"
+
+
+class ReconnectSettings(StrictModel):
+    """What a user client does when its call drops (``telebot.connect``, ``chat``, ``ui``).
+
+    It calls the robot again, waiting ``base`` seconds before the first attempt and
+    doubling the wait after each failed one up to ``cap`` (each wait is shortened by a
+    random share of up to a half, so many clients do not call back in step). Each attempt
+    keeps calling for ``call.connect_timeout`` seconds. A refusal (no longer a contact)
+    or ``give_up_after`` seconds without a call end it. The robot stays stopped whatever
+    happens: its driver re-arms it.
+    """
+
+    #: Call the robot again after a drop (a hang-up is never redialled).
+    enabled: bool = True
+    #: Seconds before the first attempt; the wait doubles after each failed attempt ...
+    base: float = Field(default=0.1, gt=0, le=60)
+    #: ... up to this many seconds.
+    cap: float = Field(default=2.0, gt=0, le=600)
+    #: Stop trying after this many seconds without a call (0: never).
+    give_up_after: float = Field(default=300.0, ge=0)
 
 
 #: No configuration may make the simulated base faster than this (m/s).
@@ -215,6 +237,8 @@ class AppConfig(StrictModel):
     namespace: str = Field(default="telebot", pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
     transport: TransportSettings = Field(default_factory=TransportSettings)
     call: CallSettings = Field(default_factory=CallSettings)
+    #: The user's side: calling the robot again after a drop (the robot ignores it).
+    reconnect: ReconnectSettings = Field(default_factory=ReconnectSettings)
 
 
 class ServiceSettings(StrictModel):

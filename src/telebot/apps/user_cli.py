@@ -118,7 +118,9 @@ def build_parser() -> Parser:
         description="Chat with a robot. On a terminal, commands run as you type them and, "
         "while the robot moves, any key stops it (Escape always does). Piped, one command "
         "per line runs to its end before the next, and the command exits after the last one "
-        "(within --timeout). The robot starts stopped: send 'arm' before moving it.",
+        "(within --timeout). The robot starts stopped: send 'arm' before moving it. If the "
+        "call drops, chat calls the robot again by itself and says so on stderr ([reconnect] "
+        "in the config); the robot stays stopped until you send 'arm' again.",
     )
     send = commands.add_parser(
         "send",
@@ -209,7 +211,9 @@ def build_parser() -> Parser:
         help="serve a local web page to drive the robot: map, click-to-goal, stop, video, chat",
         description="Call the robot and serve its web UI at http://HOST:PORT/ (open it in a "
         "browser). Any key on the page stops the robot; closing the page while it moves "
-        "stops it too. The robot starts stopped: re-arm it on the page.",
+        "stops it too. The robot starts stopped: re-arm it on the page. If the call drops, the "
+        "client calls the robot again by itself ([reconnect] in the config) and the page "
+        "carries on; the robot stays stopped until re-armed.",
     )
     ui.add_argument("robot", type=name_arg, help="the robot's name")
     ui.add_argument(

@@ -9,11 +9,12 @@ import os
 import sys
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
-from typing import TextIO
+from typing import Any, TextIO
 
 from telebot.apps.common import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from telebot.config import AppConfig
-from telebot.services.client import RobotClient, connect
+from telebot.errors import CallEnded
+from telebot.services.client import ConnectionEvent, RobotClient, connect
 from telebot.services.proto.chat import ChatReply
 
 __all__ = ["chat_session", "format_pose", "get_map", "send_command", "where"]
@@ -26,10 +27,24 @@ def format_pose(x: float, y: float, yaw: float) -> str:
 
 @contextlib.asynccontextmanager
 async def _robot(
-    robot: str, home: Path, config: AppConfig, timeout: float | None
+    robot: str,
+    home: Path,
+    config: AppConfig,
+    timeout: float | None,
+    *,
+    reconnect: bool | None = False,
 ) -> AsyncIterator[RobotClient]:
-    async with connect(robot, home=home, config=config, timeout=timeout) as client:
+    # One-shot commands do not reconnect (what was in flight fails: exit status 2);
+    # chat follows config.reconnect.
+    async with connect(
+        robot, home=home, config=config, timeout=timeout, reconnect=reconnect
+    ) as client:
         yield client
+
+
+def _say_connection(event: ConnectionEvent) -> None:
+    """Tell the chat user the call dropped / came back (stderr: stdout is the replies)."""
+    print(f"[{event}]", file=sys.stderr, flush=True)
 
 
 class _Progress:
@@ -74,17 +89,33 @@ def _print_reply(reply: ChatReply) -> None:
 
 
 async def _run_command(
-    client: RobotClient, command: str, timeout: float | None, map_dir: Path
+    client: RobotClient,
+    command: str,
+    timeout: float | None,
+    map_dir: Path,
+    *,
+    survive_drop: bool = False,
 ) -> bool:
-    """One chat command: print its replies; fetch the map for getmap. True if it succeeded."""
+    """One chat command: print its replies; fetch the map for getmap. True if it succeeded.
+
+    ``survive_drop``: a call that drops under the command fails the command (never sent
+    again on the next call) instead of raising, unless no call will come any more.
+    """
     ok = False
     attachment = None
-    async for reply in client.chat_replies(command, timeout=timeout):
-        _print_reply(reply)
-        if reply.final:
-            ok, attachment = reply.ok, reply.attachment
-    if ok and attachment == "map":
-        await _fetch_and_save(client, map_dir / f"{client.robot}-map.png", timeout or 60.0)
+    try:
+        async for reply in client.chat_replies(command, timeout=timeout):
+            _print_reply(reply)
+            if reply.final:
+                ok, attachment = reply.ok, reply.attachment
+        if ok and attachment == "map":
+            await _fetch_and_save(client, map_dir / f"{client.robot}-map.png", timeout or 60.0)
+    except CallEnded:
+        if not survive_drop:
+            raise
+        what = "the call ended" if client.finished else "the call dropped (not resent)"
+        print(f"! {command}: interrupted, {what}", flush=True)
+        return False
     return ok
 
 
@@ -135,7 +166,8 @@ async def chat_session(
     moves), and ends after the last one, all within ``timeout``. On a terminal commands
     run at once, and while the robot moves any key stops it (Escape always does).
     """
-    async with _robot(robot, home, config, config.call.connect_timeout) as client:
+    async with _robot(robot, home, config, config.call.connect_timeout, reconnect=None) as client:
+        client.on_connection.append(_say_connection)
         print(
             f"connected to {robot} (role {client.call.role}); type help, Ctrl-D to leave",
             file=sys.stderr,
@@ -149,7 +181,9 @@ async def chat_session(
                         if not command:
                             continue
                         print(f"> {command}", flush=True)
-                        if not await _run_command(client, command, None, map_dir):
+                        if not await _run_command(
+                            client, command, None, map_dir, survive_drop=True
+                        ):
                             failures += 1
             except TimeoutError:
                 print(
@@ -195,11 +229,31 @@ def _moving(client: RobotClient) -> bool:
 
 async def _edit_lines(client: RobotClient, map_dir: Path, keys: asyncio.Queue[str]) -> int:
     prompt = f"{client.robot}> "
-    line = ""
     print(prompt, end="", flush=True)
+    finished = asyncio.ensure_future(client.wait_finished())
+    try:
+        return await _read_keys(client, map_dir, keys, prompt, finished)
+    finally:
+        finished.cancel()
+
+
+async def _read_keys(
+    client: RobotClient,
+    map_dir: Path,
+    keys: asyncio.Queue[str],
+    prompt: str,
+    finished: asyncio.Future[Any],
+) -> int:
+    line = ""
     async with asyncio.TaskGroup() as tasks:
         while True:
-            chunk = await keys.get()
+            key = asyncio.ensure_future(keys.get())
+            await asyncio.wait({key, finished}, return_when=asyncio.FIRST_COMPLETED)
+            if not key.done():  # no more calls: the chat is over
+                key.cancel()
+                print(file=sys.stderr)
+                return EXIT_FAILURE
+            chunk = key.result()
             if not chunk:
                 break
             if _moving(client):
@@ -220,7 +274,9 @@ async def _edit_lines(client: RobotClient, map_dir: Path, keys: asyncio.Queue[st
                     if command in ("quit", "exit"):
                         return EXIT_OK
                     if command:
-                        tasks.create_task(_run_command(client, command, None, map_dir))
+                        tasks.create_task(
+                            _run_command(client, command, None, map_dir, survive_drop=True)
+                        )
                     print(prompt, end="", flush=True)
                 elif char in ("\x7f", "\b"):
                     if line:

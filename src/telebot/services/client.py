@@ -4,6 +4,20 @@
 (Table I commands), goals, pose, telemetry and map transfer. Requests on lossy channels are
 repeated until the robot answers; the robot answers a repeat with what it already said,
 so nothing runs twice.
+
+Services are opened from a :class:`~telebot.services.base.ServiceRegistry`
+(:func:`default_client_services`: ``core``, the channels above, and ``video``). What a
+user subscribes to lives on the client, not on the call: :attr:`RobotClient.latest_pose`,
+:meth:`RobotClient.poses`, :meth:`RobotClient.video`, the video feed.
+
+Reconnecting: a client made by :func:`connect` calls the robot again when its call drops
+(:class:`~telebot.config.ReconnectSettings`: back-off with jitter, capped) and re-opens
+every registered service on the new call, so ``async for pose in robot.poses()`` and
+video iterators go on. Requests are bound to the call they started on: one in flight at
+the drop raises :class:`~telebot.errors.CallEnded` and is never sent on the next call
+(a goal is never resumed; the robot latched stopped at the drop and stays so until its
+driver re-arms it); a request made while reconnecting waits for the new call. Listeners
+in :attr:`RobotClient.on_connection` hear each :class:`ConnectionEvent`.
 """
 
 from __future__ import annotations
@@ -12,19 +26,28 @@ import asyncio
 import contextlib
 import itertools
 import logging
+import random
 import secrets
 from collections.abc import AsyncGenerator, AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, Literal, TypeVar
 
-from telebot.channels.call import Call, UserEndpoint
+from telebot.channels.call import Call, CallEnd, UserEndpoint
 from telebot.channels.channel import Channel, ReceivedDatagram
 from telebot.channels.transports import create_transport
 from telebot.channels.transports.base import Lane, Transport
-from telebot.config import AppConfig, default_home
-from telebot.errors import CallEnded, ProtocolError, TelebotError
+from telebot.config import AppConfig, ReconnectSettings, default_home
+from telebot.errors import (
+    CallEnded,
+    CallError,
+    CallRejected,
+    CallTimeout,
+    ProtocolError,
+    TelebotError,
+)
 from telebot.identity import Identity, KnownRobots
+from telebot.services.base import CLIENT_TICK, OpenServices, ServiceRegistry
 from telebot.services.mapxfer import MapDownload, fetch_map
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
 from telebot.services.proto.chat import ChatReply, decode_reply, encode_request
@@ -45,9 +68,17 @@ from telebot.services.proto.status import (
     decode_pose,
     decode_telemetry,
 )
-from telebot.services.video import VideoReceiver, video_channel
+from telebot.services.video import VideoFeed, VideoFeedService, VideoReceiver, video_channel
 
-__all__ = ["ChatResult", "RobotClient", "connect"]
+__all__ = [
+    "ChatResult",
+    "ClientCore",
+    "ConnectionEvent",
+    "RobotClient",
+    "backoff_delay",
+    "connect",
+    "default_client_services",
+]
 
 log = logging.getLogger("telebot.client")
 
@@ -100,17 +131,102 @@ class _Latest(Generic[T]):
         return self.value
 
 
-class RobotClient:
-    """A call to a robot, with its services as methods (see the module docstring)."""
+@dataclass(frozen=True, slots=True)
+class ConnectionEvent:
+    """A change of the client's link to its robot.
 
-    def __init__(self, call: Call) -> None:
+    ``state``: ``reconnecting`` (the call dropped; ``detail`` says why), ``reconnected``
+    (a new call is up; ``seconds`` since the drop was noticed, ``attempts`` made) or
+    ``ended`` (no more calls: hung up, refused, or given up; ``detail`` says why).
+    """
+
+    state: Literal["reconnecting", "reconnected", "ended"]
+    detail: str = ""
+    seconds: float = 0.0
+    attempts: int = 0
+
+    def __str__(self) -> str:
+        if self.state == "reconnecting":
+            return f"reconnecting… ({self.detail})" if self.detail else "reconnecting…"
+        if self.state == "reconnected":
+            return f"reconnected after {self.seconds:.1f} s"
+        return f"disconnected: {self.detail}"
+
+
+def backoff_delay(attempt: int, settings: ReconnectSettings, rng: random.Random) -> float:
+    """Seconds to wait before reconnection attempt ``attempt`` (0 first).
+
+    ``base`` doubled per attempt, capped at ``cap``, shortened by a random share of up to
+    a half (jitter, so that many clients dropped together do not call back in step).
+    """
+    ceiling = min(settings.cap, settings.base * 2.0 ** min(attempt, 32))
+    return ceiling * (1.0 - 0.5 * rng.random())
+
+
+class ClientCore:
+    """The ``core`` service of a user client on one call: chat, goals, pose, telemetry,
+    map and safety channels, delivering to the client's waiters and latest values."""
+
+    def __init__(self, client: RobotClient, call: Call) -> None:
         self.call = call
-        self._chat = call.channel(CHAT, lane=Lane.CONTROL)
-        self._goals = call.channel(GOALS, lane=Lane.CONTROL)
-        self._pose = call.channel(POSE, lane=Lane.DATA, latest_only=True)
-        self._telemetry = call.channel(TELEMETRY, lane=Lane.DATA, latest_only=True)
-        self._map: Channel = call.channel(MAP, lane=Lane.BULK)
-        self._safety = call.channel(SAFETY, lane=Lane.CONTROL)
+        self.chat = call.channel(CHAT, lane=Lane.CONTROL)
+        self.goals = call.channel(GOALS, lane=Lane.CONTROL)
+        self.pose = call.channel(POSE, lane=Lane.DATA, latest_only=True)
+        self.telemetry = call.channel(TELEMETRY, lane=Lane.DATA, latest_only=True)
+        self.map: Channel = call.channel(MAP, lane=Lane.BULK)
+        self.safety = call.channel(SAFETY, lane=Lane.CONTROL)
+        self.chat.set_callback(client._on_chat)
+        self.goals.set_callback(client._on_goal)
+        self.pose.set_callback(client._on_pose)
+        self.telemetry.set_callback(client._on_telemetry)
+        self.safety.set_callback(client._on_safety)
+
+    def tick(self, now: float) -> None:
+        """Nothing periodic: requests repeat themselves."""
+
+    def close(self) -> None:
+        """Deliver nothing more from this call."""
+        for channel in (self.chat, self.goals, self.pose, self.telemetry, self.safety):
+            channel.set_callback(None)
+
+
+def _video(client: RobotClient, call: Call) -> VideoFeedService:
+    return VideoFeedService(client.video_feed, call)
+
+
+def default_client_services() -> ServiceRegistry[RobotClient]:
+    """The user side's built-in services: ``core`` (:class:`ClientCore`) and ``video``."""
+    registry: ServiceRegistry[RobotClient] = ServiceRegistry()
+    registry.register("core", ClientCore)
+    registry.register("video", _video)
+    return registry
+
+
+class RobotClient:
+    """A call to a robot, with its services as methods (see the module docstring).
+
+    ``RobotClient(call)`` follows that one call; :func:`connect` also starts it (:meth:`start`),
+    which ticks the services and, with reconnection on, replaces a dropped call.
+    """
+
+    def __init__(self, call: Call, *, services: ServiceRegistry[RobotClient] | None = None) -> None:
+        self.call = call
+        #: What each call of this client gets (:func:`default_client_services` unless given).
+        self.registry = services if services is not None else default_client_services()
+        #: The robot's video across calls (``robot.video()`` and the web UI read it).
+        self.video_feed = VideoFeed()
+        #: Called with every :class:`ConnectionEvent` (on the event loop).
+        self.on_connection: list[Callable[[ConnectionEvent], None]] = []
+        #: The newest :class:`ConnectionEvent` (None while the first call is up).
+        self.latest_connection: _Latest[ConnectionEvent] = _Latest()
+        #: Calls that replaced a dropped one.
+        self.reconnects = 0
+        self._robot = call.peer
+        self._loop = asyncio.get_running_loop()
+        self._finished: asyncio.Future[CallEnd] = self._loop.create_future()
+        self._supervisor: asyncio.Task[None] | None = None
+        self._closing = False
+        self._rng = random.Random()
         # Request ids start at a random point so a reconnecting client does not collide
         # with answers the robot still remembers from an earlier call.
         start = secrets.randbelow(2**31)
@@ -126,16 +242,176 @@ class RobotClient:
         self.latest_telemetry: _Latest[Telemetry] = _Latest()
         #: Datagrams from the robot that did not decode (dropped).
         self.rejected = 0
-        self._chat.set_callback(self._on_chat)
-        self._goals.set_callback(self._on_goal)
-        self._pose.set_callback(self._on_pose)
-        self._telemetry.set_callback(self._on_telemetry)
-        self._safety.set_callback(self._on_safety)
+        #: The services open on the current call.
+        self.services: OpenServices = self.registry.open(self, call)
 
     @property
     def robot(self) -> str:
         """The robot's name."""
-        return self.call.peer
+        return self._robot
+
+    @property
+    def finished(self) -> bool:
+        """True once no call will come any more (a client not started: its call ended)."""
+        if self._supervisor is None:
+            return self.call.end is not None
+        return self._finished.done()
+
+    # -- lifecycle ------------------------------------------------------------------
+
+    def start(
+        self, endpoint: UserEndpoint | None = None, reconnect: ReconnectSettings | None = None
+    ) -> None:
+        """Tick the services; with ``endpoint`` and ``reconnect.enabled``, call the robot
+        again when the call drops. End with :meth:`aclose`."""
+        if self._supervisor is None:
+            self._supervisor = self._loop.create_task(
+                self._supervise(endpoint, reconnect), name=f"client-{self.robot}"
+            )
+
+    async def aclose(self) -> None:
+        """Stop reconnecting and close the services (a hang-up is :meth:`hangup`'s)."""
+        self._closing = True
+        if self._supervisor is not None:
+            self._supervisor.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._supervisor
+        self.services.close()
+        self.video_feed.end()
+
+    async def wait_finished(self) -> CallEnd:
+        """Wait until no call will come any more (started clients; else the call's end)."""
+        if self._supervisor is None:
+            return await self.call.wait_ended()
+        return await asyncio.shield(self._finished)
+
+    async def _supervise(
+        self, endpoint: UserEndpoint | None, settings: ReconnectSettings | None
+    ) -> None:
+        end: CallEnd | None = None
+        try:
+            while True:
+                end = await self._serve(self.call)
+                self.services.close()
+                redial = (
+                    endpoint is not None
+                    and settings is not None
+                    and settings.enabled
+                    and end.kind == "dropped"
+                    and not self._closing
+                )
+                if not redial:
+                    self._finish(end, str(end))
+                    return
+                assert endpoint is not None and settings is not None
+                if not await self._redial(endpoint, settings, end):
+                    return
+        finally:
+            if not self._finished.done():  # cancelled (closing): no more calls either
+                self._finish(end or CallEnd("hung_up", False, "client closed"), "client closed")
+
+    async def _serve(self, call: Call) -> CallEnd:
+        """Tick the services of ``call`` until it ends."""
+        ended = asyncio.ensure_future(call.wait_ended())
+        try:
+            while True:
+                self.services.tick(self._loop.time())
+                done, _ = await asyncio.wait({ended}, timeout=CLIENT_TICK)
+                if done:
+                    return ended.result()
+        finally:
+            ended.cancel()
+
+    async def _redial(
+        self, endpoint: UserEndpoint, settings: ReconnectSettings, end: CallEnd
+    ) -> bool:
+        """Call the robot until a call is up (True) or it is no use (False, finished)."""
+        started = self._loop.time()
+        self._emit(ConnectionEvent("reconnecting", end.detail))
+        log.warning("call with %s %s; reconnecting", self.robot, end)
+        attempt = 0
+        while True:
+            await asyncio.sleep(backoff_delay(attempt, settings, self._rng))
+            attempt += 1
+            waited = self._loop.time() - started
+            if settings.give_up_after and waited >= settings.give_up_after:
+                self._finish(end, f"gave up reconnecting after {waited:.0f} s")
+                return False
+            try:
+                call = await endpoint.call(self.robot)
+            except CallTimeout as exc:  # not answering (yet): the link may still be down
+                log.info("reconnection attempt %d: %s", attempt, exc)
+                continue
+            except CallRejected as exc:
+                self._finish(end, f"{self.robot} refused the call: {exc}")
+                return False
+            except CallError as exc:  # the endpoint closed, or the robot's key changed
+                self._finish(end, str(exc))
+                return False
+            except TelebotError as exc:  # a transport hiccup
+                log.info("reconnection attempt %d failed: %s", attempt, exc)
+                continue
+            try:
+                self.services = self.registry.open(self, call)
+            except Exception:
+                log.exception("opening the services on the new call failed")
+                call.hangup_now("user error: the call could not be served")
+                self._finish(end, "the services could not be opened on the new call")
+                return False
+            self.call = call
+            self.reconnects += 1
+            seconds = self._loop.time() - started
+            log.warning("reconnected to %s after %.1f s", self.robot, seconds)
+            self._emit(ConnectionEvent("reconnected", seconds=seconds, attempts=attempt))
+            return True
+
+    def _finish(self, end: CallEnd, detail: str) -> None:
+        if self._finished.done():
+            return
+        self._finished.set_result(end)
+        self.video_feed.end()
+        self._emit(ConnectionEvent("ended", detail))
+
+    def _emit(self, event: ConnectionEvent) -> None:
+        self.latest_connection.set(event)
+        for listener in list(self.on_connection):
+            try:
+                listener(event)
+            except Exception:
+                log.exception("connection listener failed")
+
+    def _ended_error(self) -> CallEnded:
+        end = self._finished.result() if self._finished.done() else self.call.end
+        return CallEnded(f"the call with {self.robot} {end}", end.kind if end else "")
+
+    async def _core(self) -> ClientCore:
+        """The core service of a live call, waiting out a reconnection."""
+        while True:
+            core = self.services.get("core")
+            if self.call.active and not self.services.closed and isinstance(core, ClientCore):
+                return core
+            if self._supervisor is None or self._finished.done():
+                if not isinstance(core, ClientCore):
+                    raise TelebotError("this client has no core service registered")
+                raise self._ended_error()
+            await self._until_finished(self.latest_connection.next())
+
+    async def _until_finished(self, awaitable: Awaitable[T]) -> T:
+        """Await ``awaitable`` across reconnections; CallEnded once no call will come."""
+        if self._supervisor is None:
+            return await self._until_ended(awaitable, self.call)
+        task: asyncio.Future[T] = asyncio.ensure_future(awaitable)
+        waiting: set[asyncio.Future[Any]] = {task, self._finished}
+        try:
+            done, _ = await asyncio.wait(waiting, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            if not task.done():
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+        if task in done:
+            return task.result()
+        raise self._ended_error()
 
     # -- chat -----------------------------------------------------------------------
 
@@ -169,19 +445,20 @@ class RobotClient:
                 await asyncio.sleep(RESEND_AFTER / 3)
 
     async def _one_request(self, command: str) -> AsyncGenerator[ChatReply, None]:
+        core = await self._core()
         request_id = next(self._chat_ids) % 2**32
         replies: asyncio.Queue[ChatReply] = asyncio.Queue()
         self._chat_waiters[request_id] = replies
         seen: set[int] = set()
         payload = encode_request(request_id, command)
         try:
-            self._send(self._chat, payload)
+            self._send(core.chat, payload)
             wait = RESEND_AFTER
             while True:
                 try:
-                    reply = await self._next(replies, wait)
+                    reply = await self._next(replies, wait, core.call)
                 except TimeoutError:
-                    self._send(self._chat, payload)  # lost one way or the other: ask again
+                    self._send(core.chat, payload)  # lost one way or the other: ask again
                     continue
                 wait = REFRESH_AFTER
                 if reply.seq in seen:
@@ -239,15 +516,16 @@ class RobotClient:
         payload = SafetyRequest(kind, request_id).encode()
         try:
             async with asyncio.timeout(timeout):
+                core = await self._core()
                 while True:
                     try:
-                        self._send(self._safety, payload)
+                        self._send(core.safety, payload)
                     except CallEnded:
                         raise
                     except TelebotError as exc:  # a transient send failure: keep trying
                         log.warning("%s not sent (%s); trying again", kind, exc)
                     try:
-                        return await self._next(acks, repeat)
+                        return await self._next(acks, repeat, core.call)
                     except TimeoutError:
                         continue  # lost one way or the other: say it again
         finally:
@@ -286,22 +564,26 @@ class RobotClient:
         yaw: float | None,
         on_update: Callable[[GoalUpdate], None] | None,
     ) -> GoalUpdate:
+        core = await self._core()
         goal_id = next(self._goal_ids) % 2**32
         updates: asyncio.Queue[GoalUpdate] = asyncio.Queue()
         self._goal_waiters[goal_id] = updates
         start = GoalCommand("goal", goal_id, x, y, yaw).encode()
         query = GoalCommand("query", goal_id).encode()
         try:
-            self._send(self._goals, start)
+            # Bound to this call: a drop ends the goal here, and it is never sent on the
+            # next call (the robot cancelled it when it latched at the drop).
+            self._send(core.goals, start)
             heard = False
             while True:
                 try:
-                    update = await self._next(updates, REFRESH_AFTER if heard else RESEND_AFTER)
+                    wait = REFRESH_AFTER if heard else RESEND_AFTER
+                    update = await self._next(updates, wait, core.call)
                 except TimeoutError:
-                    self._send(self._goals, query if heard else start)
+                    self._send(core.goals, query if heard else start)
                     continue
                 if update.status == "unknown":
-                    self._send(self._goals, start)  # the goal itself was lost
+                    self._send(core.goals, start)  # the goal itself was lost
                     continue
                 heard = True
                 if on_update is not None and not (
@@ -316,36 +598,45 @@ class RobotClient:
     # -- streams --------------------------------------------------------------------
 
     async def pose(self, *, timeout: float | None = 5.0) -> PoseUpdate:
-        """The next pose update from the robot."""
+        """The next pose update from the robot (waits out a reconnection)."""
         async with asyncio.timeout(timeout):
-            return await self._until_ended(self.latest_pose.next())
+            return await self._until_finished(self.latest_pose.next())
 
     async def poses(self) -> AsyncIterator[PoseUpdate]:
-        """Pose updates as they come (latest only: a slow reader skips to the newest)."""
+        """Pose updates as they come (latest only: a slow reader skips to the newest).
+
+        They go on across reconnections and end (CallEnded) when no call will come.
+        """
         while True:
-            yield await self._until_ended(self.latest_pose.next())
+            yield await self._until_finished(self.latest_pose.next())
 
     async def telemetry(self, *, timeout: float | None = 5.0) -> Telemetry:
         """The next telemetry message from the robot."""
         async with asyncio.timeout(timeout):
-            return await self._until_ended(self.latest_telemetry.next())
+            return await self._until_finished(self.latest_telemetry.next())
 
     async def get_map(
         self, *, timeout: float = 30.0, progress: Callable[[int, int], None] | None = None
     ) -> MapDownload:
         """Download the robot's map (cropped PNG with its georeference)."""
-        return await fetch_map(self._map, timeout=timeout, progress=progress)
+        async with asyncio.timeout(timeout):
+            core = await self._core()
+        return await fetch_map(core.map, timeout=timeout, progress=progress)
 
     def video(self, **options: Any) -> VideoReceiver:
         """The robot's video: ``async with robot.video() as video: async for frame in video``.
 
         Frames are decoded BGR numpy images with camera, frame id and capture time; the
         robot sends video only while a receiver is open (it reports back every 0.2 s).
+        On a started client (:func:`connect`) the frames go on across reconnections.
         """
+        if self._supervisor is not None:
+            return VideoReceiver(self.video_feed, **options)
         return VideoReceiver(video_channel(self.call), **options)
 
     async def hangup(self) -> None:
-        """End the call."""
+        """End the call (no reconnection follows)."""
+        self._closing = True
         await self.call.hangup()
 
     # -- plumbing -------------------------------------------------------------------
@@ -353,14 +644,14 @@ class RobotClient:
     def _send(self, channel: Channel, payload: str) -> None:
         channel.send(payload)  # raises CallEnded once the call is over
 
-    async def _next(self, queue: asyncio.Queue[T], wait: float) -> T:
+    async def _next(self, queue: asyncio.Queue[T], wait: float, call: Call) -> T:
         async with asyncio.timeout(wait):
-            return await self._until_ended(queue.get())
+            return await self._until_ended(queue.get(), call)
 
-    async def _until_ended(self, awaitable: Awaitable[T]) -> T:
-        """Await ``awaitable`` but raise CallEnded as soon as the call ends."""
+    async def _until_ended(self, awaitable: Awaitable[T], call: Call) -> T:
+        """Await ``awaitable`` but raise CallEnded as soon as ``call`` ends."""
         task: asyncio.Future[T] = asyncio.ensure_future(awaitable)
-        ended = asyncio.ensure_future(self.call.wait_ended())
+        ended = asyncio.ensure_future(call.wait_ended())
         waiting: set[asyncio.Future[Any]] = {task, ended}
         try:
             done, _ = await asyncio.wait(waiting, return_when=asyncio.FIRST_COMPLETED)
@@ -372,7 +663,7 @@ class RobotClient:
                     await task
         if task in done:
             return task.result()
-        end = self.call.end
+        end = call.end
         raise CallEnded(f"the call with {self.robot} {end}", end.kind if end else "")
 
     def _on_chat(self, datagram: ReceivedDatagram) -> None:
@@ -429,12 +720,16 @@ async def connect(
     config: AppConfig | None = None,
     transport: Transport | None = None,
     timeout: float | None = None,
+    reconnect: bool | None = None,
+    services: ServiceRegistry[RobotClient] | None = None,
 ) -> AsyncIterator[RobotClient]:
-    """Call ``robot`` and yield a :class:`RobotClient`; hangs up on exit.
+    """Call ``robot`` and yield a started :class:`RobotClient`; hangs up on exit.
 
     ``home`` holds the user's key and known robots (default: ``$TELEBOT_HOME`` or the
-    user config dir); ``config`` the transport and call settings (default: zenoh peer);
-    pass an open ``transport`` to share one between several calls.
+    user config dir); ``config`` the transport, call and reconnection settings (default:
+    zenoh peer, reconnect on); pass an open ``transport`` to share one between several
+    calls. ``reconnect`` overrides ``config.reconnect.enabled``; ``services`` replaces
+    :func:`default_client_services`.
     """
     config = config if config is not None else AppConfig()
     home = home if home is not None else default_home("user")
@@ -449,9 +744,15 @@ async def connect(
             )
         )
         call = await endpoint.call(robot, timeout=timeout)
-        client = RobotClient(call)
+        settings = config.reconnect
+        if reconnect is not None:
+            settings = settings.model_copy(update={"enabled": reconnect})
+        client = RobotClient(call, services=services)
+        client.start(endpoint, settings)
         try:
             yield client
         finally:
+            client._closing = True
             with contextlib.suppress(TelebotError):
-                await call.hangup()
+                await client.call.hangup()
+            await client.aclose()

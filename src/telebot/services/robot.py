@@ -1,10 +1,11 @@
 """The robot side of telebot: steps the robot in real time and serves every call.
 
 :class:`RobotServer` owns the navigation stack. One task steps it at the control rate
-(``loop.time()`` is the simulation's clock); on every step each call's
-:class:`CallServices` reports finished goals, and at their own rates publishes pose and
-telemetry. Every handler is guarded: garbage from one peer is dropped and counted and never
-reaches the others or stops the robot's loop.
+(``loop.time()`` is the simulation's clock). Each call gets every service of the server's
+:class:`~telebot.services.base.ServiceRegistry` (:func:`default_robot_services`: ``core``,
+the :class:`CallServices` of chat, map, pose, goals, telemetry and safety, and ``video``),
+ticked on every step and closed when the call ends. Every handler is guarded: garbage from
+one peer is dropped and counted and never reaches the others or stops the robot's loop.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from telebot.errors import ProtocolError, TelebotError
 from telebot.identity import Role
 from telebot.robot.nav import GoalHandle, GoalStatus, NavStack
 from telebot.safety import SafetyState
+from telebot.services.base import OpenServices, ServiceRegistry
 from telebot.services.chat import ChatSession
 from telebot.services.mapxfer import MapService
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
@@ -45,7 +47,15 @@ from telebot.services.proto.status import (
 from telebot.services.supervision import SafetyDriver
 from telebot.services.video import VideoSender, VideoSettings
 
-__all__ = ["CallServices", "EventSink", "RobotServer", "SteppedNavStack", "may_drive"]
+__all__ = [
+    "CallServices",
+    "EventSink",
+    "RobotServer",
+    "RobotVideo",
+    "SteppedNavStack",
+    "default_robot_services",
+    "may_drive",
+]
 
 log = logging.getLogger("telebot.robot")
 
@@ -73,7 +83,11 @@ def may_drive(role: Role | None) -> bool:
 
 
 class CallServices:
-    """The services of one call: chat, map, pose, goals and telemetry channels."""
+    """The core services of one call: chat, map, pose, goals, telemetry and safety channels.
+
+    A :class:`~telebot.services.base.CallService` (registered as ``core``): :meth:`tick`
+    reports chat and goal progress and publishes pose and telemetry at their rates.
+    """
 
     def __init__(self, server: RobotServer, call: Call) -> None:
         self.server = server
@@ -93,8 +107,8 @@ class CallServices:
             gate=self.gate,
         )
         self.map = MapService(call.channel(MAP, lane=Lane.BULK), server.encoded_map)
-        self.video = VideoSender.for_call(call, nav, server.video_settings)
-        self.video.start()
+        # The first tick publishes both at once (a new user sees the robot straight away).
+        self._next_pose = self._next_telemetry = -math.inf
         # Lossy channels: a user repeats a request until it hears back, so the robot
         # answers a repeat with what it already said instead of running it twice.
         self._chat_replies: OrderedDict[int, list[str]] = OrderedDict()
@@ -225,8 +239,32 @@ class CallServices:
 
     # -- periodic -------------------------------------------------------------------
 
-    def tick(self) -> None:
-        """After each robot step: chat reports, goal status changes."""
+    @property
+    def video(self) -> VideoSender | None:
+        """This call's video sender (from the ``video`` service), if one is registered."""
+        return self.server.video_of(self.call.id)
+
+    def tick(self, now: float | None = None) -> None:
+        """After each robot step: chat reports, goal status changes; pose and telemetry
+        at their rates (``now``: loop time; None reports chat and goals only)."""
+        self.server._guarded(self.report)  # a failing report must not stop the pose stream
+        if now is None:
+            return
+        settings = self.server.settings
+        if now >= self._next_pose:
+            self._next_pose = max(self._next_pose + 1.0 / settings.pose_hz, now)
+            self.server._guarded(self.publish_pose)
+        if now >= self._next_telemetry:
+            self._next_telemetry = max(self._next_telemetry + 1.0 / settings.telemetry_hz, now)
+            self.server._guarded(self.publish_telemetry)
+            self.server._guarded(self.send_safety_state, self.server.safety_status())
+
+    def close(self) -> None:
+        """The call ended: end its map transfer."""
+        self.map.close()
+
+    def report(self) -> None:
+        """Chat reports and goal status changes."""
         self.chat.poll()
         for goal_id, entry in list(self._goals.items()):
             if isinstance(entry, GoalHandle):
@@ -266,6 +304,9 @@ class CallServices:
         goal = nav.current_goal()
         rtt = self.call.stats.rtt
         safety = self.server.safety_status()
+        video = self.video
+        if video is not None and not video.watched:
+            video = None
         telemetry = Telemetry(
             t=self.server.now(),
             battery=battery.percent,
@@ -283,10 +324,10 @@ class CallServices:
             armed=safety.armed,
             stop_reason=safety.reason,
             holder=safety.holder,
-            video_fps=round(self.video.fps, 2) if self.video.watched else 0.0,
-            video_width=self.video.width if self.video.watched else 0,
-            video_height=self.video.height if self.video.watched else 0,
-            video_quality=self.video.quality if self.video.watched else 0,
+            video_fps=round(video.fps, 2) if video is not None else 0.0,
+            video_width=video.width if video is not None else 0,
+            video_height=video.height if video is not None else 0,
+            video_quality=video.quality if video is not None else 0,
         )
         self._send(self._telemetry_channel, telemetry.encode())
 
@@ -317,6 +358,34 @@ class CallServices:
 _OBSERVER = "observers may not drive: ask the driver"
 
 
+class RobotVideo:
+    """The ``video`` service of one call: a :class:`VideoSender` of the active camera."""
+
+    def __init__(self, server: RobotServer, call: Call) -> None:
+        self.sender = VideoSender.for_call(call, server.nav, server.video_settings)
+        self.sender.start()
+
+    def tick(self, now: float) -> None:
+        """Nothing: the sender paces itself."""
+
+    def close(self) -> None:
+        """Stop sending."""
+        self.sender.stop()
+
+
+def _core(server: RobotServer, call: Call) -> CallServices:
+    # Looked up when a call opens (not bound at import), so a test may replace the class.
+    return CallServices(server, call)
+
+
+def default_robot_services() -> ServiceRegistry[RobotServer]:
+    """The robot's built-in services: ``core`` (:class:`CallServices`) and ``video``."""
+    registry: ServiceRegistry[RobotServer] = ServiceRegistry()
+    registry.register("core", _core)
+    registry.register("video", RobotVideo)
+    return registry
+
+
 def _remember(table: OrderedDict[int, Any], key: int, value: Any) -> None:
     table[key] = value
     table.move_to_end(key)
@@ -337,8 +406,12 @@ class RobotServer:
         emit: EventSink | None = None,
         safety: SafetyDriver | None = None,
         video: VideoSettings | None = None,
+        services: ServiceRegistry[RobotServer] | None = None,
     ) -> None:
         self.nav = nav
+        #: What every call gets (:func:`default_robot_services` unless given); register
+        #: more before calls come in.
+        self.registry = services if services is not None else default_robot_services()
         self.video_settings = video if video is not None else VideoSettings()
         #: The safety supervisor's driver; None runs the robot without one (tests of the
         #: services alone): then nothing latches and roles alone decide who may drive.
@@ -349,7 +422,10 @@ class RobotServer:
         self.control_hz = control_hz
         self.map_name = map_name
         self.emit: EventSink = emit if emit is not None else (lambda event: None)
+        #: The core services of each call, by call id.
         self.services: dict[str, CallServices] = {}
+        #: Every open service of each call, by call id.
+        self.open: dict[str, OpenServices] = {}
         self._encoded: EncodedMap | None = None
         self._loop = asyncio.get_running_loop()
 
@@ -375,18 +451,24 @@ class RobotServer:
 
         endpoint.on_call = on_call
 
-    def serve(self, call: Call) -> CallServices:
-        """Open the service channels on ``call``."""
+    def video_of(self, call_id: str) -> VideoSender | None:
+        """The video sender of call ``call_id``, if it has the ``video`` service."""
+        opened = self.open.get(call_id)
+        video = opened.get("video") if opened is not None else None
+        return video.sender if isinstance(video, RobotVideo) else None
+
+    def serve(self, call: Call) -> CallServices | None:
+        """Open every registered service on ``call``; returns its core services (if any)."""
 
         def on_end(_: asyncio.Future[Any]) -> None:
             # The supervisor hears first: a driver's hang-up must stop the robot whatever
             # happens in the clean-up after it.
             if self.safety is not None:
                 self._guarded(self.safety.leave, call)
-            ended = self.services.pop(call.id, None)
-            if ended is not None:  # None: setting the services up failed
-                self._guarded(ended.map.close)
-                self._guarded(ended.video.stop)
+            self.services.pop(call.id, None)
+            opened = self.open.pop(call.id, None)
+            if opened is not None:  # None: setting the services up failed
+                opened.close()
             end = call.end
             self.emit(
                 {
@@ -404,10 +486,15 @@ class RobotServer:
         # Before the services: if setting them up fails, the endpoint hangs up, and the
         # call must still leave the supervisor (or it would hold the drive for good).
         asyncio.ensure_future(call.wait_ended()).add_done_callback(on_end)
-        services = CallServices(self, call)
-        self.services[call.id] = services
-        if self.safety is not None:
-            services.send_safety_state(self.safety_status())
+        opened = self.registry.open(self, call)
+        self.open[call.id] = opened
+        services = opened.get("core")
+        if not isinstance(services, CallServices):
+            services = None
+        else:
+            self.services[call.id] = services
+            if self.safety is not None:
+                services.send_safety_state(self.safety_status())
         self.emit({"event": "call", "id": call.id, "peer": call.peer, "role": str(call.role)})
         log.info("call %s from %s (%s)", call.id, call.peer, call.role)
         return services
@@ -435,9 +522,6 @@ class RobotServer:
     async def run(self) -> None:
         """Step the robot and run the services until cancelled."""
         period = 1.0 / self.control_hz
-        pose_every = 1.0 / self.settings.pose_hz
-        telemetry_every = 1.0 / self.settings.telemetry_hz
-        next_pose = next_telemetry = self.now()
         next_step = self.now()
         while True:
             now = self.now()
@@ -454,18 +538,8 @@ class RobotServer:
                 except Exception:
                     log.exception("safety tick failed: stopping the robot")
                     self._emergency("safety tick failed")
-            for services in list(self.services.values()):
-                self._guarded(services.tick)
-                if now >= next_pose:
-                    self._guarded(services.publish_pose)
-                if now >= next_telemetry:
-                    self._guarded(services.publish_telemetry)
-                    status = self.safety_status()
-                    self._guarded(services.send_safety_state, status)
-            if now >= next_pose:
-                next_pose = max(next_pose + pose_every, now)
-            if now >= next_telemetry:
-                next_telemetry = max(next_telemetry + telemetry_every, now)
+            for opened in list(self.open.values()):
+                opened.tick(now)  # each service guarded
             next_step += period
             delay = next_step - self.now()
             if delay < -period:  # we fell behind: do not try to catch up in a burst

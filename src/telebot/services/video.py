@@ -19,6 +19,14 @@ User::
         async for frame in video:                  # VideoFrame: BGR numpy image and metadata
             show(frame.image)
 
+A user client (:class:`~telebot.services.client.RobotClient`) keeps its video across calls
+(a reconnect opens a new one): a :class:`VideoFeed` holds the subscribers, and its call
+service :class:`VideoFeedService` (registered as ``video``) reassembles the frames and
+reports back on whichever call is current. ``robot.video()`` is a :class:`VideoReceiver`
+on the feed; the web UI subscribes to the feed's whole JPEG frames::
+
+    unsubscribe = robot.video_feed.subscribe(lambda complete: forward(complete.data))
+
 The sender streams only while its receiver's reports come (the receiver sends one at
 once and then every ``report_interval``, and a *bye* when it closes), so a user who does
 not watch costs nothing. Both ends stop by themselves when the call ends.
@@ -72,6 +80,8 @@ if TYPE_CHECKING:
 
 __all__ = [
     "VIDEO",
+    "VideoFeed",
+    "VideoFeedService",
     "VideoFrame",
     "VideoReceiver",
     "VideoReceiverStats",
@@ -510,17 +520,24 @@ class VideoReceiver:
 
     def __init__(
         self,
-        channel: Channel,
+        channel: Channel | VideoFeed,
         *,
         report_interval: float = REPORT_INTERVAL,
         clock: Callable[[], float] = time.time,
         max_pixels: int = MAX_PIXELS,
     ) -> None:
-        if channel.latest_only:
-            raise ValueError("a video channel must keep every datagram (not latest_only)")
         if report_interval <= 0:
             raise ValueError("report_interval must be positive")
-        self.channel = channel
+        #: On a feed (``robot.video()``) frames keep coming across reconnects; the feed's
+        #: call service then reports to the robot, and iteration ends with the client.
+        self.feed = channel if isinstance(channel, VideoFeed) else None
+        self._unsubscribe: Callable[[], None] | None = None
+        #: The call's video channel (None on a feed).
+        self.channel: Channel | None = None
+        if not isinstance(channel, VideoFeed):
+            if channel.latest_only:
+                raise ValueError("a video channel must keep every datagram (not latest_only)")
+            self.channel = channel
         self.report_interval = report_interval
         self.max_pixels = max_pixels
         self._clock = clock
@@ -556,6 +573,12 @@ class VideoReceiver:
             return
         self._started = True
         self._started_at = self._loop.time()
+        if self.feed is not None:
+            if self.feed.ended:
+                self._ended = True
+            self._unsubscribe = self.feed.subscribe(self._on_complete, on_end=self._on_feed_end)
+            return
+        assert self.channel is not None
         self.channel.set_callback(self._on_datagram)
         self._watch = self._loop.create_task(
             _until_call_ends(self.channel), name="video-receiver-end"
@@ -572,7 +595,10 @@ class VideoReceiver:
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
-        if self._started:
+        if self._unsubscribe is not None:
+            self._unsubscribe()
+            self._unsubscribe = None
+        elif self._started and self.channel is not None:
             self.channel.set_callback(None)
             if not self._ended:  # tell the robot to stop now rather than after its timeout
                 bye = self.reassembler.report(int(self._loop.time() * 1000), bye=True)
@@ -651,7 +677,15 @@ class VideoReceiver:
             self.stats.stale += 1
             return
         complete = self.reassembler.on_datagram(datagram.payload, self._loop.time())
-        if complete is None:
+        if complete is not None:
+            self._on_complete(complete)
+
+    def _on_feed_end(self) -> None:
+        self._ended = True
+        self._ready.set()
+
+    def _on_complete(self, complete: CompleteFrame) -> None:
+        if self._closed:
             return
         if self._first_id is None:
             self._first_id = complete.frame_id
@@ -668,7 +702,7 @@ class VideoReceiver:
 
     def _on_timer(self) -> None:
         self._timer = None
-        if self.ended:
+        if self.ended or self.channel is None:
             return
         now = self._loop.time()
         self.reassembler.poll(now)
@@ -683,6 +717,160 @@ class VideoReceiver:
         except TelebotError as exc:  # a transport hiccup: the next report will do
             log.debug("video report not sent: %s", exc)
         self._timer = self._loop.call_later(self.report_interval, self._on_timer)
+
+
+FrameCallback = Callable[[CompleteFrame], None]
+
+
+class VideoFeed:
+    """The user's video across calls: whole frames (JPEG bytes) for each subscriber.
+
+    The feed lives as long as its client; the current call's :class:`VideoFeedService`
+    feeds it. The robot is asked for video (receiver reports) only while someone is
+    subscribed. :meth:`end` (the client's end) tells ``on_end`` subscribers no more comes.
+    """
+
+    def __init__(self, *, report_interval: float = REPORT_INTERVAL) -> None:
+        if report_interval <= 0:
+            raise ValueError("report_interval must be positive")
+        self.report_interval = report_interval
+        self._subscribers: list[FrameCallback] = []
+        self._end_callbacks: list[Callable[[], None]] = []
+        self._service: VideoFeedService | None = None
+        self.ended = False
+        #: Whole frames handed to subscribers, over every call.
+        self.frames = 0
+
+    @property
+    def wanted(self) -> bool:
+        """Whether someone is subscribed (the robot is asked for video)."""
+        return bool(self._subscribers) and not self.ended
+
+    def subscribe(
+        self, on_frame: FrameCallback, *, on_end: Callable[[], None] | None = None
+    ) -> Callable[[], None]:
+        """Hand every whole frame to ``on_frame`` until the returned function is called."""
+        self._subscribers.append(on_frame)
+        if on_end is not None:
+            self._end_callbacks.append(on_end)
+        if self._service is not None:
+            self._service.update()
+
+        def unsubscribe() -> None:
+            with contextlib.suppress(ValueError):
+                self._subscribers.remove(on_frame)
+            if on_end is not None:
+                with contextlib.suppress(ValueError):
+                    self._end_callbacks.remove(on_end)
+            if self._service is not None:
+                self._service.update()
+
+        return unsubscribe
+
+    def end(self) -> None:
+        """No more calls: tell the subscribers (their iteration ends); idempotent."""
+        if self.ended:
+            return
+        self.ended = True
+        for callback in list(self._end_callbacks):
+            try:
+                callback()
+            except Exception:
+                log.exception("video feed end callback failed")
+
+    def _deliver(self, complete: CompleteFrame) -> None:
+        self.frames += 1
+        for callback in list(self._subscribers):
+            try:
+                callback(complete)
+            except Exception:  # one bad subscriber must not starve the others
+                log.exception("video subscriber failed")
+
+
+class VideoFeedService:
+    """The ``video`` call service of a user client: one call's part of a :class:`VideoFeed`.
+
+    While the feed is wanted it takes the call's video channel, reassembles frames and
+    sends a receiver report at once and then every ``report_interval`` (so the robot
+    keeps sending); when nobody is subscribed any more, or on :meth:`close` with the call
+    still up, it sends a *bye*.
+    """
+
+    def __init__(self, feed: VideoFeed, call: Call) -> None:
+        self.feed = feed
+        self.call = call
+        self.channel = video_channel(call)
+        self.reassembler = Reassembler()
+        self._loop = asyncio.get_running_loop()
+        self._timer: asyncio.TimerHandle | None = None
+        self._started_at = 0.0
+        self._running = False
+        self._closed = False
+        feed._service = self
+        self.update()
+
+    @property
+    def running(self) -> bool:
+        """True while this call asks the robot for video."""
+        return self._running
+
+    def update(self) -> None:
+        """Start or stop asking for video as the feed is wanted or not."""
+        if self._closed:
+            return
+        if self.feed.wanted and not self._running:
+            self._running = True
+            self._started_at = self._loop.time()
+            self.channel.set_callback(self._on_datagram)
+            self._on_timer()
+        elif not self.feed.wanted and self._running:
+            self._halt(bye=True)
+
+    def tick(self, now: float) -> None:
+        """Nothing: reports have their own timer (a call without ticks still gets video)."""
+
+    def close(self) -> None:
+        """The call ended or the client closes; a *bye* if the call is still up."""
+        if self._closed:
+            return
+        if self._running:
+            self._halt(bye=self.call.active)
+        self._closed = True
+        if self.feed._service is self:
+            self.feed._service = None
+
+    def _halt(self, *, bye: bool) -> None:
+        self._running = False
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        self.channel.set_callback(None)
+        if bye:
+            report = self.reassembler.report(int(self._loop.time() * 1000), bye=True)
+            with contextlib.suppress(TelebotError):
+                self.channel.send(report.encode())
+
+    def _on_datagram(self, datagram: ReceivedDatagram) -> None:
+        if not self._running or datagram.received_at < self._started_at:
+            return
+        complete = self.reassembler.on_datagram(datagram.payload, self._loop.time())
+        if complete is not None:
+            self.feed._deliver(complete)
+
+    def _on_timer(self) -> None:
+        self._timer = None
+        if not self._running:
+            return
+        now = self._loop.time()
+        self.reassembler.poll(now)
+        try:
+            self.channel.send(self.reassembler.report(int(now * 1000)).encode())
+        except CallEnded:
+            self._running = False
+            return
+        except TelebotError as exc:  # a transport hiccup: the next report will do
+            log.debug("video report not sent: %s", exc)
+        self._timer = self._loop.call_later(self.feed.report_interval, self._on_timer)
 
 
 async def frames(channel: Channel, **options: Any) -> AsyncIterator[VideoFrame]:

@@ -5,6 +5,6 @@ See :mod:`telebot.apps.web.server` for the server and the websocket protocol.
 
 from __future__ import annotations
 
-from telebot.apps.web.server import JpegStream, WebUI, serve_ui
+from telebot.apps.web.server import WebUI, serve_ui
 
-__all__ = ["JpegStream", "WebUI", "serve_ui"]
+__all__ = ["WebUI", "serve_ui"]

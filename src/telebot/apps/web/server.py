@@ -24,6 +24,10 @@ Websocket protocol (JSON text messages unless stated)::
       {"type": "telemetry", ...}                         the robot's Telemetry fields
       {"type": "safety", "armed", "reason", "holder", "cap", "blocked"}
       {"type": "link", "rtt": S | null, "loss": 0..1}    the call's heartbeats, every 0.5 s
+      {"type": "connection", "state": "connected" | "reconnecting" | "reconnected"
+       | "ended", "detail", "seconds"}                   the call to the robot dropped /
+                                                         came back (seconds of outage) /
+                                                         ended for good
       {"type": "goal", "x", "y", "yaw", "status", "progress", "reason"}
       {"type": "chat", "id", "text", "ok", "final"}      replies, to the page that asked
       {"type": "ack", "what": "stop" | "arm" | ..., "ok", "reason"}
@@ -31,6 +35,11 @@ Websocket protocol (JSON text messages unless stated)::
       binary: video frame = 4-byte big-endian header length, UTF-8 JSON header
               {"camera", "frame_id", "capture_time"}, then the JPEG bytes as the robot
               sent them (never decoded or re-encoded here)
+
+Video comes from the client's video feed (:class:`~telebot.services.video.VideoFeed`,
+subscribed while a page is open), so after a reconnection the map, pose and video resume
+on the page without a reload; a motion that was running at the drop is reported failed,
+and the robot stays stopped until re-armed.
 
 Safety: a ``stop`` is handed to :meth:`RobotClient.stop` at once (before anything else
 the message loop does). When a page's websocket closes (tab closed, browser crashed: the
@@ -46,6 +55,7 @@ import json
 import logging
 import math
 import struct
+import sys
 import time
 from collections.abc import Callable, Coroutine
 from dataclasses import asdict
@@ -56,16 +66,14 @@ from typing import Any, Self
 
 from aiohttp import WSMsgType, web
 
-from telebot.channels.channel import Channel, ReceivedDatagram
 from telebot.config import AppConfig
 from telebot.errors import CallEnded, TelebotError
-from telebot.services.client import RobotClient
+from telebot.services.client import ConnectionEvent, RobotClient
 from telebot.services.mapxfer import MapDownload
 from telebot.services.proto.status import GoalUpdate, PoseUpdate
-from telebot.services.proto.video import CompleteFrame, Reassembler
-from telebot.services.video import REPORT_INTERVAL, video_channel
+from telebot.services.proto.video import CompleteFrame
 
-__all__ = ["JpegStream", "WebUI", "serve_ui"]
+__all__ = ["WebUI", "serve_ui"]
 
 log = logging.getLogger("telebot.web")
 
@@ -80,81 +88,6 @@ _HEADER = struct.Struct(">I")
 
 def _now_ms() -> float:
     return time.time() * 1000.0
-
-
-class JpegStream:
-    """Receives the robot's video as whole JPEG frames, without decoding them.
-
-    The same protocol as :class:`~telebot.services.video.VideoReceiver` (reassembly,
-    receiver reports every ``report_interval`` so the robot keeps sending, a *bye* on
-    close), but frames are handed to ``on_frame`` as the JPEG bytes the robot sent, for
-    forwarding to a browser that decodes them itself.
-    """
-
-    def __init__(
-        self,
-        channel: Channel,
-        on_frame: Callable[[CompleteFrame], None],
-        *,
-        report_interval: float = REPORT_INTERVAL,
-    ) -> None:
-        self.channel = channel
-        self.on_frame = on_frame
-        self.report_interval = report_interval
-        self.reassembler = Reassembler()
-        self._loop = asyncio.get_running_loop()
-        self._timer: asyncio.TimerHandle | None = None
-        self._started_at = 0.0
-        self._running = False
-
-    @property
-    def running(self) -> bool:
-        """True between :meth:`start` and :meth:`close` (or the end of the call)."""
-        return self._running
-
-    def start(self) -> None:
-        """Take the channel and ask for video (a report now, then periodically)."""
-        if self._running:
-            return
-        self._running = True
-        self._started_at = self._loop.time()
-        self.channel.set_callback(self._on_datagram)
-        self._on_timer()
-
-    def close(self) -> None:
-        """Stop receiving and tell the robot (a *bye* report); idempotent."""
-        if not self._running:
-            return
-        self._running = False
-        if self._timer is not None:
-            self._timer.cancel()
-            self._timer = None
-        self.channel.set_callback(None)
-        bye = self.reassembler.report(int(self._loop.time() * 1000), bye=True)
-        with contextlib.suppress(TelebotError):
-            self.channel.send(bye.encode())
-
-    def _on_datagram(self, datagram: ReceivedDatagram) -> None:
-        if not self._running or datagram.received_at < self._started_at:
-            return
-        complete = self.reassembler.on_datagram(datagram.payload, self._loop.time())
-        if complete is not None:
-            self.on_frame(complete)
-
-    def _on_timer(self) -> None:
-        self._timer = None
-        if not self._running:
-            return
-        now = self._loop.time()
-        self.reassembler.poll(now)
-        try:
-            self.channel.send(self.reassembler.report(int(now * 1000)).encode())
-        except CallEnded:
-            self._running = False
-            return
-        except TelebotError as exc:  # a transport hiccup: the next report will do
-            log.debug("video report not sent: %s", exc)
-        self._timer = self._loop.call_later(self.report_interval, self._on_timer)
 
 
 class _Page:
@@ -197,8 +130,16 @@ class WebUI:
         self._goal: dict[str, Any] | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
         self._runner: web.AppRunner | None = None
-        self._video: JpegStream | None = None
+        #: Unsubscribes from the client's video feed (set while a page is open).
+        self._video: Callable[[], None] | None = None
         self._closing = False
+        #: The newest connection state as the pages get it.
+        self.connection: dict[str, Any] = {
+            "type": "connection",
+            "state": "connected",
+            "detail": "",
+            "seconds": 0.0,
+        }
 
     # -- lifecycle --------------------------------------------------------------------
 
@@ -228,6 +169,7 @@ class WebUI:
             server = site._server
             sockets = getattr(server, "sockets", None) or []
             self.port = int(sockets[0].getsockname()[1])
+        self.client.on_connection.append(self._on_connection)
         for pump in (self._fetch_map, self._pump_pose, self._pump_telemetry, self._pump_safety):
             self._spawn(pump())
         self._spawn(self._pump_link())
@@ -238,8 +180,10 @@ class WebUI:
         if self._closing:
             return
         self._closing = True
+        with contextlib.suppress(ValueError):
+            self.client.on_connection.remove(self._on_connection)
         if self._video is not None:
-            self._video.close()
+            self._video()
             self._video = None
         for page in list(self.pages):
             with contextlib.suppress(Exception):
@@ -346,6 +290,16 @@ class WebUI:
             await page.ws.send_json({"type": "telemetry", **asdict(telemetry)})
         if self._goal is not None:
             await page.ws.send_json(self._goal)
+        await page.ws.send_json(self.connection)
+
+    def _on_connection(self, event: ConnectionEvent) -> None:
+        self.connection = {
+            "type": "connection",
+            "state": event.state,
+            "detail": str(event) if event.state != "reconnected" else "",
+            "seconds": round(event.seconds, 2),
+        }
+        self._broadcast(self.connection)
 
     def _on_message(self, page: _Page, text: str) -> None:
         try:
@@ -535,12 +489,19 @@ class WebUI:
             await asyncio.sleep(LINK_EVERY)
 
     async def _fetch_map(self) -> None:
-        try:
-            self.map = await self.client.get_map(timeout=self.map_timeout)
-        except (TelebotError, TimeoutError) as exc:
-            log.error("the map did not arrive: %s", exc)
-            self._broadcast({"type": "error", "text": f"the map did not arrive: {exc}"})
-            return
+        while True:
+            try:
+                self.map = await self.client.get_map(timeout=self.map_timeout)
+                break
+            except CallEnded as exc:
+                if self.client.finished:
+                    log.error("the map did not arrive: %s", exc)
+                    return
+                # The call dropped mid-transfer: fetch it again on the next call.
+            except (TelebotError, TimeoutError) as exc:
+                log.error("the map did not arrive: %s", exc)
+                self._broadcast({"type": "error", "text": f"the map did not arrive: {exc}"})
+                return
         message = self._map_message()
         assert message is not None
         self._broadcast(message)
@@ -548,10 +509,9 @@ class WebUI:
     def _video_wanted(self) -> None:
         """Receive video while at least one page is open."""
         if self.pages and self._video is None and not self._closing:
-            self._video = JpegStream(video_channel(self.client.call), self._on_frame)
-            self._video.start()
+            self._video = self.client.video_feed.subscribe(self._on_frame)
         elif not self.pages and self._video is not None:
-            self._video.close()
+            self._video()
             self._video = None
 
     def _on_frame(self, frame: CompleteFrame) -> None:
@@ -591,6 +551,7 @@ async def serve_ui(
         connect(robot, home=home, config=config, timeout=timeout) as client,
         WebUI(client, host=host, port=port, user=user) as ui,
     ):
+        client.on_connection.append(lambda event: print(f"[{event}]", file=sys.stderr))
         announce(f"open {ui.url} in a browser (role {client.call.role}); Ctrl-C to quit")
         with stop_on_signals(stop):
             await stop.wait()

@@ -10,7 +10,7 @@
   const ui = {
     state: {
       robot: "", role: "", mayDrive: false, map: null, pose: null, goal: null,
-      safety: null, telemetry: null, link: null, connected: false,
+      safety: null, telemetry: null, link: null, connected: false, call: null,
       frames: 0, camera: "", fps: 0, chat: [],
     },
     // Measurements for tests and benchmarks (wall-clock ms).
@@ -36,10 +36,21 @@
     return false;
   }
   ui.send = send;
+  // Two links: this page to the local client (websocket), the client to the robot (the
+  // call, which the client re-establishes by itself after a drop).
   function showConn() {
     const el = $("conn");
-    el.textContent = ui.state.connected ? "connected" : "disconnected";
-    el.className = ui.state.connected ? "good" : "bad";
+    const call = ui.state.call;
+    let text = ui.state.connected ? "connected" : "disconnected";
+    let cls = ui.state.connected ? "good" : "bad";
+    if (ui.state.connected && call) {
+      if (call.state === "reconnecting") { text = "reconnecting…"; cls = "bad"; }
+      else if (call.state === "reconnected") {
+        text = "reconnected after " + call.seconds.toFixed(1) + " s";
+      } else if (call.state === "ended") { text = call.detail || "call ended"; cls = "bad"; }
+    }
+    el.textContent = text;
+    el.className = cls;
   }
 
   function stop(source) {
@@ -71,6 +82,11 @@
       case "telemetry": ui.state.telemetry = m; showTelemetry(); break;
       case "safety": ui.state.safety = m; showSafety(); break;
       case "link": ui.state.link = m; showLink(); break;
+      case "connection":
+        ui.state.call = m;
+        showConn();
+        if (m.state !== "connected") addChat("[" + (m.state === "reconnected" ? "reconnected after " + m.seconds.toFixed(1) + " s" : m.detail || m.state) + "]", m.state === "reconnected" ? "" : "fail");
+        break;
       case "goal": ui.state.goal = m; showGoal(); draw(); break;
       case "chat": {
         addChat(m.text, m.ok || !m.final ? "" : "fail");
