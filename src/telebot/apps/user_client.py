@@ -107,7 +107,7 @@ async def send_command(
         if arm:
             ack = await client.arm()
             if not ack.ok:
-                print(f"! refused to arm: {ack.reason}", flush=True)
+                print(f"! refused to arm: {ack.text}", flush=True)
                 return EXIT_FAILURE
         try:
             ok = await _run_command(client, command, timeout, map_dir)
@@ -204,7 +204,7 @@ async def _edit_lines(client: RobotClient, map_dir: Path, keys: asyncio.Queue[st
                 break
             if _moving(client):
                 # The paper's rule: any key while the robot moves stops it, at once.
-                tasks.create_task(client.stop())
+                tasks.create_task(client.stop(how="key"))
                 print("\r\033[K[key pressed: stopping]", flush=True)
                 line = ""
                 print(prompt, end="", flush=True)
@@ -227,7 +227,7 @@ async def _edit_lines(client: RobotClient, map_dir: Path, keys: asyncio.Queue[st
                         line = line[:-1]
                         print("\b \b", end="", flush=True)
                 elif char == "\x1b":  # Escape: stop (as in the web UI's chat box)
-                    tasks.create_task(client.stop())
+                    tasks.create_task(client.stop(how="key"))
                 elif char.isprintable():
                     line += char
                     print(char, end="", flush=True)
