@@ -64,6 +64,7 @@ from telebot.services.proto.chat import (
     decode_request,
     parse_command,
 )
+from telebot.services.proto.mapxfer import EncodedMap, encode_map
 from telebot.services.proto.reasons import Reason, Refusal
 
 __all__ = [
@@ -172,7 +173,9 @@ class ChatSession:
 
     ``role`` is the caller's contact role: its rights (:mod:`telebot.rights`) say which
     commands it may give; ``send`` delivers one reply on the chat channel; ``user`` names
-    the caller in logs. Neither :meth:`on_payload` nor :meth:`poll` ever raises.
+    the caller in logs; ``map_offer`` gives the map the ``map`` channel sends (default:
+    ``nav``'s map, cropped and encoded on each ``getmap``). Neither :meth:`on_payload` nor
+    :meth:`poll` ever raises.
     """
 
     def __init__(
@@ -183,8 +186,11 @@ class ChatSession:
         send: Callable[[ChatReply], None],
         user: str = "",
         gate: DriveGate | None = None,
+        map_offer: Callable[[], EncodedMap] | None = None,
     ) -> None:
         self._nav = nav
+        # What getmap announces must be what the map channel sends: the cropped map.
+        self._map_offer = map_offer or (lambda: encode_map(nav.map()))
         self._rights = rights_of(role)
         self._gate = gate
         self._send = send
@@ -328,10 +334,10 @@ class ChatSession:
                     text += ", charging"
                 self._reply(request_id, text)
             case GetMap():
-                grid = nav.map()
+                offer = self._map_offer()
                 self._reply(
                     request_id,
-                    f"sending map: {grid.width} x {grid.height} cells at {grid.resolution:g} m",
+                    f"sending map: {offer.width} x {offer.height} cells at {offer.resolution:g} m",
                     attachment="map",
                 )
             case Help(topic):

@@ -93,6 +93,7 @@ class CallServices:
             send=self._send_chat,
             user=call.peer,
             gate=self.gate,
+            map_offer=server.encoded_map,
         )
         self.map = MapService(call.channel(MAP, lane=Lane.BULK), server.encoded_map)
         self.video = VideoSender.for_call(call, nav, server.video_settings)
