@@ -11,6 +11,7 @@ import pytest
 
 from telebot.config import SimSettings
 from telebot.errors import DatagramTooLarge
+from telebot.identity import Role
 from telebot.robot.nav import GoalStatus, Pose2D
 from telebot.robot.sim.stack import SimNavStack
 from telebot.robot.sim.world import Obstacle
@@ -26,9 +27,8 @@ class Robot:
     def __init__(self, *, may_drive: bool = True) -> None:
         self.stack = SimNavStack.from_settings(SimSettings(map="small"))
         self.replies: list[ChatReply] = []
-        self.session = ChatSession(
-            self.stack, may_drive=may_drive, send=self.replies.append, user="alice"
-        )
+        role = Role.DRIVER if may_drive else Role.OBSERVER
+        self.session = ChatSession(self.stack, role=role, send=self.replies.append, user="alice")
         self._next_id = 1
 
     def say(self, text: str) -> int:
@@ -299,7 +299,7 @@ def test_an_observer_may_ask(text: str) -> None:
 
 def test_an_observer_may_stop_a_driver_s_goal() -> None:
     driver = Robot()
-    observer = ChatSession(driver.stack, may_drive=False, send=driver.replies.append)
+    observer = ChatSession(driver.stack, role=Role.OBSERVER, send=driver.replies.append)
     move = driver.say("fwd 5")
     driver.run(1)
     observer.on_payload(encode_request(900, "stop"))
@@ -328,7 +328,7 @@ def test_a_failing_send_is_counted_and_does_not_raise() -> None:
     def send(reply: ChatReply) -> None:
         raise DatagramTooLarge("too big")
 
-    session = ChatSession(stack, may_drive=True, send=send)
+    session = ChatSession(stack, role=Role.DRIVER, send=send)
     session.on_payload(encode_request(1, "fwd 1"))
     session.poll()
     assert session.send_errors == 1
@@ -346,7 +346,7 @@ def test_a_broken_adapter_gives_an_error_reply_not_an_exception(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     replies: list[ChatReply] = []
-    session = ChatSession(BrokenNav(), may_drive=True, send=replies.append)
+    session = ChatSession(BrokenNav(), role=Role.DRIVER, send=replies.append)
     session.on_payload(encode_request(1, "where?"))
     session.poll()
     assert replies == [ChatReply(1, "internal error: the robot could not run that", ok=False)]
@@ -381,7 +381,7 @@ class _ActiveGoal:
 def test_poll_survives_a_goal_that_breaks(caplog: pytest.LogCaptureFixture) -> None:
     replies: list[ChatReply] = []
     nav = OneGoalNav()
-    session = ChatSession(nav, may_drive=True, send=replies.append)  # type: ignore[arg-type]
+    session = ChatSession(nav, role=Role.DRIVER, send=replies.append)  # type: ignore[arg-type]
     session.on_payload(encode_request(1, "fwd 1"))
     assert replies == [ChatReply(1, "Forward command received", final=False)]
     session._motions[0].handle = FailingGoal()  # type: ignore[assignment]

@@ -112,7 +112,7 @@ def test_chat_motion_needs_an_armed_robot_and_stop_latches(tmp_path: Path) -> No
     driver.join(alice)  # type: ignore[arg-type]
     driver.tick()
     replies: list[ChatReply] = []
-    chat = ChatSession(nav, may_drive=True, send=replies.append, gate=driver.gate("c1"))
+    chat = ChatSession(nav, role=Role.DRIVER, send=replies.append, gate=driver.gate("c1"))
 
     def say(text: str) -> str:
         replies.clear()
@@ -147,7 +147,7 @@ def test_an_observer_may_stop_but_not_drive_or_arm(tmp_path: Path) -> None:
     olga = FakeCall("c2", "olga", Role.OBSERVER)
     driver.join(olga)  # type: ignore[arg-type]
     replies: list[ChatReply] = []
-    chat = ChatSession(nav, may_drive=False, send=replies.append, gate=driver.gate("c2"))
+    chat = ChatSession(nav, role=Role.OBSERVER, send=replies.append, gate=driver.gate("c2"))
     chat.handle_text(1, "fwd 1")
     assert replies[-1].text == "refused: olga is an observer: observers may not drive"
     refusals = [

@@ -68,8 +68,8 @@ from typing import Literal, TypeAlias
 
 from telebot.errors import ConfigError
 from telebot.identity import Role
+from telebot.reasons import Reason
 from telebot.rights import Right, may
-from telebot.services.proto.reasons import Reason
 
 __all__ = [
     "CAP_STEP",
@@ -220,7 +220,7 @@ class Decision:
     The driver carries out ``actions`` in order (a :class:`Stop` always comes first) and
     then, if ``allowed``, the command itself. ``actions`` already holds ``Audit(audit)``;
     ``audit`` is the same record, at hand for replies and tests. ``code`` is the reason
-    code of the answer (:class:`~telebot.services.proto.reasons.Reason`): ``ok`` when
+    code of the answer (:class:`~telebot.reasons.Reason`): ``ok`` when
     allowed, else why not (``not_armed``, ``not_holder``, ``rtt_unmeasured``, …).
     """
 

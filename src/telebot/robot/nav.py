@@ -157,7 +157,7 @@ class GoalHandle(Protocol):
 
     @property
     def code(self) -> str:
-        """How it ended, as a reason code of :class:`telebot.services.proto.reasons.Reason`.
+        """How it ended, as a reason code of :class:`telebot.reasons.Reason`.
 
         ``finished``, ``obstacle``, ``stopped``, ``cancelled``, ``replaced``, ``no_path``,
         ``battery_empty`` or ``failed``; empty while active. Services decide on this, never

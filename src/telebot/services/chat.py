@@ -33,6 +33,7 @@ from telebot.errors import (
     UnknownPlace,
 )
 from telebot.identity import Role
+from telebot.reasons import Reason, Refusal
 from telebot.rights import Right as Privilege
 from telebot.rights import rights_of
 from telebot.robot.nav import GoalHandle, GoalStatus, NavStack, NavState
@@ -65,7 +66,6 @@ from telebot.services.proto.chat import (
     parse_command,
 )
 from telebot.services.proto.mapxfer import EncodedMap, encode_map
-from telebot.services.proto.reasons import Reason, Refusal
 
 __all__ = [
     "FINISHED",

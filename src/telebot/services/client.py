@@ -25,10 +25,10 @@ from telebot.channels.transports.base import Lane, Transport
 from telebot.config import AppConfig, default_home
 from telebot.errors import CallEnded, ProtocolError, TelebotError
 from telebot.identity import Identity, KnownRobots
+from telebot.reasons import Reason
 from telebot.services.mapxfer import MapDownload, fetch_map
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
 from telebot.services.proto.chat import ChatReply, decode_reply, encode_request
-from telebot.services.proto.reasons import Reason
 from telebot.services.proto.safety import (
     SAFETY,
     RequestType,
@@ -70,7 +70,7 @@ REFRESH_AFTER = 2.0
 class ChatResult:
     """All replies to one chat command; ``ok`` is the final reply's verdict.
 
-    ``reason`` is the final reply's code (:class:`~telebot.services.proto.reasons.Reason`:
+    ``reason`` is the final reply's code (:class:`~telebot.reasons.Reason`:
     ``"finished"``, ``"not_armed"``, ``"observer"``, …): decide on it, never on the text.
     """
 

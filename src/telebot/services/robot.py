@@ -23,6 +23,7 @@ from telebot.channels.transports.base import Lane
 from telebot.config import ServiceSettings
 from telebot.errors import ProtocolError, TelebotError
 from telebot.identity import Role
+from telebot.reasons import Reason, Refusal
 from telebot.rights import Right, may
 from telebot.robot.nav import GoalHandle, GoalStatus, NavStack
 from telebot.safety import SafetyState
@@ -31,7 +32,6 @@ from telebot.services.mapxfer import MapService
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
 from telebot.services.proto.chat import ChatReply, decode_request
 from telebot.services.proto.mapxfer import EncodedMap, encode_map
-from telebot.services.proto.reasons import Reason, Refusal
 from telebot.services.proto.safety import (
     SAFETY,
     SafetyAck,

@@ -24,6 +24,7 @@ from typing import IO, Literal, Protocol
 
 from telebot.channels.call import Call
 from telebot.identity import Role
+from telebot.reasons import Refusal
 from telebot.robot.nav import NavStack, NavState, Velocity
 from telebot.safety import (
     Action,
@@ -36,7 +37,6 @@ from telebot.safety import (
     StateChanged,
     Stop,
 )
-from telebot.services.proto.reasons import Refusal
 
 __all__ = ["WATCHDOG_PERIOD", "CallGate", "EmergencyStoppable", "SafetyDriver"]
 

@@ -61,10 +61,10 @@ from aiohttp import WSMsgType, web
 from telebot.channels.channel import Channel, ReceivedDatagram
 from telebot.config import AppConfig
 from telebot.errors import CallEnded, TelebotError
+from telebot.reasons import Reason
 from telebot.rights import Right, may
 from telebot.services.client import RobotClient
 from telebot.services.mapxfer import MapDownload
-from telebot.services.proto.reasons import Reason
 from telebot.services.proto.safety import STOP_HOWS, SafetyAck
 from telebot.services.proto.status import GoalUpdate, PoseUpdate
 from telebot.services.proto.video import CompleteFrame, Reassembler

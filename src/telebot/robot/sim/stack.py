@@ -23,6 +23,7 @@ import numpy as np
 
 from telebot.config import SimSettings
 from telebot.errors import InvalidCommand, MapError, NoPath, RobotError, UnknownCamera, UnknownPlace
+from telebot.reasons import Reason
 from telebot.robot.grid import OccupancyGrid
 from telebot.robot.mapfile import load_map, load_places, places_path_for
 from telebot.robot.nav import (
@@ -50,7 +51,6 @@ from telebot.robot.sim.controller import (
 from telebot.robot.sim.laser import Laser, LaserScan
 from telebot.robot.sim.planner import Costmap
 from telebot.robot.sim.world import Obstacle
-from telebot.services.proto.reasons import Reason
 
 __all__ = ["SimGoal", "SimNavStack"]
 

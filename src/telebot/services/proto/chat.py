@@ -31,8 +31,8 @@ from dataclasses import dataclass
 from typing import Any, TypeAlias
 
 from telebot.errors import ProtocolError
+from telebot.reasons import Reason, decode_code
 from telebot.services.proto.messages import decode_object, encode_object, require_int
-from telebot.services.proto.reasons import Reason, decode_code
 
 __all__ = [
     "HELP_TEXT",
@@ -468,7 +468,7 @@ class ChatReply:
     (``"map"``). ``seq`` numbers the replies to one request from 0, so that a client can
     drop the copies a robot sends again when a request is repeated over the lossy link.
     ``reason`` is the stable code to decide on (the wire's ``code``, see
-    :class:`~telebot.services.proto.reasons.Reason`; ``""`` from a robot that sends none).
+    :class:`~telebot.reasons.Reason`; ``""`` from a robot that sends none).
     """
 
     id: int

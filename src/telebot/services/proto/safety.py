@@ -9,7 +9,7 @@ User → robot, repeated (same ``id``) until acknowledged, so loss cannot eat a 
 
 Robot → user: ``{"type": "ack", "id": 7, "ok": true, "reason": "", "code": "ok"}`` for each
 request (``reason``: the text for people; ``code``: the reason code of
-:mod:`~telebot.services.proto.reasons`)
+:mod:`~telebot.reasons`)
 (again for each repeat), and the safety state on every change and once a second::
 
     {"type": "state", "armed": false, "reason": "stop requested by alice",
@@ -23,13 +23,13 @@ from dataclasses import dataclass
 from typing import Any, Literal, cast
 
 from telebot.errors import ProtocolError
+from telebot.reasons import decode_code
 from telebot.services.proto.messages import (
     decode_object,
     encode_object,
     finite_number,
     require_int,
 )
-from telebot.services.proto.reasons import decode_code
 
 __all__ = [
     "SAFETY",
@@ -83,7 +83,7 @@ class SafetyAck:
     """The robot's answer to request ``id``.
 
     ``text`` says why in words (the wire's ``reason`` field); ``reason`` is the stable code
-    to decide on (the wire's ``code``, see :class:`~telebot.services.proto.reasons.Reason`).
+    to decide on (the wire's ``code``, see :class:`~telebot.reasons.Reason`).
     """
 
     id: int

@@ -13,7 +13,7 @@
 
 ``goals`` (robot → user): ``{"type": "status", "id": 7, "status": S, "progress": 0.4,
 "reason": "...", "code": "..."}`` (``reason``: the text for people, ``code``: the reason code
-of :mod:`~telebot.services.proto.reasons`) with S one of ``active``, ``succeeded``, ``failed``, ``cancelled``,
+of :mod:`~telebot.reasons`) with S one of ``active``, ``succeeded``, ``failed``, ``cancelled``,
 ``refused`` (not started: a caller that may not drive, or numbers that are not finite),
 ``unknown`` (a query for an id the robot does not remember).
 
@@ -27,13 +27,13 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
 from telebot.errors import ProtocolError
+from telebot.reasons import decode_code
 from telebot.services.proto.messages import (
     decode_object,
     encode_object,
     finite_number,
     require_int,
 )
-from telebot.services.proto.reasons import decode_code
 
 __all__ = [
     "GOAL_STATES",
@@ -144,7 +144,7 @@ class GoalUpdate:
 
     ``text`` says why in words (the wire's ``reason`` field: ``"no path to (1.00, 2.00):
     inside an obstacle"``); ``reason`` is the stable code to decide on (the wire's ``code``:
-    ``"no_path"``, see :class:`~telebot.services.proto.reasons.Reason`).
+    ``"no_path"``, see :class:`~telebot.reasons.Reason`).
     """
 
     id: int
