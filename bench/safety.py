@@ -85,6 +85,7 @@ from telebot.channels.transports.zenoh import ZenohTransport
 from telebot.config import CallSettings, RobotConfig, SimSettings, ZenohSettings
 from telebot.errors import TelebotError
 from telebot.identity import ContactBook, Identity, KnownRobots, Role, create_paired_homes
+from telebot.reasons import Reason
 from telebot.robot.nav import Velocity
 from telebot.robot.sim.stack import SimNavStack
 from telebot.safety import Action, Stop
@@ -314,8 +315,8 @@ async def arm(client: RobotClient, patience: float = 10.0) -> None:
         if ack.ok:
             return
         if loop.time() > deadline:
-            raise RuntimeError(f"arm refused: {ack.reason}")
-        if "free" in ack.reason:
+            raise RuntimeError(f"arm refused: {ack.text}")
+        if ack.reason == Reason.NOT_HOLDER:
             await client.take_drive()
         await asyncio.sleep(0.05)
 
@@ -463,7 +464,7 @@ async def stop_series(
             ack = await client.stop()
             acked = time.monotonic()
             if not ack.ok:
-                raise RuntimeError(f"stop not acknowledged: {ack.reason}")
+                raise RuntimeError(f"stop not acknowledged: {ack.text}")
             record = await robot.after(t0, 5)
             result.base_ms.append((record["stop"] - t0) * 1000)
             result.ack_ms.append((acked - t0) * 1000)

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from telebot.config import AppConfig, load_toml
+from telebot.reasons import Reason
 from telebot.services.client import RobotClient, connect
 from telebot.services.proto.chat import ChatReply
 
@@ -47,10 +48,10 @@ async def arm(client: RobotClient) -> None:
         ack = await client.arm()
         if ack.ok:
             return
-        if "free" in ack.reason:  # the drive was released: take it, then arm
+        if ack.reason == Reason.NOT_HOLDER:  # the drive was released: take it, then arm
             await client.take_drive()
         if loop.time() > deadline:
-            raise RuntimeError(f"arm refused: {ack.reason}")
+            raise RuntimeError(f"arm refused: {ack.text}")
         await asyncio.sleep(0.1)
 
 

@@ -11,11 +11,14 @@ import pytest
 
 from telebot.config import SimSettings
 from telebot.errors import DatagramTooLarge
+from telebot.identity import Role
+from telebot.reasons import Reason
 from telebot.robot.nav import GoalStatus, Pose2D
 from telebot.robot.sim.stack import SimNavStack
 from telebot.robot.sim.world import Obstacle
 from telebot.services.chat import FINISHED, OBSERVER_REFUSAL, UNBLOCK_POLLS, ChatSession
 from telebot.services.proto.chat import HELP_TEXT, USAGE, ChatReply, encode_request
+from telebot.services.proto.mapxfer import encode_map
 
 TICK = 0.05
 
@@ -26,9 +29,8 @@ class Robot:
     def __init__(self, *, may_drive: bool = True) -> None:
         self.stack = SimNavStack.from_settings(SimSettings(map="small"))
         self.replies: list[ChatReply] = []
-        self.session = ChatSession(
-            self.stack, may_drive=may_drive, send=self.replies.append, user="alice"
-        )
+        role = Role.DRIVER if may_drive else Role.OBSERVER
+        self.session = ChatSession(self.stack, role=role, send=self.replies.append, user="alice")
         self._next_id = 1
 
     def say(self, text: str) -> int:
@@ -96,7 +98,7 @@ def test_turn_is_in_degrees_positive_to_the_right(robot: Robot) -> None:
     request = robot.say("turn 90")
     assert robot.to(request)[0].text == "Turn command received"
     robot.run(10, until_final=request)
-    assert robot.final(request) == ChatReply(request, FINISHED, seq=1)
+    assert robot.final(request) == ChatReply(request, FINISHED, seq=1, reason=Reason.FINISHED)
     # Clockwise: REP-103 yaw goes down.
     assert yaw_change_deg(before, robot.stack.true_pose) == pytest.approx(-90, abs=3)
 
@@ -107,15 +109,17 @@ def test_left_and_right_turn_a_quarter(robot: Robot, command: str, expected_deg:
     request = robot.say(command)
     assert robot.to(request)[0].text == "Turn command received"
     robot.run(10, until_final=request)
-    assert robot.final(request) == ChatReply(request, FINISHED, seq=1)
+    assert robot.final(request) == ChatReply(request, FINISHED, seq=1, reason=Reason.FINISHED)
     assert yaw_change_deg(before, robot.stack.true_pose) == pytest.approx(expected_deg, abs=3)
 
 
 def test_goto_place_arrives(robot: Robot) -> None:
     request = robot.say("GoTo Room-A")
-    assert robot.to(request)[0] == ChatReply(request, "Goto command received", final=False)
+    assert robot.to(request)[0] == ChatReply(
+        request, "Goto command received", final=False, reason=Reason.ACCEPTED
+    )
     robot.run(60, until_final=request)
-    assert robot.final(request) == ChatReply(request, FINISHED, seq=1)
+    assert robot.final(request) == ChatReply(request, FINISHED, seq=1, reason=Reason.FINISHED)
     place = robot.stack.places()["room-a"]
     assert robot.stack.true_pose.distance_to(place) < 0.15
 
@@ -123,7 +127,7 @@ def test_goto_place_arrives(robot: Robot) -> None:
 def test_goto_point_arrives_facing_the_heading(robot: Robot) -> None:
     request = robot.say("goto 4 1.5 90")
     robot.run(40, until_final=request)
-    assert robot.final(request) == ChatReply(request, FINISHED, seq=1)
+    assert robot.final(request) == ChatReply(request, FINISHED, seq=1, reason=Reason.FINISHED)
     pose = robot.stack.true_pose
     assert pose.distance_to(Pose2D(4.0, 1.5)) < 0.15
     assert math.degrees(pose.yaw) == pytest.approx(90, abs=4)
@@ -148,7 +152,9 @@ def test_an_unknown_place_lists_the_known_ones(robot: Robot) -> None:
 def test_a_wall_ahead_ends_fwd_with_the_reason(robot: Robot) -> None:
     request = robot.say("fwd 50")
     robot.run(60, until_final=request)
-    assert robot.final(request) == ChatReply(request, "stopped: obstacle ahead", ok=False, seq=1)
+    assert robot.final(request) == ChatReply(
+        request, "stopped: obstacle ahead", ok=False, seq=1, reason=Reason.OBSTACLE
+    )
 
 
 def test_a_person_in_the_way_gives_one_blocked_notice_then_the_move_finishes(
@@ -160,11 +166,15 @@ def test_a_person_in_the_way_gives_one_blocked_notice_then_the_move_finishes(
     person = robot.stack.add_obstacle(Obstacle(here.x + 1.8, here.y, radius=0.2))
     robot.run(4)
     notices = [r for r in robot.to(request) if r.text.startswith("blocked")]
-    assert notices == [ChatReply(request, "blocked: obstacle ahead", final=False, ok=False, seq=1)]
+    assert notices == [
+        ChatReply(
+            request, "blocked: obstacle ahead", final=False, ok=False, seq=1, reason=Reason.OBSTACLE
+        )
+    ]
     assert robot.final(request) is None
     robot.stack.remove_obstacle(person)
     robot.run(20, until_final=request)
-    assert robot.final(request) == ChatReply(request, FINISHED, seq=2)
+    assert robot.final(request) == ChatReply(request, FINISHED, seq=2, reason=Reason.FINISHED)
     assert here.distance_to(robot.stack.true_pose) == pytest.approx(2.5, abs=0.1)
 
 
@@ -172,8 +182,8 @@ def test_stop_during_a_move_ends_both_requests(robot: Robot) -> None:
     move = robot.say("fwd 5")
     robot.run(1)
     stop = robot.say("stop")
-    assert robot.final(move) == ChatReply(move, "stopped", ok=False, seq=1)
-    assert robot.final(stop) == ChatReply(stop, "stopped")
+    assert robot.final(move) == ChatReply(move, "stopped", ok=False, seq=1, reason=Reason.STOPPED)
+    assert robot.final(stop) == ChatReply(stop, "stopped", reason=Reason.OK)
     # The move's final reply comes before the stop's.
     assert [(r.id, r.text) for r in robot.replies[-2:]] == [(move, "stopped"), (stop, "stopped")]
     robot.run(1)
@@ -181,12 +191,16 @@ def test_stop_during_a_move_ends_both_requests(robot: Robot) -> None:
 
 
 def test_cancel_reports_the_cancelled_goal_and_nothing_when_idle(robot: Robot) -> None:
-    assert robot.ask("cancel") == ChatReply(robot._next_id - 1, "nothing to cancel")
+    assert robot.ask("cancel") == ChatReply(
+        robot._next_id - 1, "nothing to cancel", reason=Reason.OK
+    )
     move = robot.say("fwd 3")
     robot.run(0.5)
     cancel = robot.say("cancel")
-    assert robot.final(move) == ChatReply(move, "cancelled", ok=False, seq=1)
-    assert robot.final(cancel) == ChatReply(cancel, "cancelled")
+    assert robot.final(move) == ChatReply(
+        move, "cancelled", ok=False, seq=1, reason=Reason.CANCELLED
+    )
+    assert robot.final(cancel) == ChatReply(cancel, "cancelled", reason=Reason.OK)
     assert robot.stack.current_goal() is None
 
 
@@ -195,23 +209,27 @@ def test_a_new_goal_replaces_the_running_one(robot: Robot) -> None:
     robot.run(0.5)
     second = robot.say("left")
     assert robot.final(first) == ChatReply(
-        first, "cancelled: replaced by a new goal", ok=False, seq=1
+        first, "cancelled: replaced by a new goal", ok=False, seq=1, reason=Reason.REPLACED
     )
-    assert robot.to(second) == [ChatReply(second, "Turn command received", final=False)]
+    assert robot.to(second) == [
+        ChatReply(second, "Turn command received", final=False, reason=Reason.ACCEPTED)
+    ]
     robot.run(10, until_final=second)
-    assert robot.final(second) == ChatReply(second, FINISHED, seq=1)
+    assert robot.final(second) == ChatReply(second, FINISHED, seq=1, reason=Reason.FINISHED)
 
 
 def test_bad_numbers_answer_the_usage_line_and_do_not_move(robot: Robot) -> None:
     for text, name in [("fwd nan", "fwd"), ("turn 1e999", "turn"), ("fwd 101", "fwd")]:
         reply = robot.ask(text)
-        assert reply == ChatReply(reply.id, USAGE[name], ok=False)
+        assert reply == ChatReply(reply.id, USAGE[name], ok=False, reason=Reason.USAGE)
     assert robot.stack.current_goal() is None
 
 
 def test_an_unknown_command_says_try_help(robot: Robot) -> None:
     reply = robot.ask("dance")
-    assert reply == ChatReply(reply.id, "unknown command 'dance' — try help", ok=False)
+    assert reply == ChatReply(
+        reply.id, "unknown command 'dance' — try help", ok=False, reason=Reason.UNKNOWN_COMMAND
+    )
 
 
 # ---------------------------------------------------------------------------- queries
@@ -257,17 +275,21 @@ def test_battery_reports_percent_and_low(robot: Robot) -> None:
 
 
 def test_cameras_switch(robot: Robot) -> None:
-    assert robot.ask("usercam") == ChatReply(robot._next_id - 1, "usercam selected")
+    assert robot.ask("usercam") == ChatReply(
+        robot._next_id - 1, "usercam selected", reason=Reason.OK
+    )
     assert robot.stack.active_camera == "usercam"
     assert robot.ask("NAVCAM").text == "navcam selected"
     assert robot.stack.active_camera == "navcam"
 
 
-def test_getmap_announces_the_map_as_an_attachment(robot: Robot) -> None:
+def test_getmap_announces_the_map_the_map_channel_sends(robot: Robot) -> None:
     reply = robot.ask("getmap")
     assert reply.ok and reply.attachment == "map"
-    grid = robot.stack.map()
-    assert reply.text == f"sending map: {grid.width} x {grid.height} cells at 0.05 m"
+    # The map channel sends the map cropped to its known cells: that is the size to say.
+    sent = encode_map(robot.stack.map())
+    assert (sent.width, sent.height) != (robot.stack.map().width, robot.stack.map().height)
+    assert reply.text == f"sending map: {sent.width} x {sent.height} cells at 0.05 m"
 
 
 def test_help_lists_commands_and_explains_one(robot: Robot) -> None:
@@ -284,7 +306,7 @@ def test_help_lists_commands_and_explains_one(robot: Robot) -> None:
 def test_an_observer_may_not_drive_or_switch_cameras(text: str) -> None:
     robot = Robot(may_drive=False)
     reply = robot.ask(text)
-    assert reply == ChatReply(reply.id, OBSERVER_REFUSAL, ok=False)
+    assert reply == ChatReply(reply.id, OBSERVER_REFUSAL, ok=False, reason=Reason.OBSERVER)
     robot.run(1)
     assert robot.stack.current_goal() is None
     assert robot.stack.active_camera == "navcam"
@@ -299,13 +321,13 @@ def test_an_observer_may_ask(text: str) -> None:
 
 def test_an_observer_may_stop_a_driver_s_goal() -> None:
     driver = Robot()
-    observer = ChatSession(driver.stack, may_drive=False, send=driver.replies.append)
+    observer = ChatSession(driver.stack, role=Role.OBSERVER, send=driver.replies.append)
     move = driver.say("fwd 5")
     driver.run(1)
     observer.on_payload(encode_request(900, "stop"))
-    assert driver.final(900) == ChatReply(900, "stopped")
+    assert driver.final(900) == ChatReply(900, "stopped", reason=Reason.OK)
     driver.run(0.1)
-    assert driver.final(move) == ChatReply(move, "stopped", ok=False, seq=1)
+    assert driver.final(move) == ChatReply(move, "stopped", ok=False, seq=1, reason=Reason.STOPPED)
     assert driver.stack.current_goal() is None
 
 
@@ -328,7 +350,7 @@ def test_a_failing_send_is_counted_and_does_not_raise() -> None:
     def send(reply: ChatReply) -> None:
         raise DatagramTooLarge("too big")
 
-    session = ChatSession(stack, may_drive=True, send=send)
+    session = ChatSession(stack, role=Role.DRIVER, send=send)
     session.on_payload(encode_request(1, "fwd 1"))
     session.poll()
     assert session.send_errors == 1
@@ -346,10 +368,17 @@ def test_a_broken_adapter_gives_an_error_reply_not_an_exception(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     replies: list[ChatReply] = []
-    session = ChatSession(BrokenNav(), may_drive=True, send=replies.append)
+    session = ChatSession(BrokenNav(), role=Role.DRIVER, send=replies.append)
     session.on_payload(encode_request(1, "where?"))
     session.poll()
-    assert replies == [ChatReply(1, "internal error: the robot could not run that", ok=False)]
+    assert replies == [
+        ChatReply(
+            1,
+            "internal error: the robot could not run that",
+            ok=False,
+            reason=Reason.INTERNAL_ERROR,
+        )
+    ]
     assert "adapter bug in pose" in caplog.text
 
 
@@ -381,9 +410,11 @@ class _ActiveGoal:
 def test_poll_survives_a_goal_that_breaks(caplog: pytest.LogCaptureFixture) -> None:
     replies: list[ChatReply] = []
     nav = OneGoalNav()
-    session = ChatSession(nav, may_drive=True, send=replies.append)  # type: ignore[arg-type]
+    session = ChatSession(nav, role=Role.DRIVER, send=replies.append)  # type: ignore[arg-type]
     session.on_payload(encode_request(1, "fwd 1"))
-    assert replies == [ChatReply(1, "Forward command received", final=False)]
+    assert replies == [
+        ChatReply(1, "Forward command received", final=False, reason=Reason.ACCEPTED)
+    ]
     session._motions[0].handle = FailingGoal()  # type: ignore[assignment]
     session.poll()
     assert "chat poll" in caplog.text

@@ -222,3 +222,43 @@ def test_ping_to_an_offline_robot_says_so(homes: Homes, tmp_path: Path) -> None:
         f"tcp/127.0.0.1:{free_port()}",
     )
     one_line_error(result, f"robot {ROBOT} did not answer within 1 s", "is it online?")
+
+
+# A command whose transport left a thread inside zenoh (closing it took longer than its
+# timeout, or the thread was still letting go of the session): exiting the interpreter
+# under it aborted the process (SIGABRT) instead of exiting with the command's code.
+_EXIT_SCRIPT = """
+import sys, threading, time
+from telebot.apps.common import run
+
+done = []
+
+def closing(seconds):
+    time.sleep(seconds)
+    done.append(seconds)
+
+async def main():
+    threading.Thread(target=closing, args=({seconds},), name="zenoh-close", daemon=True).start()
+    print("ran", flush=True)
+    return 2
+
+code = run("prog", main, "warning")
+print("finished" if done else "left behind", flush=True)
+sys.exit(code)
+"""
+
+
+def test_a_command_waits_for_zenoh_threads_before_the_interpreter_exits() -> None:
+    script = _EXIT_SCRIPT.format(seconds=0.5)
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert result.returncode == 2, result.stderr
+    assert result.stdout.splitlines() == ["ran", "finished"]
+
+
+def test_a_thread_stuck_in_zenoh_does_not_keep_the_command_or_abort_it() -> None:
+    script = _EXIT_SCRIPT.format(seconds=3600)
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    # The code, what was printed, one warning; no finalization under the stuck thread.
+    assert result.returncode == 2, result.stderr
+    assert result.stdout.splitlines() == ["ran"]
+    assert "zenoh did not finish closing" in result.stderr

@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -25,7 +26,7 @@ from telebot.channels.transports import Lane, Sample, Transport
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.config import CallSettings, ZenohSettings
 from telebot.errors import CallEnded, CallError, CallRejected, CallTimeout, DatagramTooLarge
-from telebot.identity import Identity, KnownRobots
+from telebot.identity import Identity, KnownRobots, encode_key
 
 
 class Peer:
@@ -231,12 +232,29 @@ async def test_unauthorised_caller_is_rejected_with_reason(peer: Peer, tmp_path:
             await user.call(ROBOT)
 
 
-async def test_wrong_robot_key_times_out(peer: Peer, tmp_path: Path) -> None:
+async def test_a_robot_online_with_another_key_fails_at_once_with_key_mismatch(
+    peer: Peer, tmp_path: Path
+) -> None:
     known = KnownRobots(tmp_path / "k.toml")
-    known.add(ROBOT, Identity.generate(ROBOT).public_key)  # an impostor's key
+    wrong = Identity.generate(ROBOT).public_key  # not the key the robot runs with
+    known.add(ROBOT, wrong)
     async with User(peer, known=known) as user:
-        with pytest.raises(CallTimeout, match=f"robot {ROBOT} did not answer"):
-            await user.call(ROBOT, timeout=1.0)
+        started = time.monotonic()
+        with pytest.raises(CallError, match="KEY MISMATCH") as caught:
+            await user.call(ROBOT, timeout=10.0)
+        # At once (its presence token shows its key), not after the call's timeout.
+        assert not isinstance(caught.value, CallTimeout)
+        assert time.monotonic() - started < 5.0
+        message = str(caught.value)
+        assert encode_key(peer.homes.robot.public_key) in message and encode_key(wrong) in message
+
+
+async def test_a_known_robot_that_is_not_online_times_out(peer: Peer, tmp_path: Path) -> None:
+    known = KnownRobots(tmp_path / "k.toml")
+    known.add("ghost", Identity.generate("ghost").public_key)
+    async with User(peer, known=known) as user:
+        with pytest.raises(CallTimeout, match=r"robot ghost did not answer .*is it online"):
+            await user.call("ghost", timeout=1.0)
 
 
 async def test_hangup_reaches_the_robot_with_reason(peer: Peer) -> None:

@@ -23,6 +23,7 @@ import pytest
 from conftest import ROBOT, USER, Process, free_port
 from telebot.config import AppConfig, ZenohSettings
 from telebot.identity import ContactBook, Identity, KnownRobots, Role, create_paired_homes
+from telebot.reasons import Reason
 from telebot.robot.mapfile import load_map
 from telebot.robot.sim.building import resolve_map
 from telebot.services.client import RobotClient, connect
@@ -129,7 +130,7 @@ async def robot(daemon: Daemon) -> AsyncIterator[RobotClient]:
         stopped = await client.stop()  # every test starts from a robot at rest...
         assert stopped.ok
         armed = await client.arm()  # ...that alice (holding the drive) re-arms
-        assert armed.ok, armed.reason
+        assert armed.ok, armed.text
         yield client
 
 
@@ -198,13 +199,13 @@ async def test_goal_through_the_goals_channel(robot: RobotClient) -> None:
     final = await robot.goto(
         3.0, 5.2, 0.0, timeout=60, on_update=lambda u: updates.append(u.status)
     )
-    assert final.status == "succeeded", final.reason
+    assert final.status == "succeeded", final.text
     x, y, _ = await settled_pose(robot)
     assert math.hypot(x - 3.0, y - 5.2) < 0.1
     assert updates[0] == "active"
     refused = await robot.goto(999.0, 999.0, timeout=10)
-    assert refused.status == "failed"
-    assert refused.reason.startswith("no path to (999.00, 999.00): ")
+    assert refused.status == "failed" and refused.reason == Reason.NO_PATH
+    assert refused.text.startswith("no path to (999.00, 999.00): ")
 
 
 async def test_cameras_switch_and_telemetry_says_which(robot: RobotClient) -> None:
@@ -255,13 +256,15 @@ async def test_an_observer_may_not_drive_but_may_stop(daemon: Daemon) -> None:
         ROBOT, home=daemon.observer_home, config=daemon.config(), timeout=10
     ) as olga:
         refused = await olga.chat("fwd 1")
-        assert not refused.ok and "observer" in refused.final_text
+        assert not refused.ok and refused.reason == Reason.OBSERVER
+        # The text the docs (protocol.md §14.3) give for it:
+        assert refused.final_text == "refused: olga is an observer: observers may not drive"
         goal = await olga.goto(3.0, 5.2)
-        assert goal.status == "refused"
+        assert goal.status == "refused" and goal.reason == Reason.OBSERVER
         assert (await olga.stop()).ok
         assert (await olga.chat("where?")).ok
         refused_arm = await olga.arm()
-        assert not refused_arm.ok and "observer" in refused_arm.reason
+        assert not refused_arm.ok and refused_arm.reason == Reason.OBSERVER
 
 
 async def test_garbage_on_every_channel_is_dropped_and_the_daemon_keeps_serving(
@@ -394,14 +397,14 @@ async def test_video_follows_the_camera_switch_and_moving_forces_the_navcam(
         usercam_image = frame.image
         # Moving switches the driver's video to the navcam, and usercam is refused meanwhile.
         replies = robot.chat_replies("fwd 1.5", timeout=30)
-        assert (await anext(replies)).text == "Forward command received"
+        assert (await anext(replies)).reason == Reason.ACCEPTED
         async with asyncio.timeout(10):
             async for frame in video:
                 if frame.camera == "navcam":
                     break
         assert not np.array_equal(frame.image, usercam_image)
         refused = await robot.chat("usercam")
-        assert not refused.ok and refused.final_text.startswith("refused:")
+        assert not refused.ok and refused.reason == Reason.CAMERA_WHILE_MOVING
         async for reply in replies:
             assert reply.ok, reply.text
         await replies.aclose()

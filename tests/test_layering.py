@@ -2,7 +2,7 @@
 
 Layers, lowest first (a module may import from its own layer and those below)::
 
-    errors < config < channels.proto < identity < channels.transports
+    errors < config < channels.proto < identity < reasons, rights < channels.transports
            < channels (call, channel) < robot < safety < services < apps
 """
 
@@ -22,6 +22,8 @@ LAYERS = [
     "telebot.config",
     "telebot.channels.proto",
     "telebot.identity",
+    "telebot.reasons",
+    "telebot.rights",
     "telebot.channels.transports",
     "telebot.channels",
     "telebot.robot",
@@ -112,6 +114,8 @@ SANS_IO_SOURCES = sorted(
         *(SRC / "robot" / "sim").rglob("*.py"),
         *(SRC / "services" / "proto").rglob("*.py"),
         SRC / "safety.py",
+        SRC / "reasons.py",
+        SRC / "rights.py",
     ]
 )
 

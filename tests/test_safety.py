@@ -13,6 +13,7 @@ from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, 
 
 from telebot.errors import ConfigError
 from telebot.identity import Role
+from telebot.reasons import Reason
 from telebot.safety import (
     CAP_STEP,
     LOCAL,
@@ -89,7 +90,7 @@ def test_motion_is_refused_until_the_holder_rearms() -> None:
     beat(sup, "a", 1.0)
     refused = sup.request_motion("a", 1.0, "fwd 2")
     assert not refused.allowed
-    assert "re-arm" in refused.reason and "not armed since start" in refused.reason
+    assert refused.code == Reason.NOT_ARMED and "not armed since start" in refused.reason
     assert not any(isinstance(a, SelectCamera) for a in refused.actions)
     rearmed = sup.rearm("a", 1.0)
     assert rearmed.allowed and sup.armed
@@ -120,9 +121,10 @@ def test_only_the_holder_may_rearm() -> None:
         beat(sup, call, 1.0)
     assert sup.holder == "alice" and sup.holder_call == "a"
     bob = sup.rearm("b", 1.0)
-    assert not bob.allowed and bob.reason == "the drive is held by alice"
+    assert not bob.allowed and bob.code == Reason.NOT_HOLDER
+    assert bob.reason == "the drive is held by alice"
     olga = sup.rearm("o", 1.0)
-    assert not olga.allowed and "observer" in olga.reason
+    assert not olga.allowed and olga.code == Reason.OBSERVER
     assert not sup.rearm("x", 1.0).allowed
     assert not sup.armed
     assert sup.rearm("a", 1.0).allowed
@@ -132,7 +134,7 @@ def test_rearm_needs_a_live_link() -> None:
     sup = supervisor()
     sup.join("a", "alice", Role.DRIVER, 1.0)
     refused = sup.rearm("a", 1.0 + TIMEOUT)
-    assert not refused.allowed and "silent" in refused.reason and not sup.armed
+    assert not refused.allowed and refused.code == Reason.LINK_SILENT and not sup.armed
 
 
 def test_observers_are_refused_everything_but_stop() -> None:
@@ -146,7 +148,7 @@ def test_observers_are_refused_everything_but_stop() -> None:
         sup.take_drive("o", 1.0),
         sup.release_drive("o", 1.0),
     ):
-        assert not decision.allowed and "observer" in decision.reason
+        assert not decision.allowed and decision.code == Reason.OBSERVER
         assert not stops(decision.actions)
     assert sup.armed
     stop = sup.request_stop("o", 1.0)
@@ -173,6 +175,18 @@ def test_stop_is_idempotent_and_latches() -> None:
         assert not stops(sup.tick(t)) and not sup.armed and sup.speed_cap(t) == 0.0
     assert not sup.request_motion("a", 2.0, "fwd 1").allowed
     assert sup.rearm("a", 2.0).allowed
+
+
+@pytest.mark.parametrize("how", ["button", "key", "tab_closed", "chat"])
+def test_a_stop_records_who_stopped_and_how(how: str) -> None:
+    sup = driving()
+    stop = sup.request_stop("a", 1.1, how=how)
+    assert stop.actions[0] == Stop(f"stop requested by alice ({how})")
+    assert sup.stop_reason == f"stop requested by alice ({how})"
+    assert stop.audit.who == "alice" and stop.audit.how == how
+    assert json.loads(stop.audit.to_json())["how"] == how
+    # Records of other kinds carry no "how" at all.
+    assert "how" not in json.loads(sup.rearm("a", 1.2).audit.to_json())
 
 
 def test_stops_from_the_robot_itself_and_from_unknown_calls_are_honoured() -> None:
@@ -251,7 +265,8 @@ def test_an_admin_takeover_stops_and_latches() -> None:
     sup.join("b", "bob", Role.DRIVER, 1.0)
     beat(sup, "z", 1.0)
     refused = sup.take_drive("b", 1.0)
-    assert not refused.allowed and refused.reason.startswith("the drive is held by alice")
+    assert not refused.allowed and refused.code == Reason.DRIVE_HELD
+    assert refused.reason.startswith("the drive is held by alice")
     taken = sup.take_drive("z", 1.1)
     assert taken.allowed and taken.audit.detail == "taken over from alice"
     assert isinstance(taken.actions[0], Stop) and not sup.armed
@@ -269,7 +284,7 @@ def test_release_stops_and_frees_the_drive_for_another_driver() -> None:
     assert released.allowed and stops(released.actions)
     assert not sup.armed and sup.holder is None
     free = sup.request_motion("b", 1.1, "fwd 1")
-    assert not free.allowed and "free" in free.reason
+    assert not free.allowed and free.code == Reason.NOT_HOLDER
     assert sup.take_drive("b", 1.2).allowed and sup.holder == "bob" and not sup.armed
     assert sup.take_drive("b", 1.2).reason == "already yours"
 
@@ -277,7 +292,7 @@ def test_release_stops_and_frees_the_drive_for_another_driver() -> None:
 def test_usercam_while_moving_is_refused_unless_configured() -> None:
     sup = driving()
     refused = sup.request_camera("a", "usercam", True, 1.0)
-    assert not refused.allowed and "while the robot moves" in refused.reason
+    assert not refused.allowed and refused.code == Reason.CAMERA_WHILE_MOVING
     assert not any(isinstance(a, SelectCamera) for a in refused.actions)
     assert sup.request_camera("a", NAVCAM, True, 1.0).allowed
     still = sup.request_camera("a", "usercam", False, 1.0)
@@ -307,7 +322,7 @@ def test_speed_cap_shrinks_with_age_rtt_and_loss() -> None:
     beat(unmeasured, "a", 1.0, rtt=None)
     assert unmeasured.speed_cap(1.0) == 0.0
     refused = unmeasured.request_motion("a", 1.0, "fwd 1")
-    assert not refused.allowed and "not measured" in refused.reason
+    assert not refused.allowed and refused.code == Reason.RTT_UNMEASURED
 
 
 def test_speed_cap_is_zero_when_disarmed_and_too_poor_a_link_refuses_motion() -> None:
@@ -317,7 +332,7 @@ def test_speed_cap_is_zero_when_disarmed_and_too_poor_a_link_refuses_motion() ->
     sup.rearm("a", 1.0)
     beat(sup, "a", 1.0, rtt=0.6)
     refused = sup.request_motion("a", 1.0, "fwd 1")
-    assert not refused.allowed and "too poor" in refused.reason
+    assert not refused.allowed and refused.code == Reason.LINK_POOR
 
 
 @settings(max_examples=200, deadline=None)
@@ -408,7 +423,7 @@ def test_unknown_call_ids_are_refused() -> None:
         sup.take_drive("x", 1.0),
         sup.release_drive("x", 1.0),
     ):
-        assert not decision.allowed and decision.reason == "unknown call"
+        assert not decision.allowed and decision.code == Reason.UNKNOWN_CALL
         assert decision.audit.who == "unknown call x"
     left = sup.leave("x", "hung_up", 1.0)
     assert audits(left)[-1].outcome == "refused" and sup.armed
@@ -437,7 +452,7 @@ def test_a_clock_fault_stops_and_time_never_runs_backwards() -> None:
     # 1.2 is as old as its stamp says: the link is still stale.
     beat(sup, "a", 1.2)
     refused = sup.rearm("a", 1.2)
-    assert not refused.allowed and refused.audit.t == 2.0 and "silent" in refused.reason
+    assert not refused.allowed and refused.audit.t == 2.0 and refused.code == Reason.LINK_SILENT
 
 
 def test_actions_put_the_stop_first() -> None:

@@ -32,6 +32,7 @@ from conftest import ROBOT, USER, Homes, Process, free_port, memory_endpoints, w
 from telebot.channels.transports.memory import MemoryHub
 from telebot.config import AppConfig, SimSettings, ZenohSettings
 from telebot.identity import ContactBook, Identity, KnownRobots, Role, create_paired_homes
+from telebot.reasons import Reason
 from telebot.robot.nav import Velocity
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.client import RobotClient, connect
@@ -192,8 +193,8 @@ async def arm(client: RobotClient, patience: float = 5.0) -> None:
         ack = await client.arm()
         if ack.ok:
             return
-        assert loop.time() < deadline, ack.reason
-        if "free" in ack.reason:
+        assert loop.time() < deadline, ack.text
+        if ack.reason == Reason.NOT_HOLDER:
             await client.take_drive()
         await asyncio.sleep(0.1)
 
@@ -333,7 +334,7 @@ async def test_a_thawed_driver_finds_the_robot_stopped_until_it_is_re_armed(
         state = await safety_state(alice, lambda s: s.holder == USER)
         assert not state.armed
         refused = await alice.chat("fwd 0.3")
-        assert not refused.ok and "re-arm" in refused.final_text
+        assert not refused.ok and refused.reason == Reason.NOT_ARMED
         await arm(alice)
         armed_at = time.monotonic()
         assert (await safety_state(observer, lambda s: s.armed)).armed
@@ -356,11 +357,11 @@ async def test_an_observer_cannot_drive_but_its_stop_stops_a_moving_robot(
         assert (await alice.stop()).ok
         await arm(alice)
         refused = await observer.chat("fwd 1")
-        assert not refused.ok and "observer" in refused.final_text
+        assert not refused.ok and refused.reason == Reason.OBSERVER
         goal = await observer.goto(3.0, 5.2, timeout=10)
-        assert goal.status == "refused" and "observer" in goal.reason
+        assert goal.status == "refused" and goal.reason == Reason.OBSERVER
         for ack in (await observer.arm(), await observer.take_drive()):
-            assert not ack.ok and "observer" in ack.reason
+            assert not ack.ok and ack.reason == Reason.OBSERVER
         await drive_far(alice)
         # The refusals stopped nothing: alice's robot drives...
         await next_pose(observer, lambda p: abs(p.v) > 0.05, timeout=10)
@@ -374,7 +375,7 @@ async def test_an_observer_cannot_drive_but_its_stop_stops_a_moving_robot(
         state = await safety_state(alice, lambda s: not s.armed)
         assert OBSERVER in state.reason
         again = await alice.chat("fwd 1")
-        assert not again.ok and "re-arm" in again.final_text
+        assert not again.ok and again.reason == Reason.NOT_ARMED
 
 
 # -- the audit log ---------------------------------------------------------------------------
@@ -386,15 +387,19 @@ async def test_the_audit_log_says_who_did_what_and_what_came_of_it(
 ) -> None:
     since = time.monotonic()
     async with daemon.connect() as alice:
-        assert (await alice.stop()).ok
+        assert (await alice.stop(how="button")).ok
         refused = await alice.chat("fwd 0.2")
         assert not refused.ok
         await arm(alice)
         assert (await alice.chat("fwd 0.2", timeout=30)).ok
-        assert (await observer.stop()).ok
+        assert (await observer.stop(how="key")).ok
     records = [r for r in daemon.audit() if r["t"] >= since]
     for record in records:
-        assert set(record) == {"t", "who", "role", "call", "what", "outcome", "detail"}
+        fields = {"t", "who", "role", "call", "what", "outcome", "detail"}
+        assert set(record) == (fields | {"how"} if record["what"] == "stop" else fields)
+    # Who stopped, and how: the STOP button, a key (a closed tab would say "tab_closed").
+    stops = [(r["who"], r["how"]) for r in records if r["what"] == "stop"]
+    assert list(dict.fromkeys(stops)) == [(USER, "button"), (OBSERVER, "key")]  # repeats once
     seen = {(r["who"], r["role"], r["what"].split(":")[0], r["outcome"]) for r in records}
     assert (USER, "driver", "stop", "allowed") in seen
     assert (USER, "driver", "motion", "refused") in seen
@@ -439,7 +444,8 @@ async def test_a_killed_daemon_comes_back_disarmed(tmp_path: Path) -> None:
             state = await safety_state(alice, lambda s: s.holder == USER)
             assert not state.armed and state.reason == "not armed since start"
             refused = await alice.chat("fwd 0.3")
-            assert not refused.ok and "not armed since start" in refused.final_text
+            assert not refused.ok and refused.reason == Reason.NOT_ARMED
+            assert "not armed since start" in refused.final_text
             assert still(await alice.pose())
             await arm(alice)
             assert (await alice.chat("fwd 0.3", timeout=30)).ok
@@ -513,7 +519,7 @@ async def test_a_stop_at_20_percent_loss_is_never_lost(lossy: LossyRobot) -> Non
         sent = loop.time()
         ack = await client.stop(timeout=10)
         took = loop.time() - sent
-        assert ack.ok, (i, ack.reason)
+        assert ack.ok, (i, ack.text)
         # Checked on the NavStack itself, straight after the acknowledgement.
         assert nav.velocity() == Velocity(), i
         assert nav.current_goal() is None and not lossy.safety.supervisor.armed

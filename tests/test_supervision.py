@@ -17,6 +17,7 @@ from telebot.channels.proto.session import CallStats
 from telebot.channels.transports.memory import MemoryHub
 from telebot.config import SimSettings
 from telebot.identity import Role
+from telebot.reasons import Reason
 from telebot.robot.grid import OccupancyGrid
 from telebot.robot.nav import Pose2D
 from telebot.robot.sim.stack import SimNavStack
@@ -112,30 +113,31 @@ def test_chat_motion_needs_an_armed_robot_and_stop_latches(tmp_path: Path) -> No
     driver.join(alice)  # type: ignore[arg-type]
     driver.tick()
     replies: list[ChatReply] = []
-    chat = ChatSession(nav, may_drive=True, send=replies.append, gate=driver.gate("c1"))
+    chat = ChatSession(nav, role=Role.DRIVER, send=replies.append, gate=driver.gate("c1"))
 
     def say(text: str) -> str:
         replies.clear()
         chat.handle_text(len(replies) + 1, text)
-        return replies[-1].text
+        return replies[-1].reason
 
-    assert say("fwd 1").startswith("refused: ")
+    assert say("fwd 1") == Reason.NOT_ARMED
     assert nav.current_goal() is None
-    assert say("arm") == "armed: send a motion command to move"
-    assert say("fwd 3") == "Forward command received"
+    assert say("arm") == Reason.OK
+    assert say("fwd 3") == Reason.ACCEPTED
     drive_for(nav, 0.5, driver, alice)
     assert nav.velocity().linear > 0.1
-    assert say("stop") == "stopped"
+    assert say("stop") == Reason.OK
     assert nav.velocity().linear == 0.0
     assert not driver.state().armed
-    assert say("fwd 1").startswith("refused: ")
-    assert say("release") == "drive released; the robot is stopped"
-    assert say("arm").startswith("refused: ")
-    assert say("take") == "you hold the drive (send arm to re-arm)"
+    assert say("fwd 1") == Reason.NOT_ARMED
+    assert say("release") == Reason.OK
+    assert say("arm") == Reason.NOT_HOLDER
+    assert say("take") == Reason.OK
     driver.close()
     lines = [json.loads(line) for line in (tmp_path / "audit.jsonl").read_text().splitlines()]
     whats = [(line["what"], line["outcome"]) for line in lines]
     assert ("stop", "allowed") in whats
+    assert [line["how"] for line in lines if line["what"] == "stop"] == ["chat"]
     assert ("rearm", "allowed") in whats
     assert any(what == "rearm" and outcome == "refused" for what, outcome in whats)
     assert all(line["t"] > 0 for line in lines)
@@ -147,8 +149,9 @@ def test_an_observer_may_stop_but_not_drive_or_arm(tmp_path: Path) -> None:
     olga = FakeCall("c2", "olga", Role.OBSERVER)
     driver.join(olga)  # type: ignore[arg-type]
     replies: list[ChatReply] = []
-    chat = ChatSession(nav, may_drive=False, send=replies.append, gate=driver.gate("c2"))
+    chat = ChatSession(nav, role=Role.OBSERVER, send=replies.append, gate=driver.gate("c2"))
     chat.handle_text(1, "fwd 1")
+    assert replies[-1].reason == Reason.OBSERVER
     assert replies[-1].text == "refused: olga is an observer: observers may not drive"
     refusals = [
         json.loads(line)
@@ -185,7 +188,7 @@ def test_usercam_is_refused_as_soon_as_a_goal_runs_even_before_the_base_moves(
     nav.forward(2.0)
     assert nav.velocity().linear == 0.0  # accepted, not yet moving
     refusal = gate.camera("usercam")
-    assert refusal is not None and "moves" in refusal
+    assert refusal is not None and refusal.reason == Reason.CAMERA_WHILE_MOVING
     nav.stop()
     assert gate.camera("usercam") is None
     driver.close()

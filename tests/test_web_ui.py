@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import math
 import os
 import shutil
@@ -51,8 +52,16 @@ class Rig:
     safety: SafetyDriver
     client: RobotClient
     ui: WebUI
+    #: The robot's audit log (JSON lines).
+    audit: Path
     #: Wall-clock times (s) at which the base's velocity became zero by a stop.
     zeroed: list[float] = field(default_factory=list)
+
+    def stops(self) -> list[tuple[str, str]]:
+        """Who stopped the robot and how, from its audit log (a repeated stop once)."""
+        lines = self.audit.read_text(encoding="utf-8").splitlines()
+        records = [json.loads(line) for line in lines]
+        return list(dict.fromkeys((r["who"], r["how"]) for r in records if r["what"] == "stop"))
 
 
 def _watch_stops(nav: SimNavStack, zeroed: list[float]) -> None:
@@ -88,7 +97,8 @@ async def robot_rig(
     nav = SimNavStack.from_settings(settings, now=loop.time())
     zeroed: list[float] = []
     _watch_stops(nav, zeroed)
-    safety = SafetyDriver(nav, timeout=2.0, max_speed=settings.max_linear_speed)
+    audit = base / "audit.jsonl"
+    safety = SafetyDriver(nav, timeout=2.0, max_speed=settings.max_linear_speed, audit_path=audit)
     server = RobotServer(
         nav,
         ServiceSettings(pose_hz=pose_hz),
@@ -116,7 +126,7 @@ async def robot_rig(
                 call = await user.call(ROBOT, timeout=10)
                 client = RobotClient(call)
                 async with WebUI(client, port=0, user=USER) as ui:
-                    yield Rig(nav, safety, client, ui, zeroed)
+                    yield Rig(nav, safety, client, ui, audit, zeroed)
                 with contextlib.suppress(Exception):
                     await call.hangup()
             finally:
@@ -163,7 +173,7 @@ async def page_ready(page: Any) -> None:
 
 async def arm(rig: Rig) -> None:
     ack = await rig.client.arm()
-    assert ack.ok, ack.reason
+    assert ack.ok, ack.text
 
 
 async def drive_forward(rig: Rig) -> None:
@@ -262,6 +272,7 @@ async def test_a_key_press_stops_the_robot(rig: Rig) -> None:
         # p99 30 ms) is bench/ui.py's to measure, not a pass/fail test's on a shared machine.
         assert -0.005 <= delay < 0.5, f"stopped {delay * 1000:.1f} ms after the key"
         assert rig.nav.velocity().linear == 0.0
+        assert rig.stops() == [(USER, "key")]  # the audit log says who, and how
         await page.wait_for_function("() => window.telebotUI.state.safety?.armed === false")
         assert "stopped" in await page.inner_text("#safety")
         # Re-arm from the page.
@@ -279,6 +290,7 @@ async def test_escape_in_the_chat_input_stops_but_typing_does_not(rig: Rig) -> N
         assert rig.nav.velocity().linear > 0.0 and not rig.zeroed
         await page.keyboard.press("Escape")
         await wait_for(lambda: rig.zeroed, timeout=2.0, what="the base stopped")
+        assert rig.stops() == [(USER, "key")]
 
 
 async def test_a_chat_command_round_trip(rig: Rig) -> None:
@@ -321,6 +333,8 @@ async def test_closing_the_page_while_driving_stops_the_robot(rig: Rig) -> None:
     await wait_for(lambda: rig.zeroed, timeout=3.0, what="the base stopped")
     assert rig.ui.close_stops == 1
     assert rig.nav.velocity().linear == 0.0
+    await wait_for(lambda: rig.stops(), timeout=3.0, what="the stop in the audit log")
+    assert rig.stops() == [(USER, "tab_closed")]
 
 
 async def test_an_observer_sees_the_page_with_driving_disabled_and_may_stop(

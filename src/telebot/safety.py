@@ -68,6 +68,8 @@ from typing import Literal, TypeAlias
 
 from telebot.errors import ConfigError
 from telebot.identity import Role
+from telebot.reasons import Reason
+from telebot.rights import Right, may
 
 __all__ = [
     "CAP_STEP",
@@ -98,9 +100,6 @@ LOSS_LIMIT = 0.5
 #: wobbles does not send a new limit to the NavStack on every tick.
 CAP_STEP = 0.01
 
-#: Roles that may hold the drive.
-_DRIVING_ROLES = frozenset({Role.DRIVER, Role.ADMIN})
-
 #: What an audit record says happened: commands are allowed or refused; events (join,
 #: leave, deadman, obstacle) stopped the robot or were only noted.
 Outcome: TypeAlias = Literal["allowed", "refused", "stopped", "noted"]
@@ -127,7 +126,7 @@ class Participant:
     @property
     def may_drive(self) -> bool:
         """Whether the role lets this call hold the drive (driver or admin)."""
-        return self.role in _DRIVING_ROLES
+        return may(self.role, Right.DRIVE)
 
 
 @dataclass(frozen=True, slots=True)
@@ -160,10 +159,16 @@ class AuditRecord:
     what: str
     outcome: Outcome
     detail: str = ""
+    #: How a stop was given (``"button"``, ``"key"``, ``"tab_closed"``, ``"chat"``, …);
+    #: empty for other records, and then left out of the JSON line.
+    how: str = ""
 
     def to_json(self) -> str:
         """The record as one line of JSON (no newline; the driver writes it)."""
-        return json.dumps(asdict(self), ensure_ascii=False, separators=(",", ":"))
+        record = asdict(self)
+        if not self.how:
+            del record["how"]
+        return json.dumps(record, ensure_ascii=False, separators=(",", ":"))
 
 
 # -- actions: what the driver must do, in order --------------------------------------------
@@ -214,16 +219,23 @@ class Decision:
 
     The driver carries out ``actions`` in order (a :class:`Stop` always comes first) and
     then, if ``allowed``, the command itself. ``actions`` already holds ``Audit(audit)``;
-    ``audit`` is the same record, at hand for replies and tests.
+    ``audit`` is the same record, at hand for replies and tests. ``code`` is the reason
+    code of the answer (:class:`~telebot.reasons.Reason`): ``ok`` when
+    allowed, else why not (``not_armed``, ``not_holder``, ``rtt_unmeasured``, …).
     """
 
     allowed: bool
     reason: str
     actions: tuple[Action, ...]
     audit: AuditRecord
+    code: Reason = Reason.OK
 
 
 # -- the supervisor ------------------------------------------------------------------------
+
+#: A refusal: the text for people and its reason code.
+_Refusal: TypeAlias = tuple[str, Reason]
+_UNKNOWN_CALL: _Refusal = ("unknown call", Reason.UNKNOWN_CALL)
 
 
 @dataclass(slots=True)
@@ -389,10 +401,10 @@ class SafetySupervisor:
             return list(self._finish(step))
         self._participants[call_id] = Participant(call_id, user, role, step.t, step.t)
         detail = f"as {role.value}"
-        if self._holder is None and role in _DRIVING_ROLES:
+        if self._holder is None and may(role, Right.DRIVE):
             self._holder = call_id
             detail += "; holds the drive (robot stays stopped until re-armed)"
-        elif role in _DRIVING_ROLES:
+        elif may(role, Right.DRIVE):
             detail += f"; observing while {self.holder} holds the drive"
         self._audit(step, call_id, "join", "noted", detail)
         return list(self._finish(step))
@@ -447,13 +459,14 @@ class SafetySupervisor:
     # -- commands ------------------------------------------------------------------------
 
     def request_stop(
-        self, call_id: str | None, now: float, reason: str = "stop requested"
+        self, call_id: str | None, now: float, reason: str = "stop requested", how: str = ""
     ) -> Decision:
         """Stop: from any participant, or the robot itself when ``call_id`` is None.
 
-        Never refused, not even for an unknown call id: refusing a stop is never the safe
-        answer. Idempotent: a repeated stop issues :class:`Stop` again and keeps the first
-        reason.
+        ``how`` says how the stop was given (``"button"``, ``"key"``, ``"tab_closed"``,
+        ``"chat"``, …): it goes into the stop reason and the audit record. Never refused,
+        not even for an unknown call id: refusing a stop is never the safe answer.
+        Idempotent: a repeated stop issues :class:`Stop` again and keeps the first reason.
         """
         step = self._begin(now)
         if step is None:
@@ -461,9 +474,9 @@ class SafetySupervisor:
         p = self._participants.get(call_id) if call_id is not None else None
         by = LOCAL if call_id is None else (p.user if p else f"unknown call {call_id}")
         was_armed = self._armed
-        self._disarm(step, f"{reason} by {by}")
+        self._disarm(step, f"{reason} by {by}" + (f" ({how})" if how else ""))
         detail = reason if was_armed else f"{reason} (already stopped)"
-        return self._decide(step, call_id, "stop", True, detail)
+        return self._decide(step, call_id, "stop", True, detail, how=how)
 
     def request_motion(self, call_id: str, now: float, what: str) -> Decision:
         """May this call move the robot now (``what``: the command, for the audit log)?
@@ -478,11 +491,11 @@ class SafetySupervisor:
         label = f"motion: {what}"
         refusal = self._holder_refusal(call_id, "drive")
         if refusal is None and not self._armed:
-            refusal = f"the robot is stopped ({self._reason}); re-arm it first"
+            refusal = (f"the robot is stopped ({self._reason}); re-arm it first", Reason.NOT_ARMED)
         if refusal is None:
             refusal = self._link_refusal(call_id, step.t)
         if refusal is not None:
-            return self._decide(step, call_id, label, False, refusal)
+            return self._decide(step, call_id, label, False, *refusal)
         if self._camera != NAVCAM:
             step.rest.append(SelectCamera(NAVCAM))
             self._camera = NAVCAM
@@ -495,11 +508,14 @@ class SafetySupervisor:
         if step is None:
             return self._fault_decision(call_id, f"camera: {camera}")
         label = f"camera: {camera}"
-        refusal = self._holder_refusal(call_id, "select the camera")
+        refusal = self._holder_refusal(call_id, "select the camera", Right.CAMERA)
         if refusal is None and moving and camera != NAVCAM and not self.usercam_while_moving:
-            refusal = f"{camera} is refused while the robot moves: stop first, or use {NAVCAM}"
+            refusal = (
+                f"{camera} is refused while the robot moves: stop first, or use {NAVCAM}",
+                Reason.CAMERA_WHILE_MOVING,
+            )
         if refusal is not None:
-            return self._decide(step, call_id, label, False, refusal)
+            return self._decide(step, call_id, label, False, *refusal)
         step.rest.append(SelectCamera(camera))
         self._camera = camera
         return self._decide(step, call_id, label, True, "")
@@ -516,9 +532,12 @@ class SafetySupervisor:
         if refusal is None:
             age = step.t - self._participants[call_id].last_heard
             if age >= self.timeout:
-                refusal = f"your link is silent for {age:.2f} s; re-arm needs a live link"
+                refusal = (
+                    f"your link is silent for {age:.2f} s; re-arm needs a live link",
+                    Reason.LINK_SILENT,
+                )
         if refusal is not None:
-            return self._decide(step, call_id, "rearm", False, refusal)
+            return self._decide(step, call_id, "rearm", False, *refusal)
         if self._armed:
             return self._decide(step, call_id, "rearm", True, "already armed")
         detail = f"was stopped: {self._reason}"
@@ -538,16 +557,16 @@ class SafetySupervisor:
             return self._fault_decision(call_id, "take drive")
         p = self._participants.get(call_id)
         if p is None:
-            return self._decide(step, call_id, "take drive", False, "unknown call")
+            return self._decide(step, call_id, "take drive", False, *_UNKNOWN_CALL)
         if not p.may_drive:
             refusal = f"{p.user} is an {p.role.value}: only drivers and admins may drive"
-            return self._decide(step, call_id, "take drive", False, refusal)
+            return self._decide(step, call_id, "take drive", False, refusal, Reason.OBSERVER)
         previous = self._holder_participant()
         if previous is not None and previous.call_id == call_id:
             return self._decide(step, call_id, "take drive", True, "already yours")
-        if previous is not None and p.role is not Role.ADMIN:
+        if previous is not None and not may(p.role, Right.TAKE_OVER):
             refusal = f"the drive is held by {previous.user}; ask them to release it"
-            return self._decide(step, call_id, "take drive", False, refusal)
+            return self._decide(step, call_id, "take drive", False, refusal, Reason.DRIVE_HELD)
         detail = ""
         if previous is not None:
             self._disarm(step, f"{p.user} (admin) took over the drive from {previous.user}")
@@ -562,7 +581,7 @@ class SafetySupervisor:
             return self._fault_decision(call_id, "release drive")
         refusal = self._holder_refusal(call_id, "release the drive")
         if refusal is not None:
-            return self._decide(step, call_id, "release drive", False, refusal)
+            return self._decide(step, call_id, "release drive", False, *refusal)
         user = self._participants[call_id].user
         # Nobody would be watching the robot any more: it must not go on moving.
         self._disarm(step, f"{user} released the drive")
@@ -660,32 +679,43 @@ class SafetySupervisor:
             self._reason = reason
             self._since = step.t
 
-    def _holder_refusal(self, call_id: str, verb: str) -> str | None:
+    def _holder_refusal(
+        self, call_id: str, verb: str, right: Right = Right.DRIVE
+    ) -> _Refusal | None:
         p = self._participants.get(call_id)
         if p is None:
-            return "unknown call"
-        if not p.may_drive:
-            return f"{p.user} is an {p.role.value}: observers may not {verb}"
+            return _UNKNOWN_CALL
+        if not may(p.role, right):
+            return f"{p.user} is an {p.role.value}: observers may not {verb}", Reason.OBSERVER
         if self._holder != call_id:
             holder = self._holder_participant()
             if holder is None:
-                return f"you do not hold the drive (it is free: take it to {verb})"
-            return f"the drive is held by {holder.user}"
+                text = f"you do not hold the drive (it is free: take it to {verb})"
+                return text, Reason.NOT_HOLDER
+            return f"the drive is held by {holder.user}", Reason.NOT_HOLDER
         return None
 
-    def _link_refusal(self, call_id: str, t: float) -> str | None:
+    def _link_refusal(self, call_id: str, t: float) -> _Refusal | None:
         p = self._participants[call_id]
         age = t - p.last_heard
         if age >= self.timeout:
-            return f"your link is silent for {age:.2f} s"
+            return f"your link is silent for {age:.2f} s", Reason.LINK_SILENT
         if p.rtt is None:
-            return "your link's round trip is not measured yet; try again in a moment"
+            text = "your link's round trip is not measured yet; try again in a moment"
+            return text, Reason.RTT_UNMEASURED
         if self.speed_cap(t) <= 0:
-            return f"your link is too poor to drive (rtt {p.rtt:.3f} s, loss {p.loss:.0%})"
+            text = f"your link is too poor to drive (rtt {p.rtt:.3f} s, loss {p.loss:.0%})"
+            return text, Reason.LINK_POOR
         return None
 
     def _audit(
-        self, step: _Step, call_id: str | None, what: str, outcome: Outcome, detail: str
+        self,
+        step: _Step,
+        call_id: str | None,
+        what: str,
+        outcome: Outcome,
+        detail: str,
+        how: str = "",
     ) -> AuditRecord:
         p = self._participants.get(call_id) if call_id is not None else None
         if call_id is None:
@@ -694,7 +724,7 @@ class SafetySupervisor:
             who, role = f"unknown call {call_id}", ""
         else:
             who, role = p.user, p.role.value
-        record = AuditRecord(step.t, who, role, call_id, what, outcome, detail)
+        record = AuditRecord(step.t, who, role, call_id, what, outcome, detail, how)
         step.audits.append(Audit(record))
         return record
 
@@ -711,11 +741,19 @@ class SafetySupervisor:
         return (*step.stops, *cap, *step.rest, *state, *step.audits)
 
     def _decide(
-        self, step: _Step, call_id: str | None, what: str, allowed: bool, detail: str
+        self,
+        step: _Step,
+        call_id: str | None,
+        what: str,
+        allowed: bool,
+        detail: str,
+        code: Reason = Reason.OK,
+        *,
+        how: str = "",
     ) -> Decision:
         outcome: Outcome = "allowed" if allowed else "refused"
-        record = self._audit(step, call_id, what, outcome, detail)
-        return Decision(allowed, detail, self._finish(step), record)
+        record = self._audit(step, call_id, what, outcome, detail, how)
+        return Decision(allowed, detail, self._finish(step), record, code)
 
     def _fault(self, call_id: str | None, what: str) -> list[Action]:
         """A ``now`` that is not a finite number: the clock cannot be trusted, so stop."""
@@ -730,4 +768,5 @@ class SafetySupervisor:
     def _fault_decision(self, call_id: str | None, what: str) -> Decision:
         actions = tuple(self._fault(call_id, what))
         record = next(a.record for a in reversed(actions) if isinstance(a, Audit))
-        return Decision(False, "time is not a finite number; stopped", actions, record)
+        text = "time is not a finite number; stopped"
+        return Decision(False, text, actions, record, Reason.CLOCK_FAULT)

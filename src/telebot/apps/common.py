@@ -6,8 +6,11 @@ import argparse
 import asyncio
 import contextlib
 import logging
+import os
 import signal
 import sys
+import threading
+import time
 from collections.abc import Callable, Coroutine, Iterator
 from pathlib import Path
 from typing import Any, Literal, NoReturn, TypeVar
@@ -24,11 +27,14 @@ __all__ = [
     "EXIT_FAILURE",
     "EXIT_OK",
     "EXIT_USAGE",
+    "THREAD_EXIT_WAIT",
+    "ZENOH_THREAD_PREFIX",
     "Parser",
     "add_connection_options",
     "add_home_option",
     "add_log_level_option",
     "app_config",
+    "finish_threads",
     "home_of",
     "keygen",
     "load_app_config",
@@ -188,11 +194,36 @@ def keygen(name: str, home: Path, *, overwrite: bool, kind: Literal["robot", "us
     return EXIT_OK
 
 
+#: Threads the zenoh transport starts (reader, close, late close) are named so.
+ZENOH_THREAD_PREFIX = "zenoh-"
+#: How long a command waits at exit for those threads to leave zenoh (s).
+THREAD_EXIT_WAIT = 3.0
+
+
 def run(prog: str, main: Callable[[], Coroutine[Any, Any, int]], log_level: str) -> int:
-    """Run ``main`` on a new event loop; turn telebot errors into one line and an exit code."""
+    """Run ``main`` on a new event loop; turn telebot errors into one line and an exit code.
+
+    Before returning, waits for the transport's threads to end (:func:`finish_threads`);
+    if one is still inside zenoh after :data:`THREAD_EXIT_WAIT`, the process exits at
+    once with the code rather than let the interpreter shut down under it.
+    """
     logging.basicConfig(
         level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
+    code = _run(prog, main)
+    if not finish_threads(THREAD_EXIT_WAIT):
+        # A thread still inside zenoh that wakes up while the interpreter finalizes is
+        # killed there, which aborts the process ("FATAL: exception not rethrown",
+        # SIGABRT) instead of exiting with the code: skip the finalization.
+        logging.getLogger("telebot").warning("zenoh did not finish closing; exiting anyway")
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
+
+
+def _run(prog: str, main: Callable[[], Coroutine[Any, Any, int]]) -> int:
     try:
         return asyncio.run(_terminable(main))
     except KeyboardInterrupt:
@@ -203,3 +234,21 @@ def run(prog: str, main: Callable[[], Coroutine[Any, Any, int]], log_level: str)
     except TelebotError as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return EXIT_FAILURE
+
+
+def finish_threads(timeout: float) -> bool:
+    """Wait up to ``timeout`` s for the zenoh transport's threads; True if none is left.
+
+    Closing a transport hands the zenoh calls to daemon threads and may return before they
+    end (the close timed out, or the thread is still releasing the session after handing
+    back its result). The interpreter must not finalize while one of them can still come
+    back from zenoh and ask for the GIL.
+    """
+    deadline = time.monotonic() + timeout
+    for thread in threading.enumerate():
+        if thread.name.startswith(ZENOH_THREAD_PREFIX) and thread is not threading.current_thread():
+            thread.join(max(0.0, deadline - time.monotonic()))
+    return not any(
+        thread.is_alive() and thread.name.startswith(ZENOH_THREAD_PREFIX)
+        for thread in threading.enumerate()
+    )

@@ -138,7 +138,7 @@ async def send_command(
         if arm:
             ack = await client.arm()
             if not ack.ok:
-                print(f"! refused to arm: {ack.reason}", flush=True)
+                print(f"! refused to arm: {ack.text}", flush=True)
                 return EXIT_FAILURE
         try:
             ok = await _run_command(client, command, timeout, map_dir)
@@ -258,7 +258,7 @@ async def _read_keys(
                 break
             if _moving(client):
                 # The paper's rule: any key while the robot moves stops it, at once.
-                tasks.create_task(client.stop())
+                tasks.create_task(client.stop(how="key"))
                 print("\r\033[K[key pressed: stopping]", flush=True)
                 line = ""
                 print(prompt, end="", flush=True)
@@ -283,7 +283,7 @@ async def _read_keys(
                         line = line[:-1]
                         print("\b \b", end="", flush=True)
                 elif char == "\x1b":  # Escape: stop (as in the web UI's chat box)
-                    tasks.create_task(client.stop())
+                    tasks.create_task(client.stop(how="key"))
                 elif char.isprintable():
                     line += char
                     print(char, end="", flush=True)

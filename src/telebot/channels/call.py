@@ -669,6 +669,31 @@ class RobotEndpoint(_Endpoint):
             publisher.close()
 
 
+def _check_robot_key(robot: str, known: bytes, tokens: dict[str, bool]) -> None:
+    """CallError if ``robot`` is online only with keys other than the ``known`` one.
+
+    ``tokens`` maps the last chunk of the robot's presence keys (its public key) to
+    whether the token is alive.
+    """
+    expected = encode_key(known)
+    alive = {key for key, up in tokens.items() if up}
+    others = sorted(key for key in alive - {expected} if _is_key(key))
+    if others and expected not in alive:
+        raise CallError(
+            f"KEY MISMATCH: robot {robot} is online with key {others[0]} but known_robots "
+            f"has {expected}; if its key changed on purpose, replace it with "
+            f"'telebot-user known add {robot} KEY'"
+        )
+
+
+def _is_key(text: str) -> bool:
+    try:
+        decode_key(text)
+    except ValueError:
+        return False
+    return True
+
+
 @dataclass(frozen=True, slots=True)
 class RobotPresence:
     """A robot seen online: its name, its key, and whether this user trusts that key."""
@@ -712,7 +737,8 @@ class UserEndpoint(_Endpoint):
         """Call ``robot``; returns the call once the robot accepted it.
 
         Raises CallRejected with the robot's reason, CallTimeout if it does not answer,
-        or CallError when the robot is not in known_robots.
+        or CallError when the robot is not in known_robots, or is online with another key
+        than the one known_robots holds ("KEY MISMATCH", at once: it could not answer).
         """
         validate_name(robot, "robot name")
         if self._closed:
@@ -739,12 +765,20 @@ class UserEndpoint(_Endpoint):
         self._pending_robot[call_id] = robot
         self._pending_hello[call_id] = hello.encode()
         publisher = self.transport.publisher(f"{self.namespace}/robot/{robot}/in", Lane.CONTROL)
+        # A robot online under this name with another key cannot read the HELLO and never
+        # answers: its presence token (which carries its key) tells at once.
+        tokens: dict[str, bool] = {}
+        prefix = f"{self.namespace}/presence/robot/{robot}/"
+        watch = self.transport.watch_presence(
+            f"{prefix}*", lambda key, alive: tokens.__setitem__(key.removeprefix(prefix), alive)
+        )
         try:
             async with asyncio.timeout(timeout):
                 while True:
                     publisher.put(self._pending_hello[call_id])
                     with contextlib.suppress(TimeoutError):
                         return await asyncio.wait_for(asyncio.shield(future), HELLO_RETRY_INTERVAL)
+                    _check_robot_key(robot, robot_key, tokens)
         except BaseException as exc:
             # Answered, but the caller gave up (cancelled) at that very moment: end the
             # call rather than leave it running unseen.
@@ -758,6 +792,7 @@ class UserEndpoint(_Endpoint):
                 f"robot {robot} did not answer within {timeout:g} s ({hint})"
             ) from None
         finally:
+            watch.close()
             publisher.close()
             self._pending.pop(call_id, None)
             self._pending_robot.pop(call_id, None)

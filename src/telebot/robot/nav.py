@@ -152,7 +152,17 @@ class GoalHandle(Protocol):
 
     @property
     def reason(self) -> str:
-        """Why it failed or was cancelled; empty otherwise."""
+        """Why it failed or was cancelled, in words; empty otherwise."""
+        ...
+
+    @property
+    def code(self) -> str:
+        """How it ended, as a reason code of :class:`telebot.reasons.Reason`.
+
+        ``finished``, ``obstacle``, ``stopped``, ``cancelled``, ``replaced``, ``no_path``,
+        ``battery_empty`` or ``failed``; empty while active. Services decide on this, never
+        on the wording of :attr:`reason` (a real robot's navigation stack has its own).
+        """
         ...
 
     def cancel(self) -> None:

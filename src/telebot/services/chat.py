@@ -24,7 +24,18 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
-from telebot.errors import ProtocolError, RobotError
+from telebot.errors import (
+    InvalidCommand,
+    NoPath,
+    ProtocolError,
+    RobotError,
+    UnknownCamera,
+    UnknownPlace,
+)
+from telebot.identity import Role
+from telebot.reasons import Reason, Refusal
+from telebot.rights import Right as Privilege
+from telebot.rights import rights_of
 from telebot.robot.nav import GoalHandle, GoalStatus, NavStack, NavState
 from telebot.services.proto.chat import (
     HELP_TEXT,
@@ -54,13 +65,17 @@ from telebot.services.proto.chat import (
     decode_request,
     parse_command,
 )
+from telebot.services.proto.mapxfer import EncodedMap, encode_map
 
 __all__ = [
     "FINISHED",
+    "NO_SUPERVISOR",
     "OBSERVER_REFUSAL",
     "UNBLOCK_POLLS",
     "ChatSession",
     "DriveGate",
+    "error_reason",
+    "goal_reason",
 ]
 
 logger = logging.getLogger(__name__)
@@ -77,21 +92,18 @@ _ACK_GOTO = "Goto command received"
 _ACK_FORWARD = "Forward command received"
 _ACK_TURN = "Turn command received"
 
-# Commands that move the robot or change what it shows: drivers and admins only.
-_DRIVING = (
-    GotoPlace,
-    GotoPoint,
-    Forward,
-    Turn,
-    Left,
-    Right,
-    Cancel,
-    NavCam,
-    UserCam,
-    Arm,
-    TakeDrive,
-    ReleaseDrive,
-)
+# The right each command needs beyond observing (table: telebot.rights).
+_NEEDS: dict[type, Privilege] = {
+    **dict.fromkeys(
+        (GotoPlace, GotoPoint, Forward, Turn, Left, Right, Cancel, Arm, TakeDrive, ReleaseDrive),
+        Privilege.DRIVE,
+    ),
+    NavCam: Privilege.CAMERA,
+    UserCam: Privilege.CAMERA,
+    Stop: Privilege.STOP,
+}
+# Commands that move the robot or change what it shows: logged at INFO.
+_DRIVING = tuple(command for command, right in _NEEDS.items() if right is not Privilege.STOP)
 # Commands that start a motion: the safety supervisor must allow each.
 _MOVING = (GotoPlace, GotoPoint, Forward, Turn, Left, Right)
 
@@ -114,30 +126,30 @@ def _describe(command: Command) -> str:
 class DriveGate(Protocol):
     """The safety supervisor's say over one caller (see :mod:`telebot.services.supervision`).
 
-    Each method returns None when allowed, or the refusal to reply with.
+    Each method returns None when allowed, or the refusal (text and code) to reply with.
     """
 
-    def motion(self, what: str) -> str | None:
+    def motion(self, what: str) -> Refusal | None:
         """May the caller start this motion now?"""
         ...
 
-    def camera(self, name: str) -> str | None:
+    def camera(self, name: str) -> Refusal | None:
         """May the caller select this camera now?"""
         ...
 
-    def stop(self, reason: str = "stop requested") -> None:
-        """Stop the robot and latch (never refused)."""
+    def stop(self, reason: str = "stop requested", how: str = "") -> None:
+        """Stop the robot and latch (never refused); ``how`` it was given, for the audit."""
         ...
 
-    def rearm(self) -> str | None:
+    def rearm(self) -> Refusal | None:
         """Re-arm after a stop."""
         ...
 
-    def take(self) -> str | None:
+    def take(self) -> Refusal | None:
         """Take the drive."""
         ...
 
-    def release(self) -> str | None:
+    def release(self) -> Refusal | None:
         """Give the drive up."""
         ...
 
@@ -159,22 +171,27 @@ class _Motion:
 class ChatSession:
     """Runs one caller's chat commands on ``nav`` and sends the replies (module docstring).
 
-    ``may_drive`` is the caller's right to move the robot (the driver and admin roles);
-    ``send`` delivers one reply on the chat channel; ``user`` names the caller in logs.
-    Neither :meth:`on_payload` nor :meth:`poll` ever raises.
+    ``role`` is the caller's contact role: its rights (:mod:`telebot.rights`) say which
+    commands it may give; ``send`` delivers one reply on the chat channel; ``user`` names
+    the caller in logs; ``map_offer`` gives the map the ``map`` channel sends (default:
+    ``nav``'s map, cropped and encoded on each ``getmap``). Neither :meth:`on_payload` nor
+    :meth:`poll` ever raises.
     """
 
     def __init__(
         self,
         nav: NavStack,
         *,
-        may_drive: bool,
+        role: Role | None,
         send: Callable[[ChatReply], None],
         user: str = "",
         gate: DriveGate | None = None,
+        map_offer: Callable[[], EncodedMap] | None = None,
     ) -> None:
         self._nav = nav
-        self._may_drive = may_drive
+        # What getmap announces must be what the map channel sends: the cropped map.
+        self._map_offer = map_offer or (lambda: encode_map(nav.map()))
+        self._rights = rights_of(role)
         self._gate = gate
         self._send = send
         self._user = user or "caller"
@@ -188,8 +205,8 @@ class ChatSession:
 
     @property
     def may_drive(self) -> bool:
-        """Whether this caller may move the robot and switch its camera."""
-        return self._may_drive
+        """Whether this caller's role may move the robot."""
+        return Privilege.DRIVE in self._rights
 
     @property
     def pending(self) -> int:
@@ -215,7 +232,7 @@ class ChatSession:
         try:
             command = parse_command(text)
         except CommandError as exc:
-            self._reply(request_id, str(exc), ok=False)
+            self._reply(request_id, str(exc), exc.reason, ok=False)
             return
         # Who moved the robot belongs in the log; a web UI polling "status" does not.
         level = logging.INFO if isinstance(command, (*_DRIVING, Stop)) else logging.DEBUG
@@ -226,10 +243,11 @@ class ChatSession:
             # InvalidCommand, UnknownPlace (lists the known ones), UnknownCamera, NoPath:
             # the adapter's own message is the clearest answer.
             self._finish_done_motions()
-            self._reply(request_id, str(exc), ok=False)
+            self._reply(request_id, str(exc), error_reason(exc), ok=False)
         except Exception:
             logger.exception("chat from %s: %r failed", self._user, text)
-            self._reply(request_id, "internal error: the robot could not run that", ok=False)
+            text = "internal error: the robot could not run that"
+            self._reply(request_id, text, Reason.INTERNAL_ERROR, ok=False)
 
     def poll(self) -> None:
         """Send the final replies of finished motions and notices of blocked ones."""
@@ -245,20 +263,21 @@ class ChatSession:
     def _execute(self, request_id: int, command: Command) -> None:
         nav = self._nav
         gate = self._gate
-        if isinstance(command, _DRIVING) and not self._may_drive:
-            logger.info("chat from %s: refused %s (observer)", self._user, command)
+        needs = _NEEDS.get(type(command), Privilege.OBSERVE)
+        if needs not in self._rights:
+            logger.info("chat from %s: refused %s (no %s right)", self._user, command, needs)
+            text = OBSERVER_REFUSAL
             if gate is not None:
                 # The supervisor refuses observers too, and writes the refusal to the audit
                 # log: who tried what matters most when it was refused.
                 refusal = gate.motion(_describe(command))
-                self._reply(request_id, f"refused: {refusal or OBSERVER_REFUSAL}", ok=False)
-            else:
-                self._reply(request_id, OBSERVER_REFUSAL, ok=False)
+                text = f"refused: {refusal}" if refusal is not None else text
+            self._reply(request_id, text, Reason.OBSERVER, ok=False)
             return
         if gate is not None and isinstance(command, _MOVING):
             refusal = gate.motion(_describe(command))
             if refusal is not None:
-                self._reply(request_id, f"refused: {refusal}", ok=False)
+                self._refused(request_id, refusal)
                 return
         match command:
             case GotoPlace(name):
@@ -277,7 +296,7 @@ class ChatSession:
                 self._start_motion(request_id, nav.turn(-math.pi / 2), _ACK_TURN)
             case Stop():
                 if gate is not None:
-                    gate.stop()  # latches: the robot stays stopped until re-armed
+                    gate.stop(how="chat")  # latches: the robot stays stopped until re-armed
                 else:
                     nav.stop()
                 self._finish_done_motions()  # the stopped request hears "stopped" first
@@ -296,7 +315,7 @@ class ChatSession:
                 camera = "navcam" if isinstance(command, NavCam) else "usercam"
                 refusal = gate.camera(camera) if gate is not None else None
                 if refusal is not None:
-                    self._reply(request_id, f"refused: {refusal}", ok=False)
+                    self._refused(request_id, refusal)
                     return
                 nav.select_camera(camera)
                 self._reply(request_id, f"{nav.active_camera} selected")
@@ -315,10 +334,10 @@ class ChatSession:
                     text += ", charging"
                 self._reply(request_id, text)
             case GetMap():
-                grid = nav.map()
+                offer = self._map_offer()
                 self._reply(
                     request_id,
-                    f"sending map: {grid.width} x {grid.height} cells at {grid.resolution:g} m",
+                    f"sending map: {offer.width} x {offer.height} cells at {offer.resolution:g} m",
                     attachment="map",
                 )
             case Help(topic):
@@ -327,7 +346,7 @@ class ChatSession:
     def _drive_command(self, request_id: int, command: Arm | TakeDrive | ReleaseDrive) -> None:
         gate = self._gate
         if gate is None:
-            self._reply(request_id, NO_SUPERVISOR, ok=False)
+            self._reply(request_id, NO_SUPERVISOR, Reason.NO_SUPERVISOR, ok=False)
             return
         if isinstance(command, Arm):
             refusal, done = gate.rearm(), "armed: send a motion command to move"
@@ -337,7 +356,7 @@ class ChatSession:
             refusal, done = gate.release(), "drive released; the robot is stopped"
             self._finish_done_motions()  # the stopped motion's final reply goes first
         if refusal is not None:
-            self._reply(request_id, f"refused: {refusal}", ok=False)
+            self._refused(request_id, refusal)
         else:
             self._reply(request_id, done)
 
@@ -346,9 +365,9 @@ class ChatSession:
         self._finish_done_motions()
         if handle.status.done:
             # Refused at once (no path, battery empty): the reason is the whole answer.
-            self._reply(request_id, _final_text(handle), ok=handle.status is GoalStatus.SUCCEEDED)
+            self._final_reply(request_id, handle)
             return
-        self._reply(request_id, ack, final=False)
+        self._reply(request_id, ack, Reason.ACCEPTED, final=False)
         self._motions.append(_Motion(request_id, handle))
 
     def _where(self) -> str:
@@ -386,12 +405,7 @@ class ChatSession:
             (finished if motion.handle.status.done else still_running).append(motion)
         self._motions = still_running
         for motion in finished:
-            handle = motion.handle
-            self._reply(
-                motion.request_id,
-                _final_text(handle),
-                ok=handle.status is GoalStatus.SUCCEEDED,
-            )
+            self._final_reply(motion.request_id, motion.handle)
 
     def _notice_blockages(self) -> None:
         if not self._motions:
@@ -409,7 +423,8 @@ class ChatSession:
                 if not motion.notified_blocked:
                     motion.notified_blocked = True
                     detail = status.detail or "obstacle ahead"
-                    self._reply(motion.request_id, f"blocked: {detail}", final=False, ok=False)
+                    text = f"blocked: {detail}"
+                    self._reply(motion.request_id, text, Reason.OBSTACLE, final=False, ok=False)
             elif motion.notified_blocked:
                 motion.clear_polls += 1
                 if motion.clear_polls >= UNBLOCK_POLLS:
@@ -417,10 +432,18 @@ class ChatSession:
 
     # ------------------------------------------------------------------ output
 
+    def _refused(self, request_id: int, refusal: Refusal) -> None:
+        self._reply(request_id, f"refused: {refusal}", refusal.reason, ok=False)
+
+    def _final_reply(self, request_id: int, handle: GoalHandle) -> None:
+        ok = handle.status is GoalStatus.SUCCEEDED
+        self._reply(request_id, _final_text(handle), goal_reason(handle), ok=ok)
+
     def _reply(
         self,
         request_id: int,
         text: str,
+        reason: str = Reason.OK,
         *,
         final: bool = True,
         ok: bool = True,
@@ -429,13 +452,43 @@ class ChatSession:
         seq = self._seq.pop(request_id, 0) if final else self._seq.get(request_id, 0)
         if not final:
             self._seq[request_id] = seq + 1
-        reply = ChatReply(request_id, text, final=final, ok=ok, attachment=attachment, seq=seq)
+        reply = ChatReply(
+            request_id, text, final=final, ok=ok, attachment=attachment, seq=seq, reason=reason
+        )
         try:
             self._send(reply)
         except Exception:
             # A lost reply is what a lossy channel does anyway; the daemon must go on.
             self.send_errors += 1
             logger.warning("chat reply to %s could not be sent", self._user, exc_info=True)
+
+
+def goal_reason(handle: GoalHandle) -> str:
+    """The reason code of a finished goal (its NavStack's code, else one from its status)."""
+    if handle.code:
+        return handle.code
+    match handle.status:
+        case GoalStatus.SUCCEEDED:
+            return Reason.FINISHED
+        case GoalStatus.CANCELLED:
+            return Reason.CANCELLED
+        case GoalStatus.FAILED:
+            return Reason.FAILED
+    return Reason.ACCEPTED
+
+
+def error_reason(exc: Exception) -> Reason:
+    """The reason code of an error the NavStack raised for a command."""
+    match exc:
+        case UnknownPlace():
+            return Reason.UNKNOWN_PLACE
+        case UnknownCamera():
+            return Reason.UNKNOWN_CAMERA
+        case NoPath():
+            return Reason.NO_PATH
+        case InvalidCommand():
+            return Reason.INVALID
+    return Reason.FAILED
 
 
 def _final_text(handle: GoalHandle) -> str:

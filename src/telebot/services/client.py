@@ -47,6 +47,7 @@ from telebot.errors import (
     TelebotError,
 )
 from telebot.identity import Identity, KnownRobots
+from telebot.reasons import Reason
 from telebot.services.base import CLIENT_TICK, OpenServices, ServiceRegistry
 from telebot.services.mapxfer import MapDownload, fetch_map
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
@@ -86,9 +87,8 @@ T = TypeVar("T")
 
 #: A request nobody answered is sent again after this long (s).
 RESEND_AFTER = 0.3
-#: What the robot says when it has not measured the call's round trip yet (just after
-#: set-up), and how often a refused motion is asked again for that reason (every 0.1 s).
-UNMEASURED = "round trip is not measured yet"
+#: How often a motion refused because the robot has not measured the call's round trip
+#: yet (just after set-up; code ``rtt_unmeasured``) is asked again (every 0.1 s).
 UNMEASURED_RETRIES = 20
 #: A stop is repeated this often (s) until the robot acknowledges it.
 STOP_REPEAT = 0.05
@@ -99,12 +99,17 @@ REFRESH_AFTER = 2.0
 
 @dataclass(slots=True)
 class ChatResult:
-    """All replies to one chat command; ``ok`` is the final reply's verdict."""
+    """All replies to one chat command; ``ok`` is the final reply's verdict.
+
+    ``reason`` is the final reply's code (:class:`~telebot.reasons.Reason`:
+    ``"finished"``, ``"not_armed"``, ``"observer"``, …): decide on it, never on the text.
+    """
 
     command: str
     replies: list[str] = field(default_factory=list)
     ok: bool = False
     attachment: str | None = None
+    reason: str = ""
 
     @property
     def final_text(self) -> str:
@@ -434,7 +439,7 @@ class RobotClient:
                             first
                             and reply.final
                             and not reply.ok
-                            and UNMEASURED in reply.text
+                            and reply.reason == Reason.RTT_UNMEASURED
                             and attempt < UNMEASURED_RETRIES
                         ):
                             break
@@ -486,16 +491,19 @@ class RobotClient:
             if reply.final:
                 result.ok = reply.ok
                 result.attachment = reply.attachment
+                result.reason = reply.reason
         return result
 
-    async def stop(self, *, timeout: float = 5.0) -> SafetyAck:
+    async def stop(self, *, how: str = "api", timeout: float = 5.0) -> SafetyAck:
         """Stop the robot now (any participant may); repeated until the robot acknowledges.
 
         The stop goes on the ``safety`` channel (CONTROL lane) and is sent again every
         :data:`STOP_REPEAT` seconds until acknowledged, so loss cannot eat it. The robot
-        stays stopped (disarmed) until the drive holder re-arms it (:meth:`arm`).
+        stays stopped (disarmed) until the drive holder re-arms it (:meth:`arm`). ``how``
+        tells the robot's audit log how the user stopped (``"button"``, ``"key"``,
+        ``"tab_closed"``, ``"exit"``, ``"api"``: see ``STOP_HOWS``).
         """
-        return await self._safety_request("stop", timeout, STOP_REPEAT)
+        return await self._safety_request("stop", timeout, STOP_REPEAT, how)
 
     async def arm(self, *, timeout: float = 5.0) -> SafetyAck:
         """Re-arm the robot after a stop (the drive holder only); ``ok`` False says why not."""
@@ -509,11 +517,13 @@ class RobotClient:
         """Give the drive up (the robot stops)."""
         return await self._safety_request("release", timeout, RESEND_AFTER)
 
-    async def _safety_request(self, kind: RequestType, timeout: float, repeat: float) -> SafetyAck:
+    async def _safety_request(
+        self, kind: RequestType, timeout: float, repeat: float, how: str = ""
+    ) -> SafetyAck:
         request_id = next(self._safety_ids) % 2**32
         acks: asyncio.Queue[SafetyAck] = asyncio.Queue()
         self._safety_waiters[request_id] = acks
-        payload = SafetyRequest(kind, request_id).encode()
+        payload = SafetyRequest(kind, request_id, how).encode()
         try:
             async with asyncio.timeout(timeout):
                 core = await self._core()
@@ -551,7 +561,7 @@ class RobotClient:
                 update = await self._one_goal(x, y, yaw, on_update)
                 # Refused only because the robot has not measured the new call's round
                 # trip yet (just after set-up): ask again shortly, as chat does.
-                if not (update.status == "refused" and UNMEASURED in update.reason):
+                if not (update.status == "refused" and update.reason == Reason.RTT_UNMEASURED):
                     return update
                 if attempt < UNMEASURED_RETRIES:
                     await asyncio.sleep(RESEND_AFTER / 3)
@@ -587,7 +597,7 @@ class RobotClient:
                     continue
                 heard = True
                 if on_update is not None and not (
-                    update.status == "refused" and UNMEASURED in update.reason
+                    update.status == "refused" and update.reason == Reason.RTT_UNMEASURED
                 ):
                     on_update(update)
                 if update.final:

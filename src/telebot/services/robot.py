@@ -24,10 +24,12 @@ from telebot.channels.transports.base import Lane
 from telebot.config import ServiceSettings
 from telebot.errors import ProtocolError, TelebotError
 from telebot.identity import Role
+from telebot.reasons import Reason, Refusal
+from telebot.rights import Right, may
 from telebot.robot.nav import GoalHandle, GoalStatus, NavStack
 from telebot.safety import SafetyState
 from telebot.services.base import OpenServices, ServiceRegistry
-from telebot.services.chat import ChatSession
+from telebot.services.chat import NO_SUPERVISOR, ChatSession, error_reason, goal_reason
 from telebot.services.mapxfer import MapService
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
 from telebot.services.proto.chat import ChatReply, decode_request
@@ -79,7 +81,7 @@ class SteppedNavStack(NavStack, Protocol):
 
 def may_drive(role: Role | None) -> bool:
     """Whether a contact with ``role`` may move the robot (drivers and admins)."""
-    return role in (Role.DRIVER, Role.ADMIN)
+    return may(role, Right.DRIVE)
 
 
 class CallServices:
@@ -101,10 +103,11 @@ class CallServices:
         self.gate = server.safety.gate(call.id) if server.safety is not None else None
         self.chat = ChatSession(
             nav,
-            may_drive=may_drive(call.role),
+            role=call.role,
             send=self._send_chat,
             user=call.peer,
             gate=self.gate,
+            map_offer=server.encoded_map,
         )
         self.map = MapService(call.channel(MAP, lane=Lane.BULK), server.encoded_map)
         # The first tick publishes both at once (a new user sees the robot straight away).
@@ -129,32 +132,37 @@ class CallServices:
         earlier = self._safety_acks.get(request.id)
         if earlier is not None:
             if request.type == "stop":
-                self._stop(request.type)  # a stop is never skipped, even when repeated
+                self._stop(request.how)  # a stop is never skipped, even when repeated
             self._send(self._safety_channel, earlier)
             return
+        refusal: Refusal | None
         if request.type == "stop":
-            refusal = self._stop("stop key")
+            self._stop(request.how)
+            refusal = None
         elif self.gate is None:
-            refusal = "this robot has no safety supervisor"
+            refusal = Refusal(NO_SUPERVISOR, Reason.NO_SUPERVISOR)
         elif request.type == "arm":
             refusal = self.gate.rearm()
         elif request.type == "take":
             refusal = self.gate.take()
         else:
             refusal = self.gate.release()
-        ack = SafetyAck(request.id, refusal is None, refusal or "").encode()
+        if refusal is None:
+            ack = SafetyAck(request.id, True, "", Reason.OK).encode()
+        else:
+            ack = SafetyAck(request.id, False, refusal.text, refusal.reason).encode()
         _remember(self._safety_acks, request.id, ack)
         self.server.emit(
             {"event": "safety", "peer": self.call.peer, "type": request.type, "ok": refusal is None}
         )
         self._send(self._safety_channel, ack)
 
-    def _stop(self, reason: str) -> str | None:
+    def _stop(self, how: str) -> None:
+        # Who stopped is the call's user; how (button, key, tab closed…) the user said.
         if self.gate is not None:
-            self.gate.stop(reason)
+            self.gate.stop(how=how or "unspecified")
         else:
             self.server.nav.stop()
-        return None
 
     def send_safety_state(self, state: SafetyStatus) -> None:
         """Tell this call the safety state (on every change and once a second)."""
@@ -194,27 +202,31 @@ class CallServices:
             return
         if command.type == "cancel":
             if not may_drive(self.call.role):
-                if self.gate is not None:
-                    self.gate.motion(f"cancel goal {command.id}")  # refused, and audited
-                self._send(
-                    self._goals_channel, GoalUpdate(command.id, "refused", 0.0, _OBSERVER).encode()
-                )
+                text = _OBSERVER
+                if self.gate is not None:  # refused, and audited
+                    text = str(self.gate.motion(f"cancel goal {command.id}") or text)
+                refused = GoalUpdate(command.id, "refused", 0.0, text, Reason.OBSERVER)
+                self._send(self._goals_channel, refused.encode())
                 return
             if isinstance(known, GoalHandle):
                 known.cancel()
             self._send_goal_status(command.id, force=True)
             return
+        refusal: Refusal | None
         if self.gate is not None:  # it refuses observers too, and audits the refusal
             refusal = self.gate.motion(f"goal {command.x:g} {command.y:g}")
         else:
-            refusal = None if may_drive(self.call.role) else _OBSERVER
+            observer = Refusal(_OBSERVER, Reason.OBSERVER)
+            refusal = None if may_drive(self.call.role) else observer
         if refusal is not None:
-            _remember(self._goals, command.id, GoalUpdate(command.id, "refused", 0.0, refusal))
+            refused = GoalUpdate(command.id, "refused", 0.0, refusal.text, refusal.reason)
+            _remember(self._goals, command.id, refused)
         else:
             try:
                 handle = self.server.nav.navigate_to(command.x, command.y, command.yaw)
             except TelebotError as exc:
-                _remember(self._goals, command.id, GoalUpdate(command.id, "refused", 0.0, str(exc)))
+                refused = GoalUpdate(command.id, "refused", 0.0, str(exc), error_reason(exc))
+                _remember(self._goals, command.id, refused)
             else:
                 _remember(self._goals, command.id, handle)
                 self.server.emit({"event": "goal", "peer": self.call.peer, "id": command.id})
@@ -223,10 +235,13 @@ class CallServices:
     def _goal_update(self, goal_id: int) -> GoalUpdate:
         entry = self._goals.get(goal_id)
         if entry is None:
-            return GoalUpdate(goal_id, "unknown")
+            return GoalUpdate(goal_id, "unknown", reason=Reason.UNKNOWN_GOAL)
         if isinstance(entry, GoalUpdate):
             return entry
-        return GoalUpdate(goal_id, str(entry.status), entry.progress, entry.reason)
+        if entry.status is GoalStatus.ACTIVE:
+            return GoalUpdate(goal_id, "active", entry.progress, "", Reason.ACCEPTED)
+        code = goal_reason(entry)
+        return GoalUpdate(goal_id, str(entry.status), entry.progress, entry.reason, code)
 
     def _send_goal_status(self, goal_id: int, *, force: bool = False) -> None:
         update = self._goal_update(goal_id)

@@ -24,6 +24,7 @@ from typing import IO, Literal, Protocol
 
 from telebot.channels.call import Call
 from telebot.identity import Role
+from telebot.reasons import Refusal
 from telebot.robot.nav import NavStack, NavState, Velocity
 from telebot.safety import (
     Action,
@@ -147,9 +148,9 @@ class SafetyDriver:
             self.apply(self.supervisor.obstacle(blocked, now))
         self.apply(self.supervisor.tick(now))
 
-    def stop(self, call_id: str | None, reason: str = "stop requested") -> Decision:
-        """Stop (anyone may; ``call_id`` None: the robot itself)."""
-        return self.carry_out(self.supervisor.request_stop(call_id, self._clock(), reason))
+    def stop(self, call_id: str | None, reason: str = "stop requested", how: str = "") -> Decision:
+        """Stop (anyone may; ``call_id`` None: the robot itself); ``how``: see ``STOP_HOWS``."""
+        return self.carry_out(self.supervisor.request_stop(call_id, self._clock(), reason, how))
 
     def gate(self, call_id: str) -> CallGate:
         """What ``call_id`` may do, for the chat and goals services."""
@@ -214,23 +215,23 @@ class SafetyDriver:
 class CallGate:
     """One call's rights, as the supervisor decides them (used by chat and goals).
 
-    Each method returns None when allowed, or the refusal to send back.
+    Each method returns None when allowed, or the refusal (text and code) to send back.
     """
 
     def __init__(self, driver: SafetyDriver, call_id: str) -> None:
         self._driver = driver
         self.call_id = call_id
 
-    def _decide(self, decision: Decision) -> str | None:
+    def _decide(self, decision: Decision) -> Refusal | None:
         self._driver.carry_out(decision)
-        return None if decision.allowed else decision.reason
+        return None if decision.allowed else Refusal(decision.reason, decision.code)
 
-    def motion(self, what: str) -> str | None:
+    def motion(self, what: str) -> Refusal | None:
         """May this call start ``what`` (a motion command) now?"""
         sup = self._driver.supervisor
         return self._decide(sup.request_motion(self.call_id, self._driver._clock(), what))
 
-    def camera(self, name: str) -> str | None:
+    def camera(self, name: str) -> Refusal | None:
         """May this call select camera ``name`` now?"""
         nav = self._driver.nav
         # A goal just accepted, or held up by an obstacle, stands still but is about to move.
@@ -238,19 +239,19 @@ class CallGate:
         sup = self._driver.supervisor
         return self._decide(sup.request_camera(self.call_id, name, moving, self._driver._clock()))
 
-    def stop(self, reason: str = "stop requested") -> None:
-        """Stop the robot (never refused)."""
-        self._driver.stop(self.call_id, reason)
+    def stop(self, reason: str = "stop requested", how: str = "") -> None:
+        """Stop the robot (never refused); ``how`` it was given goes to the audit log."""
+        self._driver.stop(self.call_id, reason, how)
 
-    def rearm(self) -> str | None:
+    def rearm(self) -> Refusal | None:
         """Re-arm the robot (the drive holder only)."""
         return self._decide(self._driver.supervisor.rearm(self.call_id, self._driver._clock()))
 
-    def take(self) -> str | None:
+    def take(self) -> Refusal | None:
         """Take the drive."""
         return self._decide(self._driver.supervisor.take_drive(self.call_id, self._driver._clock()))
 
-    def release(self) -> str | None:
+    def release(self) -> Refusal | None:
         """Give the drive up (the robot stops)."""
         sup = self._driver.supervisor
         return self._decide(sup.release_drive(self.call_id, self._driver._clock()))

@@ -8,7 +8,7 @@ streams video while at least one is.
 Websocket protocol (JSON text messages unless stated)::
 
     page → client
-      {"type": "stop"}                                  stop now (anyone, never refused)
+      {"type": "stop", "how": "button" | "key"}         stop now (anyone, never refused)
       {"type": "arm"} | {"type": "take"} | {"type": "release"}
       {"type": "goal", "x": 1.0, "y": 2.0, "yaw": 0.5}   map frame; yaw may be null
       {"type": "chat", "id": 3, "text": "fwd 1"}         a Table I command
@@ -28,9 +28,9 @@ Websocket protocol (JSON text messages unless stated)::
        | "ended", "detail", "seconds"}                   the call to the robot dropped /
                                                          came back (seconds of outage) /
                                                          ended for good
-      {"type": "goal", "x", "y", "yaw", "status", "progress", "reason"}
-      {"type": "chat", "id", "text", "ok", "final"}      replies, to the page that asked
-      {"type": "ack", "what": "stop" | "arm" | ..., "ok", "reason"}
+      {"type": "goal", "x", "y", "yaw", "status", "progress", "reason", "code"}
+      {"type": "chat", "id", "text", "ok", "final", "code"}   replies, to the page that asked
+      {"type": "ack", "what": "stop" | "arm" | ..., "ok", "reason", "code"}
       {"type": "pong", "t"}
       binary: video frame = 4-byte big-endian header length, UTF-8 JSON header
               {"camera", "frame_id", "capture_time"}, then the JPEG bytes as the robot
@@ -44,13 +44,15 @@ and the robot stays stopped until re-armed.
 Safety: a ``stop`` is handed to :meth:`RobotClient.stop` at once (before anything else
 the message loop does). When a page's websocket closes (tab closed, browser crashed: the
 websocket heartbeat notices within 2 s) while the robot moves and this user may drive,
-the client stops the robot.
+the client stops the robot (a stop with ``how`` ``tab_closed``). ``reason`` is text for
+people; ``code`` the robot's reason code (``docs/protocol.md`` §13.1).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import json
 import logging
 import math
@@ -68,8 +70,11 @@ from aiohttp import WSMsgType, web
 
 from telebot.config import AppConfig
 from telebot.errors import CallEnded, TelebotError
+from telebot.reasons import Reason
+from telebot.rights import Right, may
 from telebot.services.client import ConnectionEvent, RobotClient
 from telebot.services.mapxfer import MapDownload
+from telebot.services.proto.safety import STOP_HOWS, SafetyAck
 from telebot.services.proto.status import GoalUpdate, PoseUpdate
 from telebot.services.proto.video import CompleteFrame
 
@@ -146,7 +151,7 @@ class WebUI:
     @property
     def may_drive(self) -> bool:
         """Whether this user's role may drive (observers may only watch and stop)."""
-        return str(self.client.call.role) in ("driver", "admin")
+        return may(self.client.call.role, Right.DRIVE)
 
     @property
     def url(self) -> str:
@@ -310,7 +315,8 @@ class WebUI:
             return
         if kind == "stop":
             # First and without waiting: the stop's datagram leaves in this loop turn.
-            self._spawn(self._safety(page, "stop"))
+            how = msg.get("how")
+            self._spawn(self._safety(page, "stop", how if how in STOP_HOWS else "button"))
         elif kind in ("arm", "take", "release"):
             self._spawn(self._safety(page, kind))
         elif kind == "goal":
@@ -350,7 +356,8 @@ class WebUI:
                 "yaw": yaw,
                 "status": status.status,
                 "progress": status.progress,
-                "reason": status.reason,
+                "reason": status.text,
+                "code": status.reason,
             }
             self._broadcast(self._goal)
 
@@ -358,25 +365,30 @@ class WebUI:
         try:
             final = await self.client.goto(x, y, yaw, on_update=update)
         except CallEnded as exc:
-            update(GoalUpdate(0, "failed", reason=str(exc)))
+            update(GoalUpdate(0, "failed", text=str(exc), reason=Reason.FAILED))
             return
         update(final)
 
-    async def _safety(self, page: _Page, kind: str) -> None:
+    async def _safety(self, page: _Page, kind: str, how: str = "button") -> None:
         client = self.client
-        action = {
-            "stop": client.stop,
+        actions: dict[str, Callable[[], Coroutine[Any, Any, SafetyAck]]] = {
+            "stop": functools.partial(client.stop, how=how),
             "arm": client.arm,
             "take": client.take_drive,
             "release": client.release_drive,
-        }[kind]
+        }
         try:
-            ack = await action()
+            ack = await actions[kind]()
         except (TimeoutError, TelebotError) as exc:
             reason = "no answer" if isinstance(exc, TimeoutError) else str(exc)
-            self._send(page, {"type": "ack", "what": kind, "ok": False, "reason": reason})
+            self._send(
+                page, {"type": "ack", "what": kind, "ok": False, "reason": reason, "code": ""}
+            )
             return
-        self._send(page, {"type": "ack", "what": kind, "ok": ack.ok, "reason": ack.reason})
+        self._send(
+            page,
+            {"type": "ack", "what": kind, "ok": ack.ok, "reason": ack.text, "code": ack.reason},
+        )
 
     async def _chat(self, page: _Page, request_id: Any, text: str) -> None:
         text = text.strip()
@@ -392,6 +404,7 @@ class WebUI:
                         "text": reply.text,
                         "ok": reply.ok,
                         "final": reply.final,
+                        "code": reply.reason,
                     },
                 )
         except TimeoutError:
@@ -420,7 +433,7 @@ class WebUI:
         if self.moving() or goal_active or armed or blocked:
             log.warning("a page closed while the robot moved: stopping it")
             self.close_stops += 1
-            self._spawn(self.client.stop())
+            self._spawn(self.client.stop(how="tab_closed"))
 
     # -- sending ----------------------------------------------------------------------
 
@@ -557,5 +570,5 @@ async def serve_ui(
             await stop.wait()
         if ui.may_drive and ui.moving():
             with contextlib.suppress(TelebotError, TimeoutError):
-                await client.stop(timeout=2.0)
+                await client.stop(how="exit", timeout=2.0)
     return EXIT_OK

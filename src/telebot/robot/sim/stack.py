@@ -23,6 +23,7 @@ import numpy as np
 
 from telebot.config import SimSettings
 from telebot.errors import InvalidCommand, MapError, NoPath, RobotError, UnknownCamera, UnknownPlace
+from telebot.reasons import Reason
 from telebot.robot.grid import OccupancyGrid
 from telebot.robot.mapfile import load_map, load_places, places_path_for
 from telebot.robot.nav import (
@@ -88,6 +89,7 @@ class SimGoal:
         self._status = GoalStatus.ACTIVE
         self._progress = 0.0
         self._reason = ""
+        self._code = ""
         # Geometry of the motion, filled in by the stack.
         self.tracker: PathTracker | None = None
         self.final_yaw: float | None = None
@@ -136,17 +138,23 @@ class SimGoal:
         return self._reason
 
     @property
+    def code(self) -> str:
+        """Why it ended, as a reason code (``finished``, ``obstacle``, …); empty while active."""
+        return self._code
+
+    @property
     def blocked(self) -> bool:
         """Whether an obstacle is holding this goal up right now."""
         return self.blocked_since is not None
 
     def cancel(self) -> None:
         """Cancel the goal if it is still running; the robot stops."""
-        self._stack._cancel_goal(self, "cancelled")
+        self._stack._cancel_goal(self, "cancelled", Reason.CANCELLED)
 
-    def _finish(self, status: GoalStatus, reason: str = "") -> None:
+    def _finish(self, status: GoalStatus, reason: str = "", code: Reason = Reason.FINISHED) -> None:
         self._status = status
         self._reason = reason
+        self._code = code
         self.blocked_since = None
         if status is GoalStatus.SUCCEEDED:
             self._progress = 1.0
@@ -395,7 +403,7 @@ class SimNavStack:
         try:
             path = self._costmap.plan((here.x, here.y), (x, y))
         except NoPath as exc:
-            return self._fail_at_once(goal, f"no path to {label}: {exc}")
+            return self._fail_at_once(goal, f"no path to {label}: {exc}", Reason.NO_PATH)
         goal.tracker = PathTracker(path.waypoints)
         goal.final_yaw = None if yaw is None else normalize_angle(yaw)
         return self._start(goal)
@@ -438,7 +446,7 @@ class SimNavStack:
     def stop(self) -> None:
         """Stop now: the running goal is cancelled and the base brakes within one tick."""
         if self._goal is not None:
-            self._end_goal(self._goal, GoalStatus.CANCELLED, "stopped")
+            self._end_goal(self._goal, GoalStatus.CANCELLED, "stopped", Reason.STOPPED)
         self._teleop = False
         self._base.halt()
 
@@ -456,7 +464,7 @@ class SimNavStack:
     def cancel(self) -> None:
         """Cancel the running goal, if any (the robot stops)."""
         if self._goal is not None:
-            self._cancel_goal(self._goal, "cancelled")
+            self._cancel_goal(self._goal, "cancelled", Reason.CANCELLED)
 
     def drive(self, linear: float, angular: float) -> None:
         """Manual velocity command (teleoperation); repeat it, or the base watchdog stops it.
@@ -465,7 +473,9 @@ class SimNavStack:
         """
         require_finite(linear=linear, angular=angular)
         if self._goal is not None:
-            self._end_goal(self._goal, GoalStatus.CANCELLED, "replaced by manual driving")
+            self._end_goal(
+                self._goal, GoalStatus.CANCELLED, "replaced by manual driving", Reason.REPLACED
+            )
         self._teleop = True
         self._base.set_command(Velocity(float(linear), float(angular)), self._now)
 
@@ -558,35 +568,39 @@ class SimNavStack:
         goal = SimGoal(self, self._next_goal_id, kind, description, target)
         self._next_goal_id += 1
         if self._battery <= 0.0:
-            return self._fail_at_once(goal, "battery empty")
+            return self._fail_at_once(goal, "battery empty", Reason.BATTERY_EMPTY)
         return goal
 
-    def _fail_at_once(self, goal: SimGoal, reason: str) -> SimGoal:
+    def _fail_at_once(self, goal: SimGoal, reason: str, code: Reason) -> SimGoal:
         # A goal that cannot start leaves the running one alone: a typo must not stop a
         # robot that is driving somewhere sensible.
-        goal._finish(GoalStatus.FAILED, reason)
+        goal._finish(GoalStatus.FAILED, reason, code)
         if self._goal is None:
             self._last_goal = goal
         return goal
 
     def _start(self, goal: SimGoal) -> SimGoal:
         if self._goal is not None:
-            self._end_goal(self._goal, GoalStatus.CANCELLED, "replaced by a new goal")
+            self._end_goal(
+                self._goal, GoalStatus.CANCELLED, "replaced by a new goal", Reason.REPLACED
+            )
         self._teleop = False
         self._goal = goal
         return goal
 
-    def _end_goal(self, goal: SimGoal, status: GoalStatus, reason: str = "") -> None:
-        goal._finish(status, reason)
+    def _end_goal(
+        self, goal: SimGoal, status: GoalStatus, reason: str = "", code: Reason = Reason.FINISHED
+    ) -> None:
+        goal._finish(status, reason, code)
         if self._goal is goal:
             self._goal = None
             self._last_goal = goal
             # Brake within the acceleration limits; stop() additionally halts at once.
             self._base.set_command(Velocity(), self._now)
 
-    def _cancel_goal(self, goal: SimGoal, reason: str) -> None:
+    def _cancel_goal(self, goal: SimGoal, reason: str, code: Reason) -> None:
         if goal.status is GoalStatus.ACTIVE:
-            self._end_goal(goal, GoalStatus.CANCELLED, reason)
+            self._end_goal(goal, GoalStatus.CANCELLED, reason, code)
             self._base.halt()
 
     def _control(self, goal: SimGoal, now: float) -> None:
@@ -648,7 +662,9 @@ class SimNavStack:
                     goal.blocked_since = now
                 if goal.kind is _Kind.STRAIGHT and static:
                     # A wall does not move away: say so now rather than wait.
-                    self._end_goal(goal, GoalStatus.FAILED, "stopped: obstacle ahead")
+                    self._end_goal(
+                        goal, GoalStatus.FAILED, "stopped: obstacle ahead", Reason.OBSTACLE
+                    )
                     return
                 if now - goal.blocked_since >= settings.blocked_timeout:
                     self._blocked_too_long(goal, here)
@@ -659,7 +675,7 @@ class SimNavStack:
 
     def _blocked_too_long(self, goal: SimGoal, here: Pose2D) -> None:
         if goal.kind is not _Kind.PATH or goal.tracker is None:
-            self._end_goal(goal, GoalStatus.FAILED, "stopped: obstacle ahead")
+            self._end_goal(goal, GoalStatus.FAILED, "stopped: obstacle ahead", Reason.OBSTACLE)
             return
         stuck = goal.stuck_at
         if stuck is None or math.hypot(here.x - stuck.x, here.y - stuck.y) >= (
@@ -674,6 +690,7 @@ class SimNavStack:
                 goal,
                 GoalStatus.FAILED,
                 f"stopped: obstacle ahead, no way past it ({waited:g} s blocked in one place)",
+                Reason.OBSTACLE,
             )
             return
         costmap = self._costmap.with_obstacles(tuple(self._obstacles.values()))
@@ -681,7 +698,10 @@ class SimNavStack:
             path = costmap.plan((here.x, here.y), goal.tracker.goal)
         except NoPath as exc:
             self._end_goal(
-                goal, GoalStatus.FAILED, f"stopped: obstacle ahead, no way around ({exc})"
+                goal,
+                GoalStatus.FAILED,
+                f"stopped: obstacle ahead, no way around ({exc})",
+                Reason.OBSTACLE,
             )
             return
         goal.tracker = PathTracker(path.waypoints)
@@ -777,7 +797,7 @@ class SimNavStack:
         self._now = now
         if self._battery <= 0.0 and (self._goal is not None or self._teleop):
             if self._goal is not None:
-                self._end_goal(self._goal, GoalStatus.FAILED, "battery empty")
+                self._end_goal(self._goal, GoalStatus.FAILED, "battery empty", Reason.BATTERY_EMPTY)
             self._teleop = False
             self._base.halt()
 

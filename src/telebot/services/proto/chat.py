@@ -15,8 +15,9 @@ Messages are JSON text datagrams (see ``docs/protocol.md``)::
 
     user → robot   {"id": 7, "text": "fwd 2"}
     robot → user   {"id": 7, "seq": 0, "text": "Forward command received", "final": false,
-                    "ok": true}
-    robot → user   {"id": 7, "seq": 1, "text": "finished moving", "final": true, "ok": true}
+                    "ok": true, "code": "accepted"}
+    robot → user   {"id": 7, "seq": 1, "text": "finished moving", "final": true, "ok": true,
+                    "code": "finished"}
 
 Conventions: ``goto X Y [YAW]`` is in the map frame with ``YAW`` in degrees counter-clockwise
 (ROS REP-103), while ``turn X`` keeps the paper's convention, degrees positive to the right.
@@ -30,6 +31,7 @@ from dataclasses import dataclass
 from typing import Any, TypeAlias
 
 from telebot.errors import ProtocolError
+from telebot.reasons import Reason, decode_code
 from telebot.services.proto.messages import decode_object, encode_object, require_int
 
 __all__ = [
@@ -79,7 +81,15 @@ MAX_TURN_DEG = 360.0
 
 
 class CommandError(ProtocolError):
-    """A chat line that is not a valid command; ``str(exc)`` is the exact reply text."""
+    """A chat line that is not a valid command; ``str(exc)`` is the exact reply text.
+
+    ``reason`` is the reply's code: :attr:`Reason.USAGE` for bad arguments (the text is the
+    usage line), :attr:`Reason.UNKNOWN_COMMAND` for an unknown word or an empty line.
+    """
+
+    def __init__(self, text: str, reason: Reason = Reason.USAGE) -> None:
+        super().__init__(text)
+        self.reason = reason
 
 
 # ---------------------------------------------------------------------------- commands
@@ -318,7 +328,7 @@ def parse_command(text: str) -> Command:
     # "−" (U+2212) is what phones and word processors put in front of numbers.
     words = text.replace("\u2212", "-").lower().split()
     if not words:
-        raise CommandError("empty command — try help")
+        raise CommandError("empty command — try help", Reason.UNKNOWN_COMMAND)
     word, args = words[0], words[1:]
     # "where?", "status?", and above all "STOP!!" (someone typing in a hurry).
     word = word.rstrip("?!.") or word
@@ -326,7 +336,7 @@ def parse_command(text: str) -> Command:
         word, args = f"{word} {args[0]}", args[1:]
     name = _ALIASES.get(word)
     if name is None:
-        raise CommandError(_unknown(text.split()[0]))  # echoed as typed
+        raise CommandError(_unknown(text.split()[0]), Reason.UNKNOWN_COMMAND)  # as typed
     match name:
         case "goto":
             return _goto(_original_args(text, len(words) - len(args)))
@@ -433,7 +443,7 @@ def _help(args: list[str]) -> Help:
         topic = topic.rstrip("?")
     name = _ALIASES.get(topic)
     if name is None:
-        raise CommandError(_unknown(topic))
+        raise CommandError(_unknown(topic), Reason.UNKNOWN_COMMAND)
     return Help("fwd" if name == "back" else name)
 
 
@@ -457,6 +467,8 @@ class ChatReply:
     failure, a blocked robot). ``attachment`` names what follows on another channel
     (``"map"``). ``seq`` numbers the replies to one request from 0, so that a client can
     drop the copies a robot sends again when a request is repeated over the lossy link.
+    ``reason`` is the stable code to decide on (the wire's ``code``, see
+    :class:`~telebot.reasons.Reason`; ``""`` from a robot that sends none).
     """
 
     id: int
@@ -465,6 +477,7 @@ class ChatReply:
     ok: bool = True
     attachment: str | None = None
     seq: int = 0
+    reason: str = ""
 
     def encode(self) -> str:
         """The reply as a JSON text datagram (text shortened to :data:`MAX_REPLY_TEXT`)."""
@@ -480,6 +493,8 @@ class ChatReply:
         }
         if self.attachment is not None:
             message["attachment"] = self.attachment
+        if self.reason:
+            message["code"] = self.reason
         return encode_object(message)
 
 
@@ -525,4 +540,4 @@ def decode_reply(payload: str | bytes) -> ChatReply:
     attachment = message.get("attachment")
     if attachment is not None and not isinstance(attachment, str):
         raise ProtocolError(f"{what}: 'attachment' must be a string")
-    return ChatReply(reply_id, text, final, ok, attachment, seq)
+    return ChatReply(reply_id, text, final, ok, attachment, seq, decode_code(message, what=what))

@@ -2,12 +2,14 @@
 
 User → robot, repeated (same ``id``) until acknowledged, so loss cannot eat a stop::
 
-    {"type": "stop", "id": 7}        anyone; never refused; idempotent
+    {"type": "stop", "id": 7, "how": "button"}   anyone; never refused; idempotent
     {"type": "arm", "id": 8}         re-arm after a stop (the drive holder)
     {"type": "take", "id": 9}        take the drive (free, or an admin's takeover)
     {"type": "release", "id": 10}    give the drive up (the robot stops)
 
-Robot → user: ``{"type": "ack", "id": 7, "ok": true, "reason": ""}`` for each request
+Robot → user: ``{"type": "ack", "id": 7, "ok": true, "reason": "", "code": "ok"}`` for each
+request (``reason``: the text for people; ``code``: the reason code of
+:mod:`~telebot.reasons`)
 (again for each repeat), and the safety state on every change and once a second::
 
     {"type": "state", "armed": false, "reason": "stop requested by alice",
@@ -16,10 +18,12 @@ Robot → user: ``{"type": "ack", "id": 7, "ok": true, "reason": ""}`` for each 
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from typing import Any, Literal, cast
 
 from telebot.errors import ProtocolError
+from telebot.reasons import decode_code
 from telebot.services.proto.messages import (
     decode_object,
     encode_object,
@@ -29,6 +33,7 @@ from telebot.services.proto.messages import (
 
 __all__ = [
     "SAFETY",
+    "STOP_HOWS",
     "SafetyAck",
     "SafetyRequest",
     "SafetyStatus",
@@ -42,30 +47,55 @@ SAFETY = "safety"
 RequestType = Literal["stop", "arm", "take", "release"]
 _REQUEST_TYPES = ("stop", "arm", "take", "release")
 
+#: How a user stopped the robot (a stop's ``how``), for the audit log and the stop reason.
+STOP_HOWS: dict[str, str] = {
+    "button": "a STOP button (the web UI's)",
+    "key": "a key pressed while the robot moved (the chat prompt, the web page)",
+    "tab_closed": "the web page closed, or went silent, while the robot might move",
+    "exit": "the user's client quit while the robot moved",
+    "api": "a program through the client library",
+}
+# A stop is never dropped for its ``how``: one that is not a short word is just unknown.
+_HOW = re.compile(r"[a-z][a-z0-9_]{0,31}")
+
 
 @dataclass(frozen=True, slots=True)
 class SafetyRequest:
-    """A user's stop, re-arm or drive hand-over request."""
+    """A user's stop, re-arm or drive hand-over request.
+
+    ``how`` (stops only) says how the user stopped: a key of :data:`STOP_HOWS`, or ``""``.
+    """
 
     type: RequestType
     id: int
+    how: str = ""
 
     def encode(self) -> str:
         """The datagram text."""
-        return encode_object({"type": self.type, "id": self.id})
+        message: dict[str, Any] = {"type": self.type, "id": self.id}
+        if self.type == "stop" and self.how:
+            message["how"] = self.how
+        return encode_object(message)
 
 
 @dataclass(frozen=True, slots=True)
 class SafetyAck:
-    """The robot's answer to request ``id``."""
+    """The robot's answer to request ``id``.
+
+    ``text`` says why in words (the wire's ``reason`` field); ``reason`` is the stable code
+    to decide on (the wire's ``code``, see :class:`~telebot.reasons.Reason`).
+    """
 
     id: int
     ok: bool
+    text: str = ""
     reason: str = ""
 
     def encode(self) -> str:
         """The datagram text."""
-        return encode_object({"type": "ack", "id": self.id, "ok": self.ok, "reason": self.reason})
+        return encode_object(
+            {"type": "ack", "id": self.id, "ok": self.ok, "reason": self.text, "code": self.reason}
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -98,7 +128,10 @@ def decode_safety_request(payload: str | bytes) -> SafetyRequest:
     kind = msg.get("type")
     if kind not in _REQUEST_TYPES:
         raise ProtocolError(f"safety: unknown type {kind!r}")
-    return SafetyRequest(cast(RequestType, kind), require_int(msg, "id", what="safety"))
+    how = msg.get("how", "")
+    if kind != "stop" or not isinstance(how, str) or not _HOW.fullmatch(how):
+        how = ""  # never a reason to drop a stop
+    return SafetyRequest(cast(RequestType, kind), require_int(msg, "id", what="safety"), how)
 
 
 def decode_safety_reply(payload: str | bytes) -> SafetyAck | SafetyStatus:
@@ -110,6 +143,7 @@ def decode_safety_reply(payload: str | bytes) -> SafetyAck | SafetyStatus:
             require_int(msg, "id", what="safety"),
             _bool(msg, "ok"),
             _text(msg, "reason"),
+            decode_code(msg, what="safety"),
         )
     if kind == "state":
         holder = msg.get("holder")

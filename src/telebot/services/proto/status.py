@@ -12,7 +12,8 @@
     {"type": "query", "id": 7}
 
 ``goals`` (robot → user): ``{"type": "status", "id": 7, "status": S, "progress": 0.4,
-"reason": "..."}`` with S one of ``active``, ``succeeded``, ``failed``, ``cancelled``,
+"reason": "...", "code": "..."}`` (``reason``: the text for people, ``code``: the reason code
+of :mod:`~telebot.reasons`) with S one of ``active``, ``succeeded``, ``failed``, ``cancelled``,
 ``refused`` (not started: a caller that may not drive, or numbers that are not finite),
 ``unknown`` (a query for an id the robot does not remember).
 
@@ -26,6 +27,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
 from telebot.errors import ProtocolError
+from telebot.reasons import decode_code
 from telebot.services.proto.messages import (
     decode_object,
     encode_object,
@@ -138,11 +140,17 @@ def decode_goal_command(payload: str | bytes) -> GoalCommand:
 
 @dataclass(frozen=True, slots=True)
 class GoalUpdate:
-    """Where goal ``id`` stands (robot → user)."""
+    """Where goal ``id`` stands (robot → user).
+
+    ``text`` says why in words (the wire's ``reason`` field: ``"no path to (1.00, 2.00):
+    inside an obstacle"``); ``reason`` is the stable code to decide on (the wire's ``code``:
+    ``"no_path"``, see :class:`~telebot.reasons.Reason`).
+    """
 
     id: int
     status: str
     progress: float = 0.0
+    text: str = ""
     reason: str = ""
 
     @property
@@ -158,7 +166,8 @@ class GoalUpdate:
                 "id": self.id,
                 "status": self.status,
                 "progress": round(self.progress, 4),
-                "reason": self.reason,
+                "reason": self.text,
+                "code": self.reason,
             }
         )
 
@@ -176,7 +185,8 @@ def decode_goal_update(payload: str | bytes) -> GoalUpdate:
         id=require_int(msg, "id", what=what),
         status=status,
         progress=finite_number(msg, "progress", what=what),
-        reason=_text(msg, "reason", what, default=""),
+        text=_text(msg, "reason", what, default=""),
+        reason=decode_code(msg, what=what),
     )
 
 

@@ -53,8 +53,9 @@
     el.className = cls;
   }
 
-  function stop(source) {
-    send({ type: "stop" });
+  // how: "button" or "key", for the robot's audit log (who stopped it, and how).
+  function stop(source, how) {
+    send({ type: "stop", how: how });
     ui.stats.keyTimes.push(now());
     addChat("[" + source + ": stop]", "cmd");
   }
@@ -317,13 +318,13 @@
   // phase, before anything else on the page sees the key.
   document.addEventListener("keydown", (ev) => {
     if (ev.target === $("chat-input")) {
-      if (ev.key === "Escape") { ev.preventDefault(); stop("Escape"); }
+      if (ev.key === "Escape") { ev.preventDefault(); stop("Escape", "key"); }
       return;
     }
     ev.preventDefault();
-    stop("key " + ev.key);
+    stop("key " + ev.key, "key");
   }, true);
-  $("stop").onclick = () => stop("STOP button");
+  $("stop").onclick = () => stop("STOP button", "button");
   $("arm").onclick = () => send({ type: "arm" });
   $("take").onclick = () => send({ type: "take" });
   $("release").onclick = () => send({ type: "release" });
