@@ -18,7 +18,8 @@ Websocket protocol (JSON text messages unless stated)::
     client → page
       {"type": "hello", "robot", "user", "role", "may_drive", "map": MAP | null}
       {"type": "map", "url": "/map.png", "resolution", "origin_x", "origin_y",
-       "width", "height"}                                when the map has arrived
+       "width", "height", "version"}                     when the map has arrived, and
+                                                         again whenever it changed (SLAM)
       {"type": "pose", "x", "y", "yaw", "v", "w", "state", "detail", "goal", "t",
        "recv": UNIX_MS}                                  recv: when the client got it
       {"type": "telemetry", ...}                         the robot's Telemetry fields
@@ -31,6 +32,10 @@ Websocket protocol (JSON text messages unless stated)::
       binary: video frame = 4-byte big-endian header length, UTF-8 JSON header
               {"camera", "frame_id", "capture_time"}, then the JPEG bytes as the robot
               sent them (never decoded or re-encoded here)
+
+The map follows the robot's: when telemetry's ``map_version`` differs from the version of
+the map held here, it is fetched again, ``/map.png`` serves the new one and the pages get a
+new ``map`` message (they reload the image).
 
 Safety: a ``stop`` is handed to :meth:`RobotClient.stop` at once (before anything else
 the message loop does). When a page's websocket closes (tab closed, browser crashed: the
@@ -191,6 +196,9 @@ class WebUI:
         self.user = user
         self.map_timeout = map_timeout
         self.map: MapDownload | None = None
+        #: Maps fetched again because the robot's map changed.
+        self.map_refreshes = 0
+        self._map_fetch: asyncio.Task[Any] | None = None
         self.pages: set[_Page] = set()
         #: Stops sent because a page closed while the robot moved (for tests and logs).
         self.close_stops = 0
@@ -228,7 +236,8 @@ class WebUI:
             server = site._server
             sockets = getattr(server, "sockets", None) or []
             self.port = int(sockets[0].getsockname()[1])
-        for pump in (self._fetch_map, self._pump_pose, self._pump_telemetry, self._pump_safety):
+        self._map_fetch = self._spawn(self._fetch_map())
+        for pump in (self._pump_pose, self._pump_telemetry, self._pump_safety):
             self._spawn(pump())
         self._spawn(self._pump_link())
         log.info("web UI for %s at %s", self.client.robot, self.url)
@@ -302,6 +311,7 @@ class WebUI:
             "origin_y": self.map.origin_y,
             "width": self.map.width,
             "height": self.map.height,
+            "version": self.map.version,
         }
 
     # -- websocket --------------------------------------------------------------------
@@ -521,6 +531,15 @@ class WebUI:
         while True:
             telemetry = await latest.next()
             self._broadcast({"type": "telemetry", **asdict(telemetry)})
+            self._follow_map(telemetry.map_version)
+
+    def _follow_map(self, version: int) -> None:
+        """Fetch the map again when the robot says it changed (one fetch at a time)."""
+        if self.map is None or self.map.version == version or self._map_fetch is not None:
+            return
+        log.info("the robot's map changed (version %s): fetching it again", version)
+        self.map_refreshes += 1
+        self._map_fetch = self._spawn(self._fetch_map())
 
     async def _pump_safety(self) -> None:
         latest = self.client.latest_safety
@@ -541,6 +560,8 @@ class WebUI:
             log.error("the map did not arrive: %s", exc)
             self._broadcast({"type": "error", "text": f"the map did not arrive: {exc}"})
             return
+        finally:
+            self._map_fetch = None
         message = self._map_message()
         assert message is not None
         self._broadcast(message)
