@@ -10,14 +10,17 @@ import asyncio
 import contextlib
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
+from importlib.metadata import EntryPoint
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
 from conftest import ROBOT, Homes, memory_endpoints, wait_until
-from telebot.channels.transports.memory import MemoryHub
-from telebot.config import ServiceSettings, SimSettings
+from telebot.channels.call import UserEndpoint
+from telebot.channels.transports.memory import MemoryHub, MemoryTransport
+from telebot.config import RobotConfig, ServiceSettings, SimSettings
 from telebot.robot.grid import OccupancyGrid
 from telebot.robot.nav import GoalStatus, SteppedNavStack
 from telebot.robot.sim.stack import SimNavStack
@@ -176,3 +179,58 @@ async def test_map_versions_travel_json_safe(homes: Homes, version: int) -> None
         telemetry = await rig.client.telemetry(timeout=5)
         download = await rig.client.get_map(timeout=10)
         assert telemetry.map_version == download.version == version % 2**53
+
+
+# --------------------------------------------------------------------------- the daemon
+
+
+class TinCan(Unstepped):
+    """A plug-in robot adapter that runs by itself (no ``step``), found by entry point."""
+
+    @classmethod
+    def from_config(cls, config: Any, *, base_dir: Any = None, now: float = 0.0) -> TinCan:
+        return cls(SimNavStack.from_settings(SimSettings(map="small"), now=now))
+
+
+async def test_the_daemon_runs_the_robot_its_config_names(
+    homes: Homes, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import telebot.robot
+    from telebot.apps.robot_daemon import serve_robot
+
+    entry = EntryPoint(
+        name="tin-can", value=f"{__name__}:TinCan", group=telebot.robot.ENTRY_POINT_GROUP
+    )
+    monkeypatch.setattr(
+        telebot.robot,
+        "entry_points",
+        lambda group: [entry] if group == telebot.robot.ENTRY_POINT_GROUP else [],
+    )
+    hub_name = f"daemon-{id(tmp_path)}"
+    config = RobotConfig.model_validate(
+        {"robot": {"kind": "tin-can"}, "transport": {"kind": "memory", "memory": {"hub": hub_name}}}
+    )
+    events: list[dict[str, Any]] = []
+    stop = asyncio.Event()
+    daemon = asyncio.create_task(
+        serve_robot(
+            config, homes.robot, homes.contacts, home=tmp_path, emit=events.append, stop=stop
+        )
+    )
+    try:
+        await wait_until(lambda: any(e["event"] == "ready" for e in events), timeout=20)
+        (ready,) = [e for e in events if e["event"] == "ready"]
+        assert ready["kind"] == "tin-can" and ready["map"] == "tin-can"
+        async with (
+            MemoryTransport(MemoryHub.named(hub_name), "user") as transport,
+            UserEndpoint(transport, homes.user, homes.known) as user,
+        ):
+            client = RobotClient(await user.call(ROBOT))
+            telemetry = await client.telemetry(timeout=5)
+            # Served (not stepped: TinCan has no step), and disarmed at start.
+            assert telemetry.state == "idle" and not telemetry.armed
+            assert (await client.get_map(timeout=10)).name == "map"
+            await client.call.hangup()
+    finally:
+        stop.set()
+        await daemon
