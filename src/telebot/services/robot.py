@@ -6,8 +6,9 @@ simulation's clock; a robot that runs by itself is not stepped); on every cycle 
 :class:`CallServices` reports finished goals, and at their own rates publishes pose and
 telemetry. The map is encoded once per :meth:`~telebot.robot.nav.NavStack.map_version`
 (:meth:`RobotServer.encoded_map`): a map that changes (SLAM) is served fresh, and each
-call's telemetry carries the version so users know to fetch it again. Every handler is guarded: garbage from one peer is dropped and counted and never
-reaches the others or stops the robot's loop.
+call's telemetry carries the version so users know to fetch it again. Every handler is
+guarded: garbage from one peer is dropped and counted and never reaches the others or
+stops the robot's loop.
 """
 
 from __future__ import annotations
