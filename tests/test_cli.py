@@ -60,6 +60,10 @@ def test_help_and_version(side: str) -> None:
             ["no contact named 'nobody'"],
         ),
         (("robot", "keygen", "bad/name", "--home", "{home}"), ["invalid name 'bad/name'"]),
+        (
+            ("robot", "run", "--robot", "tin-can", "--home", "{home}"),
+            ["unknown robot 'tin-can'; known robots: sim"],
+        ),
         (("user", "ping", "a*", "--home", "{home}"), ["invalid name 'a*'"]),
         (
             ("user", "ping", ROBOT, "--count", "0", "--home", "{home}"),
@@ -136,6 +140,7 @@ def test_contacts_and_known_robots_are_edited_on_disk(tmp_path: Path) -> None:
         ("not toml at all [", ["invalid TOML"]),
         ("[transport]\nkind = 'smoke'\n", ["unknown transport 'smoke'", "memory", "zenoh"]),
         ("[transport.zenoh.options]\n'bogus/key' = 1\n", ["bogus/key"]),
+        ("[robot]\nkidn = 'sim'\n", ["robot.kidn: unknown key"]),
     ],
 )
 def test_bad_config_gives_one_line_and_exit_2(
@@ -147,6 +152,16 @@ def test_bad_config_gives_one_line_and_exit_2(
     one_line_error(result, *needles)
 
 
+def test_a_robot_kind_in_the_config_is_checked_before_anything_starts(
+    homes: Homes, tmp_path: Path
+) -> None:
+    path = tmp_path / "robot.toml"
+    path.write_text("[robot]\nkind = 'tin-can'\n")
+    result = run("robot", "run", "--home", str(homes.robot_home), "--config", str(path))
+    one_line_error(result, "unknown robot 'tin-can'", "known robots: sim")
+    assert "--robot NAME" in run("robot", "run", "--help").stdout
+
+
 def test_shipped_configs_are_valid_and_show_the_defaults() -> None:
     from telebot.config import AppConfig, RobotConfig, load_toml
 
@@ -156,6 +171,7 @@ def test_shipped_configs_are_valid_and_show_the_defaults() -> None:
     assert robot == RobotConfig()
     assert user == AppConfig()
     assert robot.call.timeout <= 0.5 and robot.sim.max_linear_speed == 0.5
+    assert robot.robot.kind == "sim"
 
 
 @pytest.mark.zenoh

@@ -140,6 +140,7 @@ def test_import_telebot_does_not_import_zenoh() -> None:
     code = (
         "import sys, telebot, telebot.channels.call, telebot.channels.transports, telebot.apps.user_cli; "
         "from telebot.channels.transports import get_transport_class; get_transport_class('memory'); "
+        "from telebot.robot import get_robot_class; get_robot_class('sim'); "
         "assert 'zenoh' not in sys.modules, 'zenoh imported'; "
         "get_transport_class('zenoh'); assert 'zenoh' in sys.modules"
     )
@@ -149,14 +150,36 @@ def test_import_telebot_does_not_import_zenoh() -> None:
     assert result.returncode == 0, result.stderr
 
 
+# A ROS 2 robot is a zenoh network (rmw_zenoh): its adapter, and only it, speaks zenoh.
+ZENOH_ROBOT_ADAPTERS = ("telebot.robot.ros2",)
+
+
+def forbidden_in_robot(module: str) -> tuple[str, ...]:
+    """Import prefixes ``module`` (inside ``telebot.robot``) must not use."""
+    comms: tuple[str, ...] = ("telebot.channels", "telebot.identity")
+    if module == ZENOH_ROBOT_ADAPTERS[0] or module.startswith(
+        tuple(f"{name}." for name in ZENOH_ROBOT_ADAPTERS)
+    ):
+        return comms
+    return (*comms, "zenoh")
+
+
+def test_only_the_ros2_adapter_may_import_zenoh() -> None:
+    # Guard the exemption: ros2 (and only ros2, not a look-alike) may use zenoh; no
+    # robot module may use telebot's calls.
+    assert "zenoh" not in forbidden_in_robot("telebot.robot.ros2.graph")
+    assert "zenoh" not in forbidden_in_robot("telebot.robot.ros2")
+    for module in ("telebot.robot.sim.stack", "telebot.robot.nav", "telebot.robot.ros2x"):
+        assert "zenoh" in forbidden_in_robot(module)
+    assert "telebot.channels" in forbidden_in_robot("telebot.robot.ros2.graph")
+
+
 @pytest.mark.parametrize(
     "path", sorted((SRC / "robot").rglob("*.py")), ids=lambda p: module_name(p)
 )
 def test_the_robot_adapter_knows_nothing_of_calls_or_transports(path: Path) -> None:
-    # The navigation stack is usable on its own (and by a ROS 2 adapter): no comms inside.
-    bad = [
-        name
-        for name in imports_of(path)
-        if name.startswith(("telebot.channels", "telebot.identity", "zenoh"))
-    ]
-    assert bad == [], f"{module_name(path)} imports {bad}"
+    # The navigation stack is usable on its own (and by a ROS 2 adapter): no telebot comms
+    # inside, and no zenoh outside robot/ros2/.
+    module = module_name(path)
+    bad = [name for name in imports_of(path) if name.startswith(forbidden_in_robot(module))]
+    assert bad == [], f"{module} imports {bad}"

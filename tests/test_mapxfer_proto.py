@@ -52,10 +52,11 @@ def grid_of(
     return OccupancyGrid(np.asarray(data, dtype=np.int8), res, ox, oy)
 
 
-def fake_map(size: int, seed: int = 0) -> EncodedMap:
+def fake_map(size: int, seed: int = 0, version: int = 0) -> EncodedMap:
     """An EncodedMap of ``size`` random bytes: the transfer does not look inside the PNG."""
     png = random.Random(seed).randbytes(size)
-    return EncodedMap(png, hashlib.sha256(png).hexdigest(), 7, 5, 0.05, -3.5, 1.25, "office")
+    digest = hashlib.sha256(png).hexdigest()
+    return EncodedMap(png, digest, 7, 5, 0.05, -3.5, 1.25, "office", version=version)
 
 
 def messages(replies: list[str] | list[str | bytes]) -> list[dict[str, Any]]:
@@ -252,7 +253,7 @@ def test_chunking_at_exactly_one_chunk_and_one_byte_more(size: int, chunks: int)
 
 
 def test_offer_carries_the_georeference() -> None:
-    encoded = fake_map(100)
+    encoded = fake_map(100, version=12)
     offer = offer_for(MapSender(lambda: encoded), MapReceiver(1))
     assert offer == {
         "type": "offer",
@@ -266,7 +267,48 @@ def test_offer_carries_the_georeference() -> None:
         "height": 5,
         "resolution": 0.05,
         "origin": [-3.5, 1.25],
+        "version": 12,
     }
+
+
+def test_an_offer_without_a_version_is_version_0() -> None:
+    # Robots from before map versions do not send one.
+    sender, receiver = MapSender(lambda: fake_map(10, version=5)), MapReceiver(1)
+    offer = offer_for(sender, receiver)
+    del offer["version"]
+    receiver.on_message(json.dumps(offer), 0.0)
+    deliver_all(sender, receiver, 0.0)
+    assert receiver.done and receiver.result is not None and receiver.result.version == 0
+
+
+@pytest.mark.parametrize("version", [-1, 2**53, 1.5, True, "3"])
+def test_an_offer_with_a_bad_version_is_rejected(version: Any) -> None:
+    sender, receiver = MapSender(lambda: fake_map(10)), MapReceiver(1)
+    offer = offer_for(sender, receiver)
+    offer["version"] = version
+    receiver.on_message(json.dumps(offer), 0.0)
+    assert receiver.offer is None and receiver.rejections["bad_offer"] == 1
+
+
+def test_a_map_that_changes_mid_transfer_finishes_as_offered_and_the_next_is_new() -> None:
+    current = fake_map(3 * MAX_CHUNK_DATA, seed=1, version=1)
+    sender = MapSender(lambda: current)
+    first = MapReceiver(1)
+    first.on_message(json.dumps(offer_for(sender, first)), 0.0)
+    half = sender.next_chunks(2)
+    current = fake_map(2 * MAX_CHUNK_DATA, seed=2, version=2)  # SLAM: the map changed
+    replies = [r for chunk in half for r in first.on_message(chunk, 0.1)]
+    replies += deliver_all(sender, first, 0.1)
+    assert first.done and first.result is not None
+    assert first.result.version == 1 and first.result.png == fake_map(3 * MAX_CHUNK_DATA, 1).png
+    for reply in replies:
+        sender.on_message(reply, 0.2)
+    second = MapReceiver(2)
+    offer = offer_for(sender, second, 0.3)
+    assert offer["version"] == 2 and offer["sha256"] == current.sha256
+    second.on_message(json.dumps(offer), 0.3)
+    deliver_all(sender, second, 0.3)
+    assert second.result is not None and second.result.png == current.png
 
 
 # --------------------------------------------------------------------------- loss and reordering
@@ -575,7 +617,7 @@ def test_a_failing_provider_is_a_refusal_with_its_reason_and_is_asked_again() ->
     assert messages(sender.on_message(get(2), 0.1))[0]["type"] == "offer"
     sender.on_message(json.dumps({"type": "done", "xfer": 2}), 0.2)
     sender.on_message(get(3), 0.3)
-    assert calls == 2  # the map was cached after the first success
+    assert calls == 3  # asked at every new transfer: a map that changed is sent as it is now
 
 
 def test_the_robot_refusal_reaches_the_receiver() -> None:

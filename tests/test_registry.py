@@ -1,4 +1,4 @@
-"""The transport registry: built-ins by name, plug-ins by entry point, clear errors."""
+"""The transport and robot registries: built-ins by name, plug-ins by entry point, clear errors."""
 
 from __future__ import annotations
 
@@ -7,11 +7,15 @@ from typing import Any
 
 import pytest
 
+import telebot.robot
 from telebot.channels import transports
 from telebot.channels.transports import create_transport, get_transport_class, known_transports
 from telebot.channels.transports.memory import MemoryTransport
-from telebot.config import TransportSettings
-from telebot.errors import TransportError, UnknownTransport
+from telebot.config import RobotConfig, TransportSettings
+from telebot.errors import RobotError, TransportError, UnknownRobot, UnknownTransport
+from telebot.robot import create_robot, get_robot_class, known_robots
+from telebot.robot.nav import SteppedNavStack
+from telebot.robot.sim.stack import SimNavStack
 
 
 class PluginTransport(MemoryTransport):
@@ -68,3 +72,69 @@ def test_broken_plugins_give_a_clear_error(
 
 
 NOT_A_CLASS: Any = object()
+
+
+# --------------------------------------------------------------------------- robots
+
+
+class PluginRobot(SimNavStack):
+    """A stand-in third-party robot adapter."""
+
+
+class StopLessRobot:
+    """A would-be adapter the safety watchdog could not stop."""
+
+    @classmethod
+    def from_config(cls, config: RobotConfig, **_: Any) -> StopLessRobot:
+        return cls()
+
+
+def small_robot(kind: str) -> RobotConfig:
+    return RobotConfig.model_validate({"robot": {"kind": kind}, "sim": {"map": "small"}})
+
+
+def fake_robot_entry_points(monkeypatch: pytest.MonkeyPatch, target: str) -> None:
+    entry = EntryPoint(name="tin-can", value=target, group=telebot.robot.ENTRY_POINT_GROUP)
+
+    def select(group: str) -> list[EntryPoint]:
+        return [entry] if group == telebot.robot.ENTRY_POINT_GROUP else []
+
+    monkeypatch.setattr(telebot.robot, "entry_points", select)
+
+
+def test_the_sim_robot_is_known_and_created_from_sim_settings() -> None:
+    assert "sim" in known_robots()
+    assert get_robot_class("sim") is SimNavStack
+    assert RobotConfig().robot.kind == "sim"  # the default
+    robot = create_robot(small_robot("sim"), now=5.0)
+    assert isinstance(robot, SimNavStack) and isinstance(robot, SteppedNavStack)
+    assert robot.now == 5.0 and robot.map().width == 280  # [sim] map = "small" (14 m at 5 cm)
+
+
+def test_an_unknown_robot_lists_the_known_ones() -> None:
+    with pytest.raises(UnknownRobot, match=r"unknown robot 'tin-can'; known robots: sim"):
+        get_robot_class("tin-can")
+    with pytest.raises(LookupError):  # also a LookupError, and a RobotError
+        create_robot(small_robot("tin-can"))
+
+
+def test_a_robot_plugin_is_found_and_created(monkeypatch: pytest.MonkeyPatch) -> None:
+    fake_robot_entry_points(monkeypatch, f"{__name__}:PluginRobot")
+    assert known_robots() == ["sim", "tin-can"]
+    assert isinstance(create_robot(small_robot("tin-can")), PluginRobot)
+
+
+@pytest.mark.parametrize(
+    ("target", "message"),
+    [
+        (f"{__name__}:NOT_A_CLASS", "not a class with a from_config"),
+        ("no_such_module_xyz:Thing", "failed to load"),
+        (f"{__name__}:StopLessRobot", r"lacks .*emergency_stop.*map_version"),
+    ],
+)
+def test_broken_robot_plugins_give_a_clear_error(
+    monkeypatch: pytest.MonkeyPatch, target: str, message: str
+) -> None:
+    fake_robot_entry_points(monkeypatch, target)
+    with pytest.raises(RobotError, match=message):
+        create_robot(small_robot("tin-can"))

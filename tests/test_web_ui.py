@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import aiohttp
 import pytest
 
 from conftest import ROBOT, USER
@@ -28,6 +29,7 @@ from telebot.channels.call import RobotEndpoint, UserEndpoint
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.config import ServiceSettings, SimSettings
 from telebot.identity import ContactBook, Identity, KnownRobots, Role, create_paired_homes
+from telebot.robot.grid import OccupancyGrid
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.client import RobotClient
 from telebot.services.robot import RobotServer
@@ -223,6 +225,29 @@ async def test_the_page_loads_and_shows_the_map(rig: Rig) -> None:
         assert await page.inner_text("#holder") == USER
         ARTIFACTS.mkdir(exist_ok=True)
         await page.screenshot(path=str(ARTIFACTS / "web_ui.png"))
+
+
+async def test_the_page_follows_a_map_that_changes(rig: Rig) -> None:
+    async with browser_page(rig.ui.url) as page:
+        await page_ready(page)
+        old = rig.ui.map
+        assert old is not None and old.version == 0
+        grid = rig.nav.map()
+        data = grid.data.copy()
+        row, col = grid.cell_of(9.5, 4.0)
+        data[row - 5 : row + 6, col - 5 : col + 6] = 100  # SLAM found a wall in room-b
+        rig.nav.set_map(OccupancyGrid(data, grid.resolution, grid.origin_x, grid.origin_y))
+        # Telemetry says the map changed; the UI fetches it again and tells the page.
+        await page.wait_for_function(
+            "() => window.telebotUI.state.map && window.telebotUI.state.map.version === 1"
+            " && window.telebotUI.mapReady()",
+            timeout=15000,
+        )
+        new = rig.ui.map
+        assert new is not None and new.version == 1 and new.sha256 != old.sha256
+        assert new.grid.value_at(9.5, 4.0) == 100 and rig.ui.map_refreshes == 1
+        async with aiohttp.ClientSession() as http, http.get(rig.ui.url + "map.png") as response:
+            assert await response.read() == new.png
 
 
 async def test_a_click_moves_the_robot_there(rig: Rig) -> None:

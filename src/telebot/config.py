@@ -25,6 +25,7 @@ __all__ = [
     "MemorySettings",
     "ReconnectSettings",
     "RobotConfig",
+    "RobotSettings",
     "SafetySettings",
     "ServiceSettings",
     "SimSettings",
@@ -263,9 +264,21 @@ class VideoConfig(StrictModel):
     adaptive: bool = True
 
 
+class RobotSettings(StrictModel):
+    """Which robot adapter ``telebot-robot run`` drives (``kind``), python-can style.
+
+    ``"sim"`` (default) is the simulated robot, set up by ``[sim]``; third-party adapters
+    register in the entry-point group ``telebot.robots`` and read ``options``.
+    """
+
+    kind: str = "sim"
+    #: Settings for a third-party robot adapter, passed through as they are.
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
 class SafetySettings(StrictModel):
-    """The safety supervisor. Its deadman time is ``call.timeout``, its hard speed cap
-    ``sim.max_linear_speed``."""
+    """The safety supervisor. Its deadman time is ``call.timeout``, its hard speed cap the
+    robot's top speed (``sim.max_linear_speed`` on the simulator)."""
 
     #: Allow cameras other than the navcam while the robot moves.
     usercam_while_moving: bool = False
@@ -276,6 +289,7 @@ class SafetySettings(StrictModel):
 class RobotConfig(AppConfig):
     """The config file of ``telebot-robot`` (``configs/robot.toml``): adds the robot."""
 
+    robot: RobotSettings = Field(default_factory=RobotSettings)
     sim: SimSettings = Field(default_factory=SimSettings)
     services: ServiceSettings = Field(default_factory=ServiceSettings)
     safety: SafetySettings = Field(default_factory=SafetySettings)

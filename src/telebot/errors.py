@@ -20,6 +20,7 @@ foreign libraries (zenoh, cryptography, pydantic) are mapped at the boundary wit
     │   ├── CallTimeout(TimeoutError)     nobody answered in time
     │   └── CallEnded                     using a call that was hung up or dropped
     └── RobotError                        the robot adapter refused or could not do something
+        ├── UnknownRobot(LookupError)     no robot adapter registered under that name
         ├── MapError(ValueError)          a missing or malformed map file (names the file)
         ├── UnknownPlace(LookupError)     a place name the robot does not know (lists known ones)
         ├── UnknownCamera(LookupError)    a camera name the robot does not have
@@ -49,6 +50,7 @@ __all__ = [
     "TransportTimeout",
     "UnknownCamera",
     "UnknownPlace",
+    "UnknownRobot",
     "UnknownTransport",
 ]
 
@@ -116,6 +118,10 @@ class CallEnded(CallError):
 
 class RobotError(TelebotError):
     """The robot adapter refused a request or could not carry it out."""
+
+
+class UnknownRobot(RobotError, LookupError):
+    """No robot adapter is registered under the requested name; the message lists the known ones."""
 
 
 class MapError(RobotError, ValueError):

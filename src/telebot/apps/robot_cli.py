@@ -1,7 +1,7 @@
 """``telebot-robot``: the robot's command line.
 
-``telebot-robot run`` is the robot daemon (simulated robot, chat, map, pose, goals,
-telemetry); the other commands manage the robot's key and contact list, generate the
+``telebot-robot run`` is the robot daemon (the robot adapter ``--robot`` or ``[robot] kind``
+names, ``sim`` by default; chat, map, pose, goals, telemetry); the other commands manage the robot's key and contact list, generate the
 default map, and run the echo robot, a network check.
 """
 
@@ -28,6 +28,7 @@ from telebot.apps.common import (
     run,
 )
 from telebot.config import RobotConfig
+from telebot.errors import RobotError
 from telebot.identity import ContactBook, Identity, Role, encode_key, fingerprint, parse_public_key
 
 PROG = "telebot-robot"
@@ -65,12 +66,20 @@ def build_parser() -> Parser:
     daemon = commands.add_parser(
         "run",
         help="run the robot daemon: answer calls and serve chat, map, pose, goals, telemetry",
-        description="Run the robot: start the simulated robot on its map, answer calls from "
-        "the contacts and serve them. Stops the robot, hangs up and exits on SIGINT/SIGTERM.",
+        description="Run the robot: start the robot adapter (the simulated robot on its map by "
+        "default), answer calls from the contacts and serve them. Stops the robot, hangs up "
+        "and exits on SIGINT/SIGTERM.",
     )
     add_home_option(daemon, "robot")
     add_connection_options(daemon)
     add_log_level_option(daemon)
+    daemon.add_argument(
+        "--robot",
+        default=None,
+        metavar="NAME",
+        help="robot adapter to drive: 'sim' (the simulated robot, default) or an installed "
+        "plug-in's name (entry-point group telebot.robots); overrides robot.kind of the config",
+    )
     daemon.add_argument(
         "--map",
         default=None,
@@ -143,9 +152,17 @@ def main(argv: list[str] | None = None) -> int:
 
 async def _run_daemon(args: argparse.Namespace, home: Path) -> int:
     from telebot.apps.robot_daemon import serve_robot
+    from telebot.robot import get_robot_class
 
     config = load_app_config(args, RobotConfig)
     base_dir = args.config.parent if args.config else None
+    if args.robot is not None:
+        config.robot.kind = args.robot
+    try:
+        get_robot_class(config.robot.kind)  # a bad name is a usage error, before anything starts
+    except RobotError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
     if args.map is not None:
         config.sim.map = args.map
         base_dir = None  # a --map path is relative to where the command runs

@@ -1,7 +1,8 @@
 """``telebot-robot run``: the robot daemon.
 
-Starts the simulated robot on its map, opens the transport (zenoh peer by default),
-answers calls from the contacts and serves chat, map, pose, goals and telemetry on each.
+Starts the robot adapter that ``[robot] kind`` names (``"sim"``: the simulated robot on
+its map; see :mod:`telebot.robot`), opens the transport (zenoh peer by default), answers
+calls from the contacts and serves chat, map, pose, goals and telemetry on each.
 On SIGINT / SIGTERM it stops the robot first, then hangs up its calls, then exits.
 """
 
@@ -9,14 +10,16 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 from pathlib import Path
 
 from telebot.apps.common import stop_on_signals
 from telebot.channels.call import RobotEndpoint
 from telebot.channels.transports import create_transport
 from telebot.config import RobotConfig
+from telebot.errors import RobotError
 from telebot.identity import ContactBook, Identity
-from telebot.robot.sim.stack import SimNavStack
+from telebot.robot import create_robot
 from telebot.services.robot import EventSink, RobotServer
 from telebot.services.supervision import SafetyDriver
 from telebot.services.video import VideoSettings
@@ -52,23 +55,29 @@ async def serve_robot(
 ) -> None:
     """Run the robot until ``stop`` is set or SIGINT / SIGTERM arrives.
 
-    Relative map and places paths in ``config.sim`` are taken from ``base_dir`` (the
-    config file's folder); a relative audit log path from ``home`` (the robot's home).
-    The robot starts stopped and disarmed: a driver must re-arm it (``arm``).
+    The robot is the adapter ``config.robot.kind`` names; its top speed (the safety
+    supervisor's hard cap) is the speed cap it reports when created. Relative paths in the
+    config (``sim.map``, ``sim.places``) are taken from ``base_dir`` (the config file's
+    folder); a relative audit log path from ``home`` (the robot's home). The robot starts
+    stopped and disarmed: a driver must re-arm it (``arm``).
     """
     emit = emit if emit is not None else (lambda event: None)
     stop = stop or asyncio.Event()
     loop = asyncio.get_running_loop()
-    nav = await asyncio.to_thread(
-        SimNavStack.from_settings, config.sim, base_dir=base_dir, now=loop.time()
-    )
+    nav = await asyncio.to_thread(create_robot, config, base_dir=base_dir, now=loop.time())
+    # Read before the supervisor's start-up stop sets the cap to zero.
+    max_speed = nav.speed_limit
+    if not (isinstance(max_speed, int | float) and math.isfinite(max_speed) and max_speed > 0):
+        raise RobotError(f"robot {config.robot.kind!r} reports a top speed of {max_speed!r} m/s")
+    simulated = config.robot.kind == "sim"
+    map_label = config.sim.map if simulated else config.robot.kind
     audit = config.safety.audit_log
     if not audit.is_absolute() and home is not None:
         audit = home / audit
     safety = SafetyDriver(
         nav,
         timeout=deadman_time(config),
-        max_speed=config.sim.max_linear_speed,
+        max_speed=max_speed,
         usercam_while_moving=config.safety.usercam_while_moving,
         audit_path=audit,
     )
@@ -77,7 +86,7 @@ async def serve_robot(
             nav,
             config.services,
             control_hz=config.sim.control_hz,
-            map_name=Path(config.sim.map).stem,
+            map_name=Path(config.sim.map).stem if simulated else "map",
             emit=emit,
             safety=safety,
             video=VideoSettings(
@@ -103,7 +112,7 @@ async def serve_robot(
                 log.info(
                     "robot %s ready on map %s at (%.2f, %.2f)",
                     identity.name,
-                    config.sim.map,
+                    map_label,
                     pose.x,
                     pose.y,
                 )
@@ -111,7 +120,8 @@ async def serve_robot(
                     {
                         "event": "ready",
                         "robot": identity.name,
-                        "map": config.sim.map,
+                        "map": map_label,
+                        "kind": config.robot.kind,
                         "places": sorted(nav.places()),
                     }
                 )

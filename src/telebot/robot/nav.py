@@ -12,6 +12,21 @@ Every method is non-blocking: commands start work and return a :class:`GoalHandl
 latest state. A motion request the robot cannot act on (a goal inside a wall, no path)
 returns a handle that has already failed, with the reason, and the robot does not move.
 Numbers that are not finite raise :class:`~telebot.errors.InvalidCommand`.
+
+The map may change while the robot runs (a SLAM robot's map grows): :meth:`NavStack.map`
+returns an immutable snapshot, and :meth:`NavStack.map_version` changes whenever a new one
+is in place, so whoever keeps the map encoded or downloaded knows when to refresh it.
+
+Two more abilities, each its own protocol, say how the daemon runs an adapter:
+
+- :class:`EmergencyStoppable` (required by ``telebot-robot run``): ``emergency_stop`` may be
+  called from any thread, the safety watchdog's, and needs no event loop to act.
+- :class:`SteppedNavStack` (optional): an adapter driven by the caller's clock (the
+  simulator) has ``step(now)``, which the daemon calls at its control rate; an adapter that
+  runs by itself (a real robot's stack) has none and is not stepped.
+
+Adapters are chosen by name (``[robot] kind`` in the config, ``telebot-robot run --robot``)
+through the registry in :mod:`telebot.robot`.
 """
 
 from __future__ import annotations
@@ -32,6 +47,7 @@ __all__ = [
     "Battery",
     "CameraFrame",
     "CameraInfo",
+    "EmergencyStoppable",
     "GoalHandle",
     "GoalStatus",
     "NavStack",
@@ -39,6 +55,7 @@ __all__ = [
     "NavStatus",
     "Pose2D",
     "PoseEstimate",
+    "SteppedNavStack",
     "Velocity",
     "normalize_angle",
     "require_finite",
@@ -204,7 +221,16 @@ class NavStack(Protocol):
     """The one interface telebot uses to drive a robot (see the module docstring)."""
 
     def map(self) -> OccupancyGrid:
-        """The robot's map (occupancy grid, resolution, origin)."""
+        """The robot's map (occupancy grid, resolution, origin): a snapshot never changed later."""
+        ...
+
+    def map_version(self) -> int:
+        """A number that changes whenever :meth:`map` returns a new map (a counter, a stamp).
+
+        A map that never changes may keep any one number. Read it *before* :meth:`map`: a
+        map fetched after the version is at least that new, so a cache keyed by the version
+        may refresh once too often but never keeps an old map under a new version.
+        """
         ...
 
     def pose(self) -> PoseEstimate:
@@ -284,4 +310,21 @@ class NavStack(Protocol):
 
     def diagnostics(self) -> Mapping[str, str]:
         """Named health values (``{"laser": "ok", …}``) for telemetry."""
+        ...
+
+
+@runtime_checkable
+class SteppedNavStack(NavStack, Protocol):
+    """A NavStack driven by the caller's clock (the simulated robot): the daemon steps it."""
+
+    def step(self, now: float) -> None:
+        """Advance to ``now`` (the event loop's time under the daemon)."""
+        ...
+
+
+class EmergencyStoppable(NavStack, Protocol):
+    """A NavStack that can be stopped from any thread (the safety watchdog's)."""
+
+    def emergency_stop(self, reason: str) -> None:
+        """Stop as soon as possible; safe to call from any thread, needs no event loop."""
         ...

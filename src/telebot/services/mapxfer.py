@@ -15,6 +15,10 @@ User::
 
     download = await fetch_map(map_channel(call), progress=bar.update)
     download.save(Path("map.png"))                        # map.png + map.yaml
+
+A map that changes (SLAM) is followed: every transfer sends the map as it is at the
+request, ``download.version`` says which version that was, and the robot's telemetry
+carries the current ``map_version``; when the two differ, fetch again.
 """
 
 from __future__ import annotations
@@ -69,9 +73,10 @@ class MapService:
     """Serves the map on one call's "map" channel (the robot's side).
 
     ``provider`` returns the encoded map (:func:`~telebot.services.proto.mapxfer.encode_map`);
-    it is called at the first request and its result kept for the call. Encoding the
-    4000 × 4000 default map takes ~15 ms on the loop; a robot with many calls should pass
-    a provider that returns one map encoded ahead of time.
+    it is called at every new transfer, so a map that changed is served as it is now.
+    Encoding the 4000 × 4000 default map takes ~15 ms on the loop; a robot should pass a
+    provider that encodes each map version once, ahead of time when it can
+    (:meth:`~telebot.services.robot.RobotServer.encoded_map`).
 
     The service runs from the channel's callback and two loop handles (the chunk pump and
     the idle timer): it never raises out of a callback, counts garbage in
@@ -269,6 +274,11 @@ class MapDownload:
     def name(self) -> str:
         """The map's name as the robot offered it."""
         return self.encoded.name
+
+    @property
+    def version(self) -> int:
+        """The robot's map version this download shows (compare ``Telemetry.map_version``)."""
+        return self.encoded.version
 
     def yaml(self, image_name: str) -> str:
         """The ROS map_server YAML for this map, its image saved as ``image_name``."""

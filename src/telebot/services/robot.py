@@ -1,22 +1,28 @@
 """The robot side of telebot: steps the robot in real time and serves every call.
 
-:class:`RobotServer` owns the navigation stack. One task steps it at the control rate
-(``loop.time()`` is the simulation's clock). Each call gets every service of the server's
-:class:`~telebot.services.base.ServiceRegistry` (:func:`default_robot_services`: ``core``,
-the :class:`CallServices` of chat, map, pose, goals, telemetry and safety, and ``video``),
-ticked on every step and closed when the call ends. Every handler is guarded: garbage from
-one peer is dropped and counted and never reaches the others or stops the robot's loop.
+:class:`RobotServer` owns the navigation stack. One task runs at the control rate and steps
+it if it is a :class:`~telebot.robot.nav.SteppedNavStack` (``loop.time()`` is the
+simulation's clock; a robot that runs by itself is not stepped). Each call gets every
+service of the server's :class:`~telebot.services.base.ServiceRegistry`
+(:func:`default_robot_services`: ``core``, the :class:`CallServices` of chat, map, pose,
+goals, telemetry and safety, and ``video``), ticked on every cycle and closed when the call
+ends. The map is encoded once per :meth:`~telebot.robot.nav.NavStack.map_version`
+(:meth:`RobotServer.encoded_map`): a map that changes (SLAM) is served fresh, and each
+call's telemetry carries the version so users know to fetch it again. Every handler is
+guarded: garbage from one peer is dropped and counted and never reaches the others or
+stops the robot's loop.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import math
 from collections import OrderedDict
 from collections.abc import Callable
-from typing import Any, Protocol, TypeVar
+from typing import Any, TypeVar
 
 from telebot.channels.call import Call, RobotEndpoint
 from telebot.channels.channel import Channel, ReceivedDatagram
@@ -26,14 +32,14 @@ from telebot.errors import ProtocolError, TelebotError
 from telebot.identity import Role
 from telebot.reasons import Reason, Refusal
 from telebot.rights import Right, may
-from telebot.robot.nav import GoalHandle, GoalStatus, NavStack
+from telebot.robot.nav import GoalHandle, GoalStatus, NavStack, SteppedNavStack
 from telebot.safety import SafetyState
 from telebot.services.base import OpenServices, ServiceRegistry
 from telebot.services.chat import NO_SUPERVISOR, ChatSession, error_reason, goal_reason
 from telebot.services.mapxfer import MapService
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
 from telebot.services.proto.chat import ChatReply, decode_request
-from telebot.services.proto.mapxfer import EncodedMap, encode_map
+from telebot.services.proto.mapxfer import MAX_MAP_VERSION, EncodedMap, encode_map
 from telebot.services.proto.safety import (
     SAFETY,
     SafetyAck,
@@ -69,14 +75,6 @@ REMEMBERED = 256
 GOAL_STATUS_EVERY = 0.5
 
 EventSink = Callable[[dict[str, Any]], None]
-
-
-class SteppedNavStack(NavStack, Protocol):
-    """A NavStack driven by the caller's clock (the simulated robot)."""
-
-    def step(self, now: float) -> None:
-        """Advance to ``now``."""
-        ...
 
 
 def may_drive(role: Role | None) -> bool:
@@ -343,6 +341,7 @@ class CallServices:
             video_width=video.width if video is not None else 0,
             video_height=video.height if video is not None else 0,
             video_quality=video.quality if video is not None else 0,
+            map_version=self.server.map_version(),
         )
         self._send(self._telemetry_channel, telemetry.encode())
 
@@ -413,7 +412,7 @@ class RobotServer:
 
     def __init__(
         self,
-        nav: SteppedNavStack,
+        nav: NavStack,
         settings: ServiceSettings | None = None,
         *,
         control_hz: float = 20.0,
@@ -427,6 +426,8 @@ class RobotServer:
         #: What every call gets (:func:`default_robot_services` unless given); register
         #: more before calls come in.
         self.registry = services if services is not None else default_robot_services()
+        # Decided once: a robot that runs by itself has no step() and is not stepped.
+        self._step = nav.step if isinstance(nav, SteppedNavStack) else None
         self.video_settings = video if video is not None else VideoSettings()
         #: The safety supervisor's driver; None runs the robot without one (tests of the
         #: services alone): then nothing latches and roles alone decide who may drive.
@@ -442,21 +443,60 @@ class RobotServer:
         #: Every open service of each call, by call id.
         self.open: dict[str, OpenServices] = {}
         self._encoded: EncodedMap | None = None
+        # A changed map being encoded in a worker thread, and a version that failed to encode.
+        self._reencoding: asyncio.Future[EncodedMap] | None = None
+        self._unencodable: int | None = None
         self._loop = asyncio.get_running_loop()
 
     def now(self) -> float:
         """The robot's clock (the event loop's)."""
         return self._loop.time()
 
+    def map_version(self) -> int:
+        """The robot's map version as it travels (JSON-safe: wrapped into 0..2**53 − 1)."""
+        return self.nav.map_version() & MAX_MAP_VERSION
+
     def encoded_map(self) -> EncodedMap:
-        """The map, cropped and PNG-encoded once (the map does not change)."""
-        if self._encoded is None:
-            self._encoded = encode_map(self.nav.map(), self.map_name)
+        """The map, cropped and PNG-encoded once per map version (a SLAM map changes)."""
+        version = self.map_version()  # before map(): see NavStack.map_version
+        if self._encoded is None or self._encoded.version != version:
+            self._encoded = encode_map(self.nav.map(), self.map_name, version=version)
         return self._encoded
 
     async def prepare(self) -> None:
         """Encode the map off the event loop before the first call needs it."""
-        self._encoded = await asyncio.to_thread(encode_map, self.nav.map(), self.map_name)
+        version = self.map_version()
+        self._encoded = await asyncio.to_thread(
+            encode_map, self.nav.map(), self.map_name, version=version
+        )
+
+    def _reencode_changed_map(self) -> None:
+        """Encode a changed map in a worker thread, so a SLAM update does not stall the loop.
+
+        Until it is done a call that asks for the map has it encoded on the loop instead.
+        """
+        if self._reencoding is not None or self._encoded is None:
+            return
+        version = self.map_version()
+        if version in (self._encoded.version, self._unencodable):
+            return
+        grid = self.nav.map()
+        future = self._loop.run_in_executor(
+            None, functools.partial(encode_map, grid, self.map_name, version=version)
+        )
+        self._reencoding = future
+
+        def done(future: asyncio.Future[EncodedMap]) -> None:
+            self._reencoding = None
+            if future.cancelled():
+                return
+            if (exc := future.exception()) is not None:
+                self._unencodable = version
+                log.warning("the changed map (version %s) cannot be encoded: %s", version, exc)
+            elif version == self.map_version():  # else already stale: encode the next
+                self._encoded = future.result()
+
+        future.add_done_callback(done)
 
     def attach(self, endpoint: RobotEndpoint) -> None:
         """Serve every call ``endpoint`` answers from now on."""
@@ -541,7 +581,8 @@ class RobotServer:
         while True:
             now = self.now()
             try:
-                self.nav.step(now)
+                if self._step is not None:
+                    self._step(now)
             except Exception:
                 # Fail safe: a broken step must not leave the base driving, and the stop
                 # latches like any other (a new motion needs a re-arm).
@@ -553,6 +594,7 @@ class RobotServer:
                 except Exception:
                     log.exception("safety tick failed: stopping the robot")
                     self._emergency("safety tick failed")
+            self._guarded(self._reencode_changed_map)
             for opened in list(self.open.values()):
                 opened.tick(now)  # each service guarded
             next_step += period

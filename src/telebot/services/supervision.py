@@ -20,12 +20,12 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import IO, Literal, Protocol
+from typing import IO, Literal
 
 from telebot.channels.call import Call
 from telebot.identity import Role
 from telebot.reasons import Refusal
-from telebot.robot.nav import NavStack, NavState, Velocity
+from telebot.robot.nav import EmergencyStoppable, NavState, Velocity
 from telebot.safety import (
     Action,
     Audit,
@@ -38,20 +38,12 @@ from telebot.safety import (
     Stop,
 )
 
-__all__ = ["WATCHDOG_PERIOD", "CallGate", "EmergencyStoppable", "SafetyDriver"]
+__all__ = ["WATCHDOG_PERIOD", "CallGate", "SafetyDriver"]
 
 log = logging.getLogger("telebot.safety")
 
 #: How often the watchdog thread looks at the drive holder's link (s).
 WATCHDOG_PERIOD = 0.01
-
-
-class EmergencyStoppable(NavStack, Protocol):
-    """A NavStack that can be stopped from any thread (the watchdog's)."""
-
-    def emergency_stop(self, reason: str) -> None:
-        """Stop as soon as possible; safe to call from any thread."""
-        ...
 
 
 class SafetyDriver:

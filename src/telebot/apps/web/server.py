@@ -18,7 +18,8 @@ Websocket protocol (JSON text messages unless stated)::
     client → page
       {"type": "hello", "robot", "user", "role", "may_drive", "map": MAP | null}
       {"type": "map", "url": "/map.png", "resolution", "origin_x", "origin_y",
-       "width", "height"}                                when the map has arrived
+       "width", "height", "version"}                     when the map has arrived, and
+                                                         again whenever it changed (SLAM)
       {"type": "pose", "x", "y", "yaw", "v", "w", "state", "detail", "goal", "t",
        "recv": UNIX_MS}                                  recv: when the client got it
       {"type": "telemetry", ...}                         the robot's Telemetry fields
@@ -40,6 +41,10 @@ Video comes from the client's video feed (:class:`~telebot.services.video.VideoF
 subscribed while a page is open), so after a reconnection the map, pose and video resume
 on the page without a reload; a motion that was running at the drop is reported failed,
 and the robot stays stopped until re-armed.
+
+The map follows the robot's: when telemetry's ``map_version`` differs from the version of
+the map held here, it is fetched again, ``/map.png`` serves the new one and the pages get a
+new ``map`` message (they reload the image).
 
 Safety: a ``stop`` is handed to :meth:`RobotClient.stop` at once (before anything else
 the message loop does). When a page's websocket closes (tab closed, browser crashed: the
@@ -129,6 +134,9 @@ class WebUI:
         self.user = user
         self.map_timeout = map_timeout
         self.map: MapDownload | None = None
+        #: Maps fetched again because the robot's map changed.
+        self.map_refreshes = 0
+        self._map_fetch: asyncio.Task[Any] | None = None
         self.pages: set[_Page] = set()
         #: Stops sent because a page closed while the robot moved (for tests and logs).
         self.close_stops = 0
@@ -175,7 +183,8 @@ class WebUI:
             sockets = getattr(server, "sockets", None) or []
             self.port = int(sockets[0].getsockname()[1])
         self.client.on_connection.append(self._on_connection)
-        for pump in (self._fetch_map, self._pump_pose, self._pump_telemetry, self._pump_safety):
+        self._map_fetch = self._spawn(self._fetch_map())
+        for pump in (self._pump_pose, self._pump_telemetry, self._pump_safety):
             self._spawn(pump())
         self._spawn(self._pump_link())
         log.info("web UI for %s at %s", self.client.robot, self.url)
@@ -251,6 +260,7 @@ class WebUI:
             "origin_y": self.map.origin_y,
             "width": self.map.width,
             "height": self.map.height,
+            "version": self.map.version,
         }
 
     # -- websocket --------------------------------------------------------------------
@@ -488,6 +498,15 @@ class WebUI:
         while True:
             telemetry = await latest.next()
             self._broadcast({"type": "telemetry", **asdict(telemetry)})
+            self._follow_map(telemetry.map_version)
+
+    def _follow_map(self, version: int) -> None:
+        """Fetch the map again when the robot says it changed (one fetch at a time)."""
+        if self.map is None or self.map.version == version or self._map_fetch is not None:
+            return
+        log.info("the robot's map changed (version %s): fetching it again", version)
+        self.map_refreshes += 1
+        self._map_fetch = self._spawn(self._fetch_map())
 
     async def _pump_safety(self) -> None:
         latest = self.client.latest_safety
@@ -502,19 +521,22 @@ class WebUI:
             await asyncio.sleep(LINK_EVERY)
 
     async def _fetch_map(self) -> None:
-        while True:
-            try:
-                self.map = await self.client.get_map(timeout=self.map_timeout)
-                break
-            except CallEnded as exc:
-                if self.client.finished:
+        try:
+            while True:
+                try:
+                    self.map = await self.client.get_map(timeout=self.map_timeout)
+                    break
+                except CallEnded as exc:
+                    if self.client.finished:
+                        log.error("the map did not arrive: %s", exc)
+                        return
+                    # The call dropped mid-transfer: fetch it again on the next call.
+                except (TelebotError, TimeoutError) as exc:
                     log.error("the map did not arrive: %s", exc)
+                    self._broadcast({"type": "error", "text": f"the map did not arrive: {exc}"})
                     return
-                # The call dropped mid-transfer: fetch it again on the next call.
-            except (TelebotError, TimeoutError) as exc:
-                log.error("the map did not arrive: %s", exc)
-                self._broadcast({"type": "error", "text": f"the map did not arrive: {exc}"})
-                return
+        finally:
+            self._map_fetch = None
         message = self._map_message()
         assert message is not None
         self._broadcast(message)

@@ -8,6 +8,10 @@ steps is what a stalled control loop looks like, and the base's ``cmd_vel`` watc
 the robot ``cmd_vel_timeout`` into it, exactly as on a real base.
 
 Deterministic: the same map, settings, seed, calls and step times give the same run.
+
+The registry of :mod:`telebot.robot` knows it as ``"sim"`` (:meth:`SimNavStack.from_config`
+reads ``[sim]``). :meth:`SimNavStack.set_map` replaces the map while it runs, as a SLAM
+robot's map changes, and bumps :meth:`SimNavStack.map_version`.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from typing import Literal
 
 import numpy as np
 
-from telebot.config import SimSettings
+from telebot.config import RobotConfig, SimSettings
 from telebot.errors import InvalidCommand, MapError, NoPath, RobotError, UnknownCamera, UnknownPlace
 from telebot.reasons import Reason
 from telebot.robot.grid import OccupancyGrid
@@ -181,6 +185,7 @@ class SimNavStack:
     ) -> None:
         self._settings = settings = settings if settings is not None else SimSettings()
         self._grid = grid
+        self._map_version = 0
         self._map_name = map_name
         self._places = {name.lower(): pose for name, pose in (places or {}).items()}
         self._limits = Limits(
@@ -272,11 +277,35 @@ class SimNavStack:
             raise MapError(f"{yaml_path}: the map has no places file: set sim.start")
         return stack
 
+    @classmethod
+    def from_config(
+        cls, config: RobotConfig, *, base_dir: Path | None = None, now: float = 0.0
+    ) -> SimNavStack:
+        """The robot adapter ``"sim"`` of the registry: :meth:`from_settings` of ``config.sim``."""
+        return cls.from_settings(config.sim, base_dir=base_dir, now=now)
+
     # ------------------------------------------------------------------ NavStack: queries
 
     def map(self) -> OccupancyGrid:
         """The occupancy grid."""
         return self._grid
+
+    def map_version(self) -> int:
+        """0 for the map the robot started on, one more after each :meth:`set_map`."""
+        return self._map_version
+
+    def set_map(self, grid: OccupancyGrid) -> None:
+        """Replace the map, as a SLAM robot's map changes (the simulated world changes too).
+
+        The costmap, laser and cameras use the new map from the next step on; a running goal
+        keeps its path (the laser still stops the base before a new wall) and replans on the
+        new map when it is blocked. :meth:`map_version` goes up by one.
+        """
+        costmap = Costmap.from_grid(grid, self._settings.robot_radius)
+        laser = Laser(grid, beams=self._settings.laser_beams, range_max=self._settings.laser_range)
+        self._grid, self._costmap, self._laser = grid, costmap, laser
+        self._renderer = None
+        self._map_version += 1
 
     def pose(self) -> PoseEstimate:
         """The localisation estimate: true pose plus bounded, slowly varying noise."""

@@ -16,7 +16,8 @@ Transfer (one JSON text datagram per control message, one binary datagram per ch
 
     user  -> robot  {"type":"get","xfer":N}                       (re-sent until an offer comes)
     robot -> user   {"type":"offer","xfer":N,"name":…,"size":S,"chunks":K,"chunk_size":C,
-                     "sha256":hex,"width":W,"height":H,"resolution":r,"origin":[x,y]}
+                     "sha256":hex,"width":W,"height":H,"resolution":r,"origin":[x,y],
+                     "version":V}
                  or {"type":"error","xfer":N,"reason":"a map transfer is already running"}
     robot -> user   chunk i: 0x01 | xfer u32 BE | i u32 BE | png[i·C : (i+1)·C]   (K of them)
     user  -> robot  {"type":"resend","xfer":N,"missing":[i,…]}      (≤ 1000 indices each)
@@ -25,6 +26,11 @@ Transfer (one JSON text datagram per control message, one binary datagram per ch
 :class:`MapSender` is the robot's side (one per call, one transfer at a time) and
 :class:`MapReceiver` the user's; both take payloads and ``now`` and return what to send.
 Nothing here reads a clock or does I/O: ``services/mapxfer.py`` drives them over a channel.
+
+A map may change (SLAM): each transfer sends the map as it is when the ``get`` arrives (its
+``version`` is the robot's :meth:`~telebot.robot.nav.NavStack.map_version`, also in every
+telemetry message), and a transfer that runs while the map changes finishes with the
+snapshot it offered; the user fetches again to get the new one.
 The wire format is specified in ``docs/protocol.md`` ("The map channel").
 """
 
@@ -61,6 +67,7 @@ __all__ = [
     "MAX_CHUNK_DATA",
     "MAX_MAP_BYTES",
     "MAX_MAP_CELLS",
+    "MAX_MAP_VERSION",
     "MAX_RESEND_INDICES",
     "PNG_COMPRESSION",
     "REPEATS",
@@ -115,6 +122,8 @@ EARLY_BUFFER_BYTES: Final = 8 * 1024 * 1024
 RECENT_TRANSFERS: Final = 16
 #: The robot's reason when a ``get`` comes while another transfer runs.
 ALREADY_RUNNING: Final = "a map transfer is already running"
+#: Largest map version on the wire: it travels in JSON, exact up to 2**53 − 1 in any language.
+MAX_MAP_VERSION: Final = 2**53 - 1
 #: Longest ``reason`` or ``name`` kept from a peer (characters).
 MAX_TEXT: Final = 256
 
@@ -154,6 +163,8 @@ class EncodedMap:
     origin_x: float
     origin_y: float
     name: str = "map"
+    #: The robot's map version this image shows (``NavStack.map_version``; 0 if unknown).
+    version: int = 0
 
     @property
     def size(self) -> int:
@@ -170,8 +181,10 @@ class EncodedMap:
         return x, y
 
 
-def encode_map(grid: OccupancyGrid, name: str = "map") -> EncodedMap:
+def encode_map(grid: OccupancyGrid, name: str = "map", *, version: int = 0) -> EncodedMap:
     """``grid`` cropped to its known cells, as a trinary PNG with its georeference.
+
+    ``version`` labels it with the robot's map version (see :class:`EncodedMap`).
 
     Raises :class:`~telebot.errors.MapError` when no cell is known (there is nothing to
     show), or when OpenCV cannot encode the image.
@@ -193,6 +206,7 @@ def encode_map(grid: OccupancyGrid, name: str = "map") -> EncodedMap:
         origin_x=cropped.origin_x,
         origin_y=cropped.origin_y,
         name=name,
+        version=version,
     )
 
 
@@ -249,6 +263,8 @@ class Offer:
     resolution: float
     origin_x: float
     origin_y: float
+    #: The robot's map version (``NavStack.map_version``); 0 when the robot does not say.
+    version: int = 0
 
     def chunk_length(self, index: int) -> int:
         """Length of chunk ``index``'s data: ``chunk_size``, or what is left for the last."""
@@ -271,6 +287,7 @@ class Offer:
                 "height": self.height,
                 "resolution": self.resolution,
                 "origin": [self.origin_x, self.origin_y],
+                "version": self.version,
             }
         )
 
@@ -304,6 +321,12 @@ class Offer:
             raise ProtocolError(f"{what}: 'origin' must be [x, y]")
         origin_x = finite_number({"x": origin[0]}, "x", what=f"{what} origin")
         origin_y = finite_number({"y": origin[1]}, "y", what=f"{what} origin")
+        # Optional: robots before map versions did not send it.
+        version = (
+            require_int(message, "version", what=what, high=MAX_MAP_VERSION)
+            if "version" in message
+            else 0
+        )
         return cls(
             xfer=xfer,
             name=name,
@@ -316,6 +339,7 @@ class Offer:
             resolution=resolution,
             origin_x=origin_x,
             origin_y=origin_y,
+            version=version,
         )
 
 
@@ -367,9 +391,11 @@ class MapSender(_Side[str | bytes]):
     :meth:`next_chunks` while :attr:`has_pending` (so a big map yields to the event loop
     rather than flood the queues); call :meth:`poll` at :meth:`next_deadline`.
 
-    ``provider`` is asked for the map at the first ``get`` and its result kept (the map
-    does not change during a call); if it raises, the ``get`` is refused with the error as
-    the reason and the next ``get`` asks again.
+    ``provider`` is asked for the map at every new transfer (so a map that changed is sent
+    as it is now; the provider should cache by map version, as
+    :meth:`~telebot.services.robot.RobotServer.encoded_map` does) and the transfer sends
+    that snapshot to its end; if it raises, the ``get`` is refused with the error as the
+    reason and the next ``get`` asks again.
     """
 
     def __init__(
@@ -479,11 +505,6 @@ class MapSender(_Side[str | bytes]):
 
     # -- handlers
 
-    def _encoded(self) -> EncodedMap:
-        if self._map is None:
-            self._map = self._provider()
-        return self._map
-
     def _on_get(self, xfer: int, now: float) -> list[str | bytes]:
         if self._offer is not None:
             if xfer == self._offer.xfer:  # the offer was lost: the user asks again
@@ -498,7 +519,7 @@ class MapSender(_Side[str | bytes]):
             self.ignored += 1
             return []
         try:
-            encoded = self._encoded()
+            encoded = self._provider()
         except Exception as exc:  # the provider is the robot's code: answer, do not crash
             self.provider_error = exc
             return [_message("error", xfer, reason=f"the map is not available: {exc}"[:MAX_TEXT])]
@@ -517,7 +538,9 @@ class MapSender(_Side[str | bytes]):
             resolution=encoded.resolution,
             origin_x=encoded.origin_x,
             origin_y=encoded.origin_y,
+            version=encoded.version,
         )
+        self._map = encoded  # the snapshot this transfer's chunks come from
         self._offer_text = self._offer.to_message()
         self._last_heard = now
         self._queue = deque(range(count))
@@ -859,6 +882,7 @@ class MapReceiver(_Side[str]):
             origin_x=offer.origin_x,
             origin_y=offer.origin_y,
             name=offer.name,
+            version=offer.version,
         )
         self.state = "done"
         return [_message("done", self.xfer)] * REPEATS

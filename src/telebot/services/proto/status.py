@@ -216,6 +216,9 @@ class Telemetry:
     video_width: int = 0
     video_height: int = 0
     video_quality: int = 0
+    #: The robot's map version: when it differs from the map you downloaded
+    #: (``MapDownload.version``), the map changed (SLAM) and a new download shows it.
+    map_version: int = 0
 
     def encode(self) -> str:
         """The datagram text."""
@@ -259,6 +262,9 @@ def decode_telemetry(payload: str | bytes) -> Telemetry:
         else 0,
         video_quality=require_int(msg, "video_quality", what=what, high=100)
         if "video_quality" in msg
+        else 0,
+        map_version=require_int(msg, "map_version", what=what, high=2**53 - 1)
+        if "map_version" in msg
         else 0,
     )
 
