@@ -276,7 +276,8 @@ async def test_forged_tampered_replayed_and_garbage_frames_are_dropped_and_count
     async with User(peer) as user:
         call = await user.call(ROBOT)
         chat = call.channel("chat")
-        inbox = f"telebot/robot/{ROBOT}/in"
+        # The call's DATA key on the robot (chat is a DATA-lane channel here).
+        inbox = f"telebot/robot/{ROBOT}/call/{call.id}/data"
         captured: list[bytes] = []
 
         def tap(samples: Any) -> None:
@@ -288,7 +289,9 @@ async def test_forged_tampered_replayed_and_garbage_frames_are_dropped_and_count
         await asyncio.sleep(0.3)  # let the tap's declaration settle
         assert await echo(chat, "original") == "original"
         subscription.close()
-        frame = next(f for f in captured if len(f) > 18 + 16 + 20)  # a datagram, not a heartbeat
+        # Heartbeats travel on the call's CONTROL key: the one frame here is the datagram.
+        assert len(captured) == 1
+        frame = captured[0]
         raw = user.transport.publisher(inbox, Lane.DATA)
         raw.put(frame)  # replayed
         header_tampered = bytearray(frame)
@@ -304,10 +307,21 @@ async def test_forged_tampered_replayed_and_garbage_frames_are_dropped_and_count
         raw.put(b"\x01\x03garbage!")  # truncated DATA
         raw.put(os.urandom(200))  # noise
         raw.put(b"")  # empty
+        other_call = bytearray(fresh)
+        other_call[2] ^= 0xFF  # another call's id on this call's key
+        raw.put(bytes(other_call))
+        # The same garbage on the handshake key is the endpoint's to count.
+        handshake = user.transport.publisher(f"telebot/robot/{ROBOT}/in", Lane.CONTROL)
+        for junk in (fresh, os.urandom(200), b""):
+            handshake.put(junk)
+        handshake.close()
         await asyncio.sleep(0.3)
         stats = await robot_stats(call)
         assert stats["rejected"].get("replayed", 0) >= 1
         assert stats["rejected"].get("forged", 0) >= 2
+        assert stats["rejected"].get("malformed", 0) >= 3
+        assert stats["rejected"].get("not_this_call", 0) >= 1
+        assert stats["endpoint_rejected"].get("data_on_handshake_key", 0) >= 1
         assert sum(stats["endpoint_rejected"].values()) >= 3
         # neither the replay nor the forgeries reached the channel
         assert stats["channels"]["chat"]["received"] == 1

@@ -3,12 +3,21 @@
 The protocol logic is in :mod:`telebot.channels.proto` (sans-IO); this module moves its
 frames over a :class:`~telebot.channels.transports.base.Transport` and keeps time.
 
-Key expressions (``ns`` is the namespace, ``telebot`` by default)::
+Key expressions (``ns`` is the namespace, ``telebot`` by default; ``{base}`` is
+``{ns}/robot/{robot}`` for a robot and ``{ns}/user/{user}/{instance}`` for a user client)::
 
-    {ns}/robot/{robot}/in                      frames to a robot
-    {ns}/user/{user}/{instance}/in             frames to one running user client
+    {base}/in                                  handshake frames (HELLO, WELCOME, RETRY)
+    {base}/call/{call_id}/ctl                  one call's CONTROL frames (heartbeats, stop,
+                                               chat, goals, safety, hang-up)
+    {base}/call/{call_id}/data                 one call's DATA and BULK frames
     {ns}/presence/robot/{robot}/{public_key}   presence token of a robot
     {ns}/presence/user/{user}/{instance}       presence token of a user client
+
+Every key has its own subscription with its own bounded queue (:data:`HANDSHAKE_LIMITS`,
+:data:`CONTROL_LIMITS`, :data:`DATA_LIMITS`): a flood of data can only drop that call's
+own data, never its heartbeats or a stop, never another call's frames, and a stranger
+flooding a robot's handshake key delays no call. The queues are bounded in bytes too, and
+a payload larger than any frame is dropped before it is copied.
 
 A call ends when either side hangs up, or drops when the peer's presence token
 disappears or nothing authentic arrived from it for ``CallSettings.timeout``.
@@ -31,6 +40,7 @@ from typing import Literal, Self
 from telebot.channels.channel import Channel, ReceivedDatagram
 from telebot.channels.proto.frames import (
     INSTANCE_LEN,
+    MAX_FRAME,
     Bundle,
     Coalescer,
     DataFrame,
@@ -60,6 +70,7 @@ from telebot.channels.transports.base import (
     Lane,
     Presence,
     Publisher,
+    ReceiveLimits,
     Sample,
     Subscription,
     Transport,
@@ -97,6 +108,15 @@ HANGUP_REPEATS = 3
 #: it can overtake the hang-up and the peer sees a drop instead.
 HANGUP_GRACE = 0.05
 _TIMER_SLACK = 0.001  # fire just after a deadline, never just before it
+#: The handshake key: small frames only (a HELLO is under 2.5 KB), a short queue.
+HANDSHAKE_LIMITS = ReceiveLimits(max_samples=256, max_bytes=1 << 20, max_payload=4096, batch=64)
+#: A call's CONTROL key: its own queue, so data never pushes a heartbeat or a stop out.
+CONTROL_LIMITS = ReceiveLimits(max_samples=512, max_bytes=4 << 20, max_payload=MAX_FRAME, batch=64)
+#: A call's DATA key: the transport's queue bounds (count and bytes); frames beyond them
+#: are this call's own loss (counted in :attr:`Call.receive_dropped`).
+DATA_LIMITS = ReceiveLimits(max_payload=MAX_FRAME, batch=128)
+#: Frames kept for a call being set up that arrive before its WELCOME is handled.
+_EARLY_FRAMES = 64
 
 
 @dataclass(frozen=True, slots=True)
@@ -124,8 +144,9 @@ class Call:
         *,
         peer: str,
         role: Role | None,
-        peer_inbox: str,
+        peer_base: str,
         peer_presence: str,
+        inbox: _CallInbox,
     ) -> None:
         self._endpoint = endpoint
         self._session = session
@@ -133,7 +154,12 @@ class Call:
         self.peer = peer
         #: The role of the user in this call (the contact's role, as the robot granted it).
         self.role = role
-        self._peer_inbox = peer_inbox
+        call_keys = f"{peer_base}/call/{session.call_id.hex()}"
+        self._peer_keys = {
+            Lane.CONTROL: f"{call_keys}/ctl",
+            Lane.DATA: f"{call_keys}/data",
+            Lane.BULK: f"{call_keys}/data",
+        }
         self._publishers: dict[Lane, Publisher] = {}
         # DATA and BULK datagrams sent after the first of a loop turn wait here until
         # the end of that turn, then go out together (one BUNDLE: one seal, one publish).
@@ -152,7 +178,9 @@ class Call:
         self._presence_watch = endpoint.transport.watch_presence(
             peer_presence, self._on_peer_presence
         )
+        self._inbox = inbox
         self._schedule()
+        inbox.attach(self)
 
     def __repr__(self) -> str:
         state = "active" if self.end is None else str(self.end)
@@ -172,6 +200,13 @@ class Call:
     def suite(self) -> Suite:
         """The cipher suite the two ends agreed for this call."""
         return self._session.suite
+
+    @property
+    def receive_dropped(self) -> int:
+        """Frames from the peer dropped on this side before they were read: over this
+        call's receive queue (the peer sends faster than it is served) or larger than
+        any frame."""
+        return self._inbox.dropped
 
     @property
     def last_heard(self) -> float:
@@ -273,7 +308,7 @@ class Call:
     def _put(self, frame: bytes, lane: Lane) -> None:
         publisher = self._publishers.get(lane)
         if publisher is None:
-            publisher = self._endpoint.transport.publisher(self._peer_inbox, lane)
+            publisher = self._endpoint.transport.publisher(self._peer_keys[lane], lane)
             self._publishers[lane] = publisher
         publisher.put(frame)
 
@@ -347,6 +382,7 @@ class Call:
         for outbox in self._outboxes.values():
             outbox.take()
         self._presence_watch.close()
+        self._inbox.close()
         for publisher in self._publishers.values():
             publisher.close()
         self._publishers.clear()
@@ -355,6 +391,84 @@ class Call:
         self._ended.set_result(end)
         self._endpoint._forget(self)
         log.info("call %s with %s %s", self.id, self.peer, end)
+
+
+class _CallInbox:
+    """The two subscriptions of one call on this side (CONTROL and DATA keys).
+
+    Opened before the peer can send on them: by a robot before it answers a HELLO, by a
+    user before its first HELLO (its WELCOME and the robot's first frames travel on
+    different keys, so a few frames may be read before the WELCOME: they wait here).
+    Anything that is not a DATA frame of this call is counted and dropped before any
+    cryptography.
+    """
+
+    def __init__(self, endpoint: _Endpoint, call_id: bytes) -> None:
+        self.call_id = call_id
+        self._call: Call | None = None
+        self._early: list[Sample] = []
+        self._closed = False
+        keys = f"{endpoint.base}/call/{call_id.hex()}"
+        transport = endpoint.transport
+        self._subscriptions = [
+            transport.subscribe(f"{keys}/ctl", self._on_samples, limits=CONTROL_LIMITS)
+        ]
+        try:
+            self._subscriptions.append(
+                transport.subscribe(f"{keys}/data", self._on_samples, limits=DATA_LIMITS)
+            )
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def dropped(self) -> int:
+        """Samples dropped before they were read (queue bounds, oversized payloads)."""
+        return sum(sub.stats.dropped + sub.stats.oversized for sub in self._subscriptions)
+
+    def attach(self, call: Call) -> None:
+        """Deliver to ``call`` from now on, starting with what arrived early."""
+        self._call = call
+        early, self._early = self._early, []
+        if early:
+            self._on_samples(early)
+
+    def _on_samples(self, samples: Sequence[Sample]) -> None:
+        call = self._call
+        if call is None:
+            room = _EARLY_FRAMES - len(self._early)
+            self._early.extend(samples[:room])
+            return
+        rejected = call._session.stats.rejected
+        call_id = self.call_id
+        for sample in samples:
+            if call.end is not None:  # a handler ended the call: the rest is for nobody
+                return
+            try:
+                frame = decode_frame(sample.payload)
+            except ProtocolError:
+                rejected["malformed"] += 1
+                continue
+            if type(frame) is not DataFrame or frame.call_id != call_id:
+                rejected["not_this_call"] += 1
+                continue
+            # Not contextlib.suppress: it costs more than the rest of a small frame.
+            try:
+                call._on_frame(frame)
+            except ProtocolError:  # forged, replayed, malformed: counted by the session
+                pass
+            except Exception:  # a bug must not take the endpoint down with it
+                rejected["internal_error"] += 1
+                log.exception("call %s: error handling a frame on %s", call.id, sample.key)
+
+    def close(self) -> None:
+        """Stop listening; idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._early.clear()
+        for sub in self._subscriptions:
+            sub.close()
 
 
 @dataclass(slots=True)
@@ -392,7 +506,8 @@ class _Endpoint:
         self._last_hangup = -math.inf  # event-loop time of the last HANGUP sent
         self._incompatible_seen: set[str] = set()  # warned about once each
 
-    # Subclasses name their inbox and presence keys.
+    # Subclasses name their key prefix, handshake inbox and presence keys.
+    base: str
     inbox: str
     presence_key: str
 
@@ -410,7 +525,9 @@ class _Endpoint:
 
     async def start(self) -> None:
         """Listen on the inbox and announce presence (the transport must be open)."""
-        self._subscription = self.transport.subscribe(self.inbox, self._on_samples)
+        self._subscription = self.transport.subscribe(
+            self.inbox, self._on_samples, limits=HANDSHAKE_LIMITS
+        )
         self._presence = self.transport.declare_presence(self.presence_key)
 
     async def close(self, reason: str = "shutting down") -> None:
@@ -451,11 +568,18 @@ class _Endpoint:
         *,
         peer: str,
         role: Role | None,
-        peer_inbox: str,
+        peer_base: str,
         peer_presence: str,
+        inbox: _CallInbox,
     ) -> Call:
         call = Call(
-            self, session, peer=peer, role=role, peer_inbox=peer_inbox, peer_presence=peer_presence
+            self,
+            session,
+            peer=peer,
+            role=role,
+            peer_base=peer_base,
+            peer_presence=peer_presence,
+            inbox=inbox,
         )
         self._calls[session.call_id] = call
         return call
@@ -464,19 +588,12 @@ class _Endpoint:
         self._calls.pop(bytes.fromhex(call.id), None)
 
     def _on_samples(self, samples: Sequence[Sample]) -> None:
+        """Handshake frames; a call's frames come on its own keys (:class:`_CallInbox`)."""
         for sample in samples:
             try:
                 frame = decode_frame(sample.payload)
                 if isinstance(frame, DataFrame):
-                    call = self._calls.get(frame.call_id)
-                    if call is None:
-                        self.stats.rejected["unknown_call"] += 1
-                        continue
-                    # Not contextlib.suppress: it costs more than the rest of a small frame.
-                    try:  # noqa: SIM105
-                        call._on_frame(frame)
-                    except ProtocolError:  # counted in call.stats.rejected
-                        pass
+                    self.stats.rejected["data_on_handshake_key"] += 1
                 else:
                     self._on_handshake(frame)
             except IncompatiblePeer as exc:
@@ -519,7 +636,8 @@ class RobotEndpoint(_Endpoint):
     ) -> None:
         super().__init__(transport, identity, settings=settings, namespace=namespace)
         self.contacts = contacts
-        self.inbox = f"{namespace}/robot/{identity.name}/in"
+        self.base = f"{namespace}/robot/{identity.name}"
+        self.inbox = f"{self.base}/in"
         self.presence_key = (
             f"{namespace}/presence/robot/{identity.name}/{encode_key(identity.public_key)}"
         )
@@ -619,12 +737,15 @@ class RobotEndpoint(_Endpoint):
             now=now,
         )
         instance = frame.instance.hex()
+        # Listening on the call's keys before the WELCOME goes out: the user sends on
+        # them once it has the WELCOME.
         call = self._new_call(
             session,
             peer=contact.name,
             role=contact.role,
-            peer_inbox=f"{self.namespace}/user/{frame.caller}/{instance}/in",
+            peer_base=f"{self.namespace}/user/{frame.caller}/{instance}",
             peer_presence=f"{self.namespace}/presence/user/{frame.caller}/{instance}",
+            inbox=_CallInbox(self, frame.call_id),
         )
         self._reply(frame, welcome.encode())
         log.info(
@@ -718,10 +839,12 @@ class UserEndpoint(_Endpoint):
         super().__init__(transport, identity, settings=settings, namespace=namespace)
         self.known_robots = known_robots
         self.instance = os.urandom(INSTANCE_LEN)
-        base = f"{namespace}/user/{identity.name}/{self.instance.hex()}"
-        self.inbox = f"{base}/in"
+        self.base = f"{namespace}/user/{identity.name}/{self.instance.hex()}"
+        self.inbox = f"{self.base}/in"
         self.presence_key = f"{namespace}/presence/user/{identity.name}/{self.instance.hex()}"
         self._pending: dict[bytes, tuple[InitiatorHandshake, asyncio.Future[Call]]] = {}
+        # The keys of a call being set up, listened on before its first HELLO goes out.
+        self._pending_inbox: dict[bytes, _CallInbox] = {}
         self._pending_robot: dict[bytes, str] = {}
         # The HELLO each pending call repeats (another one after a RETRY).
         self._pending_hello: dict[bytes, bytes] = {}
@@ -764,6 +887,7 @@ class UserEndpoint(_Endpoint):
         self._pending[call_id] = (handshake, future)
         self._pending_robot[call_id] = robot
         self._pending_hello[call_id] = hello.encode()
+        self._pending_inbox[call_id] = inbox = _CallInbox(self, call_id)
         publisher = self.transport.publisher(f"{self.namespace}/robot/{robot}/in", Lane.CONTROL)
         # A robot online under this name with another key cannot read the HELLO and never
         # answers: its presence token (which carries its key) tells at once.
@@ -794,7 +918,10 @@ class UserEndpoint(_Endpoint):
         finally:
             watch.close()
             publisher.close()
+            if not future.done() or future.cancelled() or future.exception() is not None:
+                inbox.close()  # no call took it over
             self._pending.pop(call_id, None)
+            self._pending_inbox.pop(call_id, None)
             self._pending_robot.pop(call_id, None)
             self._pending_hello.pop(call_id, None)
 
@@ -878,8 +1005,9 @@ class UserEndpoint(_Endpoint):
             session,
             peer=robot,
             role=role,
-            peer_inbox=f"{self.namespace}/robot/{robot}/in",
+            peer_base=f"{self.namespace}/robot/{robot}",
             peer_presence=f"{self.namespace}/presence/robot/{robot}/{encode_key(self.known_robots.get(robot) or b'')}",
+            inbox=self._pending_inbox[frame.call_id],
         )
         future.set_result(call)
 

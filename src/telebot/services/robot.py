@@ -342,6 +342,7 @@ class CallServices:
             video_height=video.height if video is not None else 0,
             video_quality=video.quality if video is not None else 0,
             map_version=self.server.map_version(),
+            rx_dropped=self.call.receive_dropped,
         )
         self._send(self._telemetry_channel, telemetry.encode())
 

@@ -219,6 +219,9 @@ class Telemetry:
     #: The robot's map version: when it differs from the map you downloaded
     #: (``MapDownload.version``), the map changed (SLAM) and a new download shows it.
     map_version: int = 0
+    #: Frames of this call the robot dropped unread: over the call's receive queue
+    #: (sent faster than the robot serves them) or larger than any frame.
+    rx_dropped: int = 0
 
     def encode(self) -> str:
         """The datagram text."""
@@ -265,6 +268,9 @@ def decode_telemetry(payload: str | bytes) -> Telemetry:
         else 0,
         map_version=require_int(msg, "map_version", what=what, high=2**53 - 1)
         if "map_version" in msg
+        else 0,
+        rx_dropped=require_int(msg, "rx_dropped", what=what, high=2**53 - 1)
+        if "rx_dropped" in msg
         else 0,
     )
 
