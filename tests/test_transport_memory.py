@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from telebot.channels.transports import Lane, Sample, create_transport
+from telebot.channels.transports.base import ReceiveLimits
 from telebot.channels.transports.memory import (
     LinkConditions,
     MemoryHub,
@@ -145,6 +146,22 @@ async def test_delivered_to_matching_subscription_only_in_one_batch(join: Join) 
     assert a.stats.published == 5
     assert b.stats.received == 5
     assert hub.link_stats("a", "b").delivered == 5
+
+
+async def test_oversized_payloads_are_dropped_and_counted(join: Join) -> None:
+    hub = MemoryHub(seed=1)
+    a, b = await join(hub, "a"), await join(hub, "b")
+    small, anything = Inbox(), Inbox()
+    limited = b.subscribe("k", small, limits=ReceiveLimits(max_payload=10))
+    b.subscribe("k", anything)
+    pub = a.publisher("k")
+    pub.put(bytes(11))
+    pub.put(bytes(10))
+    await anything.wait_for(2)
+    await settle()
+    assert small.payloads == [bytes(10)]
+    assert limited.stats.oversized == 1 and limited.stats.received == 1
+    assert b.stats.oversized == 1
 
 
 async def test_payload_is_copied(join: Join) -> None:

@@ -27,7 +27,7 @@ import zenoh
 
 from conftest import wait_until
 from telebot.channels.transports import create_transport
-from telebot.channels.transports.base import Lane, Sample
+from telebot.channels.transports.base import Lane, ReceiveLimits, Sample
 from telebot.channels.transports.zenoh import ZenohTransport, build_zenoh_config
 from telebot.config import TransportSettings, ZenohSettings
 from telebot.errors import TransportError
@@ -620,6 +620,62 @@ async def test_slow_consumer_drops_oldest() -> None:
         assert after_block == [b"%d" % i for i in range(count - 16, count)]
         assert listener.stats.dropped == count - 16
         assert len(inbox.batches[-1]) == 16
+
+
+async def test_receive_limits_bound_bytes_drop_oversized_uncopied_and_cap_batches() -> None:
+    """A subscription's own limits: the queue holds at most ``max_bytes`` (oldest dropped),
+    a payload over ``max_payload`` is dropped and counted, and the callback gets at most
+    ``batch`` samples per loop turn."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    limits = ReceiveLimits(max_bytes=10_000, max_payload=5_000, batch=4)
+    async with (
+        ZenohTransport(listen_settings(endpoint)) as listener,
+        ZenohTransport(connect_settings(endpoint)) as connector,
+    ):
+        key = f"test/{uuid.uuid4().hex}/flood"
+        inbox = Inbox()
+        count = 20
+        blocking = threading.Event()
+        sent = threading.Event()
+
+        def consumer(batch: Sequence[Sample]) -> None:
+            inbox(batch)
+            if any(sample.payload == b"block" for sample in batch):
+                blocking.set()  # hog the loop while the flood arrives
+                sent.wait(5)
+                deadline = time.monotonic() + 5
+                while subscription._received + subscription._oversized < before + count + 1:
+                    assert time.monotonic() < deadline, "flood did not arrive"
+                    time.sleep(0.01)
+
+        subscription = listener.subscribe(key, consumer, limits=limits)
+        publisher = connector.publisher(key)
+        await warm_up(publisher.put, inbox)
+        before = subscription._received + subscription._oversized
+
+        def flood() -> None:
+            blocking.wait(5)
+            for i in range(count):
+                publisher.put(b"%02d" % i + bytes(998))
+            publisher.put(bytes(6_000))  # over max_payload
+            sent.set()
+
+        sender = threading.Thread(target=flood)
+        sender.start()
+        try:
+            publisher.put(b"block")
+            await wait_until(lambda: any(s.payload[:2] == b"19" for s in inbox.samples))
+        finally:
+            sent.set()
+            sender.join()
+        after_block = [s.payload[:2] for s in inbox.samples if s.payload != b"block"]
+        # 10 payloads of 1,000 bytes fill 10,000 bytes: the newest 10 survived, in order.
+        assert after_block == [b"%02d" % i for i in range(count - 10, count)]
+        assert subscription.stats.dropped == count - 10
+        assert subscription.stats.oversized == 1
+        assert listener.stats.oversized == 1
+        flood_batches = inbox.batches[-3:]
+        assert [len(batch) for batch in flood_batches] == [4, 4, 2]
 
 
 # --- lanes ---------------------------------------------------------------------------
