@@ -20,6 +20,8 @@ import json
 import math
 import os
 import signal
+import subprocess
+import sys
 import time
 from collections.abc import AsyncGenerator, AsyncIterator, Callable, Iterator
 from dataclasses import dataclass
@@ -376,6 +378,75 @@ async def test_an_observer_cannot_drive_but_its_stop_stops_a_moving_robot(
         assert OBSERVER in state.reason
         again = await alice.chat("fwd 1")
         assert not again.ok and again.reason == Reason.NOT_ARMED
+
+
+# -- a data flood ----------------------------------------------------------------------------
+
+#: How long the flooding user floods (s): the issue's figure.
+FLOOD_SECONDS = 10.0
+
+
+@contextlib.contextmanager
+def cpu_burners(count: int = 2) -> Iterator[None]:
+    """``count`` processes spinning on the CPU (a busy CI machine), killed on exit."""
+    burners = [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(count)]
+    try:
+        yield
+    finally:
+        for burner in burners:
+            burner.kill()
+            burner.wait()
+
+
+@pytest.mark.zenoh
+async def test_a_data_flood_drops_no_call_and_its_stop_still_reaches_the_base(
+    daemon: Daemon, processes: list[Process]
+) -> None:
+    """olga floods 32 KB datagrams for 10 s from her own process on a machine kept busy;
+    alice, in a call of her own, drives and then stops the robot: neither call drops,
+    the stop reaches the base, and the robot counts (and tells olga) what it dropped."""
+    config = write_config(daemon.base / "flooder.toml")
+    path = os.pathsep.join(filter(None, [str(TESTS), os.environ.get("PYTHONPATH")]))
+    async with daemon.connect() as alice:
+        alice_call = alice.call.id
+        assert (await alice.stop()).ok
+        await arm(alice)
+        with cpu_burners():
+            flooder = Process(
+                [
+                    "flood_proc",
+                    "--home",
+                    str(daemon.observer_home),
+                    "--config",
+                    str(config),
+                    "--connect",
+                    daemon.endpoint,
+                    "--robot",
+                    ROBOT,
+                    "--seconds",
+                    str(FLOOD_SECONDS),
+                ],
+                env={"PYTHONPATH": path},
+            )
+            processes.append(flooder)
+            await flooder.wait_event("flooding", timeout=30)
+            await drive_far(alice)
+            await next_pose(alice, lambda p: abs(p.v) > 0.05, timeout=10)
+            ack = await alice.stop()
+            acked = time.monotonic()
+            assert ack.ok, ack.text
+            # Every pose stamped (robot clock) after the acknowledgement shows it at rest.
+            after = await next_pose(alice, lambda p: p.t > acked, timeout=5)
+            assert still(after), after
+            done = await flooder.wait_event("done", timeout=FLOOD_SECONDS + 30)
+        # Neither call dropped: the flooder's is the one it started with, and so is alice's.
+        assert done["reconnects"] == 0 and done["active"], done
+        assert done["call"] == done["first_call"], done
+        assert alice.reconnects == 0 and alice.call.id == alice_call and alice.call.active
+        assert (await alice.chat("where?")).ok
+        # The drops are counted: by the robot, which told the flooding call so.
+        assert done["sent"] > 0 and done["rx_dropped"] > 0, done
+        print(done)
 
 
 # -- the audit log ---------------------------------------------------------------------------
