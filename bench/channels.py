@@ -28,6 +28,9 @@ A+AEAD. The encrypted baseline: A again, but the publisher seals every payload w
    this CPU; ``ratio_32k_aead`` is telebot's 32 KB rate against it. (Small datagrams
    can beat it: telebot seals a BUNDLE of many in one AEAD operation.)
 
+D. Flood survival and E. reconnection, against a real ``telebot-robot run`` daemon: see
+   ``bench/_survival.py`` (``--survival-only`` runs just these two, about 60 s).
+
 Two informational measurements help to tell where telebot's time goes: the flood of A
 received by a bare ``ZenohTransport.subscribe`` (zenoh thread -> bounded queue ->
 asyncio batch callback, no call, no crypto), and a third ping-pong, raw with the echo
@@ -86,6 +89,7 @@ from typing import Any, Generic, NamedTuple, TypeVar
 
 import zenoh
 
+from _survival import Survival, measure_survival, survival_report
 from telebot.channels.call import Call, RobotEndpoint, UserEndpoint
 from telebot.channels.channel import ReceivedDatagram
 from telebot.channels.proto.frames import DataFrame
@@ -809,7 +813,7 @@ def size_label(size: int) -> str:
     return f"{size // 1024} KB" if size >= 1024 else f"{size} B"
 
 
-def report(res: Results, elapsed: float) -> list[str]:
+def report(res: Results, survival: Survival, elapsed: float) -> list[str]:
     qos = ", ".join(f"{key}={value}" for key, value in DATA_QOS.items())
     lines = [
         "",
@@ -870,10 +874,15 @@ def report(res: Results, elapsed: float) -> list[str]:
         "  raw: zenoh bridged into asyncio at both ends (call_soon_threadsafe), as telebot is",
         f"lost pings: raw {pings.raw.lost}, telebot {pings.telebot.lost}, "
         f"raw echo in callback {pings.raw_callback.lost}",
+    ]
+    survival_lines, fields = survival_report(survival)
+    lines += survival_lines
+    lines += [
         f"(took {elapsed:.1f} s)",
         f"RESULT ratio_64={ratios[64]:.3f} ratio_1k={ratios[1024]:.3f} "
-        f"ratio_32k={ratios[32768]:.3f} rtt_p50_ratio={rtt_ratios['p50']:.3f} "
-        f"rtt_p99_ratio={rtt_ratios['p99']:.3f} ratio_32k_aead={ratio_32k_aead:.3f}",
+        f"ratio_32k_aead={ratio_32k_aead:.3f} rtt_p50_ratio={rtt_ratios['p50']:.3f} "
+        f"rtt_p99_ratio={rtt_ratios['p99']:.3f} ratio_32k={ratios[32768]:.3f} "
+        + " ".join(f"{key}={value}" for key, value in fields.items()),
     ]
     return lines
 
@@ -884,11 +893,20 @@ def main() -> None:
     parser.add_argument(
         "--profile", action="store_true", help="cProfile the telebot receiver (to stderr)"
     )
+    parser.add_argument(
+        "--survival-only", action="store_true", help="run sections D and E only (about 60 s)"
+    )
     args = parser.parse_args()
     if args.child:
         run_child(args.child, args.profile)
         return
     started = time.monotonic()
+    if args.survival_only:
+        lines, fields = survival_report(measure_survival(free_port()))
+        print("\n".join(lines))
+        print(f"(took {time.monotonic() - started:.1f} s)")
+        print("RESULT " + " ".join(f"{k}={v}" for k, v in fields.items()))
+        return
     print("raw zenoh: floods ...", flush=True)
     raw = measure_raw()
     suite = bench_suite()
@@ -899,7 +917,8 @@ def main() -> None:
     print("telebot call: floods, then pings alternating with raw zenoh ...", flush=True)
     telebot, pings = measure_telebot(args.profile)
     results = Results(raw, transport, telebot, pings, suite, raw_aead)
-    print("\n".join(report(results, time.monotonic() - started)))
+    survival = measure_survival(free_port())
+    print("\n".join(report(results, survival, time.monotonic() - started)))
 
 
 if __name__ == "__main__":

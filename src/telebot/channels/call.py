@@ -114,7 +114,7 @@ HANDSHAKE_LIMITS = ReceiveLimits(max_samples=256, max_bytes=1 << 20, max_payload
 CONTROL_LIMITS = ReceiveLimits(max_samples=512, max_bytes=4 << 20, max_payload=MAX_FRAME, batch=64)
 #: A call's DATA key: the transport's queue bounds (count and bytes); frames beyond them
 #: are this call's own loss (counted in :attr:`Call.receive_dropped`).
-DATA_LIMITS = ReceiveLimits(max_payload=MAX_FRAME, batch=128)
+DATA_LIMITS = ReceiveLimits(max_payload=MAX_FRAME, batch=32)
 #: Frames kept for a call being set up that arrive before its WELCOME is handled.
 _EARLY_FRAMES = 64
 

@@ -5,8 +5,12 @@ find each other by multicast scouting. Client mode with ``connect`` endpoints re
 robots across networks through zenoh routers (TLS and ACL come from ``config_file`` or
 ``options``).
 
-Threading. A subscription is declared with a bounded zenoh FIFO channel (256 samples,
-the size zenoh-python gives its own callback channel) and has one daemon reader thread.
+Threading. A subscription is declared with a zenoh *ring* channel (256 samples, the size
+zenoh-python gives its own callback channel) and has one daemon reader thread. A ring,
+not a FIFO: a full FIFO channel blocks the zenoh thread that delivers into it, and that
+thread also serves other subscriptions (measured: one call flooding 32 KB datagrams
+stalled another call's heartbeats until it dropped); a full ring drops its oldest
+sample instead, so one flooded subscription never delays another.
 The reader waits in ``recv()`` with the GIL released; when samples come it takes every
 one already waiting under a single hold of the GIL, appends the payloads to a bounded
 deque and wakes the event loop once with ``call_soon_threadsafe``; everything else
@@ -14,8 +18,9 @@ happens on the loop. A callback per sample (zenoh's default) takes the GIL once 
 sample, and a burst then costs a GIL hand-over between zenoh's thread and the loop
 for every few samples; batching the hand-over is what lets the loop keep up with a
 flood. The reader never waits on anything but the GIL, so a slow consumer costs
-dropped samples (oldest first, counted in ``stats.dropped``), never a stalled zenoh
-thread.
+dropped samples (oldest first, counted in ``stats.dropped``; what the ring itself drops
+when even the reader falls behind is not counted: zenoh does not say), never a stalled
+zenoh thread.
 
 Lifetime. Presence watches use callbacks, declared in zenoh's "background" mode:
 dropping the Python object does *not* undeclare them, and their ``pyo3-closure`` thread
@@ -684,7 +689,7 @@ class ZenohTransport(Transport):
         sub = ZenohSubscription(self, self._loop, pattern, callback, limits)
         try:
             raw = session.declare_subscriber(
-                pattern, zenoh.handlers.FifoChannel(_ZENOH_CHANNEL_SIZE)
+                pattern, zenoh.handlers.RingChannel(_ZENOH_CHANNEL_SIZE)
             )
         except zenoh.ZError as exc:
             raise TransportError(f"cannot subscribe to {pattern!r}: {_reason(exc)}") from exc

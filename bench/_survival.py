@@ -1,0 +1,473 @@
+"""Sections D and E of ``bench/channels.py``: a robot daemon under floods, and reconnection.
+
+D. Flood survival. A ``telebot-robot run`` daemon (the small map) in its own process; alice,
+   a driver in this process, sends a stop every ``STOP_EVERY`` seconds and times each
+   stop -> acknowledgement (the robot acknowledges once the base has stopped) while
+   D1. another user in a call of its own floods 32 KB datagrams as fast as it can for
+       ``FLOOD_SECONDS`` (a child process), and
+   D2. a stranger, a raw zenoh peer in no call, floods the robot's handshake key for
+       ``FLOOD_SECONDS`` (a child process): garbage, truncated frames, frames that carry
+       alice's call id but no valid seal, and 1 MB payloads.
+   D3. (info) the same stranger, having sniffed alice's call keys (possible on an open
+       zenoh network; a router's access control stops it, docs/protocol.md section 12),
+       floods those keys too: her frames then share her call's receive queues with junk.
+   Reported: stop -> ack p50/p99 (target p99 <= 20 ms under D1, <= 100 ms under D2), calls
+   dropped (alice's and the flooder's, target 0) and the daemon's RSS growth (its largest
+   VmRSS during the flood minus before it; target < 50 MB in every flood).
+E. Reconnect. alice's client (zenoh client mode, reconnecting) reaches the daemon through a
+   loopback TCP proxy (``tests/loopback_proxy.py``); ``CUTS`` times the proxy is stopped for
+   ``CUT_SECONDS`` and started again; reported is the time from the heal to the first pose
+   on the new call (p50/p99, target p99 <= 1 s).
+
+Children: ``_survival.py --child flood PORT HOME SECONDS`` and
+``--child stranger PORT CALL_ID SECONDS in|call``; each prints ``ready`` once flooding, then one
+JSON line of counters when done.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import queue
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from _child import Child
+from telebot.config import AppConfig, ZenohSettings
+from telebot.errors import TelebotError
+from telebot.identity import ContactBook, Identity, Role, create_paired_homes
+from telebot.services.client import RobotClient, connect
+
+TESTS = Path(__file__).resolve().parent.parent / "tests"
+sys.path.insert(0, str(TESTS))
+from loopback_proxy import TcpProxy  # noqa: E402  (the tests' proxy: one piece of code)
+
+ROBOT = "survivor"
+USER = "alice"
+FLOODER = "flo"
+FLOOD_SECONDS = 10.0
+STOP_EVERY = 0.05  # alice's stops: one round trip, then this pause
+DATAGRAM = 32_768
+BURST = 16  # datagrams the flooder sends between two yields to its loop
+CUTS = 10
+CUT_SECONDS = 2.0
+TARGETS = {"stop_p99_ms_d1": 20.0, "stop_p99_ms_d2": 100.0, "rss_mb": 50.0, "reconnect_ms": 1000.0}
+ROBOT_CONFIG = """
+[transport.zenoh]
+multicast_scouting = false
+
+[sim]
+map = "small"
+"""
+
+
+def percentile(values: Sequence[float], q: float) -> float:
+    ordered = sorted(values)
+    if not ordered:
+        return float("nan")
+    index = min(len(ordered) - 1, max(0, round(q / 100 * (len(ordered) - 1))))
+    return ordered[index]
+
+
+class Daemon:
+    """``telebot-robot run`` in a child process, its stdout drained by a thread."""
+
+    def __init__(self, home: Path, config: Path, port: int) -> None:
+        self.port = port
+        self._proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "telebot.apps.robot_cli",
+                "run",
+                "--home",
+                str(home),
+                "--config",
+                str(config),
+                "--listen",
+                self.endpoint,
+                "--events",
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+        )
+        self._lines: queue.Queue[str] = queue.Queue()
+        threading.Thread(target=self._read, daemon=True).start()
+        deadline = time.monotonic() + 60
+        while True:
+            line = self._lines.get(timeout=max(0.1, deadline - time.monotonic()))
+            if '"ready"' in line:
+                break
+
+    def _read(self) -> None:
+        assert self._proc.stdout is not None
+        for line in self._proc.stdout:
+            self._lines.put(line)
+
+    @property
+    def endpoint(self) -> str:
+        return f"tcp/127.0.0.1:{self.port}"
+
+    def rss_mb(self) -> float:
+        """The daemon's resident set size now (MB)."""
+        for line in Path(f"/proc/{self._proc.pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+        raise RuntimeError("no VmRSS")
+
+    def close(self) -> None:
+        self._proc.terminate()
+        try:
+            self._proc.wait(10)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            self._proc.wait()
+
+
+def peer_config(endpoint: str) -> AppConfig:
+    zenoh = ZenohSettings(connect=[endpoint], multicast_scouting=False)
+    return AppConfig.model_validate({"transport": {"zenoh": zenoh}})
+
+
+@dataclass
+class Flood:
+    """One flood of section D as alice and the daemon saw it."""
+
+    stops_ms: list[float]
+    rss_before: float
+    rss_peak: float
+    alice_drops: int
+    child: dict[str, Any]
+
+    @property
+    def rss_growth(self) -> float:
+        return self.rss_peak - self.rss_before
+
+
+async def stops_during(
+    alice: RobotClient, daemon: Daemon, seconds: float
+) -> tuple[list[float], float]:
+    """Time alice's stops and sample the daemon's RSS until ``seconds`` have passed."""
+    stops: list[float] = []
+    peak = daemon.rss_mb()
+    loop = asyncio.get_running_loop()
+    end = loop.time() + seconds
+    while loop.time() < end:
+        started = time.perf_counter()
+        ack = await alice.stop(how="api")
+        if ack.ok:
+            stops.append((time.perf_counter() - started) * 1000)
+        peak = max(peak, daemon.rss_mb())
+        await asyncio.sleep(STOP_EVERY)
+    return stops, peak
+
+
+async def measure_flood(
+    alice: RobotClient, daemon: Daemon, script: str, args: Sequence[str]
+) -> Flood:
+    reconnects = alice.reconnects
+    rss_before = daemon.rss_mb()
+    child = Child(script, *args)
+    try:
+        if child.next_line(60) != "ready":
+            raise RuntimeError("the flooding child did not start")
+        stops, peak = await stops_during(alice, daemon, FLOOD_SECONDS)
+    finally:
+        counters = await asyncio.to_thread(child.close)
+    return Flood(stops, rss_before, peak, alice.reconnects - reconnects, counters)
+
+
+async def measure_reconnects(daemon: Daemon, home: Path) -> list[float]:
+    """Section E: the time from each heal to the first pose on the new call (ms)."""
+    proxy = TcpProxy(daemon.port)
+    await proxy.start()
+    config = AppConfig.model_validate(
+        {
+            "transport": {
+                "zenoh": {
+                    "mode": "client",
+                    "connect": [proxy.endpoint],
+                    "multicast_scouting": False,
+                    "options": {
+                        "connect/retry": {
+                            "period_init_ms": 100,
+                            "period_max_ms": 250,
+                            "period_increase_factor": 1.5,
+                        }
+                    },
+                }
+            },
+            "reconnect": {"base": 0.05, "cap": 0.25},
+        }
+    )
+    loop = asyncio.get_running_loop()
+    backs: list[float] = []
+    poses: list[tuple[float, int]] = []
+    try:
+        async with connect(ROBOT, home=home, config=config, timeout=20) as client:
+
+            async def follow() -> None:
+                async for _ in client.poses():
+                    poses.append((loop.time(), client.reconnects))
+
+            follower = asyncio.create_task(follow())
+            try:
+                for cut in range(CUTS):
+                    cut_at = loop.time()
+                    await proxy.stop()
+                    await asyncio.sleep(max(0.0, cut_at + CUT_SECONDS - loop.time()))
+                    await proxy.start()
+                    healed = loop.time()
+                    async with asyncio.timeout(30):
+                        while not any(t > healed and n > cut for t, n in poses):  # noqa: ASYNC110
+                            await asyncio.sleep(0.005)  # a pose wakes nobody: poll for it
+                    back = next(t for t, n in poses if t > healed and n > cut)
+                    backs.append((back - healed) * 1000)
+            finally:
+                follower.cancel()
+                await asyncio.gather(follower, return_exceptions=True)
+    finally:
+        if proxy._server is not None:
+            await proxy.stop()
+    return backs
+
+
+@contextlib.contextmanager
+def homes() -> Iterator[tuple[Path, Path, Path, Path]]:
+    """Robot, alice (driver) and flo (observer, the flooder) homes, and a robot config."""
+    with tempfile.TemporaryDirectory(prefix="telebot-bench-") as tmp:
+        base = Path(tmp)
+        create_paired_homes(base, ROBOT, USER, role=Role.DRIVER)
+        flooder = Identity.generate(FLOODER)
+        flooder.save(base / FLOODER)
+        book = ContactBook.load(base / "robot")
+        book.add(FLOODER, flooder.public_key, Role.OBSERVER)
+        book.save()
+        (base / FLOODER / "known_robots.toml").write_bytes(
+            (base / "user" / "known_robots.toml").read_bytes()
+        )
+        config = base / "robot.toml"
+        config.write_text(ROBOT_CONFIG)
+        yield base / "robot", base / "user", base / FLOODER, config
+
+
+@dataclass
+class Survival:
+    call_flood: Flood
+    stranger_flood: Flood
+    sniffer_flood: Flood
+    reconnects_ms: list[float]
+
+
+SCRIPT = str(Path(__file__).resolve())
+
+
+async def measure_survival_async(port: int) -> Survival:
+    script = SCRIPT
+    with homes() as (robot_home, user_home, flooder_home, config):
+        daemon = await asyncio.to_thread(Daemon, robot_home, config, port)
+        try:
+            async with connect(
+                ROBOT, home=user_home, config=peer_config(daemon.endpoint), timeout=20
+            ) as alice:
+                for _ in range(20):  # warm-up: the stop path, and a measured round trip
+                    await alice.stop()
+                print("D1. a call floods 32 KB datagrams ...", flush=True)
+                call_flood = await measure_flood(
+                    alice,
+                    daemon,
+                    script,
+                    ["flood", str(daemon.port), str(flooder_home), str(FLOOD_SECONDS)],
+                )
+                print("D2. a stranger floods the robot's handshake key ...", flush=True)
+                stranger = await measure_flood(
+                    alice,
+                    daemon,
+                    script,
+                    ["stranger", str(daemon.port), alice.call.id, str(FLOOD_SECONDS), "in"],
+                )
+                print("D3. a stranger floods alice's call keys too ...", flush=True)
+                sniffer = await measure_flood(
+                    alice,
+                    daemon,
+                    script,
+                    ["stranger", str(daemon.port), alice.call.id, str(FLOOD_SECONDS), "call"],
+                )
+            print(f"E. {CUTS} cuts of {CUT_SECONDS:g} s through a loopback proxy ...", flush=True)
+            reconnects = await measure_reconnects(daemon, user_home)
+        finally:
+            daemon.close()
+    return Survival(call_flood, stranger, sniffer, reconnects)
+
+
+def measure_survival(port: int) -> Survival:
+    """Sections D and E (about 60 s)."""
+    return asyncio.run(measure_survival_async(port))
+
+
+def verdict(ok: bool) -> str:
+    return "PASS" if ok else "MISS"
+
+
+def survival_report(res: Survival) -> tuple[list[str], dict[str, str]]:
+    """Report lines and the RESULT fields of sections D and E."""
+    lines = [
+        "",
+        f"D. Flood survival: a robot daemon, alice's stop -> ack every {STOP_EVERY * 1000:.0f} ms"
+        f" during a {FLOOD_SECONDS:g} s flood",
+        f"{'flood':>18} | {'stops':>5} {'p50 ms':>7} {'p99 ms':>7}  target | calls dropped | "
+        f"{'RSS +MB':>7}  target | flooder",
+    ]
+    rows: tuple[tuple[str, Flood, float | None], ...] = (
+        ("D1 call, 32 KB", res.call_flood, TARGETS["stop_p99_ms_d1"]),
+        ("D2 stranger", res.stranger_flood, TARGETS["stop_p99_ms_d2"]),
+        ("D3 sniffer", res.sniffer_flood, None),
+    )
+    drops_total = 0
+    for name, flood, target in rows:
+        p50, p99 = percentile(flood.stops_ms, 50), percentile(flood.stops_ms, 99)
+        child = flood.child
+        dropped = (
+            flood.alice_drops + int(child.get("reconnects", 0)) + int(not child.get("active", True))
+        )
+        if target is not None:  # D3 is information: an open network cannot stop it
+            drops_total += dropped
+        if "sent" in child and "rx_dropped" in child:
+            what = f"sent {child['sent']:,} datagrams, robot dropped {child['rx_dropped']:,} unread"
+        else:
+            what = f"offered {child.get('sent', 0):,} frames, {child.get('mb', 0):,.0f} MB (zenoh drops most)"
+        lines.append(
+            f"{name:>18} | {len(flood.stops_ms):>5} {p50:>7.1f} {p99:>7.1f}  "
+            + (f"<= {target:g} {verdict(p99 <= target)}" if target is not None else "   (info)")
+            + f" | {dropped:>13} | "
+            f"{flood.rss_growth:>7.1f}  < {TARGETS['rss_mb']:g} "
+            f"{verdict(flood.rss_growth < TARGETS['rss_mb'])} | {what}"
+        )
+    backs = res.reconnects_ms
+    r50, r99 = percentile(backs, 50), percentile(backs, 99)
+    lines += [
+        "",
+        f"E. Reconnect: {CUTS} cuts of {CUT_SECONDS:g} s (loopback TCP proxy stopped), heal -> "
+        "first pose on the new call",
+        f"  p50 {r50:.0f} ms, p99 {r99:.0f} ms  target p99 <= {TARGETS['reconnect_ms']:.0f} "
+        f"{verdict(r99 <= TARGETS['reconnect_ms'])}  (all: "
+        + ", ".join(f"{b:.0f}" for b in backs)
+        + ")",
+    ]
+    fields = {
+        "flood_call_drops": str(drops_total),
+        "flood_stop_p99_ms": f"{percentile(res.call_flood.stops_ms, 99):.1f}",
+        "stranger_stop_p99_ms": f"{percentile(res.stranger_flood.stops_ms, 99):.1f}",
+        "flood_rss_mb": f"{max(f.rss_growth for f in (res.call_flood, res.stranger_flood, res.sniffer_flood)):.1f}",
+        "reconnect_p99_ms": f"{r99:.0f}",
+    }
+    return lines, fields
+
+
+# -- children --------------------------------------------------------------------------------
+
+
+async def flood_child(port: int, home: Path, seconds: float) -> None:
+    """A user in a call of its own who floods 32 KB datagrams."""
+    config = peer_config(f"tcp/127.0.0.1:{port}")
+    async with connect(ROBOT, home=home, config=config, timeout=20) as client:
+        first = client.call.id
+        payload = os.urandom(DATAGRAM)
+        loop = asyncio.get_running_loop()
+        sent = 0
+        print("ready", flush=True)
+        end = loop.time() + seconds
+        while loop.time() < end:
+            channel = client.call.channel("flood")
+            for _ in range(BURST):
+                with contextlib.suppress(TelebotError):
+                    channel.send(payload)
+                    sent += 1
+            await asyncio.sleep(0)
+        await client.telemetry()
+        telemetry = await client.telemetry()
+        counters = {
+            "sent": sent,
+            "rx_dropped": telemetry.rx_dropped,
+            "reconnects": client.reconnects,
+            "active": client.call.active and client.call.id == first,
+        }
+    await wait_for_stdin_close()
+    print(json.dumps(counters), flush=True)
+
+
+def stranger_child(port: int, call_id: str, seconds: float, where: str) -> None:
+    """A raw zenoh peer in no call that floods the robot's handshake key (``where`` "in")
+    or that and ``call_id``'s keys ("call") with junk."""
+    import zenoh
+
+    from telebot.channels.transports.zenoh import build_zenoh_config
+
+    settings = ZenohSettings(connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+    session = zenoh.open(build_zenoh_config(settings))
+    base = f"telebot/robot/{ROBOT}"
+    keys = [f"{base}/in"]
+    if where == "call":
+        keys += [f"{base}/call/{call_id}/ctl", f"{base}/call/{call_id}/data"]
+    publishers = [session.declare_publisher(key) for key in keys]
+    header = b"\x01\x03" + bytes.fromhex(call_id)
+    junk = [
+        os.urandom(200),  # garbage
+        b"\x01\x03" + os.urandom(6),  # a truncated DATA frame
+        header + os.urandom(8 + 100),  # alice's call id, no valid seal
+        header + os.urandom(8 + 16_000),
+    ]
+    huge = os.urandom(1 << 20)
+    sent = 0
+    sent_bytes = 0
+    print("ready", flush=True)
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        for publisher in publishers:
+            for payload in junk:
+                publisher.put(payload)
+                sent += 1
+                sent_bytes += len(payload)
+        if sent % 400 < len(publishers) * len(junk):  # now and then, a megabyte
+            for publisher in publishers:
+                publisher.put(huge)
+                sent += 1
+                sent_bytes += len(huge)
+    session.close()
+    sys.stdin.read()
+    print(json.dumps({"sent": sent, "mb": sent_bytes / 1e6}), flush=True)
+
+
+async def wait_for_stdin_close() -> None:
+    await asyncio.to_thread(sys.stdin.read)
+
+
+def run_child(args: Sequence[str]) -> None:
+    kind = args[0]
+    if kind == "flood":
+        asyncio.run(flood_child(int(args[1]), Path(args[2]), float(args[3])))
+    elif kind == "stranger":
+        stranger_child(int(args[1]), args[2], float(args[3]), args[4])
+    else:
+        raise SystemExit(f"unknown child {kind!r}")
+
+
+def _main() -> None:
+    if len(sys.argv) > 2 and sys.argv[1] == "--child":
+        run_child(sys.argv[2:])
+        return
+    raise SystemExit("run bench/channels.py (this module holds its sections D and E)")
+
+
+if __name__ == "__main__":
+    _main()
