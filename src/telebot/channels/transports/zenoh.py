@@ -73,6 +73,7 @@ from telebot.config import TransportSettings, ZenohSettings
 from telebot.errors import TransportError
 
 __all__ = [
+    "CONNECT_RETRY",
     "LANE_QOS",
     "ZenohPresence",
     "ZenohPresenceWatch",
@@ -124,6 +125,14 @@ LANE_QOS: Final[dict[Lane, dict[str, Any]]] = {
     },
 }
 
+#: How a session retries its ``connect`` endpoints when no config file or option says:
+#: 100 ms, then doubling up to 1 s.
+CONNECT_RETRY: Final[dict[str, Any]] = {
+    "period_init_ms": 100,
+    "period_max_ms": 1000,
+    "period_increase_factor": 2,
+}
+
 # zenoh's messages end with the Rust source location and may wrap a JSON5 parser
 # error; users need the reason only, on one line.
 _RUST_LOCATION = re.compile(r"\s*\bat\s+\S+\.rs:\d+\.?")
@@ -170,6 +179,8 @@ def build_zenoh_config(settings: ZenohSettings) -> zenoh.Config:
 
     The config file (if any) is loaded first; ``mode``, ``listen``, ``connect`` and
     ``multicast_scouting`` override it, and ``options`` (path -> value) are inserted last.
+    Without a config file, ``connect/retry`` defaults to :data:`CONNECT_RETRY` unless an
+    option sets it.
     Empty ``listen``/``connect`` lists keep zenoh's (or the file's) defaults.
     """
     if settings.config_file is not None:
@@ -187,6 +198,10 @@ def build_zenoh_config(settings: ZenohSettings) -> zenoh.Config:
     if settings.connect:
         _insert_endpoints(config, "connect/endpoints", settings.connect, "connect")
     _insert(config, "scouting/multicast/enabled", settings.multicast_scouting, "multicast_scouting")
+    if settings.config_file is None and "connect/retry" not in settings.options:
+        # After a blip, come back in about a second (zenoh's own default retries every
+        # 1 s, then 2 s, 4 s): a call that reconnects is only as quick as its session.
+        _insert(config, "connect/retry", CONNECT_RETRY, "connect/retry")
     for path, value in settings.options.items():
         _insert(config, path, value, f"option {path!r} =")
     return config
