@@ -198,13 +198,6 @@ async def measure_reconnects(daemon: Daemon, home: Path) -> list[float]:
                     "mode": "client",
                     "connect": [proxy.endpoint],
                     "multicast_scouting": False,
-                    "options": {
-                        "connect/retry": {
-                            "period_init_ms": 100,
-                            "period_max_ms": 250,
-                            "period_increase_factor": 1.5,
-                        }
-                    },
                 }
             },
             "reconnect": {"base": 0.05, "cap": 0.25},

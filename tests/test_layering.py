@@ -2,7 +2,8 @@
 
 Layers, lowest first (a module may import from its own layer and those below)::
 
-    errors < config < channels.proto < identity < reasons, rights < channels.transports
+    errors < registry < config < channels.proto < identity < reasons, rights
+           < channels.transports
            < channels (call, channel) < robot < safety < services < apps
 """
 
@@ -19,6 +20,7 @@ SRC = Path(__file__).resolve().parent.parent / "src" / "telebot"
 
 LAYERS = [
     "telebot.errors",
+    "telebot.registry",
     "telebot.config",
     "telebot.channels.proto",
     "telebot.identity",

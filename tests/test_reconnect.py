@@ -467,14 +467,6 @@ async def test_over_zenoh_the_call_comes_back_when_the_proxy_does(
                     "mode": "client",
                     "connect": [proxy.endpoint],
                     "multicast_scouting": False,
-                    # zenoh retries its connect endpoints by itself; do it often.
-                    "options": {
-                        "connect/retry": {
-                            "period_init_ms": 100,
-                            "period_max_ms": 250,
-                            "period_increase_factor": 1.5,
-                        }
-                    },
                 }
             },
             "reconnect": FAST.model_dump(),

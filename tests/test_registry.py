@@ -7,6 +7,7 @@ from typing import Any
 
 import pytest
 
+import telebot.registry
 import telebot.robot
 from telebot.channels import transports
 from telebot.channels.transports import create_transport, get_transport_class, known_transports
@@ -30,7 +31,7 @@ def fake_entry_points(monkeypatch: pytest.MonkeyPatch, target: str) -> None:
     def select(group: str) -> list[EntryPoint]:
         return [entry] if group == transports.ENTRY_POINT_GROUP else []
 
-    monkeypatch.setattr(transports, "entry_points", select)
+    monkeypatch.setattr(telebot.registry, "entry_points", select)
 
 
 def test_builtins_are_known_and_created_by_name() -> None:
@@ -99,7 +100,7 @@ def fake_robot_entry_points(monkeypatch: pytest.MonkeyPatch, target: str) -> Non
     def select(group: str) -> list[EntryPoint]:
         return [entry] if group == telebot.robot.ENTRY_POINT_GROUP else []
 
-    monkeypatch.setattr(telebot.robot, "entry_points", select)
+    monkeypatch.setattr(telebot.registry, "entry_points", select)
 
 
 def test_the_sim_robot_is_known_and_created_from_sim_settings() -> None:

@@ -195,6 +195,7 @@ class TinCan(Unstepped):
 async def test_the_daemon_runs_the_robot_its_config_names(
     homes: Homes, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    import telebot.registry
     import telebot.robot
     from telebot.apps.robot_daemon import serve_robot
 
@@ -202,7 +203,7 @@ async def test_the_daemon_runs_the_robot_its_config_names(
         name="tin-can", value=f"{__name__}:TinCan", group=telebot.robot.ENTRY_POINT_GROUP
     )
     monkeypatch.setattr(
-        telebot.robot,
+        telebot.registry,
         "entry_points",
         lambda group: [entry] if group == telebot.robot.ENTRY_POINT_GROUP else [],
     )

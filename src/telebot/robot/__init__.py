@@ -21,13 +21,12 @@ paths) and ``now`` the caller's clock. The speed cap the new robot reports
 
 from __future__ import annotations
 
-import importlib
-from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any, cast
 
 from telebot.config import RobotConfig
 from telebot.errors import RobotError, UnknownRobot
+from telebot.registry import Registry
 from telebot.robot.nav import EmergencyStoppable, NavStack
 
 __all__ = [
@@ -46,13 +45,20 @@ BUILTIN_ROBOTS: dict[str, tuple[str, str]] = {
 }
 
 
-def _plugin_entry_points() -> dict[str, Any]:
-    return {ep.name: ep for ep in entry_points(group=ENTRY_POINT_GROUP)}
+_REGISTRY: Registry[Any] = Registry(
+    what="robot",
+    group=ENTRY_POINT_GROUP,
+    builtins=BUILTIN_ROBOTS,
+    accepts=lambda cls: isinstance(cls, type) and callable(getattr(cls, "from_config", None)),
+    shape="a class with a from_config() constructor",
+    error=RobotError,
+    unknown=UnknownRobot,
+)
 
 
 def known_robots() -> list[str]:
     """Names of every robot adapter that can be created: built-in and installed plug-ins."""
-    return sorted(set(BUILTIN_ROBOTS) | set(_plugin_entry_points()))
+    return _REGISTRY.known()
 
 
 def get_robot_class(name: str) -> type[Any]:
@@ -61,23 +67,7 @@ def get_robot_class(name: str) -> type[Any]:
     Raises :class:`~telebot.errors.UnknownRobot` (listing the known names) for an unknown
     name, :class:`~telebot.errors.RobotError` for one that cannot be loaded.
     """
-    if name in BUILTIN_ROBOTS:
-        module_name, class_name = BUILTIN_ROBOTS[name]
-        try:
-            module = importlib.import_module(module_name)
-        except ImportError as exc:
-            raise RobotError(f"robot {name!r} cannot be imported: {exc}") from exc
-        return cast(type[Any], getattr(module, class_name))
-    plugins = _plugin_entry_points()
-    if name in plugins:
-        try:
-            cls = plugins[name].load()
-        except Exception as exc:  # a broken plug-in must not take the caller down
-            raise RobotError(f"robot {name!r} failed to load: {exc}") from exc
-        if not (isinstance(cls, type) and callable(getattr(cls, "from_config", None))):
-            raise RobotError(f"robot {name!r} is not a class with a from_config() constructor")
-        return cls
-    raise UnknownRobot(f"unknown robot {name!r}; known robots: {', '.join(known_robots())}")
+    return _REGISTRY.get(name)
 
 
 def missing_members(robot: object) -> list[str]:

@@ -13,10 +13,6 @@ A transport class is built with ``cls.from_settings(settings)``, where ``setting
 
 from __future__ import annotations
 
-import importlib
-from importlib.metadata import entry_points
-from typing import Any, cast
-
 from telebot.channels.transports.base import (
     Lane,
     Presence,
@@ -28,6 +24,7 @@ from telebot.channels.transports.base import (
 )
 from telebot.config import TransportSettings
 from telebot.errors import TransportError, UnknownTransport
+from telebot.registry import Registry
 
 __all__ = [
     "BUILTIN_TRANSPORTS",
@@ -52,36 +49,25 @@ BUILTIN_TRANSPORTS: dict[str, tuple[str, str]] = {
 }
 
 
-def _plugin_entry_points() -> dict[str, Any]:
-    return {ep.name: ep for ep in entry_points(group=ENTRY_POINT_GROUP)}
+_REGISTRY: Registry[Transport] = Registry(
+    what="transport",
+    group=ENTRY_POINT_GROUP,
+    builtins=BUILTIN_TRANSPORTS,
+    accepts=lambda cls: isinstance(cls, type) and issubclass(cls, Transport),
+    shape="a telebot Transport subclass",
+    error=TransportError,
+    unknown=UnknownTransport,
+)
 
 
 def known_transports() -> list[str]:
     """Names of every transport that can be created: built-in and installed plug-ins."""
-    return sorted(set(BUILTIN_TRANSPORTS) | set(_plugin_entry_points()))
+    return _REGISTRY.known()
 
 
 def get_transport_class(name: str) -> type[Transport]:
     """The transport class registered as ``name``; imports its module on first use."""
-    if name in BUILTIN_TRANSPORTS:
-        module_name, class_name = BUILTIN_TRANSPORTS[name]
-        try:
-            module = importlib.import_module(module_name)
-        except ImportError as exc:
-            raise TransportError(f"transport {name!r} cannot be imported: {exc}") from exc
-        return cast(type[Transport], getattr(module, class_name))
-    plugins = _plugin_entry_points()
-    if name in plugins:
-        try:
-            cls = plugins[name].load()
-        except Exception as exc:  # a broken plug-in must not take the caller down
-            raise TransportError(f"transport {name!r} failed to load: {exc}") from exc
-        if not (isinstance(cls, type) and issubclass(cls, Transport)):
-            raise TransportError(f"transport {name!r} is not a telebot Transport subclass")
-        return cls
-    raise UnknownTransport(
-        f"unknown transport {name!r}; known transports: {', '.join(known_transports())}"
-    )
+    return _REGISTRY.get(name)
 
 
 def create_transport(settings: TransportSettings | None = None) -> Transport:

@@ -126,10 +126,10 @@ LANE_QOS: Final[dict[Lane, dict[str, Any]]] = {
 }
 
 #: How a session retries its ``connect`` endpoints when no config file or option says:
-#: 100 ms, then doubling up to 1 s.
+#: 100 ms, then doubling up to 0.5 s.
 CONNECT_RETRY: Final[dict[str, Any]] = {
     "period_init_ms": 100,
-    "period_max_ms": 1000,
+    "period_max_ms": 500,
     "period_increase_factor": 2,
 }
 
@@ -199,7 +199,7 @@ def build_zenoh_config(settings: ZenohSettings) -> zenoh.Config:
         _insert_endpoints(config, "connect/endpoints", settings.connect, "connect")
     _insert(config, "scouting/multicast/enabled", settings.multicast_scouting, "multicast_scouting")
     if settings.config_file is None and "connect/retry" not in settings.options:
-        # After a blip, come back in about a second (zenoh's own default retries every
+        # After a blip, come back within half a second (zenoh's own default retries every
         # 1 s, then 2 s, 4 s): a call that reconnects is only as quick as its session.
         _insert(config, "connect/retry", CONNECT_RETRY, "connect/retry")
     for path, value in settings.options.items():
