@@ -258,9 +258,9 @@ class Daemon:
         known.save()
         return user
 
-    def start(self, ready_timeout: float = 60.0) -> None:
-        """Start the daemon (again, on a new port) and wait until it is ready."""
-        self.port = free_port()
+    def start(self, ready_timeout: float = 60.0, *, port: int | None = None) -> None:
+        """Start the daemon (again, on ``port`` or a new free one) and wait until it is ready."""
+        self.port = port if port is not None else free_port()
         self.process = Process(
             [
                 "telebot.apps.robot_cli",
