@@ -13,7 +13,7 @@ import pytest
 from hypothesis import settings
 
 # The rig (tests/rig.py, also used by bench/) holds the process helpers; re-exported here.
-from rig import ROBOT, SLACK, USER, Process, free_port, write_config
+from rig import GENEROUS_TIMEOUT, ROBOT, SLACK, USER, Process, free_port, write_config
 from telebot.channels.call import RobotEndpoint, UserEndpoint
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.config import CallSettings
@@ -78,7 +78,12 @@ def homes(tmp_path: Path) -> Homes:
 async def memory_endpoints(
     homes: Homes, hub: MemoryHub, settings: CallSettings | None = None
 ) -> AsyncIterator[tuple[RobotEndpoint, UserEndpoint]]:
-    """The robot's and the user's endpoints on ``hub`` (nodes "robot" and "user"), started."""
+    """The robot's and the user's endpoints on ``hub`` (nodes "robot" and "user"), started.
+
+    ``settings`` default to the rig's generous call timeout: a test about drop timing says so.
+    """
+    if settings is None:
+        settings = CallSettings(timeout=GENEROUS_TIMEOUT)
     async with (
         MemoryTransport(hub, "robot") as robot_transport,
         MemoryTransport(hub, "user") as user_transport,

@@ -464,6 +464,6 @@ async def test_closing_a_user_endpoint_fails_a_call_being_set_up_and_later_calls
         await asyncio.sleep(0.1)
         await user.close()
         with pytest.raises(CallError, match="closed while calling"):
-            await asyncio.wait_for(calling, 1)  # at once, not after the 30 s timeout
+            await asyncio.wait_for(calling, 1 + SLACK)  # at once, not after the 30 s timeout
         with pytest.raises(CallError, match="closed"):
             await user.call(ROBOT)
