@@ -124,7 +124,7 @@ def start_driver(
     return process
 
 
-async def arm(client: RobotClient, patience: float = 5.0) -> None:
+async def arm(client: RobotClient, patience: float = 5.0 + SLACK) -> None:
     """Re-arm; an earlier call of alice's may still hold the drive for a moment."""
     loop = asyncio.get_running_loop()
     deadline = loop.time() + patience
