@@ -30,11 +30,8 @@ import asyncio
 import contextlib
 import json
 import os
-import queue
-import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -44,12 +41,12 @@ from typing import Any
 from _child import Child
 from telebot.config import AppConfig, ZenohSettings
 from telebot.errors import TelebotError
-from telebot.identity import ContactBook, Identity, Role, create_paired_homes
 from telebot.services.client import RobotClient, connect
 
 TESTS = Path(__file__).resolve().parent.parent / "tests"
 sys.path.insert(0, str(TESTS))
-from loopback_proxy import TcpProxy  # noqa: E402  (the tests' proxy: one piece of code)
+import rig  # noqa: E402  (the tests' rig and proxy: one piece of code)
+from loopback_proxy import TcpProxy  # noqa: E402
 
 ROBOT = "survivor"
 USER = "alice"
@@ -61,13 +58,6 @@ BURST = 16  # datagrams the flooder sends between two yields to its loop
 CUTS = 10
 CUT_SECONDS = 2.0
 TARGETS = {"stop_p99_ms_d1": 20.0, "stop_p99_ms_d2": 100.0, "rss_mb": 50.0, "reconnect_ms": 1000.0}
-ROBOT_CONFIG = """
-[transport.zenoh]
-multicast_scouting = false
-
-[sim]
-map = "small"
-"""
 
 
 def percentile(values: Sequence[float], q: float) -> float:
@@ -78,60 +68,15 @@ def percentile(values: Sequence[float], q: float) -> float:
     return ordered[index]
 
 
-class Daemon:
-    """``telebot-robot run`` in a child process, its stdout drained by a thread."""
-
-    def __init__(self, home: Path, config: Path, port: int) -> None:
-        self.port = port
-        self._proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "telebot.apps.robot_cli",
-                "run",
-                "--home",
-                str(home),
-                "--config",
-                str(config),
-                "--listen",
-                self.endpoint,
-                "--events",
-            ],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.DEVNULL,
-            text=True,
-        )
-        self._lines: queue.Queue[str] = queue.Queue()
-        threading.Thread(target=self._read, daemon=True).start()
-        deadline = time.monotonic() + 60
-        while True:
-            line = self._lines.get(timeout=max(0.1, deadline - time.monotonic()))
-            if '"ready"' in line:
-                break
-
-    def _read(self) -> None:
-        assert self._proc.stdout is not None
-        for line in self._proc.stdout:
-            self._lines.put(line)
-
-    @property
-    def endpoint(self) -> str:
-        return f"tcp/127.0.0.1:{self.port}"
+class Daemon(rig.Daemon):
+    """The tests' robot daemon rig (``tests/rig.py``), and its memory use."""
 
     def rss_mb(self) -> float:
         """The daemon's resident set size now (MB)."""
-        for line in Path(f"/proc/{self._proc.pid}/status").read_text().splitlines():
+        for line in Path(f"/proc/{self.pid}/status").read_text().splitlines():
             if line.startswith("VmRSS:"):
                 return int(line.split()[1]) / 1024
         raise RuntimeError("no VmRSS")
-
-    def close(self) -> None:
-        self._proc.terminate()
-        try:
-            self._proc.wait(10)
-        except subprocess.TimeoutExpired:
-            self._proc.kill()
-            self._proc.wait()
 
 
 def peer_config(endpoint: str) -> AppConfig:
@@ -236,22 +181,18 @@ async def measure_reconnects(daemon: Daemon, home: Path) -> list[float]:
 
 
 @contextlib.contextmanager
-def homes() -> Iterator[tuple[Path, Path, Path, Path]]:
-    """Robot, alice (driver) and flo (observer, the flooder) homes, and a robot config."""
+def daemon_rig() -> Iterator[Daemon]:
+    """A daemon (not started) with the homes of alice (driver) and flo (observer, the
+    flooder), in a temporary directory; the product's call timeout, which is measured."""
     with tempfile.TemporaryDirectory(prefix="telebot-bench-") as tmp:
-        base = Path(tmp)
-        create_paired_homes(base, ROBOT, USER, role=Role.DRIVER)
-        flooder = Identity.generate(FLOODER)
-        flooder.save(base / FLOODER)
-        book = ContactBook.load(base / "robot")
-        book.add(FLOODER, flooder.public_key, Role.OBSERVER)
-        book.save()
-        (base / FLOODER / "known_robots.toml").write_bytes(
-            (base / "user" / "known_robots.toml").read_bytes()
+        yield Daemon(
+            Path(tmp),
+            robot=ROBOT,
+            driver=USER,
+            observer=FLOODER,
+            timeout=rig.REAL_TIMEOUT,
+            sim={"map": "small"},
         )
-        config = base / "robot.toml"
-        config.write_text(ROBOT_CONFIG)
-        yield base / "robot", base / "user", base / FLOODER, config
 
 
 @dataclass
@@ -267,8 +208,9 @@ SCRIPT = str(Path(__file__).resolve())
 
 async def measure_survival_async(port: int) -> Survival:
     script = SCRIPT
-    with homes() as (robot_home, user_home, flooder_home, config):
-        daemon = await asyncio.to_thread(Daemon, robot_home, config, port)
+    with daemon_rig() as daemon:
+        user_home, flooder_home = daemon.user_home, daemon.observer_home
+        await asyncio.to_thread(daemon.start, port=port)
         try:
             async with connect(
                 ROBOT, home=user_home, config=peer_config(daemon.endpoint), timeout=20
@@ -299,7 +241,7 @@ async def measure_survival_async(port: int) -> Survival:
             print(f"E. {CUTS} cuts of {CUT_SECONDS:g} s through a loopback proxy ...", flush=True)
             reconnects = await measure_reconnects(daemon, user_home)
         finally:
-            daemon.close()
+            daemon.stop(graceful=True)
     return Survival(call_flood, stranger, sniffer, reconnects)
 
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from conftest import ROBOT, Homes, free_port, write_config
+from rig import GENEROUS_TIMEOUT
 from telebot import __version__
 from telebot.identity import ContactBook, KnownRobots
 
@@ -177,7 +178,8 @@ def test_shipped_configs_are_valid_and_show_the_defaults() -> None:
 @pytest.mark.zenoh
 def test_robots_lists_and_ping_measures_through_a_real_robot(homes: Homes, tmp_path: Path) -> None:
     port = free_port()
-    config = str(write_config(tmp_path / "loopback.toml"))
+    # Not about drop timing: a generous call timeout (tests/rig.py).
+    config = str(write_config(tmp_path / "loopback.toml", timeout=GENEROUS_TIMEOUT))
     robot = subprocess.Popen(
         [
             sys.executable,

@@ -24,6 +24,8 @@ import pytest
 
 from conftest import ROBOT, USER, wait_until
 from loopback_proxy import TcpProxy
+from rig import REAL_TIMEOUT, SLACK, Daemon
+from rig import robot_on_hub as rig_robot_on_hub
 from telebot.apps.user_client import chat_session
 from telebot.apps.web.server import WebUI
 from telebot.channels.call import Call, RobotEndpoint
@@ -33,11 +35,9 @@ from telebot.config import (
     MemorySettings,
     ReconnectSettings,
     ServiceSettings,
-    SimSettings,
     TransportSettings,
 )
 from telebot.errors import CallEnded
-from telebot.identity import ContactBook, Identity, Role, create_paired_homes
 from telebot.robot.nav import Velocity
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.base import ServiceRegistry
@@ -48,9 +48,6 @@ from telebot.services.video import VideoSettings
 
 #: How long the link stays cut (the issue's Wi-Fi blip).
 OUTAGE = 2.0
-#: The issue asks for pose within 1 s of the heal; this much more is allowed for a loaded
-#: machine (the times measured are in the assertion messages).
-SLACK = 1.0
 FAST = ReconnectSettings(base=0.05, cap=0.5)
 
 
@@ -70,42 +67,21 @@ class Rig:
         return self.nav.velocity() != Velocity()
 
 
-@contextlib.asynccontextmanager
-async def robot_on_hub(
+def robot_on_hub(
     base: Path, hub: MemoryHub, robot_services: ServiceRegistry[RobotServer] | None = None
-) -> AsyncIterator[tuple[SimNavStack, SafetyDriver, RobotServer, RobotEndpoint]]:
-    """The small-map robot with its safety supervisor, answering on ``hub`` as "robot"."""
-    create_paired_homes(base, ROBOT, USER, role=Role.DRIVER)
-    robot_home = base / "robot"
-    loop = asyncio.get_running_loop()
-    settings = SimSettings(
-        map="small", max_linear_speed=1.0, linear_accel=3.0, max_angular_speed=3.0
-    )
-    nav = SimNavStack.from_settings(settings, now=loop.time())
-    safety = SafetyDriver(nav, timeout=0.5, max_speed=settings.max_linear_speed)
-    server = RobotServer(
-        nav,
-        ServiceSettings(pose_hz=20.0),
-        safety=safety,
+) -> contextlib.AbstractAsyncContextManager[
+    tuple[SimNavStack, SafetyDriver, RobotServer, RobotEndpoint]
+]:
+    """The rig's small-map robot on ``hub`` with the product's call timeout (the drops are
+    what this file is about), poses at 20 Hz and a small video."""
+    return rig_robot_on_hub(
+        base,
+        hub,
+        robot_services,
+        timeout=REAL_TIMEOUT,
+        services=ServiceSettings(pose_hz=20.0),
         video=VideoSettings(width=160, height=120, max_fps=10, quality=60, min_quality=30),
-        services=robot_services,
     )
-    await server.prepare()
-    with safety:
-        async with (
-            MemoryTransport(hub, "robot") as transport,
-            RobotEndpoint(
-                transport, Identity.load(robot_home), ContactBook.load(robot_home)
-            ) as endpoint,
-        ):
-            server.attach(endpoint)
-            runner = asyncio.create_task(server.run(), name="robot-loop")
-            try:
-                yield nav, safety, server, endpoint
-            finally:
-                runner.cancel()
-                await asyncio.gather(runner, return_exceptions=True)
-    await asyncio.sleep(0.01)  # the server's call watchers see the calls end
 
 
 @contextlib.asynccontextmanager
@@ -166,7 +142,7 @@ async def test_a_dropped_call_comes_back_with_its_streams_and_the_robot_stays_st
         outage = asyncio.create_task(blip(r.hub))
         # The drop: the goal in flight fails here, the robot stops and latches.
         with pytest.raises(CallEnded):
-            await asyncio.wait_for(goal, 5)
+            await asyncio.wait_for(goal, 5 + SLACK)
         await wait_until(lambda: bool(times(r, "reconnecting")))
         await wait_until(lambda: not r.safety.state().armed and not r.moving())
         assert r.nav.current_goal() is None
@@ -174,6 +150,7 @@ async def test_a_dropped_call_comes_back_with_its_streams_and_the_robot_stays_st
         await wait_until(lambda: bool(times(r, "reconnected")), timeout=10)
         await wait_until(lambda: any(t > healed for t in poses), timeout=10)
         back = next(t for t in poses if t > healed)
+        # The issue asks for a pose within 1 s of the heal; SLACK more for a loaded machine.
         assert back - healed < 1.0 + SLACK, f"first pose {back - healed:.2f} s after the heal"
         assert client.call is not first and client.call.active and client.reconnects == 1
         event = next(e for _, e in r.events if e.state == "reconnected")
@@ -225,7 +202,7 @@ async def test_reconnection_off_ends_the_client_at_the_drop(tmp_path: Path) -> N
         connect(ROBOT, home=tmp_path / "user", transport=transport, reconnect=False) as client,
     ):
         hub.cut("robot", "user")
-        end = await asyncio.wait_for(client.wait_finished(), 5)
+        end = await asyncio.wait_for(client.wait_finished(), 5 + SLACK)
         assert end.kind == "dropped"
         hub.heal("robot", "user")
         with pytest.raises(CallEnded):
@@ -451,11 +428,10 @@ async def test_chat_says_reconnecting_and_carries_on_with_the_next_command(
 async def test_over_zenoh_the_call_comes_back_when_the_proxy_does(
     tmp_path: Path, processes: list[Any]
 ) -> None:
-    from test_daemon import Daemon
-
-    daemon = Daemon(tmp_path)
-    processes.append(daemon.process)
-    assert '"ready"' in await asyncio.to_thread(daemon.process.next_line, 60)
+    # The product's call timeout: the cut must drop the call on both sides.
+    daemon = Daemon(tmp_path, observer=None, timeout=REAL_TIMEOUT)
+    await asyncio.to_thread(daemon.start)
+    processes.append(daemon.events)
     proxy = TcpProxy(daemon.port)
     await proxy.start()
     config = AppConfig.model_validate(

@@ -1,24 +1,25 @@
 """Safety end to end: the deadman, the latch and the stop key, across processes and on a lossy link.
 
-Most tests share one ``telebot-robot run`` daemon (the small map, a fast robot) and reach it
-over zenoh on loopback: the driver that gets frozen or killed is a separate process
-(``tests/safety_driver_proc.py``), and an observer in this process watches the robot's
-velocity through its pose stream (10 Hz, ``v`` and ``w``) and the safety state. Pose stamps
-and audit records carry the robot's ``time.monotonic()``, the same clock as this process's
-on Linux, so they can be compared with the moment a signal was sent.
+Most tests share a ``telebot-robot run`` daemon (``tests/rig.py``: the small map, a fast
+robot) and reach it over zenoh on loopback: the deadman tests one with the product's call
+timeout, the others one with a generous timeout (a preempted process keeps its calls). The
+driver that gets frozen or killed is a separate process (``tests/safety_driver_proc.py``),
+and an observer in this process watches the robot's velocity through its pose stream
+(10 Hz, ``v`` and ``w``) and the safety state. Pose stamps and audit records carry the
+robot's ``time.monotonic()``, the same clock as this process's on Linux, so they are
+compared with the moment a signal was sent: what is timed is when the robot stopped, not
+when this process heard of it.
 
 The bounds are the requirement, not a benchmark: stopped within the deadman time plus a
-margin for the observer's pose rate, the control step and a loaded CI machine — far below
-zenoh's 10 s lease, which a stop that waited for the link to be declared lost would need.
+margin for the control step and a loaded CI machine (``SLACK``) — far below zenoh's 10 s
+lease, which a stop that waited for the link to be declared lost would need.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import math
-import os
 import signal
 import subprocess
 import sys
@@ -26,155 +27,61 @@ import time
 from collections.abc import AsyncGenerator, AsyncIterator, Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import pytest
 
-from conftest import ROBOT, USER, Homes, Process, free_port, memory_endpoints, write_config
-from telebot.channels.transports.memory import MemoryHub
-from telebot.config import AppConfig, SimSettings, ZenohSettings
-from telebot.identity import ContactBook, Identity, KnownRobots, Role, create_paired_homes
+from rig import (
+    FAST_SIM,
+    GENEROUS_TIMEOUT,
+    OBSERVER,
+    REAL_TIMEOUT,
+    ROBOT,
+    SLACK,
+    USER,
+    Daemon,
+    Process,
+    child_env,
+    robot_on_hub,
+)
+from telebot.channels.call import UserEndpoint
+from telebot.channels.transports.memory import MemoryHub, MemoryTransport
+from telebot.config import CallSettings
+from telebot.identity import Identity, KnownRobots
 from telebot.reasons import Reason
 from telebot.robot.nav import Velocity
 from telebot.robot.sim.stack import SimNavStack
-from telebot.services.client import RobotClient, connect
+from telebot.services.client import RobotClient
 from telebot.services.proto.chat import ChatReply
 from telebot.services.proto.safety import SafetyStatus
 from telebot.services.proto.status import PoseUpdate
-from telebot.services.robot import RobotServer
 from telebot.services.supervision import SafetyDriver
 
 #: The default call timeout: the robot must be stopped within it of the driver going silent
 #: (the deadman itself fires one heartbeat earlier, see robot_daemon.deadman_time) (s).
-TIMEOUT = 0.5
-#: Slack on top of it: the observer's pose period (0.1 s), the control step (0.05 s), the
-#: watchdog period and a loaded 2-core CI machine.
-MARGIN = 1.0
+TIMEOUT = REAL_TIMEOUT
+#: Slack on top of it: the control step (0.05 s) and the watchdog period (0.01 s), rounded
+#: up, and SLACK for a loaded 2-core CI machine.
+MARGIN = 0.1 + SLACK
 #: zenoh's default lease (s): what a stop relying on the link being declared dead would take.
 DEFAULT_LEASE = 10.0
-OBSERVER = "olga"
-TESTS = Path(__file__).resolve().parent
-
-FAST_ROBOT = """
-[transport.zenoh]
-multicast_scouting = false
-
-[sim]
-map = "small"
-max_linear_speed = 1.5
-linear_accel = 3.0
-max_angular_speed = 3.0
-angular_accel = 8.0
-"""
 
 #: The far ends of the small map's corridor: a goto from one to the other takes seconds.
 FAR_PLACES = {"start": (1.0, 1.2), "corridor": (10.5, 1.2)}
 
 
-class Daemon:
-    """A robot daemon process (restartable on the same home) and what users need to reach it."""
-
-    def __init__(self, base: Path) -> None:
-        create_paired_homes(base, ROBOT, USER, role=Role.DRIVER)
-        self.base = base
-        self.robot_home = base / "robot"
-        self.user_home = base / "user"
-        observer = Identity.generate(OBSERVER)
-        self.observer_home = base / OBSERVER
-        observer.save(self.observer_home)
-        book = ContactBook.load(self.robot_home)
-        book.add(OBSERVER, observer.public_key, Role.OBSERVER)
-        book.save()
-        known = KnownRobots.load(self.observer_home)
-        known.add(ROBOT, Identity.load(self.robot_home).public_key)
-        known.save()
-        self.robot_config = base / "robot.toml"
-        self.robot_config.write_text(FAST_ROBOT)
-        self.port = 0
-        self.process: Process | None = None
-        self._drivers = 0
-
-    def start(self) -> None:
-        """Start the daemon (again, on a new port) and wait until it is ready."""
-        self.port = free_port()
-        self.process = Process(
-            [
-                "telebot.apps.robot_cli",
-                "run",
-                "--home",
-                str(self.robot_home),
-                "--config",
-                str(self.robot_config),
-                "--listen",
-                self.endpoint,
-                "--events",
-            ]
-        )
-        line = self.process.next_line(timeout=60)
-        assert '"ready"' in line, line
-
-    def stop(self) -> None:
-        if self.process is not None:
-            self.process.stop()
-
-    @property
-    def events(self) -> Process:
-        assert self.process is not None
-        return self.process
-
-    @property
-    def endpoint(self) -> str:
-        return f"tcp/127.0.0.1:{self.port}"
-
-    def config(self) -> AppConfig:
-        zenoh = ZenohSettings(connect=[self.endpoint], multicast_scouting=False)
-        return AppConfig.model_validate({"transport": {"zenoh": zenoh}})
-
-    def connect(
-        self, home: Path | None = None
-    ) -> contextlib.AbstractAsyncContextManager[RobotClient]:
-        return connect(ROBOT, home=home or self.user_home, config=self.config(), timeout=10)
-
-    def start_driver(self, processes: list[Process], *, lease_ms: int | None = None) -> Process:
-        """alice in her own process (tests/safety_driver_proc.py): arms and drives far."""
-        self._drivers += 1
-        config = write_config(self.base / f"driver{self._drivers}.toml", lease_ms=lease_ms)
-        path = os.pathsep.join(filter(None, [str(TESTS), os.environ.get("PYTHONPATH")]))
-        process = Process(
-            [
-                "safety_driver_proc",
-                "--home",
-                str(self.user_home),
-                "--config",
-                str(config),
-                "--connect",
-                self.endpoint,
-                "--robot",
-                ROBOT,
-            ],
-            env={"PYTHONPATH": path},
-        )
-        processes.append(process)
-        return process
-
-    async def call_ended(self, call_id: str, timeout: float = 10.0) -> dict[str, Any]:
-        """The daemon's ``ended`` event of call ``call_id`` (earlier events are skipped)."""
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
-        while True:
-            event = await self.events.wait_event("ended", max(0.01, deadline - loop.time()))
-            if event["id"] == call_id:
-                return event
-
-    def audit(self) -> list[dict[str, Any]]:
-        """The robot's audit log, one record per line."""
-        lines = (self.robot_home / "audit.jsonl").read_text(encoding="utf-8").splitlines()
-        return [json.loads(line) for line in lines]
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
+    """The robot of the tests that are not about drop timing: a generous call timeout."""
+    daemon = Daemon(tmp_path_factory.mktemp("safety"))
+    daemon.start()
+    yield daemon
+    daemon.stop()
 
 
 @pytest.fixture(scope="module")
-def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
-    daemon = Daemon(tmp_path_factory.mktemp("safety"))
+def deadman(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
+    """The robot of the deadman tests: the product's call timeout, which they are about."""
+    daemon = Daemon(tmp_path_factory.mktemp("deadman"), timeout=TIMEOUT)
     daemon.start()
     yield daemon
     daemon.stop()
@@ -187,7 +94,37 @@ async def observer(daemon: Daemon) -> AsyncIterator[RobotClient]:
         yield client
 
 
-async def arm(client: RobotClient, patience: float = 5.0) -> None:
+@pytest.fixture
+async def watcher(deadman: Daemon) -> AsyncIterator[RobotClient]:
+    """olga watching the deadman robot; her own side of the call is generous."""
+    async with deadman.connect(deadman.observer_home, call_timeout=GENEROUS_TIMEOUT) as client:
+        yield client
+
+
+def start_driver(
+    daemon: Daemon, processes: list[Process], *, lease_ms: int | None = None
+) -> Process:
+    """alice in her own process (tests/safety_driver_proc.py): arms and drives far."""
+    config = daemon.write_user_config(f"driver{len(processes)}.toml", lease_ms=lease_ms)
+    process = Process(
+        [
+            "safety_driver_proc",
+            "--home",
+            str(daemon.user_home),
+            "--config",
+            str(config),
+            "--connect",
+            daemon.endpoint,
+            "--robot",
+            ROBOT,
+        ],
+        env=child_env(),
+    )
+    processes.append(process)
+    return process
+
+
+async def arm(client: RobotClient, patience: float = 5.0 + SLACK) -> None:
     """Re-arm; an earlier call of alice's may still hold the drive for a moment."""
     loop = asyncio.get_running_loop()
     deadline = loop.time() + patience
@@ -233,7 +170,7 @@ async def next_pose(
 
 
 async def safety_state(
-    client: RobotClient, check: Callable[[SafetyStatus], bool], timeout: float = 3.0
+    client: RobotClient, check: Callable[[SafetyStatus], bool], timeout: float = 3.0 + SLACK
 ) -> SafetyStatus:
     """The first safety state (the latest known, then each new one) that passes ``check``."""
     async with asyncio.timeout(timeout):
@@ -268,32 +205,46 @@ async def assert_at_rest(client: RobotClient, seconds: float, *, armed: bool) ->
 
 
 async def freeze_or_kill(
-    observer: RobotClient, driver: Process, sig: signal.Signals
+    daemon: Daemon, observer: RobotClient, driver: Process, sig: signal.Signals
 ) -> tuple[str, float]:
     """Wait until the driver drives, send ``sig``, assert the robot stops in time.
 
+    In time by the robot's own records, not by when this process heard of it: the audit
+    record of the stop and the stamps of the poses that still showed motion.
     Returns the driver's call id and when the signal was sent (monotonic clock).
     """
     connected = await driver.wait_event("connected", timeout=30)
+    call_id = str(connected["call"])
     await driver.wait_event("moving", timeout=30)
-    await next_pose(observer, lambda p: abs(p.v) > 0.05, timeout=5)  # the observer sees it too
+    await next_pose(observer, lambda p: abs(p.v) > 0.05, timeout=5 + SLACK)  # seen moving too
     sent = time.monotonic()
     driver.signal(sig)
-    stopped = await next_pose(observer, still, timeout=DEFAULT_LEASE)
-    seen = time.monotonic() - sent
-    assert seen <= TIMEOUT + MARGIN, f"the robot stopped {seen:.2f} s after {sig.name}"
-    # The pose's stamp is the robot's clock: the base was at rest by then.
-    assert stopped.t - sent <= TIMEOUT + MARGIN
-    return str(connected["call"]), sent
+    moving: list[PoseUpdate] = []
+    async with asyncio.timeout(DEFAULT_LEASE):
+        while not still(pose := await observer.pose()):
+            moving.append(pose)
+    # The pose stamps are the robot's clock: no pose showed the base moving after the bound.
+    late = [p for p in moving if p.t - sent > TIMEOUT + MARGIN]
+    assert not late, f"the robot still moved {late[-1].t - sent:.2f} s after {sig.name}"
+    # The robot recorded the stop (the deadman's, or the drop's) within the bound.
+    stops = [
+        r
+        for r in daemon.audit()
+        if r["call"] == call_id and r["outcome"] == "stopped" and r["t"] >= sent
+    ]
+    assert stops, f"no stop of alice's call recorded after {sig.name}"
+    assert stops[0]["t"] - sent <= TIMEOUT + MARGIN, stops[0]
+    return call_id, sent
 
 
 @pytest.mark.zenoh
 @pytest.mark.parametrize("lease_ms", [None, 3_600_000], ids=["default-lease", "one-hour-lease"])
 async def test_a_frozen_driver_stops_the_robot_within_the_timeout(
-    daemon: Daemon, observer: RobotClient, processes: list[Process], lease_ms: int | None
+    deadman: Daemon, watcher: RobotClient, processes: list[Process], lease_ms: int | None
 ) -> None:
-    driver = daemon.start_driver(processes, lease_ms=lease_ms)
-    call_id, frozen_at = await freeze_or_kill(observer, driver, signal.SIGSTOP)
+    daemon, observer = deadman, watcher
+    driver = start_driver(daemon, processes, lease_ms=lease_ms)
+    call_id, frozen_at = await freeze_or_kill(daemon, observer, driver, signal.SIGSTOP)
     state = await safety_state(observer, lambda s: not s.armed)
     assert "alice" in state.reason and ("link lost" in state.reason or "dropped" in state.reason)
     # With a one-hour lease zenoh never declares alice gone: the call's heartbeats do.
@@ -309,10 +260,11 @@ async def test_a_frozen_driver_stops_the_robot_within_the_timeout(
 
 @pytest.mark.zenoh
 async def test_a_killed_driver_stops_the_robot(
-    daemon: Daemon, observer: RobotClient, processes: list[Process]
+    deadman: Daemon, watcher: RobotClient, processes: list[Process]
 ) -> None:
-    driver = daemon.start_driver(processes)
-    call_id, _ = await freeze_or_kill(observer, driver, signal.SIGKILL)
+    daemon, observer = deadman, watcher
+    driver = start_driver(daemon, processes)
+    call_id, _ = await freeze_or_kill(daemon, observer, driver, signal.SIGKILL)
     # Disarmed, and the dead call's drive freed.
     state = await safety_state(observer, lambda s: not s.armed and s.holder is None)
     assert "alice" in state.reason
@@ -322,10 +274,11 @@ async def test_a_killed_driver_stops_the_robot(
 
 @pytest.mark.zenoh
 async def test_a_thawed_driver_finds_the_robot_stopped_until_it_is_re_armed(
-    daemon: Daemon, observer: RobotClient, processes: list[Process]
+    deadman: Daemon, watcher: RobotClient, processes: list[Process]
 ) -> None:
-    driver = daemon.start_driver(processes, lease_ms=3_600_000)
-    call_id, _ = await freeze_or_kill(observer, driver, signal.SIGSTOP)
+    daemon, observer = deadman, watcher
+    driver = start_driver(daemon, processes, lease_ms=3_600_000)
+    call_id, _ = await freeze_or_kill(daemon, observer, driver, signal.SIGSTOP)
     await daemon.call_ended(call_id)  # the robot gave the frozen call up...
     driver.signal(signal.SIGCONT)  # ...and then the link heals
     ended = await driver.wait_event("ended", timeout=10)
@@ -341,7 +294,7 @@ async def test_a_thawed_driver_finds_the_robot_stopped_until_it_is_re_armed(
         armed_at = time.monotonic()
         assert (await safety_state(observer, lambda s: s.armed)).armed
         # Re-arming starts nothing: the cancelled goto does not come back.
-        await next_pose(observer, lambda p: p.t > armed_at, timeout=2)
+        await next_pose(observer, lambda p: p.t > armed_at, timeout=2 + SLACK)
         await assert_at_rest(observer, 0.5, armed=True)
         moved = await alice.chat("fwd 0.3", timeout=30)
         assert moved.ok, moved.replies
@@ -372,7 +325,7 @@ async def test_an_observer_cannot_drive_but_its_stop_stops_a_moving_robot(
         assert ack.ok
         # ...until olga's stop, acknowledged after the base halted: every pose stamped
         # (robot clock) after the acknowledgement shows it at rest.
-        after = await next_pose(observer, lambda p: p.t > acked, timeout=2)
+        after = await next_pose(observer, lambda p: p.t > acked, timeout=2 + SLACK)
         assert still(after), after
         state = await safety_state(alice, lambda s: not s.armed)
         assert OBSERVER in state.reason
@@ -405,8 +358,7 @@ async def test_a_data_flood_drops_no_call_and_its_stop_still_reaches_the_base(
     """olga floods 32 KB datagrams for 10 s from her own process on a machine kept busy;
     alice, in a call of her own, drives and then stops the robot: neither call drops,
     the stop reaches the base, and the robot counts (and tells olga) what it dropped."""
-    config = write_config(daemon.base / "flooder.toml")
-    path = os.pathsep.join(filter(None, [str(TESTS), os.environ.get("PYTHONPATH")]))
+    config = daemon.write_user_config("flooder.toml")
     async with daemon.connect() as alice:
         alice_call = alice.call.id
         assert (await alice.stop()).ok
@@ -426,7 +378,7 @@ async def test_a_data_flood_drops_no_call_and_its_stop_still_reaches_the_base(
                     "--seconds",
                     str(FLOOD_SECONDS),
                 ],
-                env={"PYTHONPATH": path},
+                env=child_env(),
             )
             processes.append(flooder)
             await flooder.wait_event("flooding", timeout=30)
@@ -494,7 +446,8 @@ async def test_the_audit_log_says_who_did_what_and_what_came_of_it(
 
 @pytest.mark.zenoh
 async def test_a_killed_daemon_comes_back_disarmed(tmp_path: Path) -> None:
-    daemon = Daemon(tmp_path)
+    # The user learns of the kill within the call timeout: the product's, which this is about.
+    daemon = Daemon(tmp_path, timeout=TIMEOUT)
     daemon.start()
     try:
         async with daemon.connect() as alice:
@@ -544,33 +497,29 @@ class LossyRobot:
 
 
 @pytest.fixture
-async def lossy(homes: Homes) -> AsyncIterator[LossyRobot]:
+async def lossy(tmp_path: Path) -> AsyncIterator[LossyRobot]:
+    # Not about drop timing: a generous call timeout (and deadman), so that a preempted
+    # test process does not drop the call.
     hub = MemoryHub(seed=5)
-    loop = asyncio.get_running_loop()
-    settings = SimSettings(
-        map="small", max_linear_speed=1.5, linear_accel=3.0, max_angular_speed=3.0
-    )
-    nav = SimNavStack.from_settings(settings, now=loop.time())
-    safety = SafetyDriver(nav, timeout=TIMEOUT, max_speed=settings.max_linear_speed)
-    server = RobotServer(nav, safety=safety)
-    async with memory_endpoints(homes, hub) as (robot_endpoint, user_endpoint):
-        server.attach(robot_endpoint)
-        runner = asyncio.create_task(server.run(), name="robot-loop")
-        with safety:
-            try:
-                call = await user_endpoint.call(ROBOT)
-                hub.set_link("robot", "user", loss=LOSS)  # both ways, once the call is up
-                try:
-                    yield LossyRobot(hub, nav, safety, RobotClient(call))
-                finally:
-                    hub.set_link("robot", "user", loss=0.0)  # let the hang-up through
-                    await call.hangup()
-                    await asyncio.sleep(0.05)
-            finally:
-                runner.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await runner
-    await asyncio.sleep(0.01)  # the server's call watchers see the calls end
+    settings = CallSettings(timeout=GENEROUS_TIMEOUT)
+    async with (
+        robot_on_hub(tmp_path, hub, timeout=GENEROUS_TIMEOUT, sim=FAST_SIM) as (nav, safety, _, _),
+        MemoryTransport(hub, "user") as transport,
+        UserEndpoint(
+            transport,
+            Identity.load(tmp_path / "user"),
+            KnownRobots.load(tmp_path / "user"),
+            settings=settings,
+        ) as user_endpoint,
+    ):
+        call = await user_endpoint.call(ROBOT)
+        hub.set_link("robot", "user", loss=LOSS)  # both ways, once the call is up
+        try:
+            yield LossyRobot(hub, nav, safety, RobotClient(call))
+        finally:
+            hub.set_link("robot", "user", loss=0.0)  # let the hang-up through
+            await call.hangup()
+            await asyncio.sleep(0.05)
 
 
 async def test_a_stop_at_20_percent_loss_is_never_lost(lossy: LossyRobot) -> None:
@@ -594,7 +543,8 @@ async def test_a_stop_at_20_percent_loss_is_never_lost(lossy: LossyRobot) -> Non
         # Checked on the NavStack itself, straight after the acknowledgement.
         assert nav.velocity() == Velocity(), i
         assert nav.current_goal() is None and not lossy.safety.supervisor.armed
-        assert took < 2.0, (i, took)  # repeated every 50 ms: 40 rounds lost in a row is absurd
+        # Repeated every 50 ms: 40 rounds lost in a row is absurd.
+        assert took < 2.0 + SLACK, (i, took)
     # The link really was lossy, both ways.
     assert lossy.hub.link_stats("user", "robot").lost > 0
     assert lossy.hub.link_stats("robot", "user").lost > 0

@@ -24,10 +24,11 @@ import aiohttp
 import pytest
 
 from conftest import ROBOT, USER
+from rig import GENEROUS_TIMEOUT, SLACK
 from telebot.apps.web.server import WebUI
 from telebot.channels.call import RobotEndpoint, UserEndpoint
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
-from telebot.config import ServiceSettings, SimSettings
+from telebot.config import CallSettings, ServiceSettings, SimSettings
 from telebot.identity import ContactBook, Identity, KnownRobots, Role, create_paired_homes
 from telebot.robot.grid import OccupancyGrid
 from telebot.robot.sim.stack import SimNavStack
@@ -100,7 +101,9 @@ async def robot_rig(
     zeroed: list[float] = []
     _watch_stops(nav, zeroed)
     audit = base / "audit.jsonl"
-    safety = SafetyDriver(nav, timeout=2.0, max_speed=settings.max_linear_speed, audit_path=audit)
+    safety = SafetyDriver(
+        nav, timeout=GENEROUS_TIMEOUT, max_speed=settings.max_linear_speed, audit_path=audit
+    )
     server = RobotServer(
         nav,
         ServiceSettings(pose_hz=pose_hz),
@@ -111,15 +114,23 @@ async def robot_rig(
     )
     await server.prepare()
     hub = MemoryHub(seed=7)
+    # No test here is about drop timing: a preempted process (a browser is busy) keeps its call.
+    calls = CallSettings(timeout=GENEROUS_TIMEOUT)
     with safety:
         async with (
             MemoryTransport(hub, "robot") as robot_transport,
             MemoryTransport(hub, "user") as user_transport,
             RobotEndpoint(
-                robot_transport, Identity.load(robot_home), ContactBook.load(robot_home)
+                robot_transport,
+                Identity.load(robot_home),
+                ContactBook.load(robot_home),
+                settings=calls,
             ) as endpoint,
             UserEndpoint(
-                user_transport, Identity.load(user_home), KnownRobots.load(user_home)
+                user_transport,
+                Identity.load(user_home),
+                KnownRobots.load(user_home),
+                settings=calls,
             ) as user,
         ):
             server.attach(endpoint)
@@ -288,14 +299,14 @@ async def test_a_key_press_stops_the_robot(rig: Rig) -> None:
         await page.locator("#map").focus()
         rig.zeroed.clear()  # only the stop this key causes counts
         await page.keyboard.press("k")
-        await wait_for(lambda: rig.zeroed, timeout=2.0, what="the base stopped")
+        await wait_for(lambda: rig.zeroed, timeout=2.0 + SLACK, what="the base stopped")
         pressed = (await page.evaluate("() => window.telebotUI.stats.keyTimes"))[-1] / 1000
         delay = rig.zeroed[0] - pressed
         # The page's clock (performance.timeOrigin + now()) and Python's time.time() are
         # both wall clock but may disagree by a millisecond or so: allow that much below 0.
         # The bound only shows that the key caused the stop; how fast it is (target:
         # p99 30 ms) is bench/ui.py's to measure, not a pass/fail test's on a shared machine.
-        assert -0.005 <= delay < 0.5, f"stopped {delay * 1000:.1f} ms after the key"
+        assert -0.005 <= delay < 0.5 + SLACK, f"stopped {delay * 1000:.1f} ms after the key"
         assert rig.nav.velocity().linear == 0.0
         assert rig.stops() == [(USER, "key")]  # the audit log says who, and how
         await page.wait_for_function("() => window.telebotUI.state.safety?.armed === false")
@@ -314,7 +325,7 @@ async def test_escape_in_the_chat_input_stops_but_typing_does_not(rig: Rig) -> N
         await asyncio.sleep(0.1)
         assert rig.nav.velocity().linear > 0.0 and not rig.zeroed
         await page.keyboard.press("Escape")
-        await wait_for(lambda: rig.zeroed, timeout=2.0, what="the base stopped")
+        await wait_for(lambda: rig.zeroed, timeout=2.0 + SLACK, what="the base stopped")
         assert rig.stops() == [(USER, "key")]
 
 
@@ -355,10 +366,10 @@ async def test_closing_the_page_while_driving_stops_the_robot(rig: Rig) -> None:
         await page_ready(page)
         await drive_forward(rig)
         await page.close()
-    await wait_for(lambda: rig.zeroed, timeout=3.0, what="the base stopped")
+    await wait_for(lambda: rig.zeroed, timeout=3.0 + SLACK, what="the base stopped")
     assert rig.ui.close_stops == 1
     assert rig.nav.velocity().linear == 0.0
-    await wait_for(lambda: rig.stops(), timeout=3.0, what="the stop in the audit log")
+    await wait_for(lambda: rig.stops(), timeout=3.0 + SLACK, what="the stop in the audit log")
     assert rig.stops() == [(USER, "tab_closed")]
 
 
