@@ -180,7 +180,6 @@ class Call:
         )
         self._inbox = inbox
         self._schedule()
-        inbox.attach(self)
 
     def __repr__(self) -> str:
         state = "active" if self.end is None else str(self.end)
@@ -407,6 +406,7 @@ class _CallInbox:
         self.call_id = call_id
         self._call: Call | None = None
         self._early: list[Sample] = []
+        self._early_dropped = 0
         self._closed = False
         keys = f"{endpoint.base}/call/{call_id.hex()}"
         transport = endpoint.transport
@@ -422,9 +422,16 @@ class _CallInbox:
             raise
 
     @property
+    def owner(self) -> Call | None:
+        """The call this inbox delivers to (None while the call is being set up)."""
+        return self._call
+
+    @property
     def dropped(self) -> int:
-        """Samples dropped before they were read (queue bounds, oversized payloads)."""
-        return sum(sub.stats.dropped + sub.stats.oversized for sub in self._subscriptions)
+        """Samples dropped before they were read (queue bounds, oversized payloads, and
+        early frames beyond what is kept for a call being set up)."""
+        queues = sum(sub.stats.dropped + sub.stats.oversized for sub in self._subscriptions)
+        return queues + self._early_dropped
 
     def attach(self, call: Call) -> None:
         """Deliver to ``call`` from now on, starting with what arrived early."""
@@ -436,8 +443,9 @@ class _CallInbox:
     def _on_samples(self, samples: Sequence[Sample]) -> None:
         call = self._call
         if call is None:
-            room = _EARLY_FRAMES - len(self._early)
+            room = max(0, _EARLY_FRAMES - len(self._early))
             self._early.extend(samples[:room])
+            self._early_dropped += max(0, len(samples) - room)
             return
         rejected = call._session.stats.rejected
         call_id = self.call_id
@@ -558,6 +566,11 @@ class _Endpoint:
                 self._subscription.close()
 
     @property
+    def closed(self) -> bool:
+        """True once :meth:`close` was called."""
+        return self._closed
+
+    @property
     def calls(self) -> list[Call]:
         """The calls that are up now."""
         return list(self._calls.values())
@@ -572,16 +585,23 @@ class _Endpoint:
         peer_presence: str,
         inbox: _CallInbox,
     ) -> Call:
-        call = Call(
-            self,
-            session,
-            peer=peer,
-            role=role,
-            peer_base=peer_base,
-            peer_presence=peer_presence,
-            inbox=inbox,
-        )
+        try:
+            call = Call(
+                self,
+                session,
+                peer=peer,
+                role=role,
+                peer_base=peer_base,
+                peer_presence=peer_presence,
+                inbox=inbox,
+            )
+        except BaseException:
+            inbox.close()
+            raise
         self._calls[session.call_id] = call
+        # Only now: frames that came early (a HANGUP among them) may end the call, and an
+        # ended call must be forgotten, not registered after it ended.
+        inbox.attach(call)
         return call
 
     def _forget(self, call: Call) -> None:
@@ -678,6 +698,11 @@ class RobotEndpoint(_Endpoint):
                     call._session.last_heard, asyncio.get_running_loop().time()
                 )
             self._reply(frame, cached[1])
+            return
+        if frame.call_id in self._calls:
+            # A live call's id in a new HELLO (its answer left the cache): never a second
+            # call, with its own keys, on top of the first.
+            self.stats.rejected["call_id_reused"] += 1
             return
         suite = choose_suite(frame.offers, self.suites)
         if suite is not None and suite != frame.suite:
@@ -887,16 +912,20 @@ class UserEndpoint(_Endpoint):
         self._pending[call_id] = (handshake, future)
         self._pending_robot[call_id] = robot
         self._pending_hello[call_id] = hello.encode()
-        self._pending_inbox[call_id] = inbox = _CallInbox(self, call_id)
-        publisher = self.transport.publisher(f"{self.namespace}/robot/{robot}/in", Lane.CONTROL)
-        # A robot online under this name with another key cannot read the HELLO and never
-        # answers: its presence token (which carries its key) tells at once.
-        tokens: dict[str, bool] = {}
-        prefix = f"{self.namespace}/presence/robot/{robot}/"
-        watch = self.transport.watch_presence(
-            f"{prefix}*", lambda key, alive: tokens.__setitem__(key.removeprefix(prefix), alive)
-        )
+        inbox: _CallInbox | None = None
+        publisher: Publisher | None = None
+        watch: Subscription | None = None
         try:
+            self._pending_inbox[call_id] = inbox = _CallInbox(self, call_id)
+            publisher = self.transport.publisher(f"{self.namespace}/robot/{robot}/in", Lane.CONTROL)
+            # A robot online under this name with another key cannot read the HELLO and
+            # never answers: its presence token (which carries its key) tells at once.
+            tokens: dict[str, bool] = {}
+            prefix = f"{self.namespace}/presence/robot/{robot}/"
+            watch = self.transport.watch_presence(
+                f"{prefix}*",
+                lambda key, alive: tokens.__setitem__(key.removeprefix(prefix), alive),
+            )
             async with asyncio.timeout(timeout):
                 while True:
                     publisher.put(self._pending_hello[call_id])
@@ -904,6 +933,8 @@ class UserEndpoint(_Endpoint):
                         return await asyncio.wait_for(asyncio.shield(future), HELLO_RETRY_INTERVAL)
                     _check_robot_key(robot, robot_key, tokens)
         except BaseException as exc:
+            # No WELCOME may complete this call any more (the await below would let one).
+            self._pending.pop(call_id, None)
             # Answered, but the caller gave up (cancelled) at that very moment: end the
             # call rather than leave it running unseen.
             if future.done() and not future.cancelled() and future.exception() is None:
@@ -916,10 +947,14 @@ class UserEndpoint(_Endpoint):
                 f"robot {robot} did not answer within {timeout:g} s ({hint})"
             ) from None
         finally:
-            watch.close()
-            publisher.close()
-            if not future.done() or future.cancelled() or future.exception() is not None:
-                inbox.close()  # no call took it over
+            if watch is not None:
+                watch.close()
+            if publisher is not None:
+                publisher.close()
+            if inbox is not None:  # closed by now if a call took it over and ended
+                owner = inbox.owner
+                if owner is None or owner.end is not None:
+                    inbox.close()
             self._pending.pop(call_id, None)
             self._pending_inbox.pop(call_id, None)
             self._pending_robot.pop(call_id, None)

@@ -465,8 +465,10 @@ class ChatSession:
 
 def goal_reason(handle: GoalHandle) -> str:
     """The reason code of a finished goal (its NavStack's code, else one from its status)."""
-    if handle.code:
-        return handle.code
+    # A plug-in robot's goal handles may predate codes: then the status says it.
+    code = getattr(handle, "code", "")
+    if isinstance(code, str) and code:
+        return code
     match handle.status:
         case GoalStatus.SUCCEEDED:
             return Reason.FINISHED

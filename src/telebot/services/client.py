@@ -339,6 +339,9 @@ class RobotClient:
             await asyncio.sleep(backoff_delay(attempt, settings, self._rng))
             attempt += 1
             waited = self._loop.time() - started
+            if self._closing:  # hung up while the link was down: no new call
+                self._finish(end, "hung up while reconnecting")
+                return False
             if settings.give_up_after and waited >= settings.give_up_after:
                 self._finish(end, f"gave up reconnecting after {waited:.0f} s")
                 return False
@@ -350,9 +353,15 @@ class RobotClient:
             except CallRejected as exc:
                 self._finish(end, f"{self.robot} refused the call: {exc}")
                 return False
-            except CallError as exc:  # the endpoint closed, or the robot's key changed
-                self._finish(end, str(exc))
-                return False
+            except CallError as exc:
+                if endpoint.closed:
+                    self._finish(end, str(exc))
+                    return False
+                # A KEY MISMATCH or a failed negotiation: unauthenticated presence tokens
+                # and RETRYs can fake both, so one is no reason to stop trying (a real one
+                # repeats until give_up_after).
+                log.warning("reconnection attempt %d: %s", attempt, exc)
+                continue
             except TelebotError as exc:  # a transport hiccup
                 log.info("reconnection attempt %d failed: %s", attempt, exc)
                 continue

@@ -426,6 +426,7 @@ class ZenohSubscription(_Entity, Subscription):
                     size = len(raw)
                     if size > max_payload:
                         self._oversized += 1
+                        self._wake()  # so that the count is reported, with nothing to deliver
                     else:
                         while queue and (
                             len(queue) >= max_samples
@@ -479,22 +480,22 @@ class ZenohSubscription(_Entity, Subscription):
         queue = self._queue
         pop = queue.popleft
         batch: list[Sample] = []
-        size = 0
         exact, key = self._exact, self.pattern
         for _ in range(min(len(queue), self.limits.batch)):
             try:
                 item = pop()
             except IndexError:  # the reader dropped the oldest meanwhile
                 break
+            # Counted as it leaves, so the reader never sees bytes that are already gone.
             if exact:
-                size += len(item)
+                self._bytes_out += len(item)
                 batch.append(Sample(key, item))
             else:
-                size += len(item[1])
+                self._bytes_out += len(item[1])
                 batch.append(Sample(*item))
-        self._bytes_out += size
         if queue and not self._closed:  # the rest after other callbacks had their turn
-            self._wake()
+            self._drain_scheduled = True
+            self._loop.call_soon(self._drain)
         self._report()
         if self._closed or not batch:
             return
