@@ -136,18 +136,7 @@ async def measure_reconnects(daemon: Daemon, home: Path) -> list[float]:
     """Section E: the time from each heal to the first pose on the new call (ms)."""
     proxy = TcpProxy(daemon.port)
     await proxy.start()
-    config = AppConfig.model_validate(
-        {
-            "transport": {
-                "zenoh": {
-                    "mode": "client",
-                    "connect": [proxy.endpoint],
-                    "multicast_scouting": False,
-                }
-            },
-            "reconnect": {"base": 0.05, "cap": 0.25},
-        }
-    )
+    config = proxy.client_config({"base": 0.05, "cap": 0.25})
     loop = asyncio.get_running_loop()
     backs: list[float] = []
     poses: list[tuple[float, int]] = []

@@ -10,6 +10,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import socket
+from typing import Any
+
+from telebot.config import AppConfig
 
 
 def _free_port() -> int:
@@ -31,6 +34,25 @@ class TcpProxy:
     @property
     def endpoint(self) -> str:
         return f"tcp/127.0.0.1:{self.port}"
+
+    def client_config(self, reconnect: dict[str, Any]) -> AppConfig:
+        """A user's config that reaches the robot only through this proxy.
+
+        Client mode: a client connects only where it is told (a peer could find the
+        robot's own port behind the proxy's back).
+        """
+        return AppConfig.model_validate(
+            {
+                "transport": {
+                    "zenoh": {
+                        "mode": "client",
+                        "connect": [self.endpoint],
+                        "multicast_scouting": False,
+                    }
+                },
+                "reconnect": reconnect,
+            }
+        )
 
     async def start(self) -> None:
         self._server = await asyncio.start_server(

@@ -434,20 +434,7 @@ async def test_over_zenoh_the_call_comes_back_when_the_proxy_does(
     processes.append(daemon.events)
     proxy = TcpProxy(daemon.port)
     await proxy.start()
-    config = AppConfig.model_validate(
-        {
-            "transport": {
-                "zenoh": {
-                    # A client connects only where it is told (a peer could find the
-                    # robot's own port behind the proxy's back).
-                    "mode": "client",
-                    "connect": [proxy.endpoint],
-                    "multicast_scouting": False,
-                }
-            },
-            "reconnect": FAST.model_dump(),
-        }
-    )
+    config = proxy.client_config(FAST.model_dump())
     loop = asyncio.get_running_loop()
     events: list[tuple[float, ConnectionEvent]] = []
     try:
