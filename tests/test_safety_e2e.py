@@ -525,12 +525,19 @@ async def lossy(tmp_path: Path) -> AsyncIterator[LossyRobot]:
 async def test_a_stop_at_20_percent_loss_is_never_lost(lossy: LossyRobot) -> None:
     client, nav = lossy.client, lossy.nav
     loop = asyncio.get_running_loop()
-    for i in range(REPEATS):
+    stopped = 0
+    for i in range(2 * REPEATS):
+        if stopped == REPEATS:
+            break
         assert (await client.arm(timeout=10)).ok
         # Towards the middle of the corridor, so no run ends at a wall.
         metres = 2 if nav.true_pose.x < 5.0 else -2
         reply = await first_reply(client, f"fwd {metres}", timeout=10)
-        assert reply.ok and not reply.final, (i, reply.text)
+        assert reply.ok, (i, reply.text)
+        if reply.final:
+            # The acknowledgement was lost and, on a busy machine, the short move was
+            # over before a repeated request was answered: nothing moving to stop.
+            continue
         async with asyncio.timeout(5):
             while True:  # polled: the NavStack has no change notification
                 if nav.velocity() != Velocity():
@@ -545,6 +552,8 @@ async def test_a_stop_at_20_percent_loss_is_never_lost(lossy: LossyRobot) -> Non
         assert nav.current_goal() is None and not lossy.safety.supervisor.armed
         # Repeated every 50 ms: 40 rounds lost in a row is absurd.
         assert took < 2.0 + SLACK, (i, took)
+        stopped += 1
+    assert stopped == REPEATS, f"only {stopped} of {2 * REPEATS} moves were seen moving"
     # The link really was lossy, both ways.
     assert lossy.hub.link_stats("user", "robot").lost > 0
     assert lossy.hub.link_stats("robot", "user").lost > 0
