@@ -26,6 +26,7 @@ __all__ = [
     "ReconnectSettings",
     "RobotConfig",
     "RobotSettings",
+    "Ros2Settings",
     "SafetySettings",
     "ServiceSettings",
     "SimSettings",
@@ -186,6 +187,69 @@ class SimSettings(StrictModel):
     camera_height: int = Field(default=480, ge=24, le=2160)
 
 
+#: A ROS 2 graph name (topic, action, namespace): slash-separated, ROS characters only.
+ROS_NAME = r"^/?[A-Za-z_~{}][A-Za-z0-9_/{}~]*$"
+
+
+class Ros2Settings(StrictModel):
+    """The ROS 2 robot (``[robot] kind = "ros2"``): a Nav2 robot reached over rmw_zenoh.
+
+    telebot joins the robot's zenoh network as a client of rmw_zenoh's router (``rmw_zenohd``
+    listens on tcp port 7447) and speaks the rmw_zenoh wire format itself: no ROS install.
+    Topic and action names are relative to ``namespace`` unless they start with ``/``.
+    """
+
+    #: ROS_DOMAIN_ID of the robot's graph (the first chunk of every rmw_zenoh key).
+    domain_id: int = Field(default=0, ge=0, le=232)
+    #: The ROS 2 distro the robot runs: message type hashes differ between them.
+    distro: Literal["jazzy", "kilted"] = "jazzy"
+    #: Zenoh endpoints of rmw_zenoh's router (telebot connects as a zenoh client).
+    router: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"], min_length=1)
+    #: Namespace of the robot's topics and actions, and of telebot's own node.
+    namespace: str = Field(default="", pattern=r"^(/?[A-Za-z_][A-Za-z0-9_/]*)?$")
+    #: Name of telebot's node in the ROS graph (``ros2 node list`` shows it).
+    node_name: str = Field(default="telebot", pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")
+    #: How long start-up waits for the router and for Nav2's action servers (s).
+    connect_timeout: float = Field(default=5.0, gt=0, le=120)
+    #: The map frame, and the robot's base frame (for tf when ``pose_topic`` is empty).
+    map_frame: str = "map"
+    base_frame: str = "base_link"
+    map_topic: str = Field(default="map", pattern=ROS_NAME)
+    #: PoseWithCovarianceStamped (AMCL); empty: the map -> base frame transform from ``/tf``.
+    pose_topic: str = Field(default="amcl_pose", pattern=r"^(/?[A-Za-z_~{}][A-Za-z0-9_/{}~]*)?$")
+    odom_topic: str = Field(default="odom", pattern=ROS_NAME)
+    scan_topic: str = Field(default="scan", pattern=ROS_NAME)
+    battery_topic: str = Field(default="battery_state", pattern=ROS_NAME)
+    plan_topic: str = Field(default="plan", pattern=ROS_NAME)
+    #: The teleop topic that stop streams zero velocity on.
+    cmd_vel_topic: str = Field(default="cmd_vel", pattern=ROS_NAME)
+    #: ``geometry_msgs/msg/Twist`` or ``TwistStamped`` on ``cmd_vel_topic`` (Kilted's default
+    #: is TwistStamped); default: by distro.
+    cmd_vel_stamped: bool | None = None
+    navigate_action: str = Field(default="navigate_to_pose", pattern=ROS_NAME)
+    drive_action: str = Field(default="drive_on_heading", pattern=ROS_NAME)
+    spin_action: str = Field(default="spin", pattern=ROS_NAME)
+    #: Camera name -> ``sensor_msgs/msg/CompressedImage`` topic (JPEG or PNG).
+    cameras: dict[str, str] = Field(default_factory=dict)
+    #: Speed cap telebot enforces on drive_on_heading (m/s); Nav2's own limits apply too.
+    max_linear_speed: float = Field(default=0.5, gt=0, le=HARD_MAX_LINEAR_SPEED)
+    max_angular_speed: float = Field(default=1.0, gt=0, le=HARD_MAX_ANGULAR_SPEED)
+    #: Stop streams zero velocity at this rate (Hz) for ``stop_stream_s`` seconds.
+    stop_rate_hz: float = Field(default=20.0, ge=10, le=200)
+    stop_stream_s: float = Field(default=1.0, gt=0, le=10)
+    #: A map bigger than this many cells is dropped (and logged), never loaded.
+    max_map_cells: int = Field(default=64_000_000, ge=1, le=1_000_000_000)
+    #: Named places (``[ros2.places.NAME] x, y, yaw_deg``) in the map frame.
+    places_file: Path | None = None
+
+    @property
+    def twist_stamped(self) -> bool:
+        """Whether ``cmd_vel_topic`` carries TwistStamped (explicit, else the distro's)."""
+        if self.cmd_vel_stamped is not None:
+            return self.cmd_vel_stamped
+        return self.distro == "kilted"
+
+
 Model = TypeVar("Model", bound=BaseModel)
 
 
@@ -291,6 +355,7 @@ class RobotConfig(AppConfig):
 
     robot: RobotSettings = Field(default_factory=RobotSettings)
     sim: SimSettings = Field(default_factory=SimSettings)
+    ros2: Ros2Settings = Field(default_factory=Ros2Settings)
     services: ServiceSettings = Field(default_factory=ServiceSettings)
     safety: SafetySettings = Field(default_factory=SafetySettings)
     video: VideoConfig = Field(default_factory=VideoConfig)

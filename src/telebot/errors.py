@@ -25,7 +25,11 @@ foreign libraries (zenoh, cryptography, pydantic) are mapped at the boundary wit
         ├── UnknownPlace(LookupError)     a place name the robot does not know (lists known ones)
         ├── UnknownCamera(LookupError)    a camera name the robot does not have
         ├── NoPath                        no path to a goal (outside the map, in a wall, cut off)
-        └── InvalidCommand(ValueError)    a motion request with bad numbers (NaN, infinite, …)
+        ├── InvalidCommand(ValueError)    a motion request with bad numbers (NaN, infinite, …)
+        └── Ros2Error                     the ROS 2 robot (rmw_zenoh) failed or misbehaved
+            ├── RobotUnreachable(ConnectionError)  no router, or Nav2 not there, at start-up
+            ├── UnknownRosType(LookupError)  a message/service/action type telebot does not know
+            └── CdrError(ValueError)      bytes that are not a valid CDR message of that type
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ __all__ = [
     "CallError",
     "CallRejected",
     "CallTimeout",
+    "CdrError",
     "ConfigError",
     "DatagramTooLarge",
     "IdentityError",
@@ -45,12 +50,15 @@ __all__ = [
     "NoPath",
     "ProtocolError",
     "RobotError",
+    "RobotUnreachable",
+    "Ros2Error",
     "TelebotError",
     "TransportError",
     "TransportTimeout",
     "UnknownCamera",
     "UnknownPlace",
     "UnknownRobot",
+    "UnknownRosType",
     "UnknownTransport",
 ]
 
@@ -142,3 +150,19 @@ class NoPath(RobotError):
 
 class InvalidCommand(RobotError, ValueError):
     """A motion request with numbers the robot cannot act on (not finite, out of range)."""
+
+
+class Ros2Error(RobotError):
+    """The ROS 2 robot (over rmw_zenoh) failed or misbehaved."""
+
+
+class RobotUnreachable(Ros2Error, ConnectionError):
+    """The robot is not there at start-up: no router, or a Nav2 server missing (named)."""
+
+
+class UnknownRosType(Ros2Error, LookupError):
+    """A ROS message, service or action type that telebot does not know."""
+
+
+class CdrError(Ros2Error, ValueError):
+    """Bytes that are not a valid CDR-encoded message of the expected type."""

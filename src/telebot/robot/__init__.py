@@ -4,8 +4,8 @@ A robot adapter implements :class:`~telebot.robot.nav.NavStack` and
 :class:`~telebot.robot.nav.EmergencyStoppable` (the safety watchdog stops it from its own
 thread), and :class:`~telebot.robot.nav.SteppedNavStack` if the caller's clock drives it.
 Built-in adapters are listed in :data:`BUILTIN_ROBOTS` as name -> (module, class) and imported
-only when asked for; ``"sim"`` is the simulated robot, and ``"ros2"`` (ROS 2 over rmw_zenoh,
-in ``robot/ros2/``, the one place in ``robot/`` that may import zenoh) is to come.
+only when asked for; ``"sim"`` is the simulated robot, and ``"ros2"`` a ROS 2 / Nav2 robot over rmw_zenoh
+(``robot/ros2/``, the one place in ``robot/`` that may import zenoh).
 ``telebot-robot run`` picks one with ``[robot] kind`` in ``configs/robot.toml`` or
 ``--robot NAME``. Third-party adapters register in the entry-point group ``telebot.robots``::
 
@@ -42,6 +42,7 @@ ENTRY_POINT_GROUP = "telebot.robots"
 
 BUILTIN_ROBOTS: dict[str, tuple[str, str]] = {
     "sim": ("telebot.robot.sim.stack", "SimNavStack"),
+    "ros2": ("telebot.robot.ros2.stack", "Ros2NavStack"),
 }
 
 
