@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import struct
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -290,6 +291,26 @@ def test_cdr_round_trip_and_layout(jazzy: TypeLibrary) -> None:
     assert twist.deserialize(data).linear.x == 0.5
     req = jazzy.service("std_srvs/srv/SetBool").request
     assert req.serialize(req.make(data=True)) == b"\x00\x01\x00\x00\x01"
+
+
+def test_decoded_arrays_do_not_follow_a_reused_buffer(jazzy: TypeLibrary) -> None:
+    image = jazzy.message("sensor_msgs/msg/CompressedImage")
+    buffer = bytearray(image.serialize(image.make(data=np.arange(4, dtype=np.uint8))))
+    msg = image.deserialize(buffer)
+    buffer[-4:] = bytes(4)
+    assert list(msg.data) == [0, 1, 2, 3]
+    with pytest.raises(CdrError, match=r"CompressedImage.*not str"):
+        image.deserialize("not bytes")  # type: ignore[arg-type]
+
+
+def test_concurrent_first_use_builds_each_type_once() -> None:
+    fresh = TypeLibrary("jazzy")
+    names = ["nav2_msgs/action/NavigateToPose", "nav2_msgs/action/Spin", "nav2_msgs/action/BackUp"]
+    with ThreadPoolExecutor(max_workers=6) as pool:
+        got = list(pool.map(fresh.action, names * 4))
+    for i, action in enumerate(got):
+        assert action is got[i % len(names)]
+    assert got[0].send_goal.type_hash.startswith("RIHS01_a4fcb3be")
 
 
 def test_serialize_rejects_wrong_objects(jazzy: TypeLibrary) -> None:

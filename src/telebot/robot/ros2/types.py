@@ -295,7 +295,8 @@ class MessageType:
 
         Anything that is not a complete message of this type (short, truncated, unknown
         encapsulation, absurd lengths, trailing junk) raises :class:`CdrError`, one line,
-        naming the type.
+        naming the type. Primitive arrays come back as read-only numpy arrays over the
+        (copied, if mutable) input.
         """
         return self._library._deserialize(self.name, data)
 
@@ -694,10 +695,15 @@ class TypeLibrary:
 
     def _deserialize(self, name: str, data: bytes | bytearray | memoryview) -> Any:
         store = self._store()
-        try:
-            raw = memoryview(data).cast("B")
-        except (TypeError, ValueError) as exc:
-            raise CdrError(f"{name}: not bytes ({type(data).__name__})") from exc
+        if isinstance(data, (bytearray, memoryview)):
+            # Decoded arrays are views of the input: keep them off a buffer that may change.
+            try:
+                data = bytes(data)
+            except (TypeError, ValueError) as exc:
+                raise CdrError(f"{name}: unreadable buffer: {exc}") from exc
+        if not isinstance(data, bytes):
+            raise CdrError(f"{name}: CDR must be bytes, not {type(data).__name__}")
+        raw = memoryview(data)
         if len(raw) < 4:
             raise CdrError(f"{name}: {len(raw)} bytes, shorter than the CDR header")
         header = bytes(raw[:2])
