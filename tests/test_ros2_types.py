@@ -281,6 +281,28 @@ def test_make_fills_defaults(jazzy: TypeLibrary) -> None:
         jazzy.message("geometry_msgs/msg/Twist").make(linearr=1)
 
 
+def test_make_accepts_plain_python_values(jazzy: TypeLibrary) -> None:
+    uuid = jazzy.message("unique_identifier_msgs/msg/UUID")
+    assert uuid.serialize(uuid.make(uuid=bytes(range(16))))[4:] == bytes(range(16))
+    assert uuid.serialize(uuid.make(uuid=list(range(16))))[4:] == bytes(range(16))
+    with pytest.raises(Ros2Error, match=r"UUID.uuid: needs exactly 16 elements, got 15"):
+        uuid.make(uuid=bytes(15))
+    scan = jazzy.message("sensor_msgs/msg/LaserScan")
+    assert list(scan.deserialize(scan.serialize(scan.make(ranges=[1.5, 2.5]))).ranges) == [
+        1.5,
+        2.5,
+    ]
+    with pytest.raises(Ros2Error, match=r"LaserScan.ranges: not float32"):
+        scan.make(ranges=["far"])
+    twist = jazzy.message("geometry_msgs/msg/Twist").make(linear={"x": 0.25}, angular={"z": 1.0})
+    assert (twist.linear.x, twist.angular.z) == (0.25, 1.0)
+    path = jazzy.message("nav_msgs/msg/Path").make(poses=[{"pose": {"position": {"x": 2.0}}}])
+    assert path.poses[0].pose.position.x == 2.0
+    event = jazzy.message("std_srvs/srv/SetBool_Event")
+    with pytest.raises(Ros2Error, match=r"SetBool_Event.request: at most 1 elements, got 2"):
+        event.make(request=[{"data": True}, {"data": False}])
+
+
 def test_cdr_round_trip_and_layout(jazzy: TypeLibrary) -> None:
     twist = jazzy.message("geometry_msgs/msg/Twist")
     msg = twist.make(linear=jazzy.message("geometry_msgs/msg/Vector3").make(x=0.5))
