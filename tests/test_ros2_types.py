@@ -85,6 +85,21 @@ def test_service_hashes_match_ros(jazzy: TypeLibrary, name: str, prefix: str) ->
     assert jazzy.service(name).type_hash.startswith("RIHS01_" + prefix)
 
 
+def test_hashes_in_rmw_zenoh_design_doc_examples(jazzy: TypeLibrary) -> None:
+    """rmw_zenoh's docs/design.md: ``0/chatter/std_msgs::msg::dds_::String_/RIHS01_df66...``
+    and ``2/add_two_ints/example_interfaces::srv::dds_::AddTwoInts_/RIHS01_e118...``."""
+    string = jazzy.message("std_msgs/msg/String")
+    assert f"{string.dds_name}/{string.type_hash}" == (
+        "std_msgs::msg::dds_::String_/"
+        "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+    )
+    add = jazzy.service("example_interfaces/srv/AddTwoInts")
+    assert f"{add.dds_name}/{add.type_hash}" == (
+        "example_interfaces::srv::dds_::AddTwoInts_/"
+        "RIHS01_e118de6bf5eeb66a2491b5bda11202e7b68f198d6f67922cf30364858239c81a"
+    )
+
+
 def test_action_services_reach_the_same_hashes_through_the_action(jazzy: TypeLibrary) -> None:
     nav = jazzy.action("nav2_msgs/action/NavigateToPose")
     assert nav.send_goal.type_hash.startswith("RIHS01_a4fcb3be")
