@@ -94,8 +94,9 @@ def test_plan_and_places_round_trip() -> None:
     assert decode_plan_message(empty.encode()) == empty
     places = PlacesUpdate((Place("lab", 1.0, 2.0, 0.5), Place("hall", -3.0, 0.0, None)))
     assert decode_plan_message(places.encode()) == places
-    assert decode_plan_message(PlacesUpdate((Place("x", 0, 0, math.nan),)).encode()) == (
-        PlacesUpdate((Place("x", 0.0, 0.0, None),))
+    odd = (Place("x", 0, 0, math.nan), Place("", 1, 1), Place("far", math.inf, 0), Place("y", 2, 3))
+    assert decode_plan_message(PlacesUpdate(odd).encode()) == (
+        PlacesUpdate((Place("x", 0.0, 0.0, None), Place("y", 2.0, 3.0, None)))
     )
 
 
@@ -163,6 +164,37 @@ def test_the_receiver_drops_repeats_reordered_plans_and_garbage() -> None:
     assert places == [{"lab": Place("lab", 1.0, 2.0, 0.0)}]
     feed(_datagram("not json"))
     assert receiver.rejected == 1 and len(plans) == 2
+
+
+class _BrokenPlanner:
+    """A NavStack whose plan cannot be read (an adapter bug); everything else works."""
+
+    def __init__(self, inner: SimNavStack) -> None:
+        self.inner = inner
+        self.broken = False
+
+    def planned_path(self) -> tuple[Pose2D, ...]:
+        if self.broken:
+            raise RuntimeError("adapter bug")
+        return self.inner.planned_path()
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self.inner, name)
+
+
+def test_a_plan_that_cannot_be_read_shows_none_and_is_logged_once(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    nav = _BrokenPlanner(SimNavStack.from_settings(SimSettings(map="small")))
+    source = PlanSource()
+    nav.inner.navigate_to_place("room-b")
+    source.update(nav, 0.0)  # type: ignore[arg-type]
+    assert source.plan.points
+    nav.broken = True
+    for tick in range(1, 20):
+        source.update(nav, tick * 0.05)  # type: ignore[arg-type]
+    assert source.plan.points == () and source.plan.seq == 2
+    assert caplog.text.count("planned path cannot be read") == 1
 
 
 def test_the_source_makes_a_new_plan_only_when_the_path_changes() -> None:

@@ -57,8 +57,8 @@ class PlanSource:
 
     def __init__(self) -> None:
         self._checked_at = -math.inf
+        self._failed = False
         self._path: tuple[Pose2D, ...] = ()
-        self._goal: int | None = None
         self._seq = 0
         self.plan = PlanUpdate(0, None, ())
         self.plan_text = self.plan.encode()
@@ -73,15 +73,20 @@ class PlanSource:
         if now == self._checked_at:
             return
         self._checked_at = now
-        path = nav.planned_path()
-        if path is not self._path and path != self._path:
-            goal = nav.current_goal() if path else None
-            self._path = path
-            self._goal = goal.goal_id if goal is not None else None
-            self._seq = self._seq % MAX_SEQ + 1
-            points = simplify_path([(pose.x, pose.y) for pose in path])
-            self.plan = PlanUpdate(self._seq, self._goal, points)
-            self.plan_text = self.plan.encode()
+        try:
+            path = nav.planned_path()
+            if path is not self._path and path != self._path:
+                points = simplify_path([(pose.x, pose.y) for pose in path])
+                goal = nav.current_goal() if points else None
+                self._new_plan(path, points, goal.goal_id if goal is not None else None)
+        except Exception:
+            # Only a picture for the user: show no plan rather than fail every tick, and
+            # say so once (the robot's control loop runs at tens of hertz).
+            if not self._failed:
+                log.exception("the robot's planned path cannot be read: none is shown")
+            self._failed = True
+            if self._path:
+                self._new_plan((), (), None)
         if now - self._places_checked_at < PLACES_CHECK_EVERY:
             return
         self._places_checked_at = now
@@ -93,6 +98,14 @@ class PlanSource:
             )
             self.places_text = update.encode()
             self.places_version += 1
+
+    def _new_plan(
+        self, path: tuple[Pose2D, ...], points: tuple[tuple[float, float], ...], goal: int | None
+    ) -> None:
+        self._path = path
+        self._seq = self._seq % MAX_SEQ + 1
+        self.plan = PlanUpdate(self._seq, goal, points)
+        self.plan_text = self.plan.encode()
 
 
 # Keyed weakly by the NavStack: the source goes with it. Values must not refer to the nav.

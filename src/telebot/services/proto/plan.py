@@ -95,11 +95,14 @@ class PlacesUpdate:
     places: tuple[Place, ...]
 
     def encode(self) -> str:
-        """The datagram text: the places in order, as many as fit :data:`MAX_PLACES_TEXT`."""
+        """The datagram text: the places in order, as many as fit :data:`MAX_PLACES_TEXT`
+        (a place a user would refuse, without a name or a finite position, is left out)."""
         head = '{"type":"places","places":['
         parts: list[str] = []
         size = len(head) + 2
         for place in self.places:
+            if not (0 < len(place.name) <= MAX_NAME and _finite(place.x) and _finite(place.y)):
+                continue
             yaw = place.yaw if place.yaw is not None and math.isfinite(place.yaw) else None
             part = encode_object(
                 {
