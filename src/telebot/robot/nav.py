@@ -24,6 +24,9 @@ Two more abilities, each its own protocol, say how the daemon runs an adapter:
 - :class:`SteppedNavStack` (optional): an adapter driven by the caller's clock (the
   simulator) has ``step(now)``, which the daemon calls at its control rate; an adapter that
   runs by itself (a real robot's stack) has none and is not stepped.
+- :class:`PoseNotifier` (optional): an adapter whose poses arrive by themselves (a real
+  robot's localisation) says when a new one is in, so the daemon sends it to users at once
+  instead of at its next poll.
 
 Adapters are chosen by name (``[robot] kind`` in the config, ``telebot-robot run --robot``)
 through the registry in :mod:`telebot.robot`.
@@ -33,7 +36,7 @@ from __future__ import annotations
 
 import enum
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
@@ -55,6 +58,7 @@ __all__ = [
     "NavStatus",
     "Pose2D",
     "PoseEstimate",
+    "PoseNotifier",
     "SteppedNavStack",
     "Velocity",
     "normalize_angle",
@@ -337,4 +341,13 @@ class EmergencyStoppable(NavStack, Protocol):
 
     def emergency_stop(self, reason: str) -> None:
         """Stop as soon as possible; safe to call from any thread, needs no event loop."""
+        ...
+
+
+@runtime_checkable
+class PoseNotifier(Protocol):
+    """A NavStack that says when a new pose estimate has arrived (see the module docstring)."""
+
+    def add_pose_listener(self, listener: Callable[[], None]) -> None:
+        """Call ``listener()`` (from any thread, without arguments) after each new pose."""
         ...

@@ -32,7 +32,7 @@ from telebot.errors import ProtocolError, TelebotError
 from telebot.identity import Role
 from telebot.reasons import Reason, Refusal
 from telebot.rights import Right, may
-from telebot.robot.nav import GoalHandle, GoalStatus, NavStack, SteppedNavStack
+from telebot.robot.nav import GoalHandle, GoalStatus, NavStack, PoseNotifier, SteppedNavStack
 from telebot.safety import SafetyState
 from telebot.services.base import OpenServices, ServiceRegistry
 from telebot.services.chat import NO_SUPERVISOR, ChatSession, error_reason, goal_reason
@@ -265,13 +265,17 @@ class CallServices:
         if now is None:
             return
         settings = self.server.settings
-        if now >= self._next_pose:
-            self._next_pose = max(self._next_pose + 1.0 / settings.pose_hz, now)
-            self.server._guarded(self.publish_pose)
+        self.pose_due(now)
         if now >= self._next_telemetry:
             self._next_telemetry = max(self._next_telemetry + 1.0 / settings.telemetry_hz, now)
             self.server._guarded(self.publish_telemetry)
             self.server._guarded(self.send_safety_state, self.server.safety_status())
+
+    def pose_due(self, now: float) -> None:
+        """Send the pose if this call's next pose is due (at most ``pose_hz`` a second)."""
+        if now >= self._next_pose:
+            self._next_pose = max(self._next_pose + 1.0 / self.server.settings.pose_hz, now)
+            self.server._guarded(self.publish_pose)
 
     def close(self) -> None:
         """The call ended: end its map transfer."""
@@ -451,6 +455,25 @@ class RobotServer:
         self._reencoding: asyncio.Future[EncodedMap] | None = None
         self._unencodable: int | None = None
         self._loop = asyncio.get_running_loop()
+        self._pose_wakeup_pending = False
+        if isinstance(nav, PoseNotifier):
+            # A robot whose poses arrive by themselves (ROS 2): send each one when it comes,
+            # not at the next control cycle (up to 1/control_hz late), pose_hz still the cap.
+            nav.add_pose_listener(self._pose_arrived)
+
+    def _pose_arrived(self) -> None:
+        """From any thread: wake the loop once to send the new pose (coalesced)."""
+        if self._pose_wakeup_pending or self._loop.is_closed():
+            return
+        self._pose_wakeup_pending = True
+        with contextlib.suppress(RuntimeError):  # the loop closed meanwhile
+            self._loop.call_soon_threadsafe(self._send_new_pose)
+
+    def _send_new_pose(self) -> None:
+        self._pose_wakeup_pending = False
+        now = self.now()
+        for services in list(self.services.values()):
+            services.pose_due(now)
 
     def now(self) -> float:
         """The robot's clock (the event loop's)."""
