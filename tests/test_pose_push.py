@@ -6,7 +6,6 @@ import threading
 from collections.abc import Callable
 
 from conftest import wait_until
-
 from telebot.config import RobotConfig, ServiceSettings
 from telebot.robot import create_robot
 from telebot.robot.nav import PoseNotifier
