@@ -166,6 +166,11 @@ async def test_garbage_is_counted_and_later_samples_still_arrive(
     await wait_until(lambda: len(got) == sub.stats.delivered)
     assert got[-1] == TWIST.make() and sub.stats.dropped == 4
     assert small.stats.delivered == 0 and small.stats.too_large >= 1
+    # A liveliness token under ROS's admin space that is not rmw_zenoh's: counted, ignored.
+    junk = raw.liveliness().declare_token("@ros2_lv/0/junk/token")
+    await wait_until(lambda: a.bad_tokens >= 1)
+    assert not any("junk" in e.key for e in a.graph())
+    junk.undeclare()
 
 
 async def test_garbage_requests_are_refused_and_the_server_goes_on(
