@@ -83,10 +83,12 @@ class Rig:
 
 
 @contextlib.asynccontextmanager
-async def robot_in_a_call(homes: Homes, nav: Any) -> AsyncIterator[Rig]:
+async def robot_in_a_call(
+    homes: Homes, nav: Any, *, telemetry_hz: float = 20.0
+) -> AsyncIterator[Rig]:
     """``nav`` served by a RobotServer (telemetry at 20 Hz) to a user on a memory hub."""
     hub = MemoryHub(seed=3)
-    server = RobotServer(nav, ServiceSettings(telemetry_hz=20.0), map_name="small")
+    server = RobotServer(nav, ServiceSettings(telemetry_hz=telemetry_hz), map_name="small")
     await server.prepare()
     async with memory_endpoints(homes, hub) as (robot_endpoint, user_endpoint):
         server.attach(robot_endpoint)
@@ -133,6 +135,22 @@ async def test_the_map_follows_a_slam_update_during_a_call(homes: Homes) -> None
         after = await client.get_map(timeout=10)
         assert after.version == 1 and after.sha256 != before.sha256
         assert after.grid.value_at(9.5, 4.0) == OCCUPIED
+
+
+async def test_a_new_map_is_announced_at_once_not_at_the_next_telemetry_tick(
+    homes: Homes,
+) -> None:
+    loop = asyncio.get_running_loop()
+    # Telemetry every 20 s: only the announcement of the new map can bring version 1 sooner.
+    async with robot_in_a_call(homes, small_sim(now=loop.time()), telemetry_hz=0.05) as rig:
+        first = await rig.client.telemetry(timeout=5)  # sent when the call opened
+        assert first.map_version == 0
+        with contextlib.suppress(TimeoutError):  # and any other sent as the call opened
+            while True:
+                await rig.client.telemetry(timeout=1.0)
+        rig.nav.set_map(with_wall(rig.nav.map(), 9.5, 4.0))
+        announced = await rig.client.telemetry(timeout=10)
+        assert announced.map_version == 1
 
 
 async def test_a_transfer_under_way_when_the_map_changes_ends_with_what_it_offered(

@@ -522,6 +522,10 @@ class RobotServer:
                 log.warning("the changed map (version %s) cannot be encoded: %s", version, exc)
             elif version == self.map_version():  # else already stale: encode the next
                 self._encoded = future.result()
+                # Tell every call now (telemetry carries map_version), not at its next
+                # telemetry tick up to a second later: users fetch the new map at once.
+                for services in list(self.services.values()):
+                    self._guarded(services.publish_telemetry)
 
         future.add_done_callback(done)
 
