@@ -47,8 +47,8 @@ from telebot.config import Ros2Settings
 from telebot.errors import InvalidCommand, RobotUnreachable, TelebotError
 from telebot.reasons import Reason
 from telebot.robot.nav import GoalStatus, Pose2D, normalize_angle
-from telebot.robot.ros2.keys import QoS
-from telebot.robot.ros2.node import ActionServer, GraphEntity, Ros2Node
+from telebot.robot.ros2.keys import EntityKind, GraphEntity, QoS
+from telebot.robot.ros2.node import ActionServer, Ros2Node
 from telebot.robot.ros2.types import ActionType, TypeLibrary
 from telebot.robot.sim.stack import SimGoal, SimNavStack
 
@@ -229,7 +229,7 @@ class SimRobotServer:
 
     def _declare_topics(self) -> _Topics:
         node, s = self._node, self._settings
-        latched = QoS(durability="transient_local", depth=1)
+        latched = QoS.transient_local(depth=1)
         topics = _Topics(
             map=node.publisher(s.map_topic, self._t_map, qos=latched),
             amcl_pose=node.publisher(s.pose_topic or "amcl_pose", self._t_pose_cov_stamped),
@@ -502,19 +502,24 @@ class SimRobotServer:
 
     # ------------------------------------------------------------------ client liveliness
 
-    def _owners_of(self, kind: str) -> frozenset[str]:
-        """Liveliness keys of the clients of ``kind``'s send_goal service now.
+    def _owners_of(self, kind: str, gid: bytes | None) -> frozenset[str]:
+        """Liveliness keys whose loss stops a goal of ``kind`` sent by the client ``gid``.
 
-        rmw_zenoh identifies a request's client only by a GID in its attachment, which our
-        node cannot map back to a token; so the owners are every client of that action: when
-        in doubt, stop (any of them leaving stops the goal).
+        rmw_zenoh names a request's client by its GID (a hash of the client's liveliness
+        key) in the attachment: the owners are that client and its node. A GID that matches
+        no client in the graph (not seen yet, or a client that is not rmw_zenoh's) leaves
+        every client of the action as an owner: when in doubt, stop.
         """
-        action = self._action_name(kind)
-        return frozenset(
-            _entity_key(entity)
+        service = self._action_name(kind)
+        clients = [
+            entity
             for entity in self._node.graph()
-            if _entity_kind(entity) == "SC" and _entity_name(entity).endswith(action)
-        )
+            if _entity_kind(entity) == "SC" and _entity_name(entity).strip("/") == service
+        ]
+        for entity in clients:
+            if gid is not None and _entity_gid(entity) == gid:
+                return frozenset({_entity_key(entity), _node_key(entity)})
+        return frozenset(_entity_key(entity) for entity in clients)
 
     def _action_name(self, kind: str) -> str:
         s = self._settings
@@ -524,14 +529,14 @@ class SimRobotServer:
             "spin": s.spin_action,
             "backup": "backup",
         }[kind]
-        return name.strip("/") + "/_action/send_goal"
+        return self._resolved(name) + "/_action/send_goal"
 
     def _on_graph_change(self, entity: GraphEntity, appeared: bool) -> None:
         if appeared:
             return
-        key = _entity_key(entity)
+        keys = _loss_keys(entity)
         for goal in list(self._goals.values()):
-            if key in goal.owners:
+            if keys & goal.owners:
                 self.orphaned_goals += 1
                 log.warning(
                     "goal %s: its action client left the ROS graph: stopping",
@@ -719,18 +724,33 @@ class SimRobotServer:
             )
 
 
-# Graph entities as node.py describes them; kept in three small functions so that the rest
-# reads the same whatever the entity's field names.
+# Graph entities (node.GraphEntity) are read through these few functions only.
 
 
 def _entity_kind(entity: GraphEntity) -> str:
-    return str(getattr(entity, "kind", ""))
+    return str(entity.kind)
 
 
 def _entity_name(entity: GraphEntity) -> str:
-    return str(getattr(entity, "name", "") or getattr(entity, "topic", ""))
+    return entity.topic or ""
 
 
 def _entity_key(entity: GraphEntity) -> str:
-    return str(getattr(entity, "key", entity))
+    return entity.key
 
+
+def _entity_gid(entity: GraphEntity) -> bytes:
+    return entity.gid
+
+
+def _node_key(entity: GraphEntity) -> str:
+    """What names the node that ``entity`` belongs to (its session's id and node id)."""
+    return f"node:{entity.zid}/{entity.node_id}"
+
+
+def _loss_keys(entity: GraphEntity) -> set[str]:
+    """The owner keys that ``entity`` leaving the graph ends."""
+    keys = {_entity_key(entity)}
+    if entity.kind == EntityKind.NODE:
+        keys.add(_node_key(entity))
+    return keys
