@@ -41,7 +41,9 @@ def main() -> int:
         print(f"status {status}", flush=True)
         done.set()
 
-    client.send_goal(goal, on_accepted=on_accepted, on_feedback=lambda fb: None, on_result=on_result)
+    client.send_goal(
+        goal, on_accepted=on_accepted, on_feedback=lambda fb: None, on_result=on_result
+    )
     done.wait()
     node.close()
     return 0

@@ -7,6 +7,8 @@ small map, a fast robot) and talks to it as a ROS 2 node would, with :class:`Ros
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 import signal
 import threading
 import time
@@ -224,3 +226,43 @@ async def test_killing_the_goals_client_stops_the_base(
     await wait_until(lambda: odom.count > seen + 20, timeout=5 + SLACK)
     assert odom.msg.pose.pose.position.x == pytest.approx(x, abs=0.01)
     assert sim.process.popen.poll() is None
+
+
+def run_sim(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "telebot.apps.sim_cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+    )
+
+
+def test_help_describes_the_two_ways_to_reach_zenoh() -> None:
+    done = run_sim("--help")
+    assert done.returncode == 0
+    assert "--router" in done.stdout and "--listen" in done.stdout
+
+
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (["--map", "no-such-map"], "no-such-map"),
+        (["--domain", "999"], "domain_id"),
+        (["--distro", "humble"], "invalid choice"),
+        (["--listen", "nonsense"], "cannot listen on nonsense"),
+        (["--router", f"tcp/127.0.0.1:{free_port()}"], "no zenoh router at"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(args: list[str], words: str) -> None:
+    done = run_sim("--map", "small", *args)
+    assert done.returncode == 2, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("telebot-sim: error:"), done.stderr
+    assert words in lines[0]
+
+
+def test_a_taken_port_is_a_clear_error(sim: Sim) -> None:
+    done = run_sim("--map", "small", "--listen", sim.endpoint)
+    assert done.returncode == 2, done.stderr
+    assert f"cannot listen on {sim.endpoint}" in done.stderr

@@ -33,7 +33,6 @@ PROG = "telebot-sim"
 NODE_NAME = "telebot_sim"
 
 
-
 def build_parser() -> Parser:
     """The argument parser of telebot-sim."""
     parser = new_parser(
@@ -157,6 +156,7 @@ async def serve(args: argparse.Namespace) -> int:
                 connect=connect,
                 mode="client",
                 library=TypeLibrary(ros2.distro),
+                connect_timeout=ros2.connect_timeout,
             )
         )
         try:

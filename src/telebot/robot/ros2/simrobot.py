@@ -34,6 +34,7 @@ import dataclasses
 import json
 import logging
 import math
+import re
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -109,10 +110,22 @@ def open_router(listen: Iterable[str]) -> zenoh.Session:
     try:
         return zenoh.open(router_config(endpoints))
     except zenoh.ZError as exc:
-        reason = " ".join(str(exc).split())
         raise RobotUnreachable(
-            f"cannot listen on {', '.join(endpoints)}: {reason or type(exc).__name__}"
+            f"cannot listen on {', '.join(endpoints)}: {_zenoh_reason(exc)}"
         ) from exc
+
+
+_RUST_LOCATION = re.compile(r"\s+at\s+\S+\.rs:\d+(:\d+)?\.?")
+_JSON5_MESSAGE = re.compile(r'msg: "(.*?)(?<!\\)"')
+
+
+def _zenoh_reason(exc: BaseException) -> str:
+    """zenoh's error message on one line, without its Rust source locations."""
+    text = _RUST_LOCATION.sub("", str(exc))
+    match = _JSON5_MESSAGE.search(text)
+    if match:
+        text = match.group(1)
+    return " ".join(text.split()) or type(exc).__name__
 
 
 def _yaw_of(q: Any) -> float:
@@ -221,6 +234,12 @@ class SimRobotServer:
             "spin": self._lib.action("nav2_msgs/action/Spin"),
             "backup": self._lib.action("nav2_msgs/action/BackUp"),
         }
+        self._action_names = {
+            "navigate": settings.navigate_action,
+            "drive": settings.drive_action,
+            "spin": settings.spin_action,
+            "backup": "backup",
+        }
         self._topics = self._declare_topics()
         self._subscriptions: list[Any] = []
         self._servers: dict[str, ActionServer] = {}
@@ -258,13 +277,7 @@ class SimRobotServer:
             loop.call_soon_threadsafe(self._on_cmd_vel, linear, angular)
 
         self._subscriptions.append(node.subscribe(s.cmd_vel_topic, self._t_cmd_vel, on_cmd_vel))
-        names = {
-            "navigate": s.navigate_action,
-            "drive": s.drive_action,
-            "spin": s.spin_action,
-            "backup": "backup",
-        }
-        for kind, name in names.items():
+        for kind, name in self._action_names.items():
             self._servers[kind] = self._action_server(loop, kind, name)
         node.on_graph_change(
             lambda entity, appeared: loop.call_soon_threadsafe(
@@ -272,9 +285,7 @@ class SimRobotServer:
             )
         )
 
-    def _action_server(
-        self, loop: asyncio.AbstractEventLoop, kind: str, name: str
-    ) -> ActionServer:
+    def _action_server(self, loop: asyncio.AbstractEventLoop, kind: str, name: str) -> ActionServer:
         def on_goal(goal_id: bytes, goal: Any) -> bool:
             # Accept here (zenoh's thread) and start in the loop: a goal the simulator
             # cannot start is then aborted with the reason, as Nav2 aborts one it cannot plan.
@@ -315,7 +326,7 @@ class SimRobotServer:
                     self._publish_battery(wall)
                 if now >= next_graph:
                     next_graph = now + GRAPH_POLL_S
-                    await self._poll_camera_subscribers()
+                    self._poll_camera_subscribers()
                 if now >= next_camera:
                     next_camera = now + 1.0 / CAMERA_HZ
                     self._publish_cameras(wall)
@@ -349,7 +360,7 @@ class SimRobotServer:
         loop = self._loop
         assert loop is not None
         server = self._servers[kind]
-        goal = _Goal(kind, server, goal_id, started=loop.time(), owners=self._owners_of(kind))
+        goal = _Goal(kind, server, goal_id, started=loop.time(), owners=self._owners_of(kind, None))
         self._goals[goal_id] = goal
         stack = self._stack
         try:
@@ -359,8 +370,7 @@ class SimRobotServer:
                     self._finish(
                         goal,
                         "abort",
-                        f"goal frame {frame!r} is not the map frame "
-                        f"{self._settings.map_frame!r}",
+                        f"goal frame {frame!r} is not the map frame {self._settings.map_frame!r}",
                         Reason.INVALID,
                     )
                     return
@@ -503,33 +513,21 @@ class SimRobotServer:
     # ------------------------------------------------------------------ client liveliness
 
     def _owners_of(self, kind: str, gid: bytes | None) -> frozenset[str]:
-        """Liveliness keys whose loss stops a goal of ``kind`` sent by the client ``gid``.
+        """Graph keys whose loss stops a goal of ``kind`` sent by the client ``gid``.
 
         rmw_zenoh names a request's client by its GID (a hash of the client's liveliness
-        key) in the attachment: the owners are that client and its node. A GID that matches
-        no client in the graph (not seen yet, or a client that is not rmw_zenoh's) leaves
-        every client of the action as an owner: when in doubt, stop.
+        key) in the attachment: the owners are that client and its node. Without a GID that
+        matches a client in the graph (not known, not seen yet, or not rmw_zenoh's), every
+        client of the action is an owner: when in doubt, stop.
         """
-        service = self._action_name(kind)
-        clients = [
-            entity
-            for entity in self._node.graph()
-            if _entity_kind(entity) == "SC" and _entity_name(entity).strip("/") == service
-        ]
+        clients = self._node.find(EntityKind.CLIENT, self._send_goal_service(kind))
         for entity in clients:
-            if gid is not None and _entity_gid(entity) == gid:
-                return frozenset({_entity_key(entity), _node_key(entity)})
-        return frozenset(_entity_key(entity) for entity in clients)
+            if gid is not None and entity.gid == gid:
+                return frozenset({entity.key, _node_key(entity)})
+        return frozenset(entity.key for entity in clients)
 
-    def _action_name(self, kind: str) -> str:
-        s = self._settings
-        name = {
-            "navigate": s.navigate_action,
-            "drive": s.drive_action,
-            "spin": s.spin_action,
-            "backup": "backup",
-        }[kind]
-        return self._resolved(name) + "/_action/send_goal"
+    def _send_goal_service(self, kind: str) -> str:
+        return self._action_names[kind].rstrip("/") + "/_action/send_goal"
 
     def _on_graph_change(self, entity: GraphEntity, appeared: bool) -> None:
         if appeared:
@@ -545,19 +543,10 @@ class SimRobotServer:
                 self._stack.stop()
                 self._finish(goal, "abort", "the action client left", Reason.STOPPED)
 
-    async def _poll_camera_subscribers(self) -> None:
-        entities = await asyncio.to_thread(self._node.graph)
-        subscribed = {
-            _entity_name(e).strip("/") for e in entities if _entity_kind(e) == "MS"
-        }
+    def _poll_camera_subscribers(self) -> None:
         for camera in self._camera_wanted:
-            self._camera_wanted[camera] = self._resolved(self.camera_topic(camera)) in subscribed
-
-    def _resolved(self, name: str) -> str:
-        if name.startswith("/"):
-            return name.strip("/")
-        ns = self._settings.namespace.strip("/")
-        return f"{ns}/{name}" if ns else name
+            # Our own node has no subscription on it: any count is someone else's.
+            self._camera_wanted[camera] = self._topics.cameras[camera].subscriber_count() > 0
 
     # ------------------------------------------------------------------ publishing
 
@@ -724,25 +713,6 @@ class SimRobotServer:
             )
 
 
-# Graph entities (node.GraphEntity) are read through these few functions only.
-
-
-def _entity_kind(entity: GraphEntity) -> str:
-    return str(entity.kind)
-
-
-def _entity_name(entity: GraphEntity) -> str:
-    return entity.topic or ""
-
-
-def _entity_key(entity: GraphEntity) -> str:
-    return entity.key
-
-
-def _entity_gid(entity: GraphEntity) -> bytes:
-    return entity.gid
-
-
 def _node_key(entity: GraphEntity) -> str:
     """What names the node that ``entity`` belongs to (its session's id and node id)."""
     return f"node:{entity.zid}/{entity.node_id}"
@@ -750,7 +720,7 @@ def _node_key(entity: GraphEntity) -> str:
 
 def _loss_keys(entity: GraphEntity) -> set[str]:
     """The owner keys that ``entity`` leaving the graph ends."""
-    keys = {_entity_key(entity)}
+    keys = {entity.key}
     if entity.kind == EntityKind.NODE:
         keys.add(_node_key(entity))
     return keys
