@@ -7,9 +7,9 @@ small map, a fast robot) and talks to it as a ROS 2 node would, with :class:`Ros
 from __future__ import annotations
 
 import math
+import signal
 import subprocess
 import sys
-import signal
 import threading
 import time
 from collections.abc import Iterator

@@ -36,7 +36,7 @@ import logging
 import math
 import re
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -49,7 +49,7 @@ from telebot.errors import InvalidCommand, RobotUnreachable, TelebotError
 from telebot.reasons import Reason
 from telebot.robot.nav import GoalStatus, Pose2D, normalize_angle
 from telebot.robot.ros2.keys import EntityKind, GraphEntity, QoS
-from telebot.robot.ros2.node import ActionServer, Ros2Node
+from telebot.robot.ros2.node import GOAL_UNKNOWN, ActionServer, Ros2Node
 from telebot.robot.ros2.types import ActionType, TypeLibrary
 from telebot.robot.sim.stack import SimGoal, SimNavStack
 
@@ -78,8 +78,8 @@ ROUTER_KEEP_ALIVE = 4
 #: NO_VALID_PATH (the code bt_navigator forwards when planning fails), NavigateToPose's UNKNOWN.
 NO_VALID_PATH = 208
 NAV_UNKNOWN = 9000
-#: action_msgs/GoalStatus: the goal is running.
-STATUS_EXECUTING = 2
+#: How long a goal accepted by ``on_goal`` may take to be filed by its action server (s).
+REGISTER_WAIT = 1.0
 
 
 def router_config(listen: Iterable[str]) -> zenoh.Config:
@@ -247,6 +247,7 @@ class SimRobotServer:
         self._topics = self._declare_topics()
         self._subscriptions: list[Any] = []
         self._servers: dict[str, ActionServer] = {}
+        self._unregister_graph: Callable[[], None] = lambda: None
 
     # ------------------------------------------------------------------ set-up
 
@@ -278,26 +279,33 @@ class SimRobotServer:
         def on_cmd_vel(msg: Any, _attachment: Any) -> None:
             twist = msg.twist if hasattr(msg, "twist") else msg
             linear, angular = float(twist.linear.x), float(twist.angular.z)
-            loop.call_soon_threadsafe(self._on_cmd_vel, linear, angular)
+            self._post(self._on_cmd_vel, linear, angular)
 
         self._subscriptions.append(node.subscribe(s.cmd_vel_topic, self._t_cmd_vel, on_cmd_vel))
         for kind, name in self._action_names.items():
             self._servers[kind] = self._action_server(loop, kind, name)
-        node.on_graph_change(
-            lambda entity, appeared: loop.call_soon_threadsafe(
-                self._on_graph_change, entity, appeared
-            )
-        )
+
+        def on_graph_change(entity: GraphEntity, appeared: bool) -> None:
+            self._post(self._on_graph_change, entity, appeared)
+
+        self._unregister_graph = node.on_graph_change(on_graph_change)
+
+    def _post(self, callback: Callable[..., None], *args: Any) -> None:
+        """Run ``callback(*args)`` on the event loop (from any thread); dropped once it closed."""
+        loop = self._loop
+        if loop is not None:
+            with contextlib.suppress(RuntimeError):  # the loop closed: we are shutting down
+                loop.call_soon_threadsafe(callback, *args)
 
     def _action_server(self, loop: asyncio.AbstractEventLoop, kind: str, name: str) -> ActionServer:
         def on_goal(goal_id: bytes, goal: Any) -> bool:
             # Accept here (zenoh's thread) and start in the loop: a goal the simulator
             # cannot start is then aborted with the reason, as Nav2 aborts one it cannot plan.
-            loop.call_soon_threadsafe(self._start_goal, kind, goal_id, goal)
+            self._post(self._start_goal, kind, goal_id, goal)
             return True
 
         def on_cancel(goal_id: bytes) -> bool:
-            loop.call_soon_threadsafe(self._cancel_goal, goal_id)
+            self._post(self._cancel_goal, goal_id)
             return True
 
         return self._node.action_server(
@@ -347,6 +355,7 @@ class SimRobotServer:
             self._shutdown()
 
     def _shutdown(self) -> None:
+        self._unregister_graph()
         self._stack.stop()
         for goal in list(self._goals.values()):
             self._finish(goal, "abort", "the robot is shutting down", Reason.STOPPED)
@@ -367,11 +376,18 @@ class SimRobotServer:
 
     # ------------------------------------------------------------------ goals
 
-    def _start_goal(self, kind: str, goal_id: bytes, msg: Any) -> None:
+    def _start_goal(self, kind: str, goal_id: bytes, msg: Any, waited: float = 0.0) -> None:
         loop = self._loop
         assert loop is not None
         server = self._servers[kind]
-        goal = _Goal(kind, server, goal_id, started=loop.time(), owners=self._owners_of(kind, None))
+        if server.status(goal_id) == GOAL_UNKNOWN:
+            # on_goal ran, but the server files the goal only once on_goal has returned:
+            # start it then, so that its result is not lost.
+            if waited < REGISTER_WAIT:
+                loop.call_later(0.002, self._start_goal, kind, goal_id, msg, waited + 0.002)
+            return
+        owners = self._owners_of(kind, server.client_gid(goal_id))
+        goal = _Goal(kind, server, goal_id, started=loop.time(), owners=owners)
         self._goals[goal_id] = goal
         stack = self._stack
         try:
@@ -505,10 +521,10 @@ class SimRobotServer:
             Reason.INVALID: "INVALID_INPUT",
             "timeout": "TIMEOUT",
         }.get(code, "UNKNOWN")
-        value = getattr(cls, name, None)
+        value: int | None = getattr(cls, name, None)
         if value is None:
             value = getattr(cls, "UNKNOWN", 1)
-        return int(value)
+        return int(value or 0)
 
     def _feedback(self, goal: _Goal, now: float) -> None:
         sim_goal = goal.sim_goal
@@ -544,10 +560,12 @@ class SimRobotServer:
         matches a client in the graph (not known, not seen yet, or not rmw_zenoh's), every
         client of the action is an owner: when in doubt, stop.
         """
+        client = self._node.entity_by_gid(gid) if gid is not None else None
+        if client is not None:
+            return frozenset({client.key, _node_key(client)})
         clients = self._node.find(EntityKind.CLIENT, self._send_goal_service(kind))
-        for entity in clients:
-            if gid is not None and entity.gid == gid:
-                return frozenset({entity.key, _node_key(entity)})
+        if not clients:
+            log.warning("goal of %s from a client not in the ROS graph", kind)
         return frozenset(entity.key for entity in clients)
 
     def _send_goal_service(self, kind: str) -> str:
