@@ -27,7 +27,7 @@ from telebot.robot.ros2.node import Ros2Node
 from telebot.robot.sim.stack import SimNavStack
 
 #: action_msgs/GoalStatus codes.
-SUCCEEDED, ABORTED = 4, 6
+SUCCEEDED, CANCELED, ABORTED = 4, 5, 6
 
 
 class Sim:
@@ -112,6 +112,8 @@ class GoalRecord:
         self.status: int | None = None
         self.result: Any = None
         self.text = ""
+        self.client: Any = None
+        self.goal_id = b""
 
     def on_accepted(self, _goal_id: bytes, accepted: bool) -> None:
         self.accepted = accepted
@@ -124,11 +126,13 @@ class GoalRecord:
         self.status = status
 
 
-def send(node: Ros2Node, goal: Any) -> GoalRecord:
+def send(
+    node: Ros2Node, goal: Any, action: str = "navigate_to_pose", type_name: str = "NavigateToPose"
+) -> GoalRecord:
     record = GoalRecord()
-    atype = node.library.action("nav2_msgs/action/NavigateToPose")
-    client = node.action_client("navigate_to_pose", atype)
-    client.send_goal(
+    atype = node.library.action(f"nav2_msgs/action/{type_name}")
+    record.client = node.action_client(action, atype)
+    record.goal_id = record.client.send_goal(
         goal,
         on_accepted=record.on_accepted,
         on_feedback=record.on_feedback,
@@ -218,6 +222,8 @@ async def test_killing_the_goals_client_stops_the_base(
     killed = time.time()
     sender.signal(signal.SIGKILL)
     await wait_until(lambda: odom.msg.twist.twist.linear.x == 0.0, timeout=5 + SLACK)
+    # Stopped because the goal's client left, not for any other reason.
+    await wait_until(lambda: "its action client left" in sim.process.stderr(), timeout=5 + SLACK)
     stamp = odom.msg.header.stamp
     assert stamp.sec + stamp.nanosec * 1e-9 - killed < 0.5 + SLACK
     # And it stays put: the goal was ended, not paused.
@@ -226,6 +232,66 @@ async def test_killing_the_goals_client_stops_the_base(
     await wait_until(lambda: odom.count > seen + 20, timeout=5 + SLACK)
     assert odom.msg.pose.pose.position.x == pytest.approx(x, abs=0.01)
     assert sim.process.popen.poll() is None
+
+
+async def test_a_cancelled_goal_stops_the_robot_and_ends_canceled(node: Ros2Node) -> None:
+    odom = subscribe(node, "odom", "nav_msgs/msg/Odometry")
+    corridor = small_map().places()["corridor"]
+    record = send(node, nav_goal(node, corridor.x, corridor.y))
+    await wait_until(
+        lambda: odom.msg is not None and odom.msg.twist.twist.linear.x > 0.3, timeout=10 + SLACK
+    )
+    record.client.cancel(record.goal_id)
+    await wait_until(lambda: record.status is not None, timeout=5 + SLACK)
+    assert record.status == CANCELED
+    await wait_until(lambda: odom.msg.twist.twist.linear.x == 0.0, timeout=2 + SLACK)
+
+
+async def test_drive_on_heading_and_spin_behaviours(node: Ros2Node) -> None:
+    odom = subscribe(node, "odom", "nav_msgs/msg/Odometry")
+    await wait_until(lambda: odom.msg is not None, timeout=10 + SLACK)
+    m, lib = node.library.message, node.library
+    drive_type = lib.action("nav2_msgs/action/DriveOnHeading")
+    speeds: list[float] = []
+    node.subscribe(
+        "odom",
+        lib.message("nav_msgs/msg/Odometry"),
+        lambda msg, _att: speeds.append(abs(msg.twist.twist.linear.x)),
+    )
+    x0, y0 = odom.msg.pose.pose.position.x, odom.msg.pose.pose.position.y
+    drive = send(
+        node,
+        drive_type.goal.make(target=m("geometry_msgs/msg/Point").make(x=1.0), speed=0.5),
+        "drive_on_heading",
+        "DriveOnHeading",
+    )
+    await wait_until(lambda: drive.status is not None, timeout=15 + SLACK)
+    assert drive.status == SUCCEEDED, drive.result
+    assert drive.feedback and drive.feedback[-1].distance_traveled > 0.0
+    here = odom.msg.pose.pose.position
+    assert here.x - x0 == pytest.approx(1.0, abs=0.1)  # the start place faces +x
+    assert here.y == pytest.approx(y0, abs=0.1)
+    assert 0.3 < max(speeds) <= 0.5 + 1e-6  # the goal's speed caps a base good for 1.5 m/s
+    spin = send(
+        node,
+        lib.action("nav2_msgs/action/Spin").goal.make(target_yaw=math.pi / 2),
+        "spin",
+        "Spin",
+    )
+    await wait_until(lambda: spin.status is not None, timeout=15 + SLACK)
+    assert spin.status == SUCCEEDED, spin.result
+    q = odom.msg.pose.pose.orientation
+    assert math.atan2(2 * q.w * q.z, 1 - 2 * q.z * q.z) == pytest.approx(math.pi / 2, abs=0.1)
+    # A speed and a target of opposite signs is Nav2's INVALID_INPUT.
+    bad = send(
+        node,
+        drive_type.goal.make(target=m("geometry_msgs/msg/Point").make(x=1.0), speed=-0.5),
+        "drive_on_heading",
+        "DriveOnHeading",
+    )
+    await wait_until(lambda: bad.status is not None, timeout=10 + SLACK)
+    assert bad.status == ABORTED
+    assert bad.result.error_code == 724 and "opposite signs" in bad.result.error_msg
 
 
 def run_sim(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
