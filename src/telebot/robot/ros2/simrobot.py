@@ -13,8 +13,9 @@ What it serves (names from ``[ros2]`` of the robot config, relative to its names
   (``nav_msgs/Path``, whenever the plan changes; empty when the goal ends), and each camera's
   ``<camera>/image/compressed`` (JPEG) while something subscribes to it.
 - ``cmd_vel`` (``Twist``, or ``TwistStamped`` on Kilted / with ``cmd_vel_stamped``): manual
-  driving. It replaces a running goal, keeps the simulator's laser stop and speed caps, and the
-  base stops by itself ``sim.cmd_vel_timeout`` (0.5 s) after the last command.
+  driving. A moving command replaces a running goal (a zero one leaves it alone, as on a Nav2
+  robot whose controller publishes there too), keeps the simulator's laser stop and speed
+  caps, and the base stops by itself ``sim.cmd_vel_timeout`` (0.5 s) after the last command.
 - The ``navigate_to_pose``, ``drive_on_heading``, ``spin`` and ``backup`` action servers, with
   feedback and results. A goal the simulator cannot start (no path) is accepted and aborted at
   once with Nav2's error code (and, on Kilted, its ``error_msg``), as Nav2 does.
@@ -366,6 +367,12 @@ class SimRobotServer:
     # ------------------------------------------------------------------ velocity commands
 
     def _on_cmd_vel(self, linear: float, angular: float) -> None:
+        if linear == 0.0 and angular == 0.0 and self._stack.current_goal() is not None:
+            # As on a Nav2 robot, where the controller publishes on cmd_vel too: a zero
+            # command does not end a goal (cancel_goal does). The stop a teleop or a
+            # telebot daemon streams after cancelling must not end the next goal either.
+            self.cmd_vel_count += 1
+            return
         try:
             self._stack.drive(linear, angular)
         except InvalidCommand as exc:
