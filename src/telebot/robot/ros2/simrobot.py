@@ -50,7 +50,7 @@ from telebot.errors import InvalidCommand, RobotUnreachable, TelebotError
 from telebot.reasons import Reason
 from telebot.robot.nav import GoalStatus, Pose2D, normalize_angle
 from telebot.robot.ros2.keys import EntityKind, GraphEntity, QoS
-from telebot.robot.ros2.node import GOAL_UNKNOWN, ActionServer, Ros2Node
+from telebot.robot.ros2.node import GOAL_CANCELING, GOAL_UNKNOWN, ActionServer, Ros2Node
 from telebot.robot.ros2.types import ActionType, TypeLibrary
 from telebot.robot.sim.stack import SimGoal, SimNavStack
 
@@ -199,7 +199,6 @@ class SimRobotServer:
         self._map_version: int | None = None
         self._plan: tuple[Pose2D, ...] | None = None
         self._camera_wanted: dict[str, bool] = {}
-        self._graph_keys: set[str] = set()
         self._speed_limit = stack.speed_limit
         #: Counters for logs and tests: velocity commands taken and refused, goals stopped
         #: because their client left.
@@ -274,7 +273,7 @@ class SimRobotServer:
         """The CompressedImage topic of ``camera``: ``[ros2] cameras`` or ``<camera>/image/compressed``."""
         return self._settings.cameras.get(camera, f"{camera}/image/compressed")
 
-    def _start_io(self, loop: asyncio.AbstractEventLoop) -> None:
+    def _start_io(self) -> None:
         node, s = self._node, self._settings
 
         def on_cmd_vel(msg: Any, _attachment: Any) -> None:
@@ -284,7 +283,7 @@ class SimRobotServer:
 
         self._subscriptions.append(node.subscribe(s.cmd_vel_topic, self._t_cmd_vel, on_cmd_vel))
         for kind, name in self._action_names.items():
-            self._servers[kind] = self._action_server(loop, kind, name)
+            self._servers[kind] = self._action_server(kind, name)
 
         def on_graph_change(entity: GraphEntity, appeared: bool) -> None:
             self._post(self._on_graph_change, entity, appeared)
@@ -298,7 +297,7 @@ class SimRobotServer:
             with contextlib.suppress(RuntimeError):  # the loop closed: we are shutting down
                 loop.call_soon_threadsafe(callback, *args)
 
-    def _action_server(self, loop: asyncio.AbstractEventLoop, kind: str, name: str) -> ActionServer:
+    def _action_server(self, kind: str, name: str) -> ActionServer:
         def on_goal(goal_id: bytes, goal: Any) -> bool:
             # Accept here (zenoh's thread) and start in the loop: a goal the simulator
             # cannot start is then aborted with the reason, as Nav2 aborts one it cannot plan.
@@ -319,7 +318,7 @@ class SimRobotServer:
         """Serve until ``stop`` is set; the base is stopped and every goal ended on the way out."""
         loop = asyncio.get_running_loop()
         self._loop = loop
-        self._start_io(loop)
+        self._start_io()
         period = 1.0 / self._stack.settings.control_hz
         next_scan = next_battery = next_camera = next_graph = next_warning = loop.time()
         try:
@@ -396,6 +395,9 @@ class SimRobotServer:
         owners = self._owners_of(kind, server.client_gid(goal_id))
         goal = _Goal(kind, server, goal_id, started=loop.time(), owners=owners)
         self._goals[goal_id] = goal
+        if server.status(goal_id) == GOAL_CANCELING:  # cancelled before it could start
+            self._finish(goal, "cancel", "cancelled", Reason.CANCELLED)
+            return
         stack = self._stack
         try:
             if kind == "navigate":
@@ -459,6 +461,9 @@ class SimRobotServer:
             sim_goal = goal.sim_goal
             if sim_goal is None:
                 continue
+            if not goal.owners:
+                # Its client was not in our view of the graph yet: look again.
+                goal.owners = self._owners_of(goal.kind, goal.server.client_gid(goal.goal_id))
             status = sim_goal.status
             if status is GoalStatus.SUCCEEDED:
                 self._finish(goal, "succeed", "", Reason.FINISHED)
@@ -571,8 +576,6 @@ class SimRobotServer:
         if client is not None:
             return frozenset({client.key, _node_key(client)})
         clients = self._node.find(EntityKind.CLIENT, self._send_goal_service(kind))
-        if not clients:
-            log.warning("goal of %s from a client not in the ROS graph", kind)
         return frozenset(entity.key for entity in clients)
 
     def _send_goal_service(self, kind: str) -> str:
