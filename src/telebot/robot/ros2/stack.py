@@ -80,7 +80,7 @@ from telebot.robot.ros2.convert import (
     pose_from_msg,
     quaternion_fields,
 )
-from telebot.robot.ros2.keys import EntityKind, QoS, resolve_name
+from telebot.robot.ros2.keys import EntityKind, QoS, action_names
 from telebot.robot.ros2.node import ActionClient, Ros2Node
 from telebot.robot.ros2.types import ActionType, MessageType, TypeLibrary
 
@@ -103,6 +103,8 @@ STILL_LINEAR, STILL_ANGULAR = 0.01, 0.02
 DEFAULT_FOV_DEG = 60.0
 #: Size of the black picture a camera shows before its first image (pixels).
 NO_SIGNAL_SIZE = (320, 240)
+#: Bytes of an OccupancyGrid message besides its cells (header, frame id, metadata): generous.
+MAP_HEADER_BYTES = 4096
 #: How long close() waits for a running zero-velocity stream to finish (beyond its length, s).
 CLOSE_GRACE = 0.5
 
@@ -382,8 +384,13 @@ class Ros2NavStack:
 
         self._subscriptions: list[Any] = []
         latched = QoS.transient_local()
+        # A map over the cell limit is dropped before it is decoded (one byte a cell).
         self._listen(
-            settings.map_topic, "nav_msgs/msg/OccupancyGrid", self._on_map, qos=latched
+            settings.map_topic,
+            "nav_msgs/msg/OccupancyGrid",
+            self._on_map,
+            qos=latched,
+            max_bytes=settings.max_map_cells + MAP_HEADER_BYTES,
         )
         if settings.pose_topic:
             self._listen(
@@ -394,7 +401,10 @@ class Ros2NavStack:
         else:
             self._listen("/tf", "tf2_msgs/msg/TFMessage", self._on_tf)
             self._listen(
-                "/tf_static", "tf2_msgs/msg/TFMessage", self._on_tf_static, qos=latched
+                "/tf_static",
+                "tf2_msgs/msg/TFMessage",
+                self._on_tf_static,
+                qos=QoS.transient_local(depth=100),  # tf2's static broadcaster keeps 100
             )
         self._listen(settings.odom_topic, "nav_msgs/msg/Odometry", self._on_odom)
         self._listen(settings.scan_topic, "sensor_msgs/msg/LaserScan", self._on_scan)
@@ -437,6 +447,7 @@ class Ros2NavStack:
                 connect=settings.router,
                 mode="client",
                 library=TypeLibrary(settings.distro),
+                connect_timeout=settings.connect_timeout,
             )
         except RobotUnreachable as exc:
             raise RobotUnreachable(
@@ -493,19 +504,14 @@ class Ros2NavStack:
         return None
 
     def _other_hash(self, name: str, atype: ActionType) -> str | None:
-        """The type hash the robot's ``send_goal`` service has, if it differs from ours."""
-        service = f"{name.rstrip('/')}/_action/send_goal"
+        """The type hash the robot's ``send_goal`` service has, if it differs from ours.
+
+        rmw_zenoh puts the hash in every key, so a server of another distro's type is
+        there on the graph (its liveliness token says so) but never hears our requests.
+        """
         ours = atype.send_goal.type_hash
-        try:
-            entities = self._node.graph()
-        except Exception:  # the graph is a cross-check only: no answer, no verdict
-            return None
-        for entity in entities:
-            if entity.kind is not EntityKind.SERVICE or entity.topic is None:
-                continue
-            # The graph holds fully qualified names; ours may be relative to the namespace.
-            if entity.topic != resolve_name(service, self._settings.namespace):
-                continue
+        servers = self._node.find(EntityKind.SERVICE, action_names(name)["send_goal"])
+        for entity in servers:
             if entity.type_hash and entity.type_hash != ours:
                 return entity.type_hash
         return None
@@ -528,6 +534,7 @@ class Ros2NavStack:
         handler: Callable[[Any, Any], None],
         *,
         qos: QoS | None = None,
+        max_bytes: int | None = None,
     ) -> None:
         mtype: MessageType = self._lib.message(type_name)
 
@@ -539,10 +546,9 @@ class Ros2NavStack:
             except (ValueError, TypeError, AttributeError) as exc:
                 self._drop(topic, str(exc))
 
-        if qos is None:
-            sub = self._node.subscribe(topic, mtype, callback)
-        else:
-            sub = self._node.subscribe(topic, mtype, callback, qos=qos)
+        sub = self._node.subscribe(
+            topic, mtype, callback, qos=qos if qos is not None else QoS(), max_bytes=max_bytes
+        )
         self._subscriptions.append(sub)
 
     def _drop(self, topic: str, why: str) -> None:
