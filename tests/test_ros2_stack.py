@@ -234,8 +234,10 @@ async def test_a_huge_or_malformed_map_is_dropped_and_logged_with_its_topic(
         nav2.publish_map(np.zeros(300 * 300, np.int8), 300, 300)  # over max_map_cells
         nav2.publish_map(np.zeros(15, np.int8), 4, 4)  # says 16 cells, carries 15
         await wait_until(
-            lambda: sum("/map" in r.getMessage() or "map" in r.getMessage() for r in caplog.records)
-            >= 2
+            lambda: (
+                sum("/map" in r.getMessage() or "map" in r.getMessage() for r in caplog.records)
+                >= 2
+            )
         )
     assert stack.map_version() == version
     assert stack.map().width == MAP_W
@@ -444,7 +446,9 @@ def test_no_router_is_a_clear_error_quickly(tmp_path: Path) -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     started = time.monotonic()
     with pytest.raises(RobotUnreachable) as caught:
-        Ros2NavStack.from_config(config_for(endpoint, tmp_path, connect_timeout=1.0))
+        Ros2NavStack.from_config(
+            config_for(endpoint, tmp_path, connect_timeout=1.0), base_dir=tmp_path
+        )
     assert str(caught.value) == (
         f"no ROS 2 router at {endpoint}: is rmw_zenohd (or telebot-sim) running?"
     )

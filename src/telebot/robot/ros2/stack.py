@@ -33,6 +33,7 @@ topic; Nav2 refusing or aborting a goal fails its handle with Nav2's words.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import threading
@@ -414,7 +415,7 @@ class Ros2NavStack:
             self._listen(
                 camera.topic,
                 "sensor_msgs/msg/CompressedImage",
-                lambda msg, _att, camera=camera: self._on_image(camera, msg),
+                functools.partial(self._on_image, camera),
             )
 
     # ------------------------------------------------------------------ construction
@@ -627,7 +628,7 @@ class Ros2NavStack:
         with self._lock:
             self._path = path
 
-    def _on_image(self, camera: _Camera, msg: Any) -> None:
+    def _on_image(self, camera: _Camera, msg: Any, _attachment: Any) -> None:
         data = bytes(np.asarray(msg.data, dtype=np.uint8).tobytes())
         info = camera.info
         if info is None:
