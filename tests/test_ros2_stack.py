@@ -233,12 +233,13 @@ async def test_a_huge_or_malformed_map_is_dropped_and_logged_with_its_topic(
     with caplog.at_level(logging.WARNING):
         nav2.publish_map(np.zeros(300 * 300, np.int8), 300, 300)  # over max_map_cells
         nav2.publish_map(np.zeros(15, np.int8), 4, 4)  # says 16 cells, carries 15
-        await wait_until(
-            lambda: (
-                sum("/map" in r.getMessage() or "map" in r.getMessage() for r in caplog.records)
-                >= 2
-            )
-        )
+
+        def logged() -> list[str]:
+            return [r.getMessage() for r in caplog.records if "/map" in r.getMessage()]
+
+        await wait_until(lambda: len(logged()) >= 2)
+    assert any("90104-byte" in line for line in logged())
+    assert any("4x4 cells but carries 15" in line for line in logged())
     assert stack.map_version() == version
     assert stack.map().width == MAP_W
     assert int(stack.diagnostics()["dropped"]) >= 2

@@ -538,6 +538,7 @@ class Ros2NavStack:
         max_bytes: int | None = None,
     ) -> None:
         mtype: MessageType = self._lib.message(type_name)
+        full_name = self._node.resolve(topic)
 
         def callback(msg: Any, attachment: Any) -> None:
             if self._closed:
@@ -545,7 +546,7 @@ class Ros2NavStack:
             try:
                 handler(msg, attachment)
             except (ValueError, TypeError, AttributeError) as exc:
-                self._drop(topic, str(exc))
+                self._drop(full_name, str(exc))
 
         sub = self._node.subscribe(
             topic, mtype, callback, qos=qos if qos is not None else QoS(), max_bytes=max_bytes
