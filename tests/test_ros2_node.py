@@ -25,7 +25,10 @@ from telebot.robot.ros2.keys import (
 from telebot.robot.ros2.node import (
     GOAL_ABORTED,
     GOAL_CANCELED,
+    GOAL_CANCELING,
+    GOAL_EXECUTING,
     GOAL_SUCCEEDED,
+    GOAL_UNKNOWN,
     Responder,
     Ros2Node,
 )
@@ -267,5 +270,107 @@ def test_attachment_size_constant() -> None:
     assert len(Attachment(1, 2, bytes(16)).encode()) == ATTACHMENT_SIZE
 
 
-# Action statuses used below (kept referenced so the import is checked).
-_ = (GOAL_ABORTED, GOAL_CANCELED, GOAL_SUCCEEDED)
+class _SpinServer:
+    """An action server that records what it is asked and leaves the goals to the test."""
+
+    def __init__(self, node: Ros2Node, *, accept: bool = True) -> None:
+        self.goals: list[tuple[bytes, Any]] = []
+        self.cancels: list[bytes] = []
+        self.accept = accept
+        self.server = node.action_server(
+            "spin", SPIN, on_goal=self.on_goal, on_cancel=self.on_cancel
+        )
+
+    def on_goal(self, goal_id: bytes, goal: Any) -> bool:
+        self.goals.append((goal_id, goal))
+        return self.accept
+
+    def on_cancel(self, goal_id: bytes) -> bool:
+        self.cancels.append(goal_id)
+        return True
+
+
+class _Outcome:
+    def __init__(self) -> None:
+        self.accepted: list[tuple[bytes, bool]] = []
+        self.feedback: list[Any] = []
+        self.results: list[tuple[int, Any, str]] = []
+
+    def send(self, client: Any, goal: Any) -> bytes:
+        goal_id: bytes = client.send_goal(
+            goal,
+            on_accepted=lambda gid, ok: self.accepted.append((gid, ok)),
+            on_feedback=self.feedback.append,
+            on_result=lambda status, result, why: self.results.append((status, result, why)),
+        )
+        return goal_id
+
+
+async def test_action_goal_feedback_result(nodes: tuple[Ros2Node, Ros2Node]) -> None:
+    a, b = nodes
+    spin = _SpinServer(b)
+    client = a.action_client("/robot1/spin", SPIN)
+    await wait_until(client.server_ready)
+    outcome = _Outcome()
+    goal_id = outcome.send(client, SPIN.goal.make(target_yaw=1.5))
+    await wait_until(lambda: outcome.accepted == [(goal_id, True)])
+    assert len(goal_id) == 16 and spin.goals[0][0] == goal_id
+    assert spin.goals[0][1].target_yaw == 1.5
+    assert spin.server.client_alive(goal_id) is True
+    spin.server.publish_feedback(goal_id, SPIN.feedback_body.make(angular_distance_traveled=0.5))
+    await wait_until(lambda: len(outcome.feedback) == 1)
+    assert outcome.feedback[0].angular_distance_traveled == 0.5
+    await wait_until(lambda: client.status(goal_id) == GOAL_EXECUTING)
+    assert outcome.results == []
+    spin.server.succeed(goal_id, SPIN.result.make())
+    await wait_until(lambda: len(outcome.results) == 1)
+    assert outcome.results[0][0] == GOAL_SUCCEEDED and outcome.results[0][2] == ""
+    await wait_until(lambda: client.status(goal_id) == GOAL_SUCCEEDED)
+    # The client's node goes: the server sees its goal's owner gone (telebot-sim stops).
+    a.close()
+    await wait_until(lambda: spin.server.client_alive(goal_id) is False)
+
+
+async def test_action_cancel_and_reject(nodes: tuple[Ros2Node, Ros2Node]) -> None:
+    a, b = nodes
+    spin = _SpinServer(b)
+    client = a.action_client("/robot1/spin", SPIN)
+    await wait_until(client.server_ready)
+    outcome = _Outcome()
+    first = outcome.send(client, SPIN.goal.make())
+    second = outcome.send(client, SPIN.goal.make())
+    await wait_until(lambda: len(outcome.accepted) == 2)
+    answers: list[tuple[int, list[bytes], str]] = []
+    client.cancel(first, lambda code, goals, why: answers.append((code, goals, why)))
+    await wait_until(lambda: len(answers) == 1)
+    assert answers[0] == (0, [first], "") and spin.cancels == [first]
+    assert spin.server.status(first) == GOAL_CANCELING
+    spin.server.cancel(first)
+    client.cancel(first, lambda code, goals, why: answers.append((code, goals, why)))
+    await wait_until(lambda: len(answers) == 2)
+    assert answers[1][0] == 3  # already terminated
+    client.cancel_all(lambda code, goals, why: answers.append((code, goals, why)))
+    await wait_until(lambda: len(answers) == 3)
+    assert answers[2] == (0, [second], "")
+    spin.server.cancel(second)
+    await wait_until(lambda: len(outcome.results) == 2)
+    assert sorted(r[0] for r in outcome.results) == [GOAL_CANCELED, GOAL_CANCELED]
+    spin.accept = False
+    rejected = outcome.send(client, SPIN.goal.make())
+    await wait_until(lambda: len(outcome.results) == 3)
+    assert (rejected, False) in outcome.accepted
+    assert outcome.results[2][0] == GOAL_UNKNOWN and "rejected" in outcome.results[2][2]
+    assert spin.server.status(rejected) == GOAL_UNKNOWN
+
+
+async def test_action_abort_reaches_a_late_result_request(nodes: tuple[Ros2Node, Ros2Node]) -> None:
+    a, b = nodes
+    spin = _SpinServer(b)
+    client = a.action_client("/robot1/spin", SPIN)
+    await wait_until(client.server_ready)
+    outcome = _Outcome()
+    goal_id = outcome.send(client, SPIN.goal.make())
+    await wait_until(lambda: len(outcome.accepted) == 1)
+    spin.server.abort(goal_id, SPIN.result.make(error_code=0))
+    await wait_until(lambda: len(outcome.results) == 1)
+    assert outcome.results[0][0] == GOAL_ABORTED

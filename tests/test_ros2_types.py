@@ -85,6 +85,21 @@ def test_service_hashes_match_ros(jazzy: TypeLibrary, name: str, prefix: str) ->
     assert jazzy.service(name).type_hash.startswith("RIHS01_" + prefix)
 
 
+def test_hashes_in_rmw_zenoh_design_doc_examples(jazzy: TypeLibrary) -> None:
+    """rmw_zenoh's docs/design.md: ``0/chatter/std_msgs::msg::dds_::String_/RIHS01_df66...``
+    and ``2/add_two_ints/example_interfaces::srv::dds_::AddTwoInts_/RIHS01_e118...``."""
+    string = jazzy.message("std_msgs/msg/String")
+    assert f"{string.dds_name}/{string.type_hash}" == (
+        "std_msgs::msg::dds_::String_/"
+        "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+    )
+    add = jazzy.service("example_interfaces/srv/AddTwoInts")
+    assert f"{add.dds_name}/{add.type_hash}" == (
+        "example_interfaces::srv::dds_::AddTwoInts_/"
+        "RIHS01_e118de6bf5eeb66a2491b5bda11202e7b68f198d6f67922cf30364858239c81a"
+    )
+
+
 def test_action_services_reach_the_same_hashes_through_the_action(jazzy: TypeLibrary) -> None:
     nav = jazzy.action("nav2_msgs/action/NavigateToPose")
     assert nav.send_goal.type_hash.startswith("RIHS01_a4fcb3be")
@@ -279,6 +294,28 @@ def test_make_fills_defaults(jazzy: TypeLibrary) -> None:
     assert bytes(goal.goal_id.uuid) == bytes(16)
     with pytest.raises(Ros2Error, match="Twist has no field linearr"):
         jazzy.message("geometry_msgs/msg/Twist").make(linearr=1)
+
+
+def test_make_accepts_plain_python_values(jazzy: TypeLibrary) -> None:
+    uuid = jazzy.message("unique_identifier_msgs/msg/UUID")
+    assert uuid.serialize(uuid.make(uuid=bytes(range(16))))[4:] == bytes(range(16))
+    assert uuid.serialize(uuid.make(uuid=list(range(16))))[4:] == bytes(range(16))
+    with pytest.raises(Ros2Error, match=r"UUID.uuid: needs exactly 16 elements, got 15"):
+        uuid.make(uuid=bytes(15))
+    scan = jazzy.message("sensor_msgs/msg/LaserScan")
+    assert list(scan.deserialize(scan.serialize(scan.make(ranges=[1.5, 2.5]))).ranges) == [
+        1.5,
+        2.5,
+    ]
+    with pytest.raises(Ros2Error, match=r"LaserScan.ranges: not float32"):
+        scan.make(ranges=["far"])
+    twist = jazzy.message("geometry_msgs/msg/Twist").make(linear={"x": 0.25}, angular={"z": 1.0})
+    assert (twist.linear.x, twist.angular.z) == (0.25, 1.0)
+    path = jazzy.message("nav_msgs/msg/Path").make(poses=[{"pose": {"position": {"x": 2.0}}}])
+    assert path.poses[0].pose.position.x == 2.0
+    event = jazzy.message("std_srvs/srv/SetBool_Event")
+    with pytest.raises(Ros2Error, match=r"SetBool_Event.request: at most 1 elements, got 2"):
+        event.make(request=[{"data": True}, {"data": False}])
 
 
 def test_cdr_round_trip_and_layout(jazzy: TypeLibrary) -> None:

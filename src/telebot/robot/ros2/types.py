@@ -302,7 +302,12 @@ class MessageType:
 
     def make(self, **fields: Any) -> Any:
         """A message object; omitted fields get defaults (0, ``""``, empty, nested defaults,
-        zero-filled fixed arrays). Raises :class:`Ros2Error` naming an unknown field."""
+        zero-filled fixed arrays).
+
+        Primitive arrays may be given as numpy arrays, bytes, lists or tuples; nested
+        messages as message objects or dicts of their fields. Raises :class:`Ros2Error`
+        naming an unknown field, bad array values or a wrong fixed array length.
+        """
         return self._library._make(self.name, fields)
 
     @property
@@ -734,10 +739,42 @@ class TypeLibrary:
                 f"{name} has no field {', '.join(unknown)}; fields: {', '.join(sorted(known))}"
             )
         kwargs = {
-            normalize_fieldname(fname): values[fname] if fname in values else self._default(desc)
+            normalize_fieldname(fname): self._coerce(name, fname, desc, values[fname])
+            if fname in values
+            else self._default(desc)
             for fname, desc in fielddefs
         }
         return store.types[name](**kwargs)
+
+    def _coerce(self, name: str, fname: str, desc: Any, value: Any) -> Any:
+        """Accept the obvious Python forms: a dict for a nested message; bytes, lists or
+        tuples for primitive arrays (rosbags serializes numpy arrays only)."""
+        import numpy as np
+
+        kind, arg = desc
+        if kind == _NAME:
+            return self._make(arg, value) if isinstance(value, dict) else value
+        if kind not in (_ARRAY, _SEQUENCE):
+            return value
+        (sub_kind, sub_arg), count = arg
+        if sub_kind == _BASE and sub_arg[0] in _NUMPY_DTYPE:
+            dtype = _NUMPY_DTYPE[sub_arg[0]]
+            try:
+                if isinstance(value, (bytes, bytearray, memoryview)):
+                    value = np.frombuffer(value, dtype=dtype)
+                else:
+                    value = np.asarray(value, dtype=dtype)
+            except (TypeError, ValueError) as exc:
+                raise Ros2Error(_one_line(f"{name}.{fname}: not {dtype} values: {exc}")) from exc
+            if value.ndim != 1:
+                raise Ros2Error(f"{name}.{fname}: needs a flat array, got shape {value.shape}")
+        elif sub_kind == _NAME and isinstance(value, (list, tuple)):
+            value = [self._make(sub_arg, v) if isinstance(v, dict) else v for v in value]
+        if kind == _ARRAY and len(value) != count:
+            raise Ros2Error(f"{name}.{fname}: needs exactly {count} elements, got {len(value)}")
+        if kind == _SEQUENCE and count and len(value) > count:
+            raise Ros2Error(f"{name}.{fname}: at most {count} elements, got {len(value)}")
+        return value
 
     def _default(self, desc: Any) -> Any:
         import numpy as np
