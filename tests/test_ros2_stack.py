@@ -267,6 +267,7 @@ async def test_pose_velocity_battery_and_plan_are_mapped(
     assert stack.planned_path()[4].x == pytest.approx(0.4)
     diagnostics = stack.diagnostics()
     assert diagnostics["nav2"] == "navigate_to_pose ready"
+    assert diagnostics["router"].endswith(": connected")
     assert "120x80" in diagnostics["map"] and diagnostics["pose"] != "none yet"
 
 
@@ -300,9 +301,12 @@ async def test_a_goal_is_accepted_reports_progress_and_succeeds(
     assert stack.status().state is NavState.MOVING
     server = nav2.servers["navigate"]
     feedback = nav2.lib.action("nav2_msgs/action/NavigateToPose").feedback_body
+    # Nav2 says 0 m remaining until it has planned: that is no progress yet.
+    server.publish_feedback(goal_id, feedback.make(distance_remaining=0.0))
     server.publish_feedback(goal_id, feedback.make(distance_remaining=4.0))
     server.publish_feedback(goal_id, feedback.make(distance_remaining=1.0))
     await wait_until(lambda: handle.progress >= 0.75)
+    assert handle.progress == pytest.approx(0.75)
     result = nav2.lib.action("nav2_msgs/action/NavigateToPose").result
     server.succeed(goal_id, result.make())
     await wait_until(lambda: handle.status is GoalStatus.SUCCEEDED)

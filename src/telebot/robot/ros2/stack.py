@@ -147,6 +147,7 @@ class Ros2Goal:
         self.accepted = False
         #: Navigation feedback: the largest distance remaining seen, and recoveries.
         self.initial_remaining = 0.0
+        self.planned = False
         self.recoveries = 0
         self.recovered_at = -math.inf
 
@@ -608,6 +609,10 @@ class Ros2NavStack:
         linear, angular = float(twist.linear.x), float(twist.angular.z)
         if not (math.isfinite(linear) and math.isfinite(angular)):
             raise ValueError("odometry velocity is not finite")
+        # A base at rest reports a little noise; below these it stands still (the safety
+        # supervisor and the camera rule ask whether the robot moves).
+        linear = linear if abs(linear) > STILL_LINEAR else 0.0
+        angular = angular if abs(angular) > STILL_ANGULAR else 0.0
         with self._lock:
             self._velocity = Velocity(linear, angular)
             self._odom_at = time.monotonic()
@@ -674,7 +679,7 @@ class Ros2NavStack:
         return pose
 
     def velocity(self) -> Velocity:
-        """The velocity of the latest odometry message."""
+        """The velocity of the latest odometry message (speeds below 1 cm/s, 0.02 rad/s: 0)."""
         with self._lock:
             return self._velocity
 
@@ -714,7 +719,7 @@ class Ros2NavStack:
                     NavState.BLOCKED, f"Nav2 recovering ({goal.recoveries} recoveries)"
                 )
             return NavStatus(NavState.MOVING, goal.description)
-        if abs(velocity.linear) > STILL_LINEAR or abs(velocity.angular) > STILL_ANGULAR:
+        if velocity != Velocity():
             return NavStatus(NavState.MOVING, "moving")
         if last is not None and last.status is GoalStatus.FAILED:
             return NavStatus(NavState.FAILED, last.reason)
@@ -742,7 +747,7 @@ class Ros2NavStack:
         with self._lock:
             grid = self._grid
             values = {
-                "router": ", ".join(self._settings.router),
+                "router": self._router_state(),
                 "nav2": (
                     f"{self._settings.navigate_action} ready"
                     if self._clients[_NAVIGATE].server_ready()
@@ -771,6 +776,14 @@ class Ros2NavStack:
                 "stops": str(self._stops),
             }
         return values
+
+    def _router_state(self) -> str:
+        endpoints = ", ".join(self._settings.router)
+        try:
+            routers = len(list(self._node.session.info.routers_zid()))
+        except Exception:  # a closed or failing session: say so, never raise from telemetry
+            return f"{endpoints}: no session"
+        return f"{endpoints}: connected" if routers else f"{endpoints}: not connected"
 
     def _node_drops(self) -> int:
         total = 0
@@ -1047,10 +1060,12 @@ class Ros2NavStack:
                 return
             if goal.kind == _NAVIGATE:
                 remaining = float(feedback.distance_remaining)
-                if math.isfinite(remaining) and remaining >= 0:
+                # Nav2 reports 0 until it has a path: progress starts at the first real one.
+                if math.isfinite(remaining) and remaining > 0:
+                    goal.planned = True
                     goal.initial_remaining = max(goal.initial_remaining, remaining)
-                    if goal.initial_remaining > 0:
-                        goal._set_progress(1.0 - remaining / goal.initial_remaining)
+                if goal.planned and math.isfinite(remaining) and remaining >= 0:
+                    goal._set_progress(1.0 - remaining / goal.initial_remaining)
                 recoveries = int(feedback.number_of_recoveries)
                 if recoveries > goal.recoveries:
                     goal.recoveries = recoveries
