@@ -23,16 +23,19 @@ import numpy as np
 import pytest
 import zenoh
 
-from conftest import SLACK, Homes, free_port, wait_until
+from conftest import SLACK, Homes, Process, free_port, wait_until
+from rig import Daemon
 from telebot.config import RobotConfig
 from telebot.errors import RobotUnreachable
 from telebot.reasons import Reason
 from telebot.robot import create_robot
+from telebot.robot.mapfile import places_path_for
 from telebot.robot.nav import GoalStatus, NavState
 from telebot.robot.ros2.convert import quaternion_fields
 from telebot.robot.ros2.keys import QoS
 from telebot.robot.ros2.node import Ros2Node
 from telebot.robot.ros2.stack import Ros2NavStack
+from telebot.robot.sim.building import resolve_map
 
 pytestmark = pytest.mark.zenoh
 
@@ -532,3 +535,42 @@ def test_telebot_robot_run_without_a_router_exits_2_with_one_line(
         f"telebot-robot: error: no ROS 2 router at tcp/127.0.0.1:{port}: "
         "is rmw_zenohd (or telebot-sim) running?"
     ]
+
+
+# --------------------------------------------------------------------------- end to end
+
+
+async def test_table_i_commands_drive_telebot_sim_across_processes(tmp_path: Path) -> None:
+    """telebot-sim (its own router) and telebot-robot run --robot ros2, a user chatting."""
+    daemon = Daemon(tmp_path)
+    port = free_port()
+    places = places_path_for(resolve_map("small", None))
+    with daemon.robot_config.open("a") as config:
+        config.write(
+            f'[robot]\nkind = "ros2"\n[ros2]\nrouter = ["tcp/127.0.0.1:{port}"]\n'
+            f'connect_timeout = 30.0\nplaces_file = "{places}"\n'
+        )
+    sim = Process(["telebot.apps.sim_cli", "--config", str(daemon.robot_config)])
+    try:
+        assert "serving map" in sim.next_line(timeout=60), sim.stderr()
+        daemon.start()
+        async with daemon.connect() as robot:
+            assert (await robot.stop()).ok
+            assert (await robot.arm()).ok
+            start = await robot.pose()
+            forward = await robot.chat("fwd 1", timeout=60)
+            assert forward.ok and forward.replies[-1] == "finished moving", forward.replies
+            moved = await robot.pose()
+            assert math.hypot(moved.x - start.x, moved.y - start.y) == pytest.approx(1.0, abs=0.15)
+            turn = await robot.chat("turn 90", timeout=60)  # the paper's: to the right
+            assert turn.ok, turn.replies
+            turned = await robot.pose()
+            change = math.degrees((turned.yaw - moved.yaw + math.pi) % (2 * math.pi) - math.pi)
+            assert change == pytest.approx(-90.0, abs=5.0)
+            goto = await robot.chat("goto room-b", timeout=90)
+            assert goto.ok and goto.replies[-1] == "finished moving", goto.replies
+            there = await robot.pose()
+            assert math.hypot(there.x - 9.5, there.y - 4.0) < 0.3
+    finally:
+        daemon.stop(graceful=True)
+        sim.stop(graceful=True)
