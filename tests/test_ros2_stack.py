@@ -277,12 +277,14 @@ async def test_pose_velocity_battery_and_plan_are_mapped(
 async def test_a_camera_topic_gives_frames_and_its_size(
     stack: Ros2NavStack, nav2: FakeNav2
 ) -> None:
-    assert stack.active_camera == "front"
+    assert stack.active_camera == "navcam"  # black: the config names no navcam
+    assert stack.get_frame().image.max() == 0
+    stack.select_camera("FRONT")
     image = np.zeros((48, 64, 3), np.uint8)
     image[:, :, 2] = 200  # red in BGR
     nav2.publish_image(image)
     await wait_until(lambda: stack.cameras()[0].width == 64)
-    assert stack.cameras()[0].height == 48
+    assert [(c.name, c.height) for c in stack.cameras()] == [("front", 48), ("navcam", 0)]
     frame = stack.get_frame()
     assert frame.image.shape == (48, 64, 3)
     assert abs(int(frame.image[24, 32, 2]) - 200) < 10 and frame.image[24, 32, 0] < 10
@@ -548,7 +550,8 @@ async def test_table_i_commands_drive_telebot_sim_across_processes(tmp_path: Pat
     with daemon.robot_config.open("a") as config:
         config.write(
             f'[robot]\nkind = "ros2"\n[ros2]\nrouter = ["tcp/127.0.0.1:{port}"]\n'
-            f'connect_timeout = 30.0\nplaces_file = "{places}"\n'
+            f'connect_timeout = 30.0\nplaces_file = "{places}"\n[ros2.cameras]\n'
+            'navcam = "navcam/image/compressed"\nusercam = "usercam/image/compressed"\n'
         )
     sim = Process(["telebot.apps.sim_cli", "--config", str(daemon.robot_config)])
     try:

@@ -102,6 +102,9 @@ RECOVERY_HOLD = 5.0
 STILL_LINEAR, STILL_ANGULAR = 0.01, 0.02
 #: Field of view reported for a camera (CompressedImage does not say; degrees).
 DEFAULT_FOV_DEG = 60.0
+#: The camera the safety supervisor selects while the robot moves (``telebot.safety.NAVCAM``;
+#: the robot layer may not import it).
+NAVCAM = "navcam"
 #: Size of the black picture a camera shows before its first image (pixels).
 NO_SIGNAL_SIZE = (320, 240)
 #: Bytes of an OccupancyGrid message besides its cells (header, frame id, metadata): generous.
@@ -359,7 +362,10 @@ class Ros2NavStack:
         self._cameras: dict[str, _Camera] = {
             name.lower(): _Camera(name.lower(), topic) for name, topic in settings.cameras.items()
         }
-        self._active_camera = next(iter(self._cameras), "")
+        # The safety supervisor selects the navcam whenever the robot moves: a robot without
+        # one still has it, showing black ("no signal"), rather than refuse to move.
+        self._cameras.setdefault(NAVCAM, _Camera(NAVCAM, ""))
+        self._active_camera = NAVCAM
 
         lib = self._lib
         self._twist = lib.message("geometry_msgs/msg/Twist")
@@ -413,6 +419,8 @@ class Ros2NavStack:
         self._listen(settings.battery_topic, "sensor_msgs/msg/BatteryState", self._on_battery)
         self._listen(settings.plan_topic, "nav_msgs/msg/Path", self._on_plan)
         for camera in self._cameras.values():
+            if not camera.topic:
+                continue
             self._listen(
                 camera.topic,
                 "sensor_msgs/msg/CompressedImage",
@@ -797,20 +805,27 @@ class Ros2NavStack:
     # ------------------------------------------------------------------ NavStack: cameras
 
     def cameras(self) -> tuple[CameraInfo, ...]:
-        """The cameras of ``[ros2] cameras`` (size known from each one's first image)."""
+        """The cameras of ``[ros2] cameras`` (size known from each one's first image), and
+        ``navcam`` (black) if they have none of that name."""
         with self._lock:
             return tuple(
                 camera.info
                 if camera.info is not None
                 else CameraInfo(
-                    camera.name, 0, 0, DEFAULT_FOV_DEG, f"ROS 2 topic {camera.topic} (no image yet)"
+                    camera.name,
+                    0,
+                    0,
+                    DEFAULT_FOV_DEG,
+                    f"ROS 2 topic {camera.topic} (no image yet)"
+                    if camera.topic
+                    else "no camera topic in [ros2] cameras (black)",
                 )
                 for camera in self._cameras.values()
             )
 
     @property
     def active_camera(self) -> str:
-        """The selected camera's name (empty when none is configured)."""
+        """The selected camera's name (``navcam`` at first)."""
         return self._active_camera
 
     def select_camera(self, name: str) -> None:
@@ -826,11 +841,7 @@ class Ros2NavStack:
 
     def get_frame(self, camera: str | None = None) -> CameraFrame:
         """The newest image of ``camera`` decoded (black until its first image arrives)."""
-        name = camera if camera is not None else self._active_camera
-        if not name and camera is None:
-            width, height = NO_SIGNAL_SIZE
-            return CameraFrame("", np.zeros((height, width, 3), np.uint8), 0.0, 0)
-        cam = self._camera(name)
+        cam = self._camera(camera if camera is not None else self._active_camera)
         with self._lock:
             data, stamp, received, info = cam.data, cam.stamp, cam.received, cam.info
         image = _decode_image(data)
