@@ -425,6 +425,13 @@ async def test_stop_cancels_every_goal_and_streams_zero_velocity_at_10_hz_or_mor
     assert len(times) >= 10
 
 
+def test_a_new_motion_ends_the_zero_stream_of_a_stop(stack: Ros2NavStack) -> None:
+    stack.stop()
+    assert stack._zero.streaming
+    stack.forward(0.5)  # re-armed, the driver moves on: zeros would fight the motion
+    assert not stack._zero.streaming
+
+
 async def test_emergency_stop_works_from_another_thread_without_a_loop(
     router: str, tmp_path: Path
 ) -> None:

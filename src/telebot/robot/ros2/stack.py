@@ -217,7 +217,9 @@ class _ZeroStream:
 
     :meth:`trigger` publishes one command in the caller's thread (the base hears the stop
     without waiting for a thread switch) and extends the stream; a thread of its own keeps
-    publishing. Safe from any thread.
+    publishing. :meth:`end` ends it early: a new motion must not be fought by zeros (a base
+    or a twist_mux may take them for teleoperation that replaces the goal). Safe from any
+    thread.
     """
 
     def __init__(self, publish: Callable[[], None], rate_hz: float, duration: float) -> None:
@@ -225,6 +227,8 @@ class _ZeroStream:
         self._period = 1.0 / rate_hz
         self._duration = duration
         self._cond = threading.Condition()
+        # Held around each publish, so that after end() returns no zero is still on its way.
+        self._publishing = threading.Lock()
         self._until = 0.0
         self._closed = False
         self._thread: threading.Thread | None = None
@@ -233,7 +237,8 @@ class _ZeroStream:
 
     def trigger(self) -> None:
         """Publish zero velocity now and keep streaming it for the stream's duration."""
-        self._send()
+        with self._publishing:
+            self._send()
         with self._cond:
             if self._closed:
                 return
@@ -244,6 +249,14 @@ class _ZeroStream:
                 )
                 self._thread.start()
             self._cond.notify_all()
+
+    def end(self) -> None:
+        """End a running stream now; no zero is published after this returns."""
+        with self._cond:
+            self._until = 0.0
+            self._cond.notify_all()
+        with self._publishing:
+            pass
 
     @property
     def streaming(self) -> bool:
@@ -271,7 +284,9 @@ class _ZeroStream:
                 if delay > 0:
                     self._cond.wait(delay)
                     continue
-            self._send()
+            with self._publishing:
+                if time.monotonic() < self._until:  # not ended meanwhile
+                    self._send()
             next_at = max(next_at + self._period, time.monotonic())
 
     def close(self, wait: float) -> None:
@@ -1016,6 +1031,9 @@ class Ros2NavStack:
 
     def _send(self, goal: Ros2Goal, message: Any) -> Ros2Goal:
         """Send ``goal`` to its action, replacing the running goal."""
+        # A new motion ends the zero stream of an earlier stop (the driver re-armed and
+        # moves on), or the base would take the zeros as someone else's command.
+        self._zero.end()
         with self._lock:
             previous = self._goal
             if previous is not None:
