@@ -581,6 +581,20 @@ async def test_table_i_commands_drive_telebot_sim_across_processes(tmp_path: Pat
             assert goto.ok and goto.replies[-1] == "finished moving", goto.replies
             there = await robot.pose()
             assert math.hypot(there.x - 9.5, there.y - 4.0) < 0.3
+            # stop while it drives: the goal ends "stopped" and the base comes to rest.
+            replies = robot.chat_replies("goto start", timeout=90)
+            async for reply in replies:
+                assert reply.text == "Goto command received"
+                break
+            async for pose in robot.poses():
+                if pose.v != 0:
+                    break
+            assert (await robot.stop()).ok
+            texts = [reply.text async for reply in replies]
+            assert texts and "stopped" in texts[-1], texts
+            async for pose in robot.poses():
+                if pose.v == 0 and pose.w == 0:
+                    break
     finally:
         daemon.stop(graceful=True)
         sim.stop(graceful=True)
