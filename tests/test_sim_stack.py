@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable
 
@@ -257,6 +258,59 @@ def test_a_goal_blocked_too_long_replans_around_the_obstacle() -> None:
     assert goal.status is GoalStatus.SUCCEEDED
     assert goal.replans >= 1
     assert stack.collisions == 0
+
+
+def test_the_planned_path_runs_from_the_robot_to_the_goal_and_empties_when_it_ends() -> None:
+    stack = small_stack()
+    assert stack.planned_path() == ()  # idle: no plan
+    here = stack.pose().pose
+    room_b = stack.places()["room-b"]
+    goal = stack.navigate_to_place("room-b")
+    path = stack.planned_path()
+    assert len(path) > 2 and stack.planned_path() is path  # the same tuple while unchanged
+    assert path[0].distance_to(here) < 0.1
+    assert path[-1].distance_to(room_b) < 0.05 and path[-1].yaw == pytest.approx(room_b.yaw)
+    # The path goes around walls: longer than the straight line, and every pose faces on.
+    assert sum(a.distance_to(b) for a, b in itertools.pairwise(path)) > (
+        here.distance_to(room_b) + 0.5
+    )
+    for a, b in itertools.pairwise(path):
+        if a.distance_to(b) > 1e-6:
+            assert a.yaw == pytest.approx(math.atan2(b.y - a.y, b.x - a.x))
+    run(stack, 60, until=lambda: goal.status.done)
+    assert goal.status is GoalStatus.SUCCEEDED
+    assert stack.planned_path() == ()
+
+
+@pytest.mark.parametrize("end", ["stop", "cancel", "forward"])
+def test_the_planned_path_is_empty_after_stop_cancel_or_a_relative_move(end: str) -> None:
+    stack = small_stack()
+    goal = stack.navigate_to_place("room-b")
+    run(stack, 1.0)
+    assert stack.planned_path()
+    if end == "stop":
+        stack.stop()
+    elif end == "cancel":
+        goal.cancel()
+    else:
+        stack.forward(0.5)  # replaces the goal; a relative move has no plan
+    assert goal.status is GoalStatus.CANCELLED
+    assert stack.planned_path() == ()
+
+
+def test_the_planned_path_is_replaced_when_the_robot_replans() -> None:
+    stack = room_stack(blocked_timeout=2.0)
+    goal = stack.navigate_to(10.0, 5.0)
+    first = stack.planned_path()
+    assert all(abs(pose.y - 5.0) < 0.05 for pose in first)  # straight across the room
+    run(stack, 3.0)
+    stack.add_obstacle(Obstacle(stack.true_pose.x + 1.2, 5.0, 0.4))
+    run(stack, 60, until=lambda: goal.replans >= 1)
+    second = stack.planned_path()
+    assert second != first
+    assert second[0].distance_to(stack.pose().pose) < 0.5  # from where it replanned
+    assert max(abs(pose.y - 5.0) for pose in second) > 0.4  # around the obstacle
+    assert second[-1].distance_to(Pose2D(10.0, 5.0)) < 0.05
 
 
 def test_a_goal_blocked_with_no_way_around_fails_with_the_reason() -> None:

@@ -270,6 +270,16 @@ class NavStack(Protocol):
         """Named places of the map."""
         ...
 
+    def planned_path(self) -> tuple[Pose2D, ...]:
+        """The global plan the robot follows now, in the map frame; empty when it has none.
+
+        From where the robot was when it planned (or replanned) to the goal, each pose
+        facing along the path (the last one the goal's heading, when it has one). Relative
+        moves and turns have no plan. Callers compare plans by equality; an adapter that
+        returns the same tuple object while its plan is unchanged makes that cheap.
+        """
+        ...
+
     def cameras(self) -> tuple[CameraInfo, ...]:
         """The robot's cameras."""
         ...

@@ -24,6 +24,7 @@ from types import MappingProxyType
 from typing import Literal
 
 import numpy as np
+import numpy.typing as npt
 
 from telebot.config import RobotConfig, SimSettings
 from telebot.errors import InvalidCommand, MapError, NoPath, RobotError, UnknownCamera, UnknownPlace
@@ -96,6 +97,8 @@ class SimGoal:
         self._code = ""
         # Geometry of the motion, filled in by the stack.
         self.tracker: PathTracker | None = None
+        #: The tracker's path as poses (see :meth:`SimNavStack.planned_path`).
+        self.plan: tuple[Pose2D, ...] = ()
         self.final_yaw: float | None = None
         self.aligning = False
         self.start = Pose2D(0.0, 0.0, 0.0)
@@ -324,6 +327,15 @@ class SimNavStack:
         """Named places (lower-case names)."""
         return MappingProxyType(self._places)
 
+    def planned_path(self) -> tuple[Pose2D, ...]:
+        """The running goal's path as the planner made it (again, after a replan).
+
+        Empty while no goal with a path runs (idle, relative moves and turns, after a stop
+        or cancel). The same tuple is returned until the path changes.
+        """
+        goal = self._goal
+        return goal.plan if goal is not None else ()
+
     def battery(self) -> Battery:
         """Battery charge; it drains with time and faster with motion."""
         return Battery(
@@ -433,8 +445,8 @@ class SimNavStack:
             path = self._costmap.plan((here.x, here.y), (x, y))
         except NoPath as exc:
             return self._fail_at_once(goal, f"no path to {label}: {exc}", Reason.NO_PATH)
-        goal.tracker = PathTracker(path.waypoints)
         goal.final_yaw = None if yaw is None else normalize_angle(yaw)
+        _follow(goal, path.waypoints)
         return self._start(goal)
 
     def navigate_to_place(self, name: str) -> SimGoal:
@@ -733,7 +745,7 @@ class SimNavStack:
                 Reason.OBSTACLE,
             )
             return
-        goal.tracker = PathTracker(path.waypoints)
+        _follow(goal, path.waypoints)
         goal.blocked_since = None
         goal.replans += 1
 
@@ -853,6 +865,21 @@ class SimNavStack:
                 if gap_after < gap_before:
                     return False
         return True
+
+
+def _follow(goal: SimGoal, waypoints: npt.NDArray[np.float64]) -> None:
+    """Make ``goal`` track ``waypoints``, and keep them as its plan (poses along the path)."""
+    goal.tracker = PathTracker(waypoints)
+    headings = np.arctan2(np.diff(waypoints[:, 1]), np.diff(waypoints[:, 0]))
+    last = (
+        goal.final_yaw
+        if goal.final_yaw is not None
+        else (float(headings[-1]) if len(headings) else 0.0)
+    )
+    yaws = [*map(float, headings), last]
+    goal.plan = tuple(
+        Pose2D(float(x), float(y), yaw) for (x, y), yaw in zip(waypoints, yaws, strict=True)
+    )
 
 
 def braking_speed_distance(speed: float, accel: float) -> float:
