@@ -63,7 +63,7 @@ def test_help_and_version(side: str) -> None:
         (("robot", "keygen", "bad/name", "--home", "{home}"), ["invalid name 'bad/name'"]),
         (
             ("robot", "run", "--robot", "tin-can", "--home", "{home}"),
-            ["unknown robot 'tin-can'; known robots: sim"],
+            ["unknown robot 'tin-can'; known robots: ros2, sim"],
         ),
         (("user", "ping", "a*", "--home", "{home}"), ["invalid name 'a*'"]),
         (
@@ -159,7 +159,7 @@ def test_a_robot_kind_in_the_config_is_checked_before_anything_starts(
     path = tmp_path / "robot.toml"
     path.write_text("[robot]\nkind = 'tin-can'\n")
     result = run("robot", "run", "--home", str(homes.robot_home), "--config", str(path))
-    one_line_error(result, "unknown robot 'tin-can'", "known robots: sim")
+    one_line_error(result, "unknown robot 'tin-can'", "known robots: ros2, sim")
     assert "--robot NAME" in run("robot", "run", "--help").stdout
 
 

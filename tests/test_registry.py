@@ -113,7 +113,7 @@ def test_the_sim_robot_is_known_and_created_from_sim_settings() -> None:
 
 
 def test_an_unknown_robot_lists_the_known_ones() -> None:
-    with pytest.raises(UnknownRobot, match=r"unknown robot 'tin-can'; known robots: sim"):
+    with pytest.raises(UnknownRobot, match=r"unknown robot 'tin-can'; known robots: ros2, sim"):
         get_robot_class("tin-can")
     with pytest.raises(LookupError):  # also a LookupError, and a RobotError
         create_robot(small_robot("tin-can"))
@@ -121,7 +121,7 @@ def test_an_unknown_robot_lists_the_known_ones() -> None:
 
 def test_a_robot_plugin_is_found_and_created(monkeypatch: pytest.MonkeyPatch) -> None:
     fake_robot_entry_points(monkeypatch, f"{__name__}:PluginRobot")
-    assert known_robots() == ["sim", "tin-can"]
+    assert known_robots() == ["ros2", "sim", "tin-can"]
     assert isinstance(create_robot(small_robot("tin-can")), PluginRobot)
 
 
