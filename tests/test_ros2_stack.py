@@ -502,6 +502,24 @@ def test_another_action_type_on_the_server_names_both_hashes(router: str, tmp_pa
         node.close()
 
 
+def test_a_map_of_another_type_hash_names_both(router: str, tmp_path: Path) -> None:
+    nav2 = FakeNav2(router)  # servers, and a map publisher that publishes nothing
+    odd = Ros2Node(name="odd_map_server", connect=[router])
+    path_type = odd.library.message("nav_msgs/msg/Path")
+    odd.publisher("map", path_type)
+    try:
+        with pytest.raises(RobotUnreachable) as caught:
+            Ros2NavStack.from_config(
+                config_for(router, tmp_path, connect_timeout=2.0 + SLACK), base_dir=tmp_path
+            )
+        text = str(caught.value)
+        assert text.startswith(f"the robot's map topic has type hash {path_type.type_hash}")
+        assert odd.library.message("nav_msgs/msg/OccupancyGrid").type_hash in text
+    finally:
+        odd.close()
+        nav2.close()
+
+
 def test_the_registry_builds_it(router: str, nav2: FakeNav2, tmp_path: Path) -> None:
     robot = create_robot(config_for(router, tmp_path), base_dir=tmp_path)
     try:

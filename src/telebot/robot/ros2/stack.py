@@ -510,36 +510,37 @@ class Ros2NavStack:
         settings = self._settings
         name, atype = self._actions[_NAVIGATE]
         if not self._clients[_NAVIGATE].server_ready():
-            other = self._other_hash(name, atype)
-            if other is not None:
-                raise RobotUnreachable(
-                    f"the robot's {name} action has type hash {other}, telebot's "
-                    f"{atype.send_goal.type_hash} ({settings.distro}): set [ros2] distro "
-                    "to the robot's ROS 2 distro"
-                )
+            service = action_names(name)["send_goal"]
+            self._check_hash(
+                EntityKind.SERVICE, service, atype.send_goal.type_hash, f"{name} action"
+            )
             return (
                 f"no Nav2 action server {name!r} ({atype.name}) in ROS domain "
                 f"{settings.domain_id} after {settings.connect_timeout:g} s: is Nav2 running?"
             )
         if not self._map_ready.is_set():
+            ours = self._lib.message("nav_msgs/msg/OccupancyGrid").type_hash
+            self._check_hash(
+                EntityKind.PUBLISHER, settings.map_topic, ours, f"{settings.map_topic} topic"
+            )
             return (
                 f"no map on topic {settings.map_topic!r} (nav_msgs/msg/OccupancyGrid) after "
                 f"{settings.connect_timeout:g} s: is the map server (or SLAM) running?"
             )
         return None
 
-    def _other_hash(self, name: str, atype: ActionType) -> str | None:
-        """The type hash the robot's ``send_goal`` service has, if it differs from ours.
+    def _check_hash(self, kind: EntityKind, name: str, ours: str, what: str) -> None:
+        """RobotUnreachable if the graph has ``name`` of ``kind`` with another type hash.
 
-        rmw_zenoh puts the hash in every key, so a server of another distro's type is
-        there on the graph (its liveliness token says so) but never hears our requests.
+        rmw_zenoh puts the hash in every key, so an endpoint of another distro's type is on
+        the graph (its liveliness token says so) but never hears us, nor we it.
         """
-        ours = atype.send_goal.type_hash
-        servers = self._node.find(EntityKind.SERVICE, action_names(name)["send_goal"])
-        for entity in servers:
+        for entity in self._node.find(kind, name):
             if entity.type_hash and entity.type_hash != ours:
-                return entity.type_hash
-        return None
+                raise RobotUnreachable(
+                    f"the robot's {what} has type hash {entity.type_hash}, telebot's {ours} "
+                    f"({self._settings.distro}): set [ros2] distro to the robot's ROS 2 distro"
+                )
 
     def close(self) -> None:
         """Finish a running zero-velocity stream, then leave the ROS graph. Idempotent."""
