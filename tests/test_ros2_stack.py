@@ -31,6 +31,7 @@ from telebot.reasons import Reason
 from telebot.robot import create_robot
 from telebot.robot.mapfile import places_path_for
 from telebot.robot.nav import GoalStatus, NavState
+from telebot.robot.ros2 import stack as stack_module
 from telebot.robot.ros2.convert import quaternion_fields
 from telebot.robot.ros2.keys import QoS
 from telebot.robot.ros2.node import Ros2Node
@@ -274,20 +275,29 @@ async def test_pose_velocity_battery_and_plan_are_mapped(
     assert "120x80" in diagnostics["map"] and diagnostics["pose"] != "none yet"
 
 
-async def test_a_camera_topic_gives_frames_and_its_size(
-    stack: Ros2NavStack, nav2: FakeNav2
+async def test_a_camera_topic_gives_frames_and_is_subscribed_only_while_watched(
+    stack: Ros2NavStack, nav2: FakeNav2, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    monkeypatch.setattr(stack_module, "CAMERA_IDLE", 0.5)
     assert stack.active_camera == "navcam"  # black: the config names no navcam
     assert stack.get_frame().image.max() == 0
+    assert nav2.camera_pub.subscriber_count() == 0  # nobody asked for the front camera
     stack.select_camera("FRONT")
+    assert stack.get_frame().image.max() == 0  # subscribed now; no image yet
     image = np.zeros((48, 64, 3), np.uint8)
     image[:, :, 2] = 200  # red in BGR
-    nav2.publish_image(image)
-    await wait_until(lambda: stack.cameras()[0].width == 64)
+
+    def arrived() -> bool:
+        nav2.publish_image(image)
+        return stack.cameras()[0].width == 64
+
+    await wait_until(arrived)
     assert [(c.name, c.height) for c in stack.cameras()] == [("front", 48), ("navcam", 0)]
     frame = stack.get_frame()
-    assert frame.image.shape == (48, 64, 3)
+    assert frame.camera == "front" and frame.image.shape == (48, 64, 3)
     assert abs(int(frame.image[24, 32, 2]) - 200) < 10 and frame.image[24, 32, 0] < 10
+    # Nobody asks for frames any more: the topic is let go.
+    await wait_until(lambda: nav2.camera_pub.subscriber_count() == 0)
 
 
 # --------------------------------------------------------------------------- goals

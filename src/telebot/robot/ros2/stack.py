@@ -82,7 +82,7 @@ from telebot.robot.ros2.convert import (
     quaternion_fields,
 )
 from telebot.robot.ros2.keys import EntityKind, QoS, action_names
-from telebot.robot.ros2.node import ActionClient, Ros2Node
+from telebot.robot.ros2.node import ActionClient, Ros2Node, Subscription
 from telebot.robot.ros2.types import ActionType, MessageType, TypeLibrary
 
 __all__ = ["BATTERY_LOW_PERCENT", "Ros2Goal", "Ros2NavStack"]
@@ -109,6 +109,8 @@ NAVCAM = "navcam"
 NO_SIGNAL_SIZE = (320, 240)
 #: Bytes of an OccupancyGrid message besides its cells (header, frame id, metadata): generous.
 MAP_HEADER_BYTES = 4096
+#: A camera topic nobody asked a frame of for this long is unsubscribed (s).
+CAMERA_IDLE = 5.0
 #: How long close() waits for a running zero-velocity stream to finish (beyond its length, s).
 CLOSE_GRACE = 0.5
 
@@ -304,11 +306,14 @@ class _ZeroStream:
 class _Camera:
     """The newest CompressedImage of one camera topic."""
 
-    __slots__ = ("data", "fmt", "info", "name", "received", "stamp", "topic")
+    __slots__ = ("data", "fmt", "info", "name", "received", "stamp", "sub", "topic", "wanted_at")
 
     def __init__(self, name: str, topic: str) -> None:
         self.name = name
         self.topic = topic
+        #: The subscription while someone asks for frames (None: not subscribed).
+        self.sub: Subscription | None = None
+        self.wanted_at = 0.0
         self.info: CameraInfo | None = None
         self.data: bytes = b""
         self.fmt = ""
@@ -369,6 +374,7 @@ class Ros2NavStack:
         self._battery_at = 0.0
         self._path: tuple[Pose2D, ...] = ()
         self._dropped: dict[str, int] = {}
+        self._closed_drops = 0  # of camera subscriptions closed when idle
         self._speed_limit = settings.max_linear_speed
         self._next_goal_id = 1
         self._goal: Ros2Goal | None = None
@@ -405,7 +411,7 @@ class Ros2NavStack:
         self._cmd_vel = node.publisher(settings.cmd_vel_topic, cmd_type)
         self._zero = _ZeroStream(self._publish_zero, settings.stop_rate_hz, settings.stop_stream_s)
 
-        self._subscriptions: list[Any] = []
+        self._subscriptions: list[Subscription] = []
         latched = QoS.transient_local()
         # A map over the cell limit is dropped before it is decoded (one byte a cell).
         self._listen(
@@ -433,14 +439,11 @@ class Ros2NavStack:
         self._listen(settings.scan_topic, "sensor_msgs/msg/LaserScan", self._on_scan)
         self._listen(settings.battery_topic, "sensor_msgs/msg/BatteryState", self._on_battery)
         self._listen(settings.plan_topic, "nav_msgs/msg/Path", self._on_plan)
-        for camera in self._cameras.values():
-            if not camera.topic:
-                continue
-            self._listen(
-                camera.topic,
-                "sensor_msgs/msg/CompressedImage",
-                functools.partial(self._on_image, camera),
-            )
+        # Camera topics are subscribed while frames are asked for (see get_frame): a robot's
+        # image streams cross the router only when someone watches.
+        self._camera_lock = threading.Lock()
+        self._camera_reaper: threading.Thread | None = None
+        self._camera_wake = threading.Event()
 
     # ------------------------------------------------------------------ construction
 
@@ -548,6 +551,7 @@ class Ros2NavStack:
             if self._closed:
                 return
             self._closed = True
+        self._camera_wake.set()
         self._zero.close(self._settings.stop_stream_s + CLOSE_GRACE)
         self._node.close()
 
@@ -561,7 +565,7 @@ class Ros2NavStack:
         *,
         qos: QoS | None = None,
         max_bytes: int | None = None,
-    ) -> None:
+    ) -> Subscription:
         mtype: MessageType = self._lib.message(type_name)
         full_name = self._node.resolve(topic)
 
@@ -577,6 +581,7 @@ class Ros2NavStack:
             topic, mtype, callback, qos=qos if qos is not None else QoS(), max_bytes=max_bytes
         )
         self._subscriptions.append(sub)
+        return sub
 
     def _drop(self, topic: str, why: str) -> None:
         with self._lock:
@@ -810,19 +815,13 @@ class Ros2NavStack:
         return f"{endpoints}: connected" if routers else f"{endpoints}: not connected"
 
     def _node_drops(self) -> int:
-        total = 0
-        for sub in self._subscriptions:
-            stats = getattr(sub, "stats", None)
-            dropped = getattr(stats, "dropped", 0) if stats is not None else 0
-            if isinstance(dropped, int):
-                total += dropped
-        return total
+        return self._closed_drops + sum(sub.stats.dropped for sub in list(self._subscriptions))
 
     # ------------------------------------------------------------------ NavStack: cameras
 
     def cameras(self) -> tuple[CameraInfo, ...]:
-        """The cameras of ``[ros2] cameras`` (size known from each one's first image), and
-        ``navcam`` (black) if they have none of that name."""
+        """The cameras of ``[ros2] cameras`` (size known from each one's first image, 0 × 0
+        before), and ``navcam`` (black) if they have none of that name."""
         with self._lock:
             return tuple(
                 camera.info
@@ -856,8 +855,14 @@ class Ros2NavStack:
         return camera
 
     def get_frame(self, camera: str | None = None) -> CameraFrame:
-        """The newest image of ``camera`` decoded (black until its first image arrives)."""
+        """The newest image of ``camera`` decoded (black until its first image arrives).
+
+        The camera's topic is subscribed from the first call on, and unsubscribed when no
+        frame has been asked of it for :data:`CAMERA_IDLE` seconds.
+        """
         cam = self._camera(camera if camera is not None else self._active_camera)
+        if cam.topic:
+            self._want_camera(cam)
         with self._lock:
             data, stamp, received, info = cam.data, cam.stamp, cam.received, cam.info
         image = _decode_image(data)
@@ -865,6 +870,41 @@ class Ros2NavStack:
             width, height = (info.width, info.height) if info is not None else NO_SIGNAL_SIZE
             image = np.zeros((height, width, 3), np.uint8)
         return CameraFrame(camera=cam.name, image=image, stamp=stamp, frame_id=received)
+
+    def _want_camera(self, camera: _Camera) -> None:
+        """Keep ``camera`` subscribed for :data:`CAMERA_IDLE` more seconds."""
+        camera.wanted_at = time.monotonic()
+        if camera.sub is not None:
+            return
+        # Its own lock, never the state lock: zenoh may call back (and so take the state
+        # lock) while a subscription is declared or undeclared.
+        with self._camera_lock:
+            if camera.sub is not None or self._closed:
+                return
+            camera.sub = self._listen(
+                camera.topic,
+                "sensor_msgs/msg/CompressedImage",
+                functools.partial(self._on_image, camera),
+            )
+            if self._camera_reaper is None:
+                self._camera_reaper = threading.Thread(
+                    target=self._reap_cameras, name="ros2-camera-idle", daemon=True
+                )
+                self._camera_reaper.start()
+
+    def _reap_cameras(self) -> None:
+        """Unsubscribe cameras nobody asked a frame of for :data:`CAMERA_IDLE` seconds."""
+        while not self._camera_wake.wait(CAMERA_IDLE / 4):
+            now = time.monotonic()
+            with self._camera_lock:
+                for camera in self._cameras.values():
+                    sub = camera.sub
+                    if sub is None or now - camera.wanted_at <= CAMERA_IDLE:
+                        continue
+                    camera.sub = None
+                    self._subscriptions.remove(sub)
+                    self._closed_drops += sub.stats.dropped
+                    sub.close()
 
     # ------------------------------------------------------------------ NavStack: motion
 
