@@ -16,6 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 
@@ -24,6 +25,7 @@ from rig import FAST_SIM, child_env, write_config
 from telebot.config import SimSettings
 from telebot.robot.ros2.keys import Attachment, QoS
 from telebot.robot.ros2.node import Ros2Node
+from telebot.robot.ros2.types import TypeLibrary
 from telebot.robot.sim.stack import SimNavStack
 
 #: action_msgs/GoalStatus codes.
@@ -164,7 +166,17 @@ async def test_navigate_to_pose_moves_the_robot_with_feedback(node: Ros2Node) ->
     start = pose.msg.pose.pose.position
     room_b = small_map().places()["room-b"]
     record = send(node, nav_goal(node, room_b.x, room_b.y))
-    await wait_until(lambda: record.status is not None, timeout=30 + SLACK)
+    await wait_until(lambda: len(record.feedback) > 2, timeout=10 + SLACK)
+    # A zero velocity command (a teleop's, the stop stream of a daemon) leaves the goal alone,
+    # as on a Nav2 robot whose controller publishes on cmd_vel too.
+    twist = node.library.message("geometry_msgs/msg/Twist")
+    cmd_vel = node.publisher("cmd_vel", twist)
+
+    def ended() -> bool:
+        cmd_vel.publish(twist.make())  # every 10 ms until the goal ends
+        return record.status is not None
+
+    await wait_until(ended, timeout=30 + SLACK)
     assert record.accepted is True
     assert record.status == SUCCEEDED, record.text
     assert record.feedback, "no feedback"
@@ -282,6 +294,18 @@ async def test_drive_on_heading_and_spin_behaviours(node: Ros2Node) -> None:
     assert spin.status == SUCCEEDED, spin.result
     q = odom.msg.pose.pose.orientation
     assert math.atan2(2 * q.w * q.z, 1 - 2 * q.z * q.z) == pytest.approx(math.pi / 2, abs=0.1)
+    y1 = odom.msg.pose.pose.position.y
+    backup = send(
+        node,
+        lib.action("nav2_msgs/action/BackUp").goal.make(
+            target=m("geometry_msgs/msg/Point").make(x=0.5), speed=0.3
+        ),
+        "backup",
+        "BackUp",
+    )
+    await wait_until(lambda: backup.status is not None, timeout=15 + SLACK)
+    assert backup.status == SUCCEEDED, backup.result
+    assert odom.msg.pose.pose.position.y - y1 == pytest.approx(-0.5, abs=0.1)  # facing +y
     # A speed and a target of opposite signs is Nav2's INVALID_INPUT.
     bad = send(
         node,
@@ -292,6 +316,56 @@ async def test_drive_on_heading_and_spin_behaviours(node: Ros2Node) -> None:
     await wait_until(lambda: bad.status is not None, timeout=10 + SLACK)
     assert bad.status == ABORTED
     assert bad.result.error_code == 724 and "opposite signs" in bad.result.error_msg
+
+
+async def test_cameras_tf_battery_and_scan(node: Ros2Node) -> None:
+    camera = subscribe(node, "navcam/image/compressed", "sensor_msgs/msg/CompressedImage")
+    tf = subscribe(node, "/tf", "tf2_msgs/msg/TFMessage")
+    battery = subscribe(node, "battery_state", "sensor_msgs/msg/BatteryState")
+    scan = subscribe(node, "scan", "sensor_msgs/msg/LaserScan")
+    # Images are rendered only while someone subscribes: the sim sees us within a second.
+    await wait_until(
+        lambda: None not in (camera.msg, tf.msg, battery.msg, scan.msg), timeout=10 + SLACK
+    )
+    assert camera.msg.format == "jpeg"
+    image = cv2.imdecode(np.asarray(camera.msg.data, dtype=np.uint8), cv2.IMREAD_COLOR)
+    assert image is not None and image.shape == (480, 640, 3)
+    (transform,) = tf.msg.transforms
+    assert (transform.header.frame_id, transform.child_frame_id) == ("map", "base_link")
+    start = small_map().places()["start"]
+    assert transform.transform.translation.x == pytest.approx(start.x, abs=0.1)
+    assert 0.0 < battery.msg.percentage <= 1.0 and battery.msg.present
+    assert len(scan.msg.ranges) == 360 and scan.msg.angle_min == pytest.approx(-math.pi)
+    assert np.isfinite(scan.msg.ranges).any()  # walls of the small map are within range
+
+
+async def test_kilted_cmd_vel_is_twist_stamped(tmp_path: Path) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    config = write_config(tmp_path / "robot.toml", sim=FAST_SIM)
+    args = ["--config", str(config), "--listen", endpoint, "--distro", "kilted"]
+    process = Process(["telebot.apps.sim_cli", *args])
+    try:
+        assert "serving map" in process.next_line(timeout=30)
+        with Ros2Node(
+            name="kilted_test", connect=[endpoint], library=TypeLibrary("kilted")
+        ) as node:
+            odom = subscribe(node, "odom", "nav_msgs/msg/Odometry")
+            m = node.library.message
+            stamped = m("geometry_msgs/msg/TwistStamped")
+            cmd_vel = node.publisher("cmd_vel", stamped)
+            forward = stamped.make(
+                twist=m("geometry_msgs/msg/Twist").make(
+                    linear=m("geometry_msgs/msg/Vector3").make(x=0.3)
+                )
+            )
+
+            def moving() -> bool:
+                cmd_vel.publish(forward)
+                return odom.msg is not None and odom.msg.twist.twist.linear.x > 0.2
+
+            await wait_until(moving, timeout=10 + SLACK)
+    finally:
+        process.stop(graceful=True)
 
 
 def run_sim(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:

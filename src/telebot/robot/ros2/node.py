@@ -96,6 +96,8 @@ def _close(raw: _Closable) -> None:
 LOG_EVERY = 5.0
 #: rmw_zenoh's heartbeat period (s) for reliable transient-local publishers.
 HEARTBEAT_PERIOD = 0.5
+#: A request that reached no server goes again after this many seconds (until its timeout).
+RETRY_GAP = 0.05
 #: A GetResult request waits this long (s): rmw_zenoh waits forever, we wait a day.
 RESULT_TIMEOUT = 86_400.0
 
@@ -733,23 +735,8 @@ class ServiceClient(_Endpoint):
         with self._lock:
             seq = self._seq
             self._seq += 1
-        call = _PendingCall(self, seq, on_done, timeout)
-        if self._closed:
-            call.finish(None, f"service client {self.name} is closed")
-            return seq
-        attachment = Attachment(seq, time.time_ns(), self.gid).encode()
-        try:
-            self.node.session.get(
-                self.key,
-                zenoh.handlers.Callback(call.on_reply, call.on_end),
-                target=zenoh.QueryTarget.ALL_COMPLETE,
-                consolidation=zenoh.ConsolidationMode.NONE,
-                timeout=timeout,
-                payload=payload,
-                attachment=attachment,
-            )
-        except zenoh.ZError as exc:
-            call.finish(None, f"cannot call {self.name}: {_reason(exc)}")
+        call = _PendingCall(self, seq, payload, on_done, timeout)
+        call.send()
         self.stats.sent += 1
         return seq
 
@@ -780,16 +767,39 @@ class _PendingCall:
         self,
         client: ServiceClient,
         seq: int,
+        payload: bytes,
         on_done: Callable[[Any | None, str], None],
         timeout: float,
     ) -> None:
         self.client = client
         self.seq = seq
+        self.payload = payload
         self.on_done = on_done
         self.timeout = timeout
-        self.started = time.monotonic()
+        self.deadline = time.monotonic() + timeout
         self._done = False
         self._lock = threading.Lock()
+
+    def send(self) -> None:
+        """Send (or resend) the query with the time left."""
+        client = self.client
+        if client.closed or client.node.closed:
+            self.finish(None, f"service client {client.name} is closed")
+            return
+        left = self.deadline - time.monotonic()
+        attachment = Attachment(self.seq, time.time_ns(), client.gid).encode()
+        try:
+            client.node.session.get(
+                client.key,
+                zenoh.handlers.Callback(self.on_reply, self.on_end),
+                target=zenoh.QueryTarget.ALL_COMPLETE,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=max(left, 0.001),
+                payload=self.payload,
+                attachment=attachment,
+            )
+        except zenoh.ZError as exc:
+            self.finish(None, f"cannot call {client.name}: {_reason(exc)}")
 
     def finish(self, response: Any | None, why: str) -> None:
         with self._lock:
@@ -836,11 +846,23 @@ class _PendingCall:
         self.finish(response, "")
 
     def on_end(self) -> None:
-        elapsed = time.monotonic() - self.started
-        if elapsed >= self.timeout * 0.9:
-            why = f"no reply from service {self.client.name} within {self.timeout:g} s"
-        else:
-            why = f"no server for service {self.client.name} answered"
+        """The query ended; without a reply, resend it while time is left.
+
+        A query that reached no queryable ends at once. That happens while the client's
+        zenoh session has not yet learnt of a server that has just appeared (its liveliness
+        token can arrive first), so the request goes again, as a ROS client would wait.
+        """
+        with self._lock:
+            if self._done:
+                return
+        if self.deadline - time.monotonic() > RETRY_GAP and not self.client.closed:
+            timer = threading.Timer(RETRY_GAP, self.send)
+            timer.daemon = True
+            timer.start()
+            return
+        why = f"no reply from service {self.client.name} within {self.timeout:g} s"
+        if not self.client.available():
+            why += " (no server in the ROS graph)"
         self.finish(None, why)
 
 

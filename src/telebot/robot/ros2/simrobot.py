@@ -13,8 +13,9 @@ What it serves (names from ``[ros2]`` of the robot config, relative to its names
   (``nav_msgs/Path``, whenever the plan changes; empty when the goal ends), and each camera's
   ``<camera>/image/compressed`` (JPEG) while something subscribes to it.
 - ``cmd_vel`` (``Twist``, or ``TwistStamped`` on Kilted / with ``cmd_vel_stamped``): manual
-  driving. It replaces a running goal, keeps the simulator's laser stop and speed caps, and the
-  base stops by itself ``sim.cmd_vel_timeout`` (0.5 s) after the last command.
+  driving. A moving command replaces a running goal (a zero one leaves it alone, as on a Nav2
+  robot whose controller publishes there too), keeps the simulator's laser stop and speed
+  caps, and the base stops by itself ``sim.cmd_vel_timeout`` (0.5 s) after the last command.
 - The ``navigate_to_pose``, ``drive_on_heading``, ``spin`` and ``backup`` action servers, with
   feedback and results. A goal the simulator cannot start (no path) is accepted and aborted at
   once with Nav2's error code (and, on Kilted, its ``error_msg``), as Nav2 does.
@@ -49,7 +50,7 @@ from telebot.errors import InvalidCommand, RobotUnreachable, TelebotError
 from telebot.reasons import Reason
 from telebot.robot.nav import GoalStatus, Pose2D, normalize_angle
 from telebot.robot.ros2.keys import EntityKind, GraphEntity, QoS
-from telebot.robot.ros2.node import GOAL_UNKNOWN, ActionServer, Ros2Node
+from telebot.robot.ros2.node import GOAL_CANCELING, GOAL_UNKNOWN, ActionServer, Ros2Node
 from telebot.robot.ros2.types import ActionType, TypeLibrary
 from telebot.robot.sim.stack import SimGoal, SimNavStack
 
@@ -198,7 +199,6 @@ class SimRobotServer:
         self._map_version: int | None = None
         self._plan: tuple[Pose2D, ...] | None = None
         self._camera_wanted: dict[str, bool] = {}
-        self._graph_keys: set[str] = set()
         self._speed_limit = stack.speed_limit
         #: Counters for logs and tests: velocity commands taken and refused, goals stopped
         #: because their client left.
@@ -273,7 +273,7 @@ class SimRobotServer:
         """The CompressedImage topic of ``camera``: ``[ros2] cameras`` or ``<camera>/image/compressed``."""
         return self._settings.cameras.get(camera, f"{camera}/image/compressed")
 
-    def _start_io(self, loop: asyncio.AbstractEventLoop) -> None:
+    def _start_io(self) -> None:
         node, s = self._node, self._settings
 
         def on_cmd_vel(msg: Any, _attachment: Any) -> None:
@@ -283,7 +283,7 @@ class SimRobotServer:
 
         self._subscriptions.append(node.subscribe(s.cmd_vel_topic, self._t_cmd_vel, on_cmd_vel))
         for kind, name in self._action_names.items():
-            self._servers[kind] = self._action_server(loop, kind, name)
+            self._servers[kind] = self._action_server(kind, name)
 
         def on_graph_change(entity: GraphEntity, appeared: bool) -> None:
             self._post(self._on_graph_change, entity, appeared)
@@ -297,7 +297,7 @@ class SimRobotServer:
             with contextlib.suppress(RuntimeError):  # the loop closed: we are shutting down
                 loop.call_soon_threadsafe(callback, *args)
 
-    def _action_server(self, loop: asyncio.AbstractEventLoop, kind: str, name: str) -> ActionServer:
+    def _action_server(self, kind: str, name: str) -> ActionServer:
         def on_goal(goal_id: bytes, goal: Any) -> bool:
             # Accept here (zenoh's thread) and start in the loop: a goal the simulator
             # cannot start is then aborted with the reason, as Nav2 aborts one it cannot plan.
@@ -318,7 +318,7 @@ class SimRobotServer:
         """Serve until ``stop`` is set; the base is stopped and every goal ended on the way out."""
         loop = asyncio.get_running_loop()
         self._loop = loop
-        self._start_io(loop)
+        self._start_io()
         period = 1.0 / self._stack.settings.control_hz
         next_scan = next_battery = next_camera = next_graph = next_warning = loop.time()
         try:
@@ -366,6 +366,12 @@ class SimRobotServer:
     # ------------------------------------------------------------------ velocity commands
 
     def _on_cmd_vel(self, linear: float, angular: float) -> None:
+        if linear == 0.0 and angular == 0.0 and self._stack.current_goal() is not None:
+            # As on a Nav2 robot, where the controller publishes on cmd_vel too: a zero
+            # command does not end a goal (cancel_goal does). The stop a teleop or a
+            # telebot daemon streams after cancelling must not end the next goal either.
+            self.cmd_vel_count += 1
+            return
         try:
             self._stack.drive(linear, angular)
         except InvalidCommand as exc:
@@ -389,6 +395,9 @@ class SimRobotServer:
         owners = self._owners_of(kind, server.client_gid(goal_id))
         goal = _Goal(kind, server, goal_id, started=loop.time(), owners=owners)
         self._goals[goal_id] = goal
+        if server.status(goal_id) == GOAL_CANCELING:  # cancelled before it could start
+            self._finish(goal, "cancel", "cancelled", Reason.CANCELLED)
+            return
         stack = self._stack
         try:
             if kind == "navigate":
@@ -452,6 +461,9 @@ class SimRobotServer:
             sim_goal = goal.sim_goal
             if sim_goal is None:
                 continue
+            if not goal.owners:
+                # Its client was not in our view of the graph yet: look again.
+                goal.owners = self._owners_of(goal.kind, goal.server.client_gid(goal.goal_id))
             status = sim_goal.status
             if status is GoalStatus.SUCCEEDED:
                 self._finish(goal, "succeed", "", Reason.FINISHED)
@@ -564,8 +576,6 @@ class SimRobotServer:
         if client is not None:
             return frozenset({client.key, _node_key(client)})
         clients = self._node.find(EntityKind.CLIENT, self._send_goal_service(kind))
-        if not clients:
-            log.warning("goal of %s from a client not in the ROS graph", kind)
         return frozenset(entity.key for entity in clients)
 
     def _send_goal_service(self, kind: str) -> str:
