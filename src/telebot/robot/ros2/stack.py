@@ -773,15 +773,19 @@ class Ros2NavStack:
         def age(at: float) -> str:
             return f"{now - at:.1f} s old" if at > 0 else "none yet"
 
+        # Asked of zenoh and the graph before the state lock is taken: zenoh's threads
+        # take that lock, so nothing holds it while calling into zenoh.
+        router = self._router_state()
+        action = self._settings.navigate_action
+        nav2 = (
+            f"{action} ready" if self._clients[_NAVIGATE].server_ready() else f"{action} not found"
+        )
+        dropped = self._node_drops()
         with self._lock:
             grid = self._grid
             values = {
-                "router": self._router_state(),
-                "nav2": (
-                    f"{self._settings.navigate_action} ready"
-                    if self._clients[_NAVIGATE].server_ready()
-                    else f"{self._settings.navigate_action} not found"
-                ),
+                "router": router,
+                "nav2": nav2,
                 "map": (
                     f"{grid.width}x{grid.height} @ {grid.resolution:g} m, version "
                     f"{self._map_version}, {age(self._map_at)}"
@@ -800,7 +804,7 @@ class Ros2NavStack:
                     if self._battery is not None
                     else "none yet"
                 ),
-                "dropped": str(sum(self._dropped.values()) + self._node_drops()),
+                "dropped": str(sum(self._dropped.values()) + dropped),
                 "speed_limit": f"{self._speed_limit:g} m/s",
                 "stops": str(self._stops),
             }
