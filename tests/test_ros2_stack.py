@@ -275,6 +275,43 @@ async def test_pose_velocity_battery_and_plan_are_mapped(
     assert "120x80" in diagnostics["map"] and diagnostics["pose"] != "none yet"
 
 
+async def test_without_a_pose_topic_the_pose_comes_from_tf(
+    router: str, nav2: FakeNav2, tmp_path: Path
+) -> None:
+    robot = Ros2NavStack.from_config(config_for(router, tmp_path, pose_topic=""), base_dir=tmp_path)
+    m = nav2.m
+    tf_pub = nav2.node.publisher("/tf", m("tf2_msgs/msg/TFMessage"))
+
+    def transform(parent: str, child: str, x: float, yaw: float) -> Any:
+        return m("geometry_msgs/msg/TransformStamped").make(
+            header=m("std_msgs/msg/Header").make(frame_id=parent),
+            child_frame_id=child,
+            transform=m("geometry_msgs/msg/Transform").make(
+                translation=m("geometry_msgs/msg/Vector3").make(x=x),
+                rotation=m("geometry_msgs/msg/Quaternion").make(**quaternion_fields(yaw)),
+            ),
+        )
+
+    message = m("tf2_msgs/msg/TFMessage").make(
+        transforms=[
+            transform("map", "odom", 1.0, math.pi / 2),
+            transform("odom", "base_link", 2.0, 0),
+        ]
+    )
+    try:
+
+        def located() -> bool:
+            tf_pub.publish(message)
+            return robot.pose().stamp > 0
+
+        await wait_until(located)
+        pose = robot.pose().pose
+        assert (pose.x, pose.y) == (pytest.approx(1.0), pytest.approx(2.0))
+        assert pose.yaw == pytest.approx(math.pi / 2)
+    finally:
+        robot.close()
+
+
 async def test_a_camera_topic_gives_frames_and_is_subscribed_only_while_watched(
     stack: Ros2NavStack, nav2: FakeNav2, monkeypatch: pytest.MonkeyPatch
 ) -> None:
