@@ -275,6 +275,22 @@ async def test_pose_velocity_battery_and_plan_are_mapped(
     assert "120x80" in diagnostics["map"] and diagnostics["pose"] != "none yet"
 
 
+async def test_garbage_and_impossible_values_are_dropped_and_counted(
+    stack: Ros2NavStack, nav2: FakeNav2
+) -> None:
+    nav2.odom_pub.publish_cdr(b"\x00\x01\x00\x00garbage")  # not an Odometry
+    await wait_until(lambda: stack.diagnostics()["dropped"] == "1")
+    nav2.pose_pub.publish(
+        nav2.m("geometry_msgs/msg/PoseWithCovarianceStamped").make(
+            pose=nav2.m("geometry_msgs/msg/PoseWithCovariance").make(
+                pose=nav2.pose(math.nan, 0.0, 0.0)
+            )
+        )
+    )
+    await wait_until(lambda: stack.diagnostics()["dropped"] == "2")
+    assert stack.pose().stamp == 0  # no pose taken from it
+
+
 async def test_without_a_pose_topic_the_pose_comes_from_tf(
     router: str, nav2: FakeNav2, tmp_path: Path
 ) -> None:
