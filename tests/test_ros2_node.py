@@ -144,6 +144,7 @@ async def test_garbage_is_counted_and_later_samples_still_arrive(
     a, b = nodes
     got: list[Any] = []
     sub = b.subscribe("/cmd_vel", TWIST, lambda msg, att: got.append(msg))
+    small = b.subscribe("/cmd_vel", TWIST, lambda msg, att: got.append(msg), max_bytes=10)
     key = sub.key
     wrong_hash = key.rsplit("/", 1)[0] + "/RIHS01_" + "0" * 64
     good_att = Attachment(1, time.time_ns(), bytes(16)).encode()
@@ -164,6 +165,34 @@ async def test_garbage_is_counted_and_later_samples_still_arrive(
     await wait_until(lambda: pub.publish(TWIST.make()) is None and len(got) > delivered)
     await wait_until(lambda: len(got) == sub.stats.delivered)
     assert got[-1] == TWIST.make() and sub.stats.dropped == 4
+    assert small.stats.delivered == 0 and small.stats.too_large >= 1
+    # A liveliness token under ROS's admin space that is not rmw_zenoh's: counted, ignored.
+    junk = raw.liveliness().declare_token("@ros2_lv/0/junk/token")
+    await wait_until(lambda: a.bad_tokens >= 1)
+    assert not any("junk" in e.key for e in a.graph())
+    junk.undeclare()
+
+
+async def test_garbage_requests_are_refused_and_the_server_goes_on(
+    nodes: tuple[Ros2Node, Ros2Node], raw: zenoh.Session
+) -> None:
+    a, b = nodes
+    server = b.service_server("/add", ADD, lambda req, resp: resp.reply(ADD.response.make(sum=7)))
+    client = a.service_client("/add", ADD)
+    await wait_until(client.available)
+    assert client.call_sync(ADD.request.make(), timeout=5.0).sum == 7
+    good_att = Attachment(1, time.time_ns(), bytes(16)).encode()
+    errors: list[str] = []
+    for payload, attachment in (
+        (ADD.request.serialize(ADD.request.make()), None),
+        (b"junk", good_att),
+    ):
+        for reply in raw.get(server.key, payload=payload, attachment=attachment, timeout=5.0):
+            assert reply.err is not None
+            errors.append(reply.err.payload.to_string())
+    assert (server.stats.bad_attachment, server.stats.bad_cdr) == (1, 1)
+    assert "attachment" in errors[0] and "bad request" in errors[1]
+    assert client.call_sync(ADD.request.make(), timeout=5.0).sum == 7
 
 
 async def test_garbage_callback_error_does_not_stop_subscription(

@@ -251,6 +251,8 @@ class Ros2Node:
             # client default is to exit on failure too.
             "connect/timeout_ms": {"client": int(connect_timeout * 1000), "peer": -1},
             "connect/exit_on_failure": {"client": True, "peer": False},
+            # As rmw_zenoh's session config: samples carry HLC timestamps.
+            "timestamping/enabled": {"router": True, "peer": True, "client": True},
         }
         if connect:
             values["connect/endpoints"] = list(connect)
