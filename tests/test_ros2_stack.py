@@ -453,6 +453,21 @@ async def test_forward_and_turn_use_drive_on_heading_and_spin(
     await wait_until(lambda: turn.progress > 0.5)
 
 
+def test_a_missing_behaviour_server_fails_the_move_at_once(
+    router: str, nav2: FakeNav2, tmp_path: Path
+) -> None:
+    nav2.servers["drive"].close()  # a Nav2 without the drive_on_heading behaviour
+    robot = Ros2NavStack.from_config(config_for(router, tmp_path), base_dir=tmp_path)
+    try:
+        running = robot.turn(1.0)
+        move = robot.forward(1.0)
+        assert move.status is GoalStatus.FAILED
+        assert "no Nav2 'drive_on_heading' action server" in move.reason
+        assert running.status is GoalStatus.ACTIVE  # the running goal goes on
+    finally:
+        robot.close()
+
+
 def test_no_motion_under_a_zero_speed_cap(stack: Ros2NavStack) -> None:
     stack.set_speed_limit(0.0)
     assert stack.forward(1.0).status is GoalStatus.FAILED

@@ -109,6 +109,8 @@ NAVCAM = "navcam"
 NO_SIGNAL_SIZE = (320, 240)
 #: Bytes of an OccupancyGrid message besides its cells (header, frame id, metadata): generous.
 MAP_HEADER_BYTES = 4096
+#: Start-up waits at least this long for Nav2 and the map once the router answered (s).
+MIN_DISCOVERY = 0.5
 #: A camera topic nobody asked a frame of for this long is unsubscribed (s).
 CAMERA_IDLE = 5.0
 #: How long close() waits for a running zero-velocity stream to finish (beyond its length, s).
@@ -467,6 +469,7 @@ class Ros2NavStack:
                 path = base_dir / path
             places = load_places(path)
         routers = ", ".join(settings.router)
+        started = time.monotonic()
         try:
             node = Ros2Node(
                 name=settings.node_name,
@@ -487,7 +490,9 @@ class Ros2NavStack:
             node.close()
             raise
         try:
-            stack.wait_ready(settings.connect_timeout)
+            # connect_timeout bounds the whole start-up; discovery still gets a moment.
+            elapsed = time.monotonic() - started
+            stack.wait_ready(max(settings.connect_timeout - elapsed, MIN_DISCOVERY))
         except BaseException:
             stack.close()
             raise
@@ -529,6 +534,14 @@ class Ros2NavStack:
             return (
                 f"no map on topic {settings.map_topic!r} (nav_msgs/msg/OccupancyGrid) after "
                 f"{settings.connect_timeout:g} s: is the map server (or SLAM) running?"
+            )
+        # The behaviours are optional (fwd and turn fail without them), but one of another
+        # distro is a configuration mistake worth stopping for.
+        for kind in (_DRIVE, _SPIN):
+            name, atype = self._actions[kind]
+            service = action_names(name)["send_goal"]
+            self._check_hash(
+                EntityKind.SERVICE, service, atype.send_goal.type_hash, f"{name} action"
             )
         return None
 
@@ -1076,6 +1089,14 @@ class Ros2NavStack:
 
     def _send(self, goal: Ros2Goal, message: Any) -> Ros2Goal:
         """Send ``goal`` to its action, replacing the running goal."""
+        client = self._clients[goal.kind]
+        if not client.server_ready():
+            name = self._actions[goal.kind][0]
+            return self._fail_at_once(
+                goal,
+                f"{goal.description} not possible: the robot has no Nav2 {name!r} action server",
+                Reason.FAILED,
+            )
         # A new motion ends the zero stream of an earlier stop (the driver re-armed and
         # moves on), or the base would take the zeros as someone else's command.
         self._zero.end()
@@ -1090,7 +1111,6 @@ class Ros2NavStack:
         # of another action must be cancelled, or two servers would drive at once.
         if previous is not None and previous.kind != goal.kind and previous.ros_id is not None:
             self._cancel_remote(previous)
-        client = self._clients[goal.kind]
         try:
             ros_id = client.send_goal(
                 message,
