@@ -14,14 +14,17 @@ NavStack                     ROS 2
 ``velocity()``               ``/odom`` ``nav_msgs/Odometry`` twist
 ``battery()``                ``/battery_state`` ``sensor_msgs/BatteryState`` (low < 20 %)
 ``planned_path()``           ``/plan`` ``nav_msgs/Path`` while a navigation goal runs
-``get_frame()``              ``sensor_msgs/CompressedImage`` topics of ``[ros2] cameras``
-``navigate_to()``            ``navigate_to_pose`` action (``nav2_msgs/NavigateToPose``)
+``get_frame()``              ``sensor_msgs/CompressedImage`` topics of ``[ros2] cameras``,
+                             subscribed while frames are asked for; ``navcam`` is black
+                             when no topic is named so
+``navigate_to()``            ``navigate_to_pose`` action (``nav2_msgs/NavigateToPose``);
+                             progress from its feedback, Nav2's error text and code
 ``forward()``                ``drive_on_heading`` behaviour, speed ≤ the speed cap
 ``turn()``                   ``spin`` behaviour (REP-103: positive is counter-clockwise)
 ``GoalHandle.cancel()``      the action's ``cancel_goal`` with the goal's id
 ``stop()``,                  cancel every goal of the three actions, and zero velocity on
 ``emergency_stop()``         ``cmd_vel`` (Twist or TwistStamped) at ``stop_rate_hz`` for
-                             ``stop_stream_s``
+                             ``stop_stream_s`` (a new motion ends the stream)
 ===========================  =============================================================
 
 The adapter is not stepped: Nav2 runs by itself, and zenoh calls back on its own threads.
