@@ -677,6 +677,15 @@ async def test_table_i_commands_drive_telebot_sim_across_processes(tmp_path: Pat
             assert goto.ok and goto.replies[-1] == "finished moving", goto.replies
             there = await robot.pose()
             assert math.hypot(there.x - 9.5, there.y - 4.0) < 0.3
+            # A click on the map: a goal on the goals channel, with progress.
+            updates: list[float] = []
+            final = await robot.goto(
+                10.5, 1.2, timeout=90, on_update=lambda u: updates.append(u.progress)
+            )
+            assert final.status == "succeeded", final
+            assert updates and max(updates) > 0.0
+            there = await robot.pose()
+            assert math.hypot(there.x - 10.5, there.y - 1.2) < 0.3
             # stop while it drives: the goal ends "stopped" and the base comes to rest.
             replies = robot.chat_replies("goto start", timeout=90)
             async for reply in replies:
