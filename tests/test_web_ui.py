@@ -292,6 +292,69 @@ async def test_a_click_moves_the_robot_there(rig: Rig) -> None:
         assert f"{real.x:.2f}"[:-1] in await page.inner_text("#pose-text")
 
 
+async def test_a_click_to_goal_draws_the_planned_path_and_places_are_labelled(rig: Rig) -> None:
+    await arm(rig)
+    async with browser_page(rig.ui.url) as page:
+        await page_ready(page)
+        # Every named place of the map is labelled on it.
+        await page.wait_for_function(
+            "() => window.telebotUI.drawn.labels.length === 4", timeout=10000
+        )
+        labels = await page.evaluate("() => window.telebotUI.drawn.labels")
+        assert sorted(labels) == sorted(rig.nav.places())
+        assert "straight line" not in await page.content()
+        await page.wait_for_function("() => window.telebotUI.state.safety?.armed")
+        start = rig.nav.pose().pose
+        room_b = rig.nav.places()["room-b"]  # round the walls from the start
+        sx, sy = await page.evaluate(
+            f"() => window.telebotUI.worldToScreen({room_b.x}, {room_b.y})"
+        )
+        box = await page.locator("#map").bounding_box()
+        await page.mouse.click(box["x"] + sx, box["y"] + sy)
+        await page.wait_for_function(
+            "() => window.telebotUI.state.plan?.points.length > 2"
+            " && window.telebotUI.drawn.plan >= 2",
+            timeout=10000,
+        )
+        plan = await page.evaluate("() => window.telebotUI.state.plan")
+        points = plan["points"]
+        assert math.dist(points[0], (start.x, start.y)) < 0.2
+        assert math.dist(points[-1], (room_b.x, room_b.y)) < 0.1  # the click, to a pixel
+        assert plan["goal"] is not None
+        # The polyline is on the canvas: the path's colour halfway along a segment well
+        # ahead of the robot (where nothing else is drawn over it).
+        pixel = await page.evaluate(
+            """([pts, rx, ry]) => {
+              const ui = window.telebotUI;
+              let best = null, bestLen = 0;
+              for (let i = 1; i + 1 < pts.length; i++) {
+                const [ax, ay] = pts[i], [bx, by] = pts[i + 1];
+                const len = Math.hypot(bx - ax, by - ay);
+                if (len > bestLen && Math.hypot(ax - rx, ay - ry) > 1.5) { best = i; bestLen = len; }
+              }
+              const [ax, ay] = pts[best], [bx, by] = pts[best + 1];
+              const [sx, sy] = ui.worldToScreen((ax + bx) / 2, (ay + by) / 2);
+              const dpr = window.devicePixelRatio || 1;
+              const c = document.getElementById('map');
+              return Array.from(c.getContext('2d').getImageData(
+                Math.round(sx * dpr), Math.round(sy * dpr), 1, 1).data);
+            }""",
+            [points, rig.nav.pose().pose.x, rig.nav.pose().pose.y],
+        )
+        assert pixel[:3] == [0, 160, 160], pixel
+        ARTIFACTS.mkdir(exist_ok=True)
+        await page.screenshot(path=str(ARTIFACTS / "web_ui_plan.png"))
+        # When the goal ends the robot sends an empty plan and the page draws none.
+        await page.wait_for_function(
+            "() => window.telebotUI.state.goal?.status === 'succeeded'", timeout=30000
+        )
+        await page.wait_for_function(
+            "() => window.telebotUI.state.plan?.points.length === 0"
+            " && window.telebotUI.drawn.plan === 0",
+            timeout=10000,
+        )
+
+
 async def test_a_key_press_stops_the_robot(rig: Rig) -> None:
     async with browser_page(rig.ui.url) as page:
         await page_ready(page)

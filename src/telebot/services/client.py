@@ -8,7 +8,8 @@ so nothing runs twice.
 Services are opened from a :class:`~telebot.services.base.ServiceRegistry`
 (:func:`default_client_services`: ``core``, the channels above, and ``video``). What a
 user subscribes to lives on the client, not on the call: :attr:`RobotClient.latest_pose`,
-:meth:`RobotClient.poses`, :meth:`RobotClient.video`, the video feed.
+:meth:`RobotClient.poses`, :attr:`RobotClient.plan`, :meth:`RobotClient.plans`,
+:attr:`RobotClient.places`, :meth:`RobotClient.video`, the video feed.
 
 Reconnecting: a client made by :func:`connect` calls the robot again when its call drops
 (:class:`~telebot.config.ReconnectSettings`: back-off with jitter, capped) and re-opens
@@ -28,7 +29,7 @@ import itertools
 import logging
 import random
 import secrets
-from collections.abc import AsyncGenerator, AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncGenerator, AsyncIterator, Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Generic, Literal, TypeVar
@@ -50,8 +51,10 @@ from telebot.identity import Identity, KnownRobots
 from telebot.reasons import Reason
 from telebot.services.base import CLIENT_TICK, OpenServices, ServiceRegistry
 from telebot.services.mapxfer import MapDownload, fetch_map
+from telebot.services.plan import PlanReceiver
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
 from telebot.services.proto.chat import ChatReply, decode_reply, encode_request
+from telebot.services.proto.plan import Place, PlanUpdate
 from telebot.services.proto.safety import (
     SAFETY,
     RequestType,
@@ -199,11 +202,17 @@ def _video(client: RobotClient, call: Call) -> VideoFeedService:
     return VideoFeedService(client.video_feed, call)
 
 
+def _plan(client: RobotClient, call: Call) -> PlanReceiver:
+    return PlanReceiver(call, client.latest_plan.set, client.latest_places.set)
+
+
 def default_client_services() -> ServiceRegistry[RobotClient]:
-    """The user side's built-in services: ``core`` (:class:`ClientCore`) and ``video``."""
+    """The user side's built-in services: ``core`` (:class:`ClientCore`), ``video`` and
+    ``plan`` (the robot's planned path and named places)."""
     registry: ServiceRegistry[RobotClient] = ServiceRegistry()
     registry.register("core", ClientCore)
     registry.register("video", _video)
+    registry.register("plan", _plan)
     return registry
 
 
@@ -245,6 +254,10 @@ class RobotClient:
         self._goal_waiters: dict[int, asyncio.Queue[GoalUpdate]] = {}
         self.latest_pose: _Latest[PoseUpdate] = _Latest()
         self.latest_telemetry: _Latest[Telemetry] = _Latest()
+        #: The robot's planned path (new ones only; see :attr:`plan`, :meth:`plans`).
+        self.latest_plan: _Latest[PlanUpdate] = _Latest()
+        #: The robot's named places by name (see :attr:`places`).
+        self.latest_places: _Latest[Mapping[str, Place]] = _Latest()
         #: Datagrams from the robot that did not decode (dropped).
         self.rejected = 0
         #: The services open on the current call.
@@ -628,6 +641,24 @@ class RobotClient:
         """
         while True:
             yield await self._until_finished(self.latest_pose.next())
+
+    @property
+    def plan(self) -> PlanUpdate | None:
+        """The robot's latest planned path (``points`` empty: it has none), None before the
+        first; it stays across reconnections until the new call brings one."""
+        return self.latest_plan.value
+
+    async def plans(self) -> AsyncIterator[PlanUpdate]:
+        """Each new plan as it comes: a new goal's, a replan's, an empty one when the goal
+        ends (latest only: a slow reader skips to the newest). Ends (CallEnded) with the
+        client, as :meth:`poses` does."""
+        while True:
+            yield await self._until_finished(self.latest_plan.next())
+
+    @property
+    def places(self) -> Mapping[str, Place]:
+        """The robot's named places by name (empty until the robot has sent them)."""
+        return self.latest_places.value or {}
 
     async def telemetry(self, *, timeout: float | None = 5.0) -> Telemetry:
         """The next telemetry message from the robot."""

@@ -5,12 +5,12 @@ it if it is a :class:`~telebot.robot.nav.SteppedNavStack` (``loop.time()`` is th
 simulation's clock; a robot that runs by itself is not stepped). Each call gets every
 service of the server's :class:`~telebot.services.base.ServiceRegistry`
 (:func:`default_robot_services`: ``core``, the :class:`CallServices` of chat, map, pose,
-goals, telemetry and safety, and ``video``), ticked on every cycle and closed when the call
-ends. The map is encoded once per :meth:`~telebot.robot.nav.NavStack.map_version`
-(:meth:`RobotServer.encoded_map`): a map that changes (SLAM) is served fresh, and each
-call's telemetry carries the version so users know to fetch it again. Every handler is
-guarded: garbage from one peer is dropped and counted and never reaches the others or
-stops the robot's loop.
+goals, telemetry and safety; ``video``; ``plan``, the planned path and named places),
+ticked on every cycle and closed when the call ends. The map is encoded once per
+:meth:`~telebot.robot.nav.NavStack.map_version` (:meth:`RobotServer.encoded_map`): a map
+that changes (SLAM) is served fresh, and each call's telemetry carries the version so users
+know to fetch it again. Every handler is guarded: garbage from one peer is dropped and
+counted and never reaches the others or stops the robot's loop.
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ from telebot.safety import SafetyState
 from telebot.services.base import OpenServices, ServiceRegistry
 from telebot.services.chat import NO_SUPERVISOR, ChatSession, error_reason, goal_reason
 from telebot.services.mapxfer import MapService
+from telebot.services.plan import PlanService
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
 from telebot.services.proto.chat import ChatReply, decode_request
 from telebot.services.proto.mapxfer import MAX_MAP_VERSION, EncodedMap, encode_map
@@ -394,10 +395,12 @@ def _core(server: RobotServer, call: Call) -> CallServices:
 
 
 def default_robot_services() -> ServiceRegistry[RobotServer]:
-    """The robot's built-in services: ``core`` (:class:`CallServices`) and ``video``."""
+    """The robot's built-in services: ``core`` (:class:`CallServices`), ``video`` and
+    ``plan`` (:class:`~telebot.services.plan.PlanService`: planned path and places)."""
     registry: ServiceRegistry[RobotServer] = ServiceRegistry()
     registry.register("core", _core)
     registry.register("video", RobotVideo)
+    registry.register("plan", PlanService)
     return registry
 
 

@@ -30,6 +30,9 @@ Websocket protocol (JSON text messages unless stated)::
                                                          came back (seconds of outage) /
                                                          ended for good
       {"type": "goal", "x", "y", "yaw", "status", "progress", "reason", "code"}
+      {"type": "plan", "seq", "goal", "points": [[x, y], ...]}   the robot's planned path
+                                                         (map frame; [] when it has none)
+      {"type": "places", "places": [{"name", "x", "y", "yaw"}, ...]}   named places
       {"type": "chat", "id", "text", "ok", "final", "code"}   replies, to the page that asked
       {"type": "ack", "what": "stop" | "arm" | ..., "ok", "reason", "code"}
       {"type": "pong", "t"}
@@ -64,7 +67,7 @@ import math
 import struct
 import sys
 import time
-from collections.abc import Callable, Coroutine
+from collections.abc import Callable, Coroutine, Mapping
 from dataclasses import asdict
 from importlib import resources
 from pathlib import Path
@@ -79,6 +82,7 @@ from telebot.reasons import Reason
 from telebot.rights import Right, may
 from telebot.services.client import ConnectionEvent, RobotClient
 from telebot.services.mapxfer import MapDownload
+from telebot.services.proto.plan import Place, PlanUpdate
 from telebot.services.proto.safety import STOP_HOWS, SafetyAck
 from telebot.services.proto.status import GoalUpdate, PoseUpdate
 from telebot.services.proto.video import CompleteFrame
@@ -184,7 +188,14 @@ class WebUI:
             self.port = int(sockets[0].getsockname()[1])
         self.client.on_connection.append(self._on_connection)
         self._map_fetch = self._spawn(self._fetch_map())
-        for pump in (self._pump_pose, self._pump_telemetry, self._pump_safety):
+        pumps = (
+            self._pump_pose,
+            self._pump_telemetry,
+            self._pump_safety,
+            self._pump_plan,
+            self._pump_places,
+        )
+        for pump in pumps:
             self._spawn(pump())
         self._spawn(self._pump_link())
         log.info("web UI for %s at %s", self.client.robot, self.url)
@@ -305,6 +316,10 @@ class WebUI:
             await page.ws.send_json({"type": "telemetry", **asdict(telemetry)})
         if self._goal is not None:
             await page.ws.send_json(self._goal)
+        if (plan := client.plan) is not None:
+            await page.ws.send_json(self._plan_message(plan))
+        if client.places:
+            await page.ws.send_json(self._places_message(client.places))
         await page.ws.send_json(self.connection)
 
     def _on_connection(self, event: ConnectionEvent) -> None:
@@ -507,6 +522,32 @@ class WebUI:
         log.info("the robot's map changed (version %s): fetching it again", version)
         self.map_refreshes += 1
         self._map_fetch = self._spawn(self._fetch_map())
+
+    @staticmethod
+    def _plan_message(plan: PlanUpdate) -> dict[str, Any]:
+        return {
+            "type": "plan",
+            "seq": plan.seq,
+            "goal": plan.goal,
+            "points": [[x, y] for x, y in plan.points],
+        }
+
+    @staticmethod
+    def _places_message(places: Mapping[str, Place]) -> dict[str, Any]:
+        return {
+            "type": "places",
+            "places": [{"name": p.name, "x": p.x, "y": p.y, "yaw": p.yaw} for p in places.values()],
+        }
+
+    async def _pump_plan(self) -> None:
+        latest = self.client.latest_plan
+        while True:
+            self._broadcast(self._plan_message(await latest.next()))
+
+    async def _pump_places(self) -> None:
+        latest = self.client.latest_places
+        while True:
+            self._broadcast(self._places_message(await latest.next()))
 
     async def _pump_safety(self) -> None:
         latest = self.client.latest_safety

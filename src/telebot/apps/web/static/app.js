@@ -11,8 +11,11 @@
     state: {
       robot: "", role: "", mayDrive: false, map: null, pose: null, goal: null,
       safety: null, telemetry: null, link: null, connected: false, call: null,
-      frames: 0, camera: "", fps: 0, chat: [],
+      frames: 0, camera: "", fps: 0, chat: [], plan: null, places: [],
     },
+    // What the last draw() put on the map, for tests: points of the planned path drawn
+    // and the names of the places labelled.
+    drawn: { plan: 0, labels: [] },
     // Measurements for tests and benchmarks (wall-clock ms).
     stats: { keyTimes: [], poseDraw: [], frameTimes: [] },
   };
@@ -89,6 +92,8 @@
         if (m.state !== "connected") addChat("[" + (m.state === "reconnected" ? "reconnected after " + m.seconds.toFixed(1) + " s" : m.detail || m.state) + "]", m.state === "reconnected" ? "" : "fail");
         break;
       case "goal": ui.state.goal = m; showGoal(); draw(); break;
+      case "plan": ui.state.plan = m; planAt = 0; draw(); break;
+      case "places": ui.state.places = m.places; draw(); break;
       case "chat": {
         addChat(m.text, m.ok || !m.final ? "" : "fail");
         ui.state.chat.push(m);
@@ -214,14 +219,38 @@
     const [ox, oy] = worldToScreen(0, 0);
     ctx.fillStyle = "#e00";
     ctx.beginPath(); ctx.arc(ox, oy, 4, 0, 2 * Math.PI); ctx.fill();
-    // Goal and the straight line to it (the robot does not send its planned path).
+    // Named places: a dot and the name (only those in view: the page stays fast).
+    const labels = [];
+    ctx.font = "12px sans-serif"; ctx.textBaseline = "middle"; ctx.lineJoin = "round";
+    for (const pl of ui.state.places) {
+      const [lx, ly] = worldToScreen(pl.x, pl.y);
+      if (lx < -50 || ly < -20 || lx > canvas.clientWidth + 50 || ly > canvas.clientHeight + 20) continue;
+      ctx.fillStyle = "#a0a";
+      ctx.beginPath(); ctx.arc(lx, ly, 3, 0, 2 * Math.PI); ctx.fill();
+      ctx.strokeStyle = "rgba(255,255,255,0.85)"; ctx.lineWidth = 3;
+      ctx.strokeText(pl.name, lx + 6, ly);
+      ctx.fillStyle = "#606"; ctx.fillText(pl.name, lx + 6, ly);
+      labels.push(pl.name);
+    }
+    ui.drawn.labels = labels;
+    // The robot's planned path, from where the robot is on it now to the goal.
     const g = ui.state.goal;
-    if (g && (g.status === "active" || g.status === "sent") && p) {
-      const [gx, gy] = worldToScreen(g.x, g.y);
-      const [rx, ry] = worldToScreen(p.x, p.y);
-      ctx.strokeStyle = "#0a0"; ctx.lineWidth = 2; ctx.setLineDash([6, 4]);
-      ctx.beginPath(); ctx.moveTo(rx, ry); ctx.lineTo(gx, gy); ctx.stroke();
-      ctx.setLineDash([]);
+    const plan = ui.state.plan;
+    ui.drawn.plan = 0;
+    if (plan && plan.points.length >= 2) {
+      const pts = plan.points;
+      let first = 0;
+      if (p) { planAt = nearestSegment(pts, p.x, p.y, planAt); first = planAt + 1; }
+      ctx.strokeStyle = PLAN_COLOR; ctx.lineWidth = 3; ctx.lineJoin = "round";
+      ctx.beginPath();
+      let [sx, sy] = p ? worldToScreen(p.x, p.y) : worldToScreen(pts[0][0], pts[0][1]);
+      ctx.moveTo(sx, sy);
+      for (let i = first; i < pts.length; i++) {
+        [sx, sy] = worldToScreen(pts[i][0], pts[i][1]);
+        ctx.lineTo(sx, sy);
+      }
+      ctx.stroke();
+      ui.drawn.plan = pts.length - first;
     }
     if (g) {
       const [gx, gy] = worldToScreen(g.x, g.y);
@@ -252,6 +281,22 @@
     }
   }
   ui.draw = draw;
+  // The path segment the robot is on: searched from the last one forwards (a few
+  // segments), so a path that passes near itself does not make the drawing jump back.
+  const PLAN_COLOR = "#00a0a0";
+  let planAt = 0;
+  function nearestSegment(pts, x, y, from) {
+    let best = from, bestD = Infinity;
+    const last = Math.min(pts.length - 1, from + 8);
+    for (let i = from; i < last; i++) {
+      const [ax, ay] = pts[i], [bx, by] = pts[i + 1];
+      const dx = bx - ax, dy = by - ay, len2 = dx * dx + dy * dy;
+      const t = len2 > 0 ? Math.max(0, Math.min(1, ((x - ax) * dx + (y - ay) * dy) / len2)) : 0;
+      const d = Math.hypot(ax + t * dx - x, ay + t * dy - y);
+      if (d < bestD) { bestD = d; best = i; }
+    }
+    return best;
+  }
   function arrow(x, y, yaw, len, color) {
     const ex = x + Math.cos(yaw) * len, ey = y - Math.sin(yaw) * len;
     ctx.strokeStyle = color;
