@@ -679,11 +679,19 @@ async def test_table_i_commands_drive_telebot_sim_across_processes(tmp_path: Pat
             assert math.hypot(there.x - 9.5, there.y - 4.0) < 0.3
             # A click on the map: a goal on the goals channel, with progress.
             updates: list[float] = []
-            final = await robot.goto(
-                10.5, 1.2, timeout=90, on_update=lambda u: updates.append(u.progress)
-            )
+            planned: list[int] = []
+
+            def on_update(update: Any) -> None:
+                updates.append(update.progress)
+                plan = robot.plan
+                planned.append(len(plan.points) if plan is not None else 0)
+
+            final = await robot.goto(10.5, 1.2, timeout=90, on_update=on_update)
             assert final.status == "succeeded", final
             assert updates and max(updates) > 0.0
+            # Nav2's /plan reaches the user as the planned path; the places too.
+            assert max(planned) >= 2
+            assert "room-b" in robot.places
             there = await robot.pose()
             assert math.hypot(there.x - 10.5, there.y - 1.2) < 0.3
             # stop while it drives: the goal ends "stopped" and the base comes to rest.
