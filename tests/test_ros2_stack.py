@@ -408,6 +408,16 @@ async def test_nav2_aborting_a_goal_gives_its_error_text_and_code(
     assert stack.status().state is NavState.FAILED
 
 
+async def test_a_goal_fails_when_its_server_leaves_the_graph(
+    stack: Ros2NavStack, nav2: FakeNav2
+) -> None:
+    handle = stack.navigate_to(1.0, 1.0)
+    await wait_until(lambda: len(nav2.goals["navigate"]) == 1)
+    nav2.servers["navigate"].close()  # Nav2 crashed
+    await wait_until(lambda: handle.status is GoalStatus.FAILED)
+    assert "left the ROS graph" in handle.reason and stack.current_goal() is None
+
+
 def test_a_goal_in_a_wall_or_off_the_map_fails_at_once(stack: Ros2NavStack) -> None:
     wall = stack.navigate_to(-3.0 + 100.5 * RES, 0.0)
     outside = stack.navigate_to(50.0, 50.0)

@@ -84,7 +84,7 @@ from telebot.robot.ros2.convert import (
     pose_from_msg,
     quaternion_fields,
 )
-from telebot.robot.ros2.keys import EntityKind, QoS, action_names
+from telebot.robot.ros2.keys import EntityKind, GraphEntity, QoS, action_names
 from telebot.robot.ros2.node import ActionClient, Ros2Node, Subscription
 from telebot.robot.ros2.types import ActionType, MessageType, TypeLibrary
 
@@ -444,6 +444,13 @@ class Ros2NavStack:
         self._listen(settings.scan_topic, "sensor_msgs/msg/LaserScan", self._on_scan)
         self._listen(settings.battery_topic, "sensor_msgs/msg/BatteryState", self._on_battery)
         self._listen(settings.plan_topic, "nav_msgs/msg/Path", self._on_plan)
+        # A goal whose server leaves the graph (Nav2 crashed, the robot's router went away)
+        # will never get a result: it fails at once rather than look active for ever.
+        self._send_goal_names = {
+            kind: node.resolve(action_names(name)["send_goal"])
+            for kind, (name, _) in self._actions.items()
+        }
+        self._unwatch_graph = node.on_graph_change(self._on_graph_change)
         # Camera topics are subscribed while frames are asked for (see get_frame): a robot's
         # image streams cross the router only when someone watches.
         self._camera_lock = threading.Lock()
@@ -567,6 +574,7 @@ class Ros2NavStack:
             if self._closed:
                 return
             self._closed = True
+        self._unwatch_graph()
         self._camera_wake.set()
         self._zero.close(self._settings.stop_stream_s + CLOSE_GRACE)
         self._node.close()
@@ -699,6 +707,23 @@ class Ros2NavStack:
             camera.fmt = str(msg.format)
             camera.stamp = time.monotonic()
             camera.received += 1
+
+    def _on_graph_change(self, entity: GraphEntity, alive: bool) -> None:
+        if alive or entity.kind is not EntityKind.SERVICE:
+            return
+        with self._lock:
+            goal = self._goal
+        if goal is None or entity.topic != self._send_goal_names[goal.kind]:
+            return
+        if self._clients[goal.kind].server_ready():
+            return  # another server of the action is still there
+        name = self._actions[goal.kind][0]
+        self._end(
+            goal,
+            GoalStatus.FAILED,
+            f"{goal.description} failed: Nav2's {name} action server left the ROS graph",
+            Reason.FAILED,
+        )
 
     # ------------------------------------------------------------------ NavStack: queries
 
