@@ -20,7 +20,14 @@ from pydantic import ValidationError
 from telebot import __version__
 from telebot.channels.proto.frames import validate_name
 from telebot.config import AppConfig, default_home, format_validation_error, load_toml
-from telebot.errors import CallError, ConfigError, IdentityError, TelebotError, TransportError
+from telebot.errors import (
+    CallError,
+    ConfigError,
+    IdentityError,
+    RobotUnreachable,
+    TelebotError,
+    TransportError,
+)
 from telebot.identity import Identity
 
 __all__ = [
@@ -228,7 +235,8 @@ def _run(prog: str, main: Callable[[], Coroutine[Any, Any, int]]) -> int:
         return asyncio.run(_terminable(main))
     except KeyboardInterrupt:
         return 130
-    except (ConfigError, IdentityError, TransportError, CallError) as exc:
+    # A robot that is not there (no ROS 2 router, no Nav2) is "no connection": exit 2.
+    except (ConfigError, IdentityError, TransportError, CallError, RobotUnreachable) as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except TelebotError as exc:

@@ -1,7 +1,7 @@
 """``telebot-robot``: the robot's command line.
 
 ``telebot-robot run`` is the robot daemon (the robot adapter ``--robot`` or ``[robot] kind``
-names, ``sim`` by default; chat, map, pose, goals, telemetry); the other commands manage the robot's key and contact list, generate the
+names, ``sim`` by default, ``ros2`` for a ROS 2 / Nav2 robot; chat, map, pose, goals, telemetry); the other commands manage the robot's key and contact list, generate the
 default map, and run the echo robot, a network check.
 """
 
@@ -77,8 +77,9 @@ def build_parser() -> Parser:
         "--robot",
         default=None,
         metavar="NAME",
-        help="robot adapter to drive: 'sim' (the simulated robot, default) or an installed "
-        "plug-in's name (entry-point group telebot.robots); overrides robot.kind of the config",
+        help="robot adapter to drive: 'sim' (the simulated robot, default), 'ros2' (a ROS 2 / "
+        "Nav2 robot over rmw_zenoh, set up in [ros2] of the config) or an installed plug-in's "
+        "name (entry-point group telebot.robots); overrides robot.kind of the config",
     )
     daemon.add_argument(
         "--map",

@@ -65,81 +65,94 @@ async def serve_robot(
     stop = stop or asyncio.Event()
     loop = asyncio.get_running_loop()
     nav = await asyncio.to_thread(create_robot, config, base_dir=base_dir, now=loop.time())
-    # Read before the supervisor's start-up stop sets the cap to zero.
-    max_speed = nav.speed_limit
-    if not (isinstance(max_speed, int | float) and math.isfinite(max_speed) and max_speed > 0):
-        raise RobotError(f"robot {config.robot.kind!r} reports a top speed of {max_speed!r} m/s")
-    simulated = config.robot.kind == "sim"
-    map_label = config.sim.map if simulated else config.robot.kind
-    audit = config.safety.audit_log
-    if not audit.is_absolute() and home is not None:
-        audit = home / audit
-    safety = SafetyDriver(
-        nav,
-        timeout=deadman_time(config),
-        max_speed=max_speed,
-        usercam_while_moving=config.safety.usercam_while_moving,
-        audit_path=audit,
-    )
-    with safety:  # from here on the watchdog runs, and the audit log is closed at the end
-        server = RobotServer(
+    try:
+        # Read before the supervisor's start-up stop sets the cap to zero.
+        max_speed = nav.speed_limit
+        if not (isinstance(max_speed, int | float) and math.isfinite(max_speed) and max_speed > 0):
+            raise RobotError(
+                f"robot {config.robot.kind!r} reports a top speed of {max_speed!r} m/s"
+            )
+        simulated = config.robot.kind == "sim"
+        map_label = config.sim.map if simulated else config.robot.kind
+        audit = config.safety.audit_log
+        if not audit.is_absolute() and home is not None:
+            audit = home / audit
+        safety = SafetyDriver(
             nav,
-            config.services,
-            control_hz=config.sim.control_hz,
-            map_name=Path(config.sim.map).stem if simulated else "map",
-            emit=emit,
-            safety=safety,
-            video=VideoSettings(
-                width=config.video.width,
-                height=config.video.height,
-                max_fps=config.video.max_fps,
-                quality=config.video.quality,
-                min_quality=min(30, config.video.quality),
-                adaptive=config.video.adaptive,
-            ),
+            timeout=deadman_time(config),
+            max_speed=max_speed,
+            usercam_while_moving=config.safety.usercam_while_moving,
+            audit_path=audit,
         )
-        await server.prepare()
-        with stop_on_signals(stop):
-            async with (
-                create_transport(config.transport) as transport,
-                RobotEndpoint(
-                    transport, identity, contacts, settings=config.call, namespace=config.namespace
-                ) as endpoint,
-            ):
-                server.attach(endpoint)
-                runner = asyncio.create_task(server.run(), name="robot-loop")
-                pose = nav.pose().pose
-                log.info(
-                    "robot %s ready on map %s at (%.2f, %.2f)",
-                    identity.name,
-                    map_label,
-                    pose.x,
-                    pose.y,
-                )
-                emit(
-                    {
-                        "event": "ready",
-                        "robot": identity.name,
-                        "map": map_label,
-                        "kind": config.robot.kind,
-                        "places": sorted(nav.places()),
-                    }
-                )
-                try:
-                    stopped = asyncio.create_task(stop.wait())
-                    done, _ = await asyncio.wait(
-                        {runner, stopped}, return_when=asyncio.FIRST_COMPLETED
+        with safety:  # from here on the watchdog runs, and the audit log is closed at the end
+            server = RobotServer(
+                nav,
+                config.services,
+                control_hz=config.sim.control_hz,
+                map_name=Path(config.sim.map).stem if simulated else "map",
+                emit=emit,
+                safety=safety,
+                video=VideoSettings(
+                    width=config.video.width,
+                    height=config.video.height,
+                    max_fps=config.video.max_fps,
+                    quality=config.video.quality,
+                    min_quality=min(30, config.video.quality),
+                    adaptive=config.video.adaptive,
+                ),
+            )
+            await server.prepare()
+            with stop_on_signals(stop):
+                async with (
+                    create_transport(config.transport) as transport,
+                    RobotEndpoint(
+                        transport,
+                        identity,
+                        contacts,
+                        settings=config.call,
+                        namespace=config.namespace,
+                    ) as endpoint,
+                ):
+                    server.attach(endpoint)
+                    runner = asyncio.create_task(server.run(), name="robot-loop")
+                    pose = nav.pose().pose
+                    log.info(
+                        "robot %s ready on map %s at (%.2f, %.2f)",
+                        identity.name,
+                        map_label,
+                        pose.x,
+                        pose.y,
                     )
-                    if runner in done:
-                        runner.result()  # a crashed loop is an error, not a quiet exit
-                finally:
-                    # Fail safe order: the robot stops before anything else happens, its loop
-                    # ends, and the calls are hung up before the event loop runs again (close
-                    # hangs up before its first await and takes no new call), so no driver
-                    # can re-arm it in between.
-                    safety.stop(None, SHUTDOWN_REASON)
-                    runner.cancel()
-                    stopped.cancel()
-                    emit({"event": "stopping", "calls": len(endpoint.calls)})
-                    await endpoint.close(SHUTDOWN_REASON)
-                    await asyncio.gather(runner, stopped, return_exceptions=True)
+                    emit(
+                        {
+                            "event": "ready",
+                            "robot": identity.name,
+                            "map": map_label,
+                            "kind": config.robot.kind,
+                            "places": sorted(nav.places()),
+                        }
+                    )
+                    try:
+                        stopped = asyncio.create_task(stop.wait())
+                        done, _ = await asyncio.wait(
+                            {runner, stopped}, return_when=asyncio.FIRST_COMPLETED
+                        )
+                        if runner in done:
+                            runner.result()  # a crashed loop is an error, not a quiet exit
+                    finally:
+                        # Fail safe order: the robot stops before anything else happens, its loop
+                        # ends, and the calls are hung up before the event loop runs again (close
+                        # hangs up before its first await and takes no new call), so no driver
+                        # can re-arm it in between.
+                        safety.stop(None, SHUTDOWN_REASON)
+                        runner.cancel()
+                        stopped.cancel()
+                        emit({"event": "stopping", "calls": len(endpoint.calls)})
+                        await endpoint.close(SHUTDOWN_REASON)
+                        await asyncio.gather(runner, stopped, return_exceptions=True)
+    finally:
+        # An adapter holding a connection (the ROS 2 robot's node) lets go of it last,
+        # after the stop above has reached the base.
+        close = getattr(nav, "close", None)
+        if callable(close):
+            await asyncio.to_thread(close)
