@@ -30,7 +30,7 @@ from telebot.errors import RobotUnreachable
 from telebot.reasons import Reason
 from telebot.robot import create_robot
 from telebot.robot.mapfile import places_path_for
-from telebot.robot.nav import GoalStatus, NavState
+from telebot.robot.nav import GoalStatus, NavState, PoseNotifier
 from telebot.robot.ros2 import stack as stack_module
 from telebot.robot.ros2.convert import quaternion_fields
 from telebot.robot.ros2.keys import QoS
@@ -273,6 +273,15 @@ async def test_pose_velocity_battery_and_plan_are_mapped(
     assert diagnostics["nav2"] == "navigate_to_pose ready"
     assert diagnostics["router"].endswith(": connected")
     assert "120x80" in diagnostics["map"] and diagnostics["pose"] != "none yet"
+
+
+async def test_each_new_pose_is_announced_to_listeners(stack: Ros2NavStack, nav2: FakeNav2) -> None:
+    assert isinstance(stack, PoseNotifier)  # the daemon sends poses as they come
+    heard: list[float] = []
+    stack.add_pose_listener(lambda: heard.append(stack.pose().pose.x))
+    nav2.publish_state()
+    await wait_until(lambda: bool(heard))
+    assert heard[-1] == pytest.approx(1.0)
 
 
 async def test_garbage_and_impossible_values_are_dropped_and_counted(

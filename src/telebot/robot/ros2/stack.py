@@ -103,6 +103,12 @@ TIME_ALLOWANCE_MARGIN = 10.0
 RECOVERY_HOLD = 5.0
 #: Odometry speeds below these count as standing still (m/s, rad/s).
 STILL_LINEAR, STILL_ANGULAR = 0.01, 0.02
+#: The link lease telebot's node announces to the router (ms), and keep-alives per lease: the
+#: router drops a daemon that froze (SIGSTOP, a hung machine) within it, and with it the
+#: liveliness of its goals, so the base stops by itself (rmw_zenoh's default is 60 s). A
+#: daemon that died has its TCP link closed by the kernel and is dropped at once anyway.
+CLIENT_LEASE_MS = 500
+CLIENT_KEEP_ALIVE = 4
 #: Field of view reported for a camera (CompressedImage does not say; degrees).
 DEFAULT_FOV_DEG = 60.0
 #: The camera the safety supervisor selects while the robot moves (``telebot.safety.NAVCAM``;
@@ -370,6 +376,7 @@ class Ros2NavStack:
         self._map_at = 0.0
         self._pose: PoseEstimate | None = None
         self._pose_at = 0.0
+        self._pose_listeners: list[Callable[[], None]] = []
         self._tf = TfTree()
         self._velocity = Velocity()
         self._odom_at = 0.0
@@ -489,6 +496,10 @@ class Ros2NavStack:
                 mode="client",
                 library=TypeLibrary(settings.distro),
                 connect_timeout=settings.connect_timeout,
+                zenoh_options={
+                    "transport/link/tx/lease": CLIENT_LEASE_MS,
+                    "transport/link/tx/keep_alive": CLIENT_KEEP_ALIVE,
+                },
             )
         except RobotUnreachable as exc:
             raise RobotUnreachable(
@@ -638,6 +649,7 @@ class Ros2NavStack:
         with self._lock:
             self._pose = PoseEstimate(pose, covariance, now)
             self._pose_at = now
+        self._notify_pose()
 
     def _on_tf(self, msg: Any, _attachment: Any) -> None:
         self._take_tf(msg, static=False)
@@ -656,6 +668,19 @@ class Ros2NavStack:
                 stamp = now if math.isinf(oldest) else oldest
                 self._pose = PoseEstimate(pose, (0.0,) * 9, stamp)
                 self._pose_at = stamp
+        if found is not None:
+            self._notify_pose()
+
+    def add_pose_listener(self, listener: Callable[[], None]) -> None:
+        """Call ``listener()`` after each new pose (from zenoh's thread): see PoseNotifier."""
+        self._pose_listeners.append(listener)
+
+    def _notify_pose(self) -> None:
+        for listener in list(self._pose_listeners):
+            try:
+                listener()
+            except Exception:  # a listener's bug must not cost the pose updates
+                log.exception("pose listener failed")
 
     def _on_odom(self, msg: Any, _attachment: Any) -> None:
         twist = msg.twist.twist
