@@ -17,9 +17,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+
 from conftest import wait_until
 from rig import SLACK, Daemon, Process, free_port
-
 from telebot.robot.mapfile import places_path_for
 from telebot.robot.ros2.node import Ros2Node
 from telebot.robot.ros2.types import TypeLibrary
