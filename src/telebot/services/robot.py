@@ -74,6 +74,10 @@ _Request = TypeVar("_Request")
 REMEMBERED = 256
 #: While a goal runs, its status is repeated this often (s), so a lost update heals.
 GOAL_STATUS_EVERY = 0.5
+#: A robot that announces its poses (PoseNotifier) has each sent as it comes; the control
+#: loop then sends one only when none went for this long (s), so that velocity and state
+#: keep flowing while localisation is quiet (AMCL publishes only when the robot moves).
+QUIET_POSE_EVERY = 0.25
 
 EventSink = Callable[[dict[str, Any]], None]
 
@@ -111,6 +115,8 @@ class CallServices:
         self.map = MapService(call.channel(MAP, lane=Lane.BULK), server.encoded_map)
         # The first tick publishes both at once (a new user sees the robot straight away).
         self._next_pose = self._next_telemetry = -math.inf
+        self._last_pose = -math.inf
+        self._pose_timer: asyncio.TimerHandle | None = None
         # Lossy channels: a user repeats a request until it hears back, so the robot
         # answers a repeat with what it already said instead of running it twice.
         self._chat_replies: OrderedDict[int, list[str]] = OrderedDict()
@@ -271,14 +277,41 @@ class CallServices:
             self.server._guarded(self.publish_telemetry)
             self.server._guarded(self.send_safety_state, self.server.safety_status())
 
-    def pose_due(self, now: float) -> None:
-        """Send the pose if this call's next pose is due (at most ``pose_hz`` a second)."""
-        if now >= self._next_pose:
-            self._next_pose = max(self._next_pose + 1.0 / self.server.settings.pose_hz, now)
-            self.server._guarded(self.publish_pose)
+    def pose_due(self, now: float, *, fresh: bool = False) -> None:
+        """Send the pose if it is due: at most ``pose_hz`` a second.
+
+        ``fresh``: a new pose has just arrived (a PoseNotifier robot); it goes now, or as
+        soon as the rate allows. Otherwise (the control loop's tick) a stepped robot's pose
+        goes at ``pose_hz``, and a notifying robot's only after :data:`QUIET_POSE_EVERY`
+        without one, so that the ticks do not use up the rate that fresh poses need.
+        """
+        interval = 1.0 / self.server.settings.pose_hz
+        if fresh:
+            if now >= self._last_pose + interval:
+                self._send_pose(now)
+            elif self._pose_timer is None:
+                self._pose_timer = asyncio.get_running_loop().call_at(
+                    self._last_pose + interval, self._deferred_pose
+                )
+        elif self.server.poses_pushed:
+            if now >= self._last_pose + max(interval, QUIET_POSE_EVERY):
+                self._send_pose(now)
+        elif now >= self._next_pose:
+            self._next_pose = max(self._next_pose + interval, now)
+            self._send_pose(now)
+
+    def _send_pose(self, now: float) -> None:
+        self._last_pose = now
+        self.server._guarded(self.publish_pose)
+
+    def _deferred_pose(self) -> None:
+        self._pose_timer = None
+        self._send_pose(self.server.now())
 
     def close(self) -> None:
         """The call ended: end its map transfer."""
+        if self._pose_timer is not None:
+            self._pose_timer.cancel()
         self.map.close()
 
     def report(self) -> None:
@@ -456,6 +489,8 @@ class RobotServer:
         self._unencodable: int | None = None
         self._loop = asyncio.get_running_loop()
         self._pose_wakeup_pending = False
+        #: Whether the robot announces its poses (then each is sent as it comes).
+        self.poses_pushed = isinstance(nav, PoseNotifier)
         if isinstance(nav, PoseNotifier):
             # A robot whose poses arrive by themselves (ROS 2): send each one when it comes,
             # not at the next control cycle (up to 1/control_hz late), pose_hz still the cap.
@@ -473,7 +508,7 @@ class RobotServer:
         self._pose_wakeup_pending = False
         now = self.now()
         for services in list(self.services.values()):
-            services.pose_due(now)
+            services.pose_due(now, fresh=True)
 
     def now(self) -> float:
         """The robot's clock (the event loop's)."""
