@@ -24,7 +24,7 @@ lint: install
 
 test: lint
 	.ci/install-browser
-	$(BIN)/pytest
+	$(BIN)/pytest -n 2
 
 bench: install
 	$(BIN)/python bench/channels.py
@@ -32,6 +32,7 @@ bench: install
 	$(BIN)/python bench/mapxfer.py
 	$(BIN)/python bench/video.py
 	$(BIN)/python bench/safety.py
+	$(BIN)/python bench/ros2.py
 	.ci/install-browser
 	$(BIN)/python bench/ui.py
 

@@ -672,7 +672,8 @@ async def test_table_i_commands_drive_telebot_sim_across_processes(tmp_path: Pat
     with daemon.robot_config.open("a") as config:
         config.write(
             f'[robot]\nkind = "ros2"\n[ros2]\nrouter = ["tcp/127.0.0.1:{port}"]\n'
-            f'connect_timeout = 30.0\nplaces_file = "{places}"\n[ros2.cameras]\n'
+            f'connect_timeout = 30.0\nplaces_file = "{places}"\n'
+            "max_linear_speed = 1.5\nmax_angular_speed = 3.0\n[ros2.cameras]\n"
             'navcam = "navcam/image/compressed"\nusercam = "usercam/image/compressed"\n'
         )
     sim = Process(["telebot.apps.sim_cli", "--config", str(daemon.robot_config)])
