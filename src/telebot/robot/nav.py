@@ -52,6 +52,7 @@ __all__ = [
     "CameraInfo",
     "EmergencyStoppable",
     "GoalHandle",
+    "GoalRecord",
     "GoalStatus",
     "NavStack",
     "NavState",
@@ -189,6 +190,76 @@ class GoalHandle(Protocol):
     def cancel(self) -> None:
         """Cancel the goal if it is still running (the robot stops)."""
         ...
+
+
+class GoalRecord:
+    """What every :class:`GoalHandle` reports, kept for an adapter's goal class to extend.
+
+    A subclass adds what its robot needs and :meth:`cancel`; it ends the goal with
+    :meth:`_end` and reports progress with :meth:`_set_progress` (which never goes back).
+    """
+
+    def __init__(self, goal_id: int, description: str, target: Pose2D | None) -> None:
+        self._id = goal_id
+        self._description = description
+        self._target = target
+        self._status = GoalStatus.ACTIVE
+        self._progress = 0.0
+        self._reason = ""
+        self._code = ""
+
+    @property
+    def goal_id(self) -> int:
+        """Unique number of this goal within the adapter."""
+        return self._id
+
+    @property
+    def description(self) -> str:
+        """What was asked, in words."""
+        return self._description
+
+    @property
+    def target(self) -> Pose2D | None:
+        """The pose the goal ends at, when known (a turn's: its heading where it started)."""
+        return self._target
+
+    @property
+    def status(self) -> GoalStatus:
+        """Current status."""
+        return self._status
+
+    @property
+    def progress(self) -> float:
+        """Fraction done, 0 … 1."""
+        return self._progress
+
+    @property
+    def reason(self) -> str:
+        """Why it failed or was cancelled, in words; empty otherwise."""
+        return self._reason
+
+    @property
+    def code(self) -> str:
+        """How it ended, as a :class:`~telebot.reasons.Reason` code; empty while active."""
+        return self._code
+
+    def cancel(self) -> None:
+        """Cancel the goal if it is still running (the robot stops)."""
+        raise NotImplementedError
+
+    def _end(self, status: GoalStatus, reason: str, code: str) -> None:
+        self._status = status
+        self._reason = reason
+        self._code = str(code)
+        if status is GoalStatus.SUCCEEDED:
+            self._progress = 1.0
+
+    def _set_progress(self, value: float) -> None:
+        if math.isfinite(value):
+            self._progress = max(self._progress, min(max(value, 0.0), 1.0))
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self._id} {self._description!r} {self._status}>"
 
 
 @dataclass(frozen=True, slots=True)

@@ -64,6 +64,7 @@ from telebot.robot.nav import (
     Battery,
     CameraFrame,
     CameraInfo,
+    GoalRecord,
     GoalStatus,
     NavState,
     NavStatus,
@@ -131,7 +132,7 @@ _STATUS_SUCCEEDED, _STATUS_CANCELED, _STATUS_ABORTED = 4, 5, 6
 _NAVIGATE, _DRIVE, _SPIN = "navigate", "drive", "spin"
 
 
-class Ros2Goal:
+class Ros2Goal(GoalRecord):
     """A goal sent to one of Nav2's actions; implements :class:`~telebot.robot.nav.GoalHandle`.
 
     Its state changes on zenoh's threads (acceptance, feedback, result) and on the caller's
@@ -147,17 +148,11 @@ class Ros2Goal:
         target: Pose2D | None,
         amount: float = 0.0,
     ) -> None:
+        super().__init__(goal_id, description, target)
         self._stack = stack
-        self._id = goal_id
         self.kind = kind
-        self._description = description
-        self._target = target
         #: Distance (m) or angle (rad) a drive or spin covers; 0 for navigation.
         self.amount = amount
-        self._status = GoalStatus.ACTIVE
-        self._progress = 0.0
-        self._reason = ""
-        self._code = ""
         #: The action goal's UUID (16 bytes), once sent.
         self.ros_id: bytes | None = None
         self.accepted = False
@@ -167,41 +162,6 @@ class Ros2Goal:
         self.recoveries = 0
         self.recovered_at = -math.inf
 
-    @property
-    def goal_id(self) -> int:
-        """Unique number of this goal within the adapter."""
-        return self._id
-
-    @property
-    def description(self) -> str:
-        """What was asked, in words."""
-        return self._description
-
-    @property
-    def target(self) -> Pose2D | None:
-        """Where the goal ends, when known."""
-        return self._target
-
-    @property
-    def status(self) -> GoalStatus:
-        """Current status."""
-        return self._status
-
-    @property
-    def progress(self) -> float:
-        """Fraction done, 0 … 1 (from Nav2's feedback)."""
-        return self._progress
-
-    @property
-    def reason(self) -> str:
-        """Why it failed or was cancelled (Nav2's words when Nav2 ended it); empty otherwise."""
-        return self._reason
-
-    @property
-    def code(self) -> str:
-        """How it ended, as a :class:`~telebot.reasons.Reason` code; empty while active."""
-        return self._code
-
     def cancel(self) -> None:
         """Cancel the goal if it still runs: Nav2 gets a ``cancel_goal`` with its id."""
         self._stack._cancel_goal(self, "cancelled", Reason.CANCELLED)
@@ -210,19 +170,8 @@ class Ros2Goal:
         """End the goal (the caller holds the lock); False if it had ended already."""
         if self._status is not GoalStatus.ACTIVE:
             return False
-        self._status = status
-        self._reason = reason
-        self._code = str(code)
-        if status is GoalStatus.SUCCEEDED:
-            self._progress = 1.0
+        self._end(status, reason, code)
         return True
-
-    def _set_progress(self, value: float) -> None:
-        if math.isfinite(value):
-            self._progress = max(self._progress, min(max(value, 0.0), 1.0))
-
-    def __repr__(self) -> str:
-        return f"<Ros2Goal {self._id} {self._description!r} {self._status}>"
 
 
 class _ZeroStream:

@@ -35,6 +35,7 @@ from telebot.robot.nav import (
     Battery,
     CameraFrame,
     CameraInfo,
+    GoalRecord,
     GoalStatus,
     NavState,
     NavStatus,
@@ -75,7 +76,7 @@ class _Kind(enum.Enum):
     ROTATE = "rotate"
 
 
-class SimGoal:
+class SimGoal(GoalRecord):
     """A goal of the simulated robot; implements :class:`~telebot.robot.nav.GoalHandle`."""
 
     def __init__(
@@ -86,15 +87,9 @@ class SimGoal:
         description: str,
         target: Pose2D | None,
     ) -> None:
+        super().__init__(goal_id, description, target)
         self._stack = stack
-        self._id = goal_id
         self.kind = kind
-        self._description = description
-        self._target = target
-        self._status = GoalStatus.ACTIVE
-        self._progress = 0.0
-        self._reason = ""
-        self._code = ""
         # Geometry of the motion, filled in by the stack.
         self.tracker: PathTracker | None = None
         #: The tracker's path as poses (see :meth:`SimNavStack.planned_path`).
@@ -115,41 +110,6 @@ class SimGoal:
         self.stuck_count = 0
 
     @property
-    def goal_id(self) -> int:
-        """Unique number of this goal within the stack."""
-        return self._id
-
-    @property
-    def description(self) -> str:
-        """What was asked, in words."""
-        return self._description
-
-    @property
-    def target(self) -> Pose2D | None:
-        """The pose the goal ends at (a turn's target heading at the start position)."""
-        return self._target
-
-    @property
-    def status(self) -> GoalStatus:
-        """Current status."""
-        return self._status
-
-    @property
-    def progress(self) -> float:
-        """Fraction done, 0 … 1."""
-        return self._progress
-
-    @property
-    def reason(self) -> str:
-        """Why it failed or was cancelled; empty otherwise."""
-        return self._reason
-
-    @property
-    def code(self) -> str:
-        """Why it ended, as a reason code (``finished``, ``obstacle``, …); empty while active."""
-        return self._code
-
-    @property
     def blocked(self) -> bool:
         """Whether an obstacle is holding this goal up right now."""
         return self.blocked_since is not None
@@ -159,18 +119,8 @@ class SimGoal:
         self._stack._cancel_goal(self, "cancelled", Reason.CANCELLED)
 
     def _finish(self, status: GoalStatus, reason: str = "", code: Reason = Reason.FINISHED) -> None:
-        self._status = status
-        self._reason = reason
-        self._code = code
+        self._end(status, reason, code)
         self.blocked_since = None
-        if status is GoalStatus.SUCCEEDED:
-            self._progress = 1.0
-
-    def _set_progress(self, value: float) -> None:
-        self._progress = max(self._progress, min(max(value, 0.0), 1.0))
-
-    def __repr__(self) -> str:
-        return f"<SimGoal {self._id} {self._description!r} {self._status}>"
 
 
 class SimNavStack:
