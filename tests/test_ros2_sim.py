@@ -188,6 +188,27 @@ async def test_navigate_to_pose_moves_the_robot_with_feedback(node: Ros2Node) ->
     assert math.hypot(here.x - start.x, here.y - start.y) > 3.0
 
 
+async def test_nav2s_speed_limit_topic_caps_a_navigation_goal(node: Ros2Node) -> None:
+    """A daemon's speed cap (nav2_msgs/SpeedLimit on /speed_limit) holds for navigation too."""
+    limit_type = node.library.message("nav2_msgs/msg/SpeedLimit")
+    limits = node.publisher("speed_limit", limit_type, qos=QoS.transient_local())
+    limits.publish(limit_type.make(percentage=False, speed_limit=0.3))  # the fast sim: 1.5
+    speeds: list[float] = []
+
+    def on_odom(msg: Any, _attachment: Attachment) -> None:
+        speeds.append(abs(msg.twist.twist.linear.x))
+
+    node.subscribe("odom", node.library.message("nav_msgs/msg/Odometry"), on_odom)
+    room_b = small_map().places()["room-b"]
+    record = send(node, nav_goal(node, room_b.x, room_b.y))
+    await wait_until(lambda: len(speeds) > 60 and max(speeds) > 0.2, timeout=20 + SLACK)
+    assert max(speeds) <= 0.3 + 1e-6
+    # 0 is Nav2's "no limit": the top speed again.
+    limits.publish(limit_type.make(percentage=False, speed_limit=0.0))
+    await wait_until(lambda: max(speeds) > 0.5 or record.status is not None, timeout=20 + SLACK)
+    assert max(speeds) > 0.5
+
+
 async def test_a_goal_without_a_path_is_aborted_with_nav2s_reason(node: Ros2Node) -> None:
     record = send(node, nav_goal(node, 500.0, 500.0))  # far outside the map
     await wait_until(lambda: record.status is not None, timeout=10 + SLACK)

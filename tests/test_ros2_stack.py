@@ -487,6 +487,24 @@ def test_a_missing_behaviour_server_fails_the_move_at_once(
         robot.close()
 
 
+async def test_the_speed_cap_goes_to_nav2s_speed_limit_topic(
+    stack: Ros2NavStack, nav2: FakeNav2
+) -> None:
+    limits: list[tuple[bool, float]] = []
+    nav2.node.subscribe(
+        "speed_limit",
+        nav2.m("nav2_msgs/msg/SpeedLimit"),
+        lambda msg, _att: limits.append((bool(msg.percentage), float(msg.speed_limit))),
+        qos=QoS.transient_local(),
+    )
+    await wait_until(lambda: bool(limits))  # the start-up cap, kept for late joiners
+    assert limits[-1] == (False, 0.5)
+    stack.set_speed_limit(0.2)
+    await wait_until(lambda: limits[-1] == (False, 0.2))
+    stack.set_speed_limit(0.0)  # Nav2's 0 would mean no limit: 1 cm/s instead
+    await wait_until(lambda: limits[-1][1] == pytest.approx(0.01))
+
+
 def test_no_motion_under_a_zero_speed_cap(stack: Ros2NavStack) -> None:
     stack.set_speed_limit(0.0)
     assert stack.forward(1.0).status is GoalStatus.FAILED

@@ -221,6 +221,9 @@ class Ros2Settings(StrictModel):
     scan_topic: str = Field(default="scan", pattern=ROS_NAME)
     battery_topic: str = Field(default="battery_state", pattern=ROS_NAME)
     plan_topic: str = Field(default="plan", pattern=ROS_NAME)
+    #: Where the speed cap goes to Nav2's controller (``nav2_msgs/SpeedLimit``, m/s,
+    #: transient local): the safety supervisor's cap holds for navigation goals too.
+    speed_limit_topic: str = Field(default="speed_limit", pattern=ROS_NAME)
     #: The teleop topic that stop streams zero velocity on.
     cmd_vel_topic: str = Field(default="cmd_vel", pattern=ROS_NAME)
     #: ``geometry_msgs/msg/Twist`` or ``TwistStamped`` on ``cmd_vel_topic`` (Kilted's default

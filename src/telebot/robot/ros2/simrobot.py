@@ -199,7 +199,7 @@ class SimRobotServer:
         self._map_version: int | None = None
         self._plan: tuple[Pose2D, ...] | None = None
         self._camera_wanted: dict[str, bool] = {}
-        self._speed_limit = stack.speed_limit
+        self._speed_limit = self._top_speed = stack.speed_limit
         #: Counters for logs and tests: velocity commands taken and refused, goals stopped
         #: because their client left.
         self.cmd_vel_count = 0
@@ -282,6 +282,18 @@ class SimRobotServer:
             self._post(self._on_cmd_vel, linear, angular)
 
         self._subscriptions.append(node.subscribe(s.cmd_vel_topic, self._t_cmd_vel, on_cmd_vel))
+
+        def on_speed_limit(msg: Any, _attachment: Any) -> None:
+            self._post(self._on_speed_limit, bool(msg.percentage), float(msg.speed_limit))
+
+        self._subscriptions.append(
+            node.subscribe(
+                s.speed_limit_topic,
+                self._lib.message("nav2_msgs/msg/SpeedLimit"),
+                on_speed_limit,
+                qos=QoS.transient_local(),
+            )
+        )
         for kind, name in self._action_names.items():
             self._servers[kind] = self._action_server(kind, name)
 
@@ -482,6 +494,16 @@ class SimRobotServer:
             elif now >= goal.next_feedback:
                 goal.next_feedback = now + 1.0 / FEEDBACK_HZ
                 self._feedback(goal, now)
+
+    def _on_speed_limit(self, percentage: bool, limit: float) -> None:
+        """Nav2's controller takes a cap (m/s, or percent of the top speed); 0 = no limit."""
+        top = self._top_speed
+        if not math.isfinite(limit) or limit < 0:
+            log.warning("%s: ignored a speed limit of %r", self._settings.speed_limit_topic, limit)
+            return
+        cap = top if limit == 0 else min(top, top * limit / 100.0 if percentage else limit)
+        self._speed_limit = cap
+        self._apply_speed_cap()
 
     def _apply_speed_cap(self) -> None:
         """The running goal's speed (drive_on_heading, backup) caps the base; else the top speed."""

@@ -109,6 +109,8 @@ STILL_LINEAR, STILL_ANGULAR = 0.01, 0.02
 #: liveliness of its goals, so the base stops by itself (rmw_zenoh's default is 60 s). A
 #: daemon that died has its TCP link closed by the kernel and is dropped at once anyway.
 CLIENT_LEASE_MS = 500
+#: The lowest speed limit sent to Nav2 (m/s): its 0 means "no limit".
+NAV2_SLOWEST_LIMIT = 0.01
 CLIENT_KEEP_ALIVE = 4
 #: Field of view reported for a camera (CompressedImage does not say; degrees).
 DEFAULT_FOV_DEG = 60.0
@@ -371,6 +373,10 @@ class Ros2NavStack:
         cmd_type = self._twist_stamped if settings.twist_stamped else self._twist
         self._cmd_vel = node.publisher(settings.cmd_vel_topic, cmd_type)
         self._zero = _ZeroStream(self._publish_zero, settings.stop_rate_hz, settings.stop_stream_s)
+        self._speed_limit_type = lib.message("nav2_msgs/msg/SpeedLimit")
+        self._speed_limit_pub = node.publisher(
+            settings.speed_limit_topic, self._speed_limit_type, qos=QoS.transient_local()
+        )
 
         self._subscriptions: list[Subscription] = []
         latched = QoS.transient_local()
@@ -412,6 +418,8 @@ class Ros2NavStack:
         self._camera_lock = threading.Lock()
         self._camera_reaper: threading.Thread | None = None
         self._camera_wake = threading.Event()
+        # The cap Nav2 has may be a lower one left by a daemon before us: say ours.
+        self._publish_speed_limit()
 
     # ------------------------------------------------------------------ construction
 
@@ -779,7 +787,25 @@ class Ros2NavStack:
         require_finite(linear=linear)
         if linear < 0:
             raise InvalidCommand(f"speed limit must be ≥ 0, not {linear}")
-        self._speed_limit = min(float(linear), self._settings.max_linear_speed)
+        cap = min(float(linear), self._settings.max_linear_speed)
+        changed = cap != self._speed_limit
+        self._speed_limit = cap
+        if changed:
+            self._publish_speed_limit()
+
+    def _publish_speed_limit(self) -> None:
+        """Tell Nav2's controller the cap (absolute, m/s), so navigation goals keep it too.
+
+        To Nav2 a limit of 0 means *no* limit: a zero cap goes out as 1 cm/s (telebot starts
+        no motion under a zero cap anyway).
+        """
+        self._speed_limit_pub.publish(
+            self._speed_limit_type.make(
+                header={"frame_id": self._settings.base_frame},
+                percentage=False,
+                speed_limit=max(self._speed_limit, NAV2_SLOWEST_LIMIT),
+            )
+        )
 
     def diagnostics(self) -> Mapping[str, str]:
         """Health values: router, Nav2, map, pose, odometry, scan, battery, drops."""

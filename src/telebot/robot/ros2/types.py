@@ -130,6 +130,17 @@ int64 sum
 """,
 }
 
+# Messages beyond rosbags' stores, registered with the store when it is built:
+# nav2_msgs/msg/SpeedLimit.msg (the same on jazzy and kilted), which Nav2's controller
+# server takes on /speed_limit.
+_MSG_TEXTS: dict[str, str] = {
+    "nav2_msgs/msg/SpeedLimit": """\
+std_msgs/Header header
+bool percentage
+float64 speed_limit
+""",
+}
+
 # nav2_msgs/action/*.action of navigation2's jazzy branch (f4108e5b) ...
 _NAV2_JAZZY: dict[str, str] = {
     "nav2_msgs/action/NavigateToPose": """\
@@ -368,8 +379,8 @@ class TypeLibrary:
     Knows rosbags' message store for the distro (std_msgs, geometry_msgs, nav_msgs,
     sensor_msgs, tf2_msgs, builtin_interfaces, action_msgs, unique_identifier_msgs,
     rcl_interfaces, ...) plus ``std_srvs`` SetBool/Trigger/Empty, ``example_interfaces``
-    AddTwoInts, ``action_msgs/srv/CancelGoal`` and the nav2 actions NavigateToPose,
-    DriveOnHeading, Spin and BackUp. More can be added with the ``register_*_text`` methods.
+    AddTwoInts, ``action_msgs/srv/CancelGoal``, ``nav2_msgs/msg/SpeedLimit`` and the nav2
+    actions NavigateToPose, DriveOnHeading, Spin and BackUp. More can be added with the ``register_*_text`` methods.
     """
 
     def __init__(self, distro: Distro = "jazzy") -> None:
@@ -515,7 +526,10 @@ class TypeLibrary:
                     from rosbags.typesys import Stores, get_typestore
 
                     which = Stores.ROS2_JAZZY if self.distro == "jazzy" else Stores.ROS2_KILTED
-                    self._typestore = get_typestore(which)
+                    typestore = get_typestore(which)
+                    for name, text in _MSG_TEXTS.items():
+                        typestore.register(self._parse(name, text))
+                    self._typestore = typestore
                 store = self._typestore
         return store
 
