@@ -312,11 +312,8 @@ class Recorder:
             if item is None:
                 self._guard(self._finish)
                 return
-            if self.enabled:
+            if self.enabled or isinstance(item[0], _Forget):
                 self._guard(self._write, *item)
-            elif isinstance(item[0], _Forget):  # recording is off: just forget the call
-                for key in item[0].keys:
-                    self._topics.pop(key, None)
 
     def _guard(self, action: Any, *args: Any) -> None:
         try:
@@ -481,5 +478,9 @@ class RecordingService:
             "detail": end.detail if end is not None else "",
         }
         self.recorder._put("calls", json.dumps(event, ensure_ascii=False))
-        # After its last message: the writer thread then forgets the call's topics.
-        self.recorder._put(_Forget(tuple(self._keys.values())), b"")
+        keys = tuple(self._keys.values())
+        if self.recorder.enabled:  # after its last message: the writer thread forgets it
+            self.recorder._put(_Forget(keys), b"")
+        else:
+            for key in keys:
+                self.recorder._topics.pop(key, None)
