@@ -14,14 +14,14 @@ import json
 import logging
 from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import pytest
 from mcap.reader import make_reader
 
 from conftest import wait_until
 from rig import FAST_SIM, GENEROUS_TIMEOUT, ROBOT, USER, Daemon, robot_on_hub
-from telebot.channels.call import UserEndpoint
+from telebot.channels.call import Call, UserEndpoint
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.config import CallSettings, ServiceSettings
 from telebot.identity import Identity, KnownRobots
@@ -196,3 +196,35 @@ async def test_the_daemon_records_beside_the_audit_log(tmp_path: Path) -> None:
     topics = {topic for topic, *_ in messages}
     assert {"/calls", f"/{USER}/chat/in", f"/{USER}/chat", f"/{USER}/pose"} <= topics, topics
     assert [m["event"] for topic, m, *_ in messages if topic == "/calls"] == ["start", "end"]
+
+
+class _FakeCall:
+    """What a RecordingService reads of a call."""
+
+    id = "c0ffee"
+    peer = USER
+    role = None
+    end = None
+    tap: Any = None
+
+
+def test_only_the_configured_streams_are_kept_and_user_garbage_is_not(tmp_path: Path) -> None:
+    with Recorder(tmp_path, streams=["chat"]) as recorder:
+        call = _FakeCall()
+        service = recorder.service(None, cast(Call, call))
+        assert call.tap is not None
+        call.tap("chat", False, '{"id": 1, "text": "where"}')
+        call.tap("chat", False, "not json")  # what the services drop, the recording drops
+        call.tap("chat", False, b"[1, 2]")
+        call.tap("chat", True, '{"id": 1, "seq": 0, "text": "at (1, 1)", "final": true}')
+        call.tap("pose", True, '{"t": 0, "x": 1}')  # not a recorded stream
+        service.close()
+        assert call.tap is None
+    [path] = files(tmp_path)
+    _, messages = read(path)
+    assert [(topic, data.get("text", data.get("event"))) for topic, data, *_ in messages] == [
+        ("/calls", "start"),
+        (f"/{USER}/chat/in", "where"),
+        (f"/{USER}/chat", "at (1, 1)"),
+        ("/calls", "end"),
+    ]
