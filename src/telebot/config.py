@@ -24,6 +24,8 @@ __all__ = [
     "CipherChoice",
     "MemorySettings",
     "ReconnectSettings",
+    "RecordedStream",
+    "RecordingSettings",
     "RobotConfig",
     "RobotSettings",
     "Ros2Settings",
@@ -353,6 +355,28 @@ class SafetySettings(StrictModel):
     audit_log: Path = Path("audit.jsonl")
 
 
+#: The streams ``[recording] streams`` may name: the robot's JSON channels.
+RecordedStream = Literal["pose", "telemetry", "plan", "goals", "chat", "safety"]
+ALL_RECORDED: tuple[RecordedStream, ...] = ("pose", "telemetry", "plan", "goals", "chat", "safety")
+
+
+class RecordingSettings(StrictModel):
+    """``[recording]``: an MCAP file of every call on the robot (see
+    :mod:`telebot.services.recording`), rotated by size."""
+
+    #: Off by default: recordings hold what users typed and where the robot went.
+    enabled: bool = False
+    #: Folder of the files; None: the audit log's folder. Relative: from the robot's home.
+    dir: Path | None = None
+    #: A file that grows past this many bytes is finished and the next one begun.
+    max_bytes: int = Field(default=64 * 1024 * 1024, ge=4096)
+    #: How many files are kept (the oldest are deleted), the one being written included.
+    keep: int = Field(default=20, ge=1, le=100000)
+    #: Which channels of each call are recorded (both ways); call starts and ends and
+    #: safety events (the audit records) always are.
+    streams: list[RecordedStream] = Field(default_factory=lambda: list(ALL_RECORDED))
+
+
 class RobotConfig(AppConfig):
     """The config file of ``telebot-robot`` (``configs/robot.toml``): adds the robot."""
 
@@ -362,3 +386,4 @@ class RobotConfig(AppConfig):
     services: ServiceSettings = Field(default_factory=ServiceSettings)
     safety: SafetySettings = Field(default_factory=SafetySettings)
     video: VideoConfig = Field(default_factory=VideoConfig)
+    recording: RecordingSettings = Field(default_factory=RecordingSettings)

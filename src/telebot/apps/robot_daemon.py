@@ -20,7 +20,8 @@ from telebot.config import RobotConfig
 from telebot.errors import RobotError
 from telebot.identity import ContactBook, Identity
 from telebot.robot import create_robot
-from telebot.services.robot import EventSink, RobotServer
+from telebot.services.recording import Recorder
+from telebot.services.robot import EventSink, RobotServer, default_robot_services
 from telebot.services.supervision import SafetyDriver
 from telebot.services.video import VideoSettings
 
@@ -43,6 +44,20 @@ def deadman_time(config: RobotConfig) -> float:
     return max(timeout - 1.0 / config.call.heartbeat_hz, timeout / 2)
 
 
+def _recorder(config: RobotConfig, audit: Path, home: Path | None) -> Recorder | None:
+    """The call recorder ``[recording]`` asks for (files beside the audit log by default)."""
+    settings = config.recording
+    if not settings.enabled:
+        return None
+    directory = settings.dir if settings.dir is not None else audit.parent
+    if not directory.is_absolute() and home is not None:
+        directory = home / directory
+    log.info("recording every call into %s", directory)
+    return Recorder(
+        directory, max_bytes=settings.max_bytes, keep=settings.keep, streams=settings.streams
+    )
+
+
 async def serve_robot(
     config: RobotConfig,
     identity: Identity,
@@ -58,13 +73,16 @@ async def serve_robot(
     The robot is the adapter ``config.robot.kind`` names; its top speed (the safety
     supervisor's hard cap) is the speed cap it reports when created. Relative paths in the
     config (``sim.map``, ``sim.places``) are taken from ``base_dir`` (the config file's
-    folder); a relative audit log path from ``home`` (the robot's home). The robot starts
+    folder); relative audit log and recording paths from ``home`` (the robot's home). With
+    ``[recording] enabled``, every call is recorded as MCAP (:mod:`telebot.services.recording`).
+    The robot starts
     stopped and disarmed: a driver must re-arm it (``arm``).
     """
     emit = emit if emit is not None else (lambda event: None)
     stop = stop or asyncio.Event()
     loop = asyncio.get_running_loop()
     nav = await asyncio.to_thread(create_robot, config, base_dir=base_dir, now=loop.time())
+    recorder: Recorder | None = None
     try:
         # Read before the supervisor's start-up stop sets the cap to zero.
         max_speed = nav.speed_limit
@@ -84,6 +102,12 @@ async def serve_robot(
             usercam_while_moving=config.safety.usercam_while_moving,
             audit_path=audit,
         )
+        recorder = _recorder(config, audit, home)
+        services = default_robot_services()
+        if recorder is not None:
+            services.register("recording", recorder.service)
+            safety.on_audit = recorder.audit
+            recorder.start()
         with safety:  # from here on the watchdog runs, and the audit log is closed at the end
             server = RobotServer(
                 nav,
@@ -100,6 +124,7 @@ async def serve_robot(
                     min_quality=min(30, config.video.quality),
                     adaptive=config.video.adaptive,
                 ),
+                services=services,
             )
             await server.prepare()
             with stop_on_signals(stop):
@@ -151,6 +176,8 @@ async def serve_robot(
                         await endpoint.close(SHUTDOWN_REASON)
                         await asyncio.gather(runner, stopped, return_exceptions=True)
     finally:
+        if recorder is not None:  # after the calls ended: their ends are in the file
+            await asyncio.to_thread(recorder.close)
         # An adapter holding a connection (the ROS 2 robot's node) lets go of it last,
         # after the stop above has reached the base.
         close = getattr(nav, "close", None)

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 from types import TracebackType
 from typing import Literal, Self
 
-from telebot.channels.channel import Channel, ReceivedDatagram
+from telebot.channels.channel import Channel, DatagramTap, ReceivedDatagram
 from telebot.channels.proto.frames import (
     INSTANCE_LEN,
     MAX_FRAME,
@@ -175,6 +175,9 @@ class Call:
         self.on_unopened_channel: Callable[[str], None] | None = None
         #: Datagrams for channels not open here (and not opened by the hook above).
         self.unrouted = 0
+        #: Sees every datagram the channels send and deliver (the robot's call recorder);
+        #: None (no cost but a check) unless something records the call.
+        self.tap: DatagramTap | None = None
         self._presence_watch = endpoint.transport.watch_presence(
             peer_presence, self._on_peer_presence
         )

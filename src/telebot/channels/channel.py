@@ -16,7 +16,7 @@ from telebot.errors import CallEnded, DatagramTooLarge
 if TYPE_CHECKING:
     from telebot.channels.call import CallEnd
 
-__all__ = ["Channel", "ChannelStats", "ReceivedDatagram"]
+__all__ = ["Channel", "ChannelStats", "DatagramTap", "ReceivedDatagram"]
 
 log = logging.getLogger("telebot.channel")
 
@@ -57,8 +57,14 @@ class _CallLink(Protocol):
 
     def send_plaintext(self, plaintext: bytes, lane: Lane) -> None: ...
 
+    @property
+    def tap(self) -> DatagramTap | None: ...
+
 
 DatagramCallback = Callable[[ReceivedDatagram], None]
+#: Sees every datagram a call's channels send or deliver: (channel name, sent, payload).
+#: Runs on the event loop for each datagram, so it must be quick and must not raise.
+DatagramTap = Callable[[str, bool, "str | bytes"], None]
 
 
 class Channel:
@@ -107,6 +113,9 @@ class Channel:
             raise
         self._call.send_plaintext(plaintext, self.lane)
         self.stats.sent += 1
+        tap = self._call.tap
+        if tap is not None:
+            tap(self.name, True, payload)
 
     def set_callback(self, callback: DatagramCallback | None) -> None:
         """Deliver datagrams to ``callback`` (on the event loop) instead of the queue."""
@@ -140,6 +149,9 @@ class Channel:
 
     def _deliver(self, datagram: ReceivedDatagram) -> None:
         self.stats.received += 1
+        tap = self._call.tap
+        if tap is not None:
+            tap(self.name, False, datagram.payload)
         if self._callback is not None:
             self._invoke(self._callback, datagram)
             return

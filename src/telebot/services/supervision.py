@@ -29,6 +29,7 @@ from telebot.robot.nav import EmergencyStoppable, NavState, Velocity
 from telebot.safety import (
     Action,
     Audit,
+    AuditRecord,
     Decision,
     SafetyState,
     SafetySupervisor,
@@ -74,6 +75,8 @@ class SafetyDriver:
         self._calls: dict[str, Call] = {}
         #: Called with each new safety state (the services send it to every call).
         self.on_state: Callable[[SafetyState], None] = lambda state: None
+        #: Called with each audit record as it is written (the call recorder keeps them).
+        self.on_audit: Callable[[AuditRecord], None] = lambda record: None
         # What the watchdog thread watches: the holder's call while armed, else None.
         # Written by the loop, read by the thread; a tuple swap is atomic under the GIL.
         self._watch: tuple[Call, float] | None = None
@@ -178,6 +181,10 @@ class SafetyDriver:
                             self._audit_file.write(record.to_json() + "\n")
                         except OSError as exc:  # a full disk must not stop the robot's loop
                             log.error("audit log not written: %s", exc)
+                    try:
+                        self.on_audit(record)
+                    except Exception:  # a recorder's trouble must not stop a stop
+                        log.exception("audit listener failed")
         self._update_watch()
 
     def _update_watch(self) -> None:

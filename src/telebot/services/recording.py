@@ -1,0 +1,486 @@
+"""The robot's call recorder: every call into MCAP files beside the audit log.
+
+``[recording] enabled = true`` makes the daemon build a :class:`Recorder` and register its
+:meth:`Recorder.service` as the ``recording`` service. Each call's :class:`RecordingService`
+sets the call's :attr:`~telebot.channels.call.Call.tap`, so the recorder sees every
+datagram the robot's services send and receive on the recorded channels (pose, telemetry,
+plan, goal updates, chat replies and safety states going out; chat commands, goal
+requests and safety requests coming in) without any service knowing about it. Safety
+events come from the supervisor's audit records (:attr:`SafetyDriver.on_audit`: stops,
+re-arms, latches, deadman stops, who asked and what came of it).
+
+One file holds all calls, with a topic per user and stream: ``/NAME/pose`` (what the robot
+sent), ``/NAME/chat/in`` (what NAME sent), plus ``/calls`` (call start and end) and
+``/safety/audit``. One timeline because that is what someone replaying a session in
+Foxglove wants: two users in a call at once, the stop one of them gave and what the other
+saw, side by side on one time axis; topics named after the user, not the call id, so that
+a Foxglove layout made once works on every recording. Each MCAP channel's metadata still
+names its call (``call``, ``peer``, ``role``). Messages are the protocol's own JSON
+(``docs/protocol.md``), with ``json`` message encoding and ``jsonschema`` schemas.
+
+The event loop only appends to a queue (:meth:`Recorder.tap`); a writer thread encodes,
+writes, flushes idle chunks and rotates: a file past ``max_bytes`` is finished (a valid
+MCAP with its summary) and the next one begun, ``calls-000001.mcap``, ``calls-000002.mcap``
+…, at most ``keep`` of them kept. A disk that fails logs one line and turns recording off;
+the robot and its calls go on. A queue that backs up past :data:`MAX_PENDING` drops
+messages (counted) rather than grow.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import queue
+import re
+import threading
+import time
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import IO, TYPE_CHECKING, Any
+
+from mcap.writer import CompressionType, Writer
+
+from telebot.safety import AuditRecord
+
+if TYPE_CHECKING:
+    from telebot.channels.call import Call
+
+__all__ = [
+    "MAX_PENDING",
+    "SCHEMAS",
+    "Recorder",
+    "RecordingService",
+]
+
+log = logging.getLogger("telebot.recording")
+
+#: Messages waiting for the writer thread beyond which new ones are dropped (and counted).
+MAX_PENDING = 20000
+#: The writer thread flushes its chunk to disk after this long without a message (s), so
+#: that a robot that dies loses at most this much of a quiet call.
+IDLE_FLUSH = 1.0
+#: Largest chunk (bytes) the writer gathers before compressing and writing it.
+MAX_CHUNK = 1024 * 1024
+
+_NUMBER = {"type": "number"}
+_INT = {"type": "integer"}
+_TEXT = {"type": "string"}
+_BOOL = {"type": "boolean"}
+
+
+def _schema(title: str, properties: dict[str, Any]) -> dict[str, Any]:
+    return {"title": title, "type": "object", "properties": properties}
+
+
+#: The JSON schema of each recorded stream, by (channel, direction): "out" is what the
+#: robot sent, "in" what the user sent. Properties only (the protocol adds fields over
+#: time): Foxglove uses them to offer fields in its plots and panels.
+SCHEMAS: dict[tuple[str, str], dict[str, Any]] = {
+    ("pose", "out"): _schema(
+        "telebot.PoseUpdate",
+        {
+            "t": _NUMBER,
+            "x": _NUMBER,
+            "y": _NUMBER,
+            "yaw": _NUMBER,
+            "cov": {"type": "array", "items": _NUMBER},
+            "v": _NUMBER,
+            "w": _NUMBER,
+            "state": _TEXT,
+            "detail": _TEXT,
+            "goal": {"type": ["integer", "null"]},
+        },
+    ),
+    ("telemetry", "out"): _schema(
+        "telebot.Telemetry",
+        {
+            "t": _NUMBER,
+            "battery": _NUMBER,
+            "battery_low": _BOOL,
+            "state": _TEXT,
+            "detail": _TEXT,
+            "goal": {"type": ["string", "null"]},
+            "progress": {"type": ["number", "null"]},
+            "camera": _TEXT,
+            "speed_limit": _NUMBER,
+            "rtt": {"type": ["number", "null"]},
+            "loss": _NUMBER,
+            "armed": _BOOL,
+            "stop_reason": _TEXT,
+            "holder": {"type": ["string", "null"]},
+            "map_version": _INT,
+        },
+    ),
+    ("plan", "out"): _schema(
+        "telebot.PlanUpdate",
+        {
+            "type": _TEXT,
+            "seq": _INT,
+            "goal": {"type": ["integer", "null"]},
+            "points": {"type": "array", "items": {"type": "array", "items": _NUMBER}},
+        },
+    ),
+    ("goals", "out"): _schema(
+        "telebot.GoalUpdate",
+        {
+            "type": _TEXT,
+            "id": _INT,
+            "status": _TEXT,
+            "progress": _NUMBER,
+            "reason": _TEXT,
+            "code": _TEXT,
+        },
+    ),
+    ("goals", "in"): _schema(
+        "telebot.GoalCommand",
+        {"type": _TEXT, "id": _INT, "x": _NUMBER, "y": _NUMBER, "yaw": _NUMBER},
+    ),
+    ("chat", "out"): _schema(
+        "telebot.ChatReply",
+        {
+            "id": _INT,
+            "seq": _INT,
+            "text": _TEXT,
+            "final": _BOOL,
+            "ok": _BOOL,
+            "attachment": _TEXT,
+            "code": _TEXT,
+        },
+    ),
+    ("chat", "in"): _schema("telebot.ChatRequest", {"id": _INT, "text": _TEXT}),
+    ("safety", "out"): _schema(
+        "telebot.SafetyMessage",
+        {
+            "type": _TEXT,
+            "id": _INT,
+            "ok": _BOOL,
+            "reason": _TEXT,
+            "code": _TEXT,
+            "armed": _BOOL,
+            "holder": {"type": ["string", "null"]},
+            "cap": _NUMBER,
+            "blocked": _BOOL,
+        },
+    ),
+    ("safety", "in"): _schema("telebot.SafetyRequest", {"type": _TEXT, "id": _INT, "how": _TEXT}),
+}
+CALLS_SCHEMA = _schema(
+    "telebot.CallEvent",
+    {
+        "event": {"type": "string", "enum": ["start", "end"]},
+        "call": _TEXT,
+        "peer": _TEXT,
+        "role": _TEXT,
+        "kind": _TEXT,
+        "detail": _TEXT,
+    },
+)
+AUDIT_SCHEMA = _schema(
+    "telebot.AuditRecord",
+    {
+        "t": _NUMBER,
+        "who": _TEXT,
+        "role": _TEXT,
+        "call": {"type": ["string", "null"]},
+        "what": _TEXT,
+        "outcome": _TEXT,
+        "detail": _TEXT,
+        "how": _TEXT,
+    },
+)
+
+_FILE = re.compile(r"calls-(\d{6,})\.mcap")
+
+
+@dataclass(frozen=True, slots=True)
+class _Topic:
+    """What an MCAP channel is (registered in each file on its first message there)."""
+
+    topic: str
+    schema: str
+    metadata: dict[str, str] = field(default_factory=dict)
+    #: Check the payload is a JSON object before writing it (what users send).
+    untrusted: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class _Forget:
+    """A queue item's key: the call is over, forget these topics."""
+
+    keys: tuple[object, ...]
+
+
+# The queue's items: (topic key, payload, log time ns), or None to finish.
+_Item = tuple[object, "str | bytes", int] | None
+
+
+class Recorder:
+    """Writes calls into rotating MCAP files in ``directory`` from a writer thread.
+
+    Thread-safe: :meth:`tap`, :meth:`audit` and the call events may come from any thread.
+    Call :meth:`start` before the first call and :meth:`close` at the end (it finishes the
+    file: a valid MCAP with its summary).
+    """
+
+    def __init__(
+        self,
+        directory: Path,
+        *,
+        max_bytes: int = 64 * 1024 * 1024,
+        keep: int = 20,
+        streams: Iterable[str] = ("pose", "telemetry", "plan", "goals", "chat", "safety"),
+    ) -> None:
+        if max_bytes < 1 or keep < 1:
+            raise ValueError("max_bytes and keep must be positive")
+        self.directory = directory
+        self.max_bytes = max_bytes
+        self.keep = keep
+        self.streams = frozenset(streams)
+        #: False once the disk failed (or after close): nothing more is queued.
+        self.enabled = True
+        #: Messages dropped because the writer fell behind.
+        self.dropped = 0
+        #: Messages written, and files finished.
+        self.written = 0
+        self.files_done = 0
+        #: The file being written (None before the first message and after a failure).
+        self.path: Path | None = None
+        self._queue: queue.SimpleQueue[_Item] = queue.SimpleQueue()
+        self._thread: threading.Thread | None = None
+        # Writer-thread state.
+        self._topics: dict[object, _Topic] = {}
+        self._file: IO[bytes] | None = None
+        self._writer: Writer | None = None
+        self._schema_ids: dict[str, int] = {}
+        self._channel_ids: dict[object, int] = {}
+        self._number = 0
+        self._dirty = False
+
+    # -- any thread -------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Start the writer thread (the first file is opened with the first message)."""
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._run, name="telebot-recorder", daemon=True)
+            self._thread.start()
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Write what is queued, finish the file and stop the thread (blocks; idempotent)."""
+        if self._thread is None:
+            return
+        self._queue.put(None)
+        self._thread.join(timeout)
+        self._thread = None
+        self.enabled = False
+
+    def __enter__(self) -> Recorder:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _put(self, key: object, payload: str | bytes) -> None:
+        if not self.enabled:
+            return
+        if self._queue.qsize() >= MAX_PENDING:
+            self.dropped += 1
+            return
+        self._queue.put((key, payload, time.time_ns()))
+
+    def audit(self, record: AuditRecord) -> None:
+        """A safety audit record (:attr:`SafetyDriver.on_audit`) on ``/safety/audit``."""
+        self._put("audit", json.dumps(asdict(record), ensure_ascii=False))
+
+    def service(self, host: object, call: Call) -> RecordingService:
+        """The ``recording`` :class:`~telebot.services.base.ServiceFactory`."""
+        return RecordingService(self, call)
+
+    # -- writer thread ----------------------------------------------------------------
+
+    def _run(self) -> None:
+        self._topics["audit"] = _Topic("/safety/audit", "audit")
+        self._topics["calls"] = _Topic("/calls", "calls")
+        while True:
+            try:
+                item = self._queue.get(timeout=IDLE_FLUSH if self._dirty else None)
+            except queue.Empty:
+                self._guard(self._flush)
+                continue
+            if item is None:
+                self._guard(self._finish)
+                return
+            if self.enabled or isinstance(item[0], _Forget):
+                self._guard(self._write, *item)
+
+    def _guard(self, action: Any, *args: Any) -> None:
+        try:
+            action(*args)
+        except Exception as exc:  # a full or failing disk must not stop the robot
+            if self.enabled:
+                log.error("recording off: %s: %s", self.directory, exc)
+            self.enabled = False
+            self._abandon()
+
+    def _write(self, key: object, payload: str | bytes, log_time: int) -> None:
+        if isinstance(key, _Forget):
+            for each in key.keys:
+                self._topics.pop(each, None)
+                self._channel_ids.pop(each, None)
+            return
+        topic = self._topics.get(key)
+        if topic is None:
+            return
+        data = payload.encode() if isinstance(payload, str) else payload
+        if topic.untrusted:
+            try:
+                message = json.loads(data)
+            except ValueError:
+                return
+            if not isinstance(message, dict):
+                return  # not a request: the services drop it too
+        writer = self._writer if self._writer is not None else self._open()
+        channel_id = self._channel_ids.get(key)
+        if channel_id is None:
+            schema_id = self._schema_ids.get(topic.schema)
+            if schema_id is None:
+                schema = _schema_of(topic.schema)
+                schema_id = writer.register_schema(
+                    name=schema["title"],
+                    encoding="jsonschema",
+                    data=json.dumps(schema).encode(),
+                )
+                self._schema_ids[topic.schema] = schema_id
+            channel_id = writer.register_channel(
+                topic=topic.topic,
+                message_encoding="json",
+                schema_id=schema_id,
+                metadata=topic.metadata,
+            )
+            self._channel_ids[key] = channel_id
+        writer.add_message(channel_id, log_time=log_time, data=data, publish_time=log_time)
+        self.written += 1
+        self._dirty = True
+        assert self._file is not None
+        if self._file.tell() >= self.max_bytes:
+            self._finish()
+
+    def _open(self) -> Writer:
+        self.directory.mkdir(parents=True, exist_ok=True)
+        if self._number == 0:  # go on after the files already there
+            self._number = max((n for n, _ in self._existing()), default=0)
+        self._number += 1
+        path = self.directory / f"calls-{self._number:06d}.mcap"
+        self._file = path.open("wb")
+        # Chunks well under a file's size, so that rotation happens near max_bytes.
+        chunk = max(1024, min(MAX_CHUNK, self.max_bytes // 8))
+        self._writer = Writer(self._file, chunk_size=chunk, compression=CompressionType.ZSTD)
+        self._writer.start(profile="", library="telebot")
+        self._schema_ids.clear()
+        self._channel_ids.clear()
+        self.path = path
+        self._prune()
+        return self._writer
+
+    def _existing(self) -> list[tuple[int, Path]]:
+        found = []
+        for path in self.directory.iterdir():
+            match = _FILE.fullmatch(path.name)
+            if match is not None:
+                found.append((int(match.group(1)), path))
+        return sorted(found)
+
+    def _prune(self) -> None:
+        existing = self._existing()
+        for _, path in existing[: max(0, len(existing) - self.keep)]:
+            path.unlink(missing_ok=True)
+
+    def _flush(self) -> None:
+        if self._writer is not None and self._file is not None:
+            self._writer.flush()  # type: ignore[no-untyped-call]  # writes the open chunk: a crash loses at most that much
+            self._file.flush()
+        self._dirty = False
+
+    def _finish(self) -> None:
+        writer, file = self._writer, self._file
+        self._writer = self._file = None
+        self._dirty = False
+        if writer is not None and file is not None:
+            try:
+                writer.finish()  # type: ignore[no-untyped-call]
+            finally:
+                file.close()
+            self.files_done += 1
+
+    def _abandon(self) -> None:
+        file = self._file
+        self._writer = self._file = None
+        self.path = None
+        if file is not None:
+            with contextlib.suppress(OSError):
+                file.close()
+
+
+def _schema_of(name: str) -> dict[str, Any]:
+    if name == "audit":
+        return AUDIT_SCHEMA
+    if name == "calls":
+        return CALLS_SCHEMA
+    stream, _, direction = name.partition(":")
+    return SCHEMAS.get((stream, direction), _schema(f"telebot.{stream}", {}))
+
+
+class RecordingService:
+    """The ``recording`` service of one call: taps its channels into the :class:`Recorder`."""
+
+    def __init__(self, recorder: Recorder, call: Call) -> None:
+        self.recorder = recorder
+        self.call = call
+        role = str(call.role) if call.role is not None else ""
+        metadata = {"call": call.id, "peer": call.peer, "role": role}
+        # Registered here, on the loop, before any message: the writer thread only reads.
+        topics = recorder._topics
+        self._keys: dict[tuple[str, bool], object] = {}
+        for stream in sorted(recorder.streams):
+            for sent in (True, False):
+                key = (call.id, stream, sent)
+                direction = "out" if sent else "in"
+                name = f"/{call.peer}/{stream}" + ("" if sent else "/in")
+                topics[key] = _Topic(
+                    name, f"{stream}:{direction}", {**metadata, "direction": direction}, not sent
+                )
+                self._keys[stream, sent] = key
+        recorder._put(
+            "calls",
+            json.dumps({"event": "start", "call": call.id, "peer": call.peer, "role": role}),
+        )
+        call.tap = self._tap
+
+    def _tap(self, channel: str, sent: bool, payload: str | bytes) -> None:
+        key = self._keys.get((channel, sent))
+        if key is not None:
+            self.recorder._put(key, payload)
+
+    def tick(self, now: float) -> None:
+        """Nothing: the tap records as messages go."""
+
+    def close(self) -> None:
+        """The call ended: stop tapping it and record its end."""
+        self.call.tap = None
+        end = self.call.end
+        event = {
+            "event": "end",
+            "call": self.call.id,
+            "peer": self.call.peer,
+            "kind": end.kind if end is not None else "",
+            "detail": end.detail if end is not None else "",
+        }
+        self.recorder._put("calls", json.dumps(event, ensure_ascii=False))
+        keys = tuple(self._keys.values())
+        if self.recorder.enabled:  # after its last message: the writer thread forgets it
+            self.recorder._put(_Forget(keys), b"")
+        else:
+            for key in keys:
+                self.recorder._topics.pop(key, None)
