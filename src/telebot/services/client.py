@@ -231,6 +231,10 @@ class RobotClient:
         self.video_feed = VideoFeed()
         #: Called with every :class:`ConnectionEvent` (on the event loop).
         self.on_connection: list[Callable[[ConnectionEvent], None]] = []
+        #: Called with ``(kind, fields)`` for each thing this user asks and each answer it
+        #: gets (on the event loop): ``chat`` / ``chat_reply``, ``goal`` / ``goal_update``,
+        #: ``safety`` / ``safety_ack``. Recordings (``telebot-user record``) log them.
+        self.on_activity: list[Callable[[str, Mapping[str, Any]], None]] = []
         #: The newest :class:`ConnectionEvent` (None while the first call is up).
         self.latest_connection: _Latest[ConnectionEvent] = _Latest()
         #: Calls that replaced a dropped one.
@@ -399,6 +403,13 @@ class RobotClient:
         self.video_feed.end()
         self._emit(ConnectionEvent("ended", detail))
 
+    def _note(self, kind: str, fields: Mapping[str, Any]) -> None:
+        for listener in list(self.on_activity):
+            try:
+                listener(kind, fields)
+            except Exception:
+                log.exception("activity listener failed")
+
     def _emit(self, event: ConnectionEvent) -> None:
         self.latest_connection.set(event)
         for listener in list(self.on_connection):
@@ -450,6 +461,7 @@ class RobotClient:
         Raises TimeoutError if the robot does not finish within ``timeout`` seconds and
         :class:`~telebot.errors.CallEnded` if the call ends first.
         """
+        self._note("chat", {"command": command})
         async with asyncio.timeout(timeout):
             for attempt in range(UNMEASURED_RETRIES + 1):
                 first = True
@@ -466,6 +478,16 @@ class RobotClient:
                         ):
                             break
                         first = False
+                        self._note(
+                            "chat_reply",
+                            {
+                                "command": command,
+                                "text": reply.text,
+                                "ok": reply.ok,
+                                "final": reply.final,
+                                "code": reply.reason,
+                            },
+                        )
                         yield reply
                     else:
                         return
@@ -546,6 +568,7 @@ class RobotClient:
         acks: asyncio.Queue[SafetyAck] = asyncio.Queue()
         self._safety_waiters[request_id] = acks
         payload = SafetyRequest(kind, request_id, how).encode()
+        noted = False
         try:
             async with asyncio.timeout(timeout):
                 core = await self._core()
@@ -556,10 +579,18 @@ class RobotClient:
                         raise
                     except TelebotError as exc:  # a transient send failure: keep trying
                         log.warning("%s not sent (%s); trying again", kind, exc)
+                    if not noted:  # after the send: a stop never waits for listeners
+                        noted = True
+                        self._note("safety", {"request": kind, "how": how})
                     try:
-                        return await self._next(acks, repeat, core.call)
+                        ack = await self._next(acks, repeat, core.call)
                     except TimeoutError:
                         continue  # lost one way or the other: say it again
+                    self._note(
+                        "safety_ack",
+                        {"request": kind, "ok": ack.ok, "text": ack.text, "code": ack.reason},
+                    )
+                    return ack
         finally:
             self._safety_waiters.pop(request_id, None)
 
@@ -578,6 +609,7 @@ class RobotClient:
 
         Returns the final status (``succeeded``, ``failed``, ``cancelled`` or ``refused``).
         """
+        self._note("goal", {"x": x, "y": y, "yaw": yaw})
         async with asyncio.timeout(timeout):
             for attempt in range(UNMEASURED_RETRIES + 1):
                 update = await self._one_goal(x, y, yaw, on_update)
@@ -618,10 +650,22 @@ class RobotClient:
                     self._send(core.goals, start)  # the goal itself was lost
                     continue
                 heard = True
-                if on_update is not None and not (
-                    update.status == "refused" and update.reason == Reason.RTT_UNMEASURED
-                ):
-                    on_update(update)
+                if not (update.status == "refused" and update.reason == Reason.RTT_UNMEASURED):
+                    self._note(
+                        "goal_update",
+                        {
+                            "id": update.id,
+                            "x": x,
+                            "y": y,
+                            "yaw": yaw,
+                            "status": update.status,
+                            "progress": update.progress,
+                            "text": update.text,
+                            "code": update.reason,
+                        },
+                    )
+                    if on_update is not None:
+                        on_update(update)
                 if update.final:
                     return update
         finally:
