@@ -82,6 +82,7 @@ from foxglove.websocket import (
     WebSocketServer,
 )
 
+from telebot.channels.transports.base import Transport
 from telebot.config import AppConfig
 from telebot.errors import CallEnded, TelebotError
 from telebot.rights import Right, may
@@ -195,6 +196,7 @@ class _Listener(ServerListener):
 
     def on_subscribe(self, client: Client, channel: ChannelView) -> None:
         log.info("Foxglove client %s subscribed to %s", client.id, channel.topic)
+        self._bridge._subscribed_from_thread(channel.topic)
 
     def on_unsubscribe(self, client: Client, channel: ChannelView) -> None:
         return None
@@ -459,6 +461,9 @@ class FoxgloveBridge:
                 log.error("the map did not arrive: %s", exc)
                 return
         self.map = download
+        self._log_map(download)
+
+    def _log_map(self, download: MapDownload) -> None:
         grid = download.grid
         self._map.log(
             Grid(
@@ -551,6 +556,23 @@ class FoxgloveBridge:
             return
         with contextlib.suppress(RuntimeError):  # the loop has closed: nothing to do
             loop.call_soon_threadsafe(self._on_client_message, topic, encoding, schema_name, data)
+
+    def _subscribed_from_thread(self, topic: str) -> None:
+        loop = self._loop
+        if loop is None or self._closing:
+            return
+        with contextlib.suppress(RuntimeError):
+            loop.call_soon_threadsafe(self._on_subscribed, topic)
+
+    def _on_subscribed(self, topic: str) -> None:
+        # The server keeps no latched messages: a client that subscribes late would never
+        # see the map (sent once) or a standing plan, so they are logged again for it.
+        if self._closing:
+            return
+        if topic == "/map" and self.map is not None:
+            self._log_map(self.map)
+        elif topic == "/plan" and (plan := self.client.plan) is not None:
+            self._log_plan(plan)
 
     def _on_client_message(self, topic: str, encoding: str, schema_name: str, data: bytes) -> None:
         if self._closing or topic != GOAL_TOPIC:
@@ -674,8 +696,10 @@ async def serve_foxglove(
     record: Path | None = None,
     stop: asyncio.Event | None = None,
     announce: Callable[[str], None] = print,
+    transport: Transport | None = None,
 ) -> int:
-    """``telebot-user foxglove``: call ``robot`` and serve it to Foxglove until Ctrl-C."""
+    """``telebot-user foxglove``: call ``robot`` and serve it to Foxglove until Ctrl-C
+    (or ``stop``); ``transport``: an open one to share (default: one from ``config``)."""
     from telebot.apps.common import EXIT_OK, stop_on_signals
     from telebot.services.client import connect
 
@@ -685,7 +709,7 @@ async def serve_foxglove(
         return _usage_error(problem)
     stop = stop or asyncio.Event()
     async with connect(
-        robot, home=home, config=config, timeout=config.call.connect_timeout
+        robot, home=home, config=config, timeout=config.call.connect_timeout, transport=transport
     ) as client:
         bridge = FoxgloveBridge(client, host=host, port=port, mcap=record, topics=topics)
         try:
@@ -716,6 +740,7 @@ async def record_session(
     topics: Sequence[str] = (),
     stop: asyncio.Event | None = None,
     stream: TextIO = sys.stderr,
+    transport: Transport | None = None,
 ) -> int:
     """``telebot-user record``: write an MCAP of the robot's streams until ``duration`` s
     have passed or Ctrl-C; the file is finished (summary, index) either way."""
@@ -726,7 +751,7 @@ async def record_session(
         return _usage_error(problem)
     stop = stop or asyncio.Event()
     async with connect(
-        robot, home=home, config=config, timeout=config.call.connect_timeout
+        robot, home=home, config=config, timeout=config.call.connect_timeout, transport=transport
     ) as client:
         bridge = FoxgloveBridge(client, mcap=output, topics=topics)
         try:
