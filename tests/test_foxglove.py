@@ -310,18 +310,18 @@ def read_mcap(path: Path) -> tuple[dict[str, str], dict[str, list[tuple[int, byt
 
 async def test_a_recording_reads_back_with_the_mcap_reader(tmp_path: Path) -> None:
     out = tmp_path / "session.mcap"
-    async with robot_and_user(tmp_path) as (nav, client):
-        async with FoxgloveBridge(client, mcap=out) as bridge:
-            assert (await client.arm(timeout=10)).ok
-            start = nav.true_pose
-            goal = asyncio.ensure_future(client.goto(start.x + 1.0, start.y, timeout=20))
-            reply = await client.chat("where", timeout=10)
-            assert reply.ok
-            assert (await goal).status == "succeeded"
-            await wait_until(
-                lambda: all(bridge.counts.get(t) for t in ("/map", "/camera", "/plan"))
-            )
-            await client.stop(timeout=10)
+    async with (
+        robot_and_user(tmp_path) as (nav, client),
+        FoxgloveBridge(client, mcap=out) as bridge,
+    ):
+        assert (await client.arm(timeout=10)).ok
+        start = nav.true_pose
+        goal = asyncio.ensure_future(client.goto(start.x + 1.0, start.y, timeout=20))
+        reply = await client.chat("where", timeout=10)
+        assert reply.ok
+        assert (await goal).status == "succeeded"
+        await wait_until(lambda: all(bridge.counts.get(t) for t in ("/map", "/camera", "/plan")))
+        await client.stop(timeout=10)
     schemas, messages = read_mcap(out)
     assert schemas["/map"] == "foxglove.Grid"
     assert schemas["/pose"] == "foxglove.PoseInFrame"

@@ -741,6 +741,7 @@ async def record_session(
     stop: asyncio.Event | None = None,
     stream: TextIO = sys.stderr,
     transport: Transport | None = None,
+    announce: Callable[[str], None] = print,
 ) -> int:
     """``telebot-user record``: write an MCAP of the robot's streams until ``duration`` s
     have passed or Ctrl-C; the file is finished (summary, index) either way."""
@@ -759,6 +760,9 @@ async def record_session(
         except OSError as exc:
             await bridge.close()
             return _usage_error(str(exc))
+        until = f"for {duration:g} s" if duration else "until Ctrl-C"
+        announce(f"recording {robot} to {output} {until}")
+        sys.stdout.flush()
         progress = Progress(bridge, stream)
         shown = asyncio.ensure_future(progress.run())
         try:
