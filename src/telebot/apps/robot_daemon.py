@@ -100,6 +100,7 @@ async def serve_robot(
                     min_quality=min(30, config.video.quality),
                     adaptive=config.video.adaptive,
                 ),
+                relay=config.relay,
             )
             await server.prepare()
             with stop_on_signals(stop):

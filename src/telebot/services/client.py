@@ -45,7 +45,9 @@ from telebot.errors import (
     CallRejected,
     CallTimeout,
     ProtocolError,
+    RelayRefused,
     TelebotError,
+    UnknownTopic,
 )
 from telebot.identity import Identity, KnownRobots
 from telebot.reasons import Reason
@@ -55,6 +57,14 @@ from telebot.services.plan import PlanReceiver
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
 from telebot.services.proto.chat import ChatReply, decode_reply, encode_request
 from telebot.services.proto.plan import Place, PlanUpdate
+from telebot.services.proto.relay import (
+    RelayedMessage,
+    RelayRefusal,
+    Started,
+    StartRequest,
+    StopRequest,
+    TopicInfo,
+)
 from telebot.services.proto.safety import (
     SAFETY,
     RequestType,
@@ -72,13 +82,17 @@ from telebot.services.proto.status import (
     decode_pose,
     decode_telemetry,
 )
+from telebot.services.relay import RelayReceiver, TopicStream
 from telebot.services.video import VideoFeed, VideoFeedService, VideoReceiver, video_channel
 
 __all__ = [
     "ChatResult",
     "ClientCore",
     "ConnectionEvent",
+    "RelayedMessage",
     "RobotClient",
+    "TopicInfo",
+    "TopicStream",
     "backoff_delay",
     "connect",
     "default_client_services",
@@ -206,13 +220,18 @@ def _plan(client: RobotClient, call: Call) -> PlanReceiver:
     return PlanReceiver(call, client.latest_plan.set, client.latest_places.set)
 
 
+def _relay(client: RobotClient, call: Call) -> RelayReceiver:
+    return RelayReceiver(call)
+
+
 def default_client_services() -> ServiceRegistry[RobotClient]:
-    """The user side's built-in services: ``core`` (:class:`ClientCore`), ``video`` and
-    ``plan`` (the robot's planned path and named places)."""
+    """The user side's built-in services: ``core`` (:class:`ClientCore`), ``video``,
+    ``plan`` (the robot's planned path and named places) and ``relay`` (relayed topics)."""
     registry: ServiceRegistry[RobotClient] = ServiceRegistry()
     registry.register("core", ClientCore)
     registry.register("video", _video)
     registry.register("plan", _plan)
+    registry.register("relay", _relay)
     return registry
 
 
@@ -264,6 +283,8 @@ class RobotClient:
         self.latest_places: _Latest[Mapping[str, Place]] = _Latest()
         #: Datagrams from the robot that did not decode (dropped).
         self.rejected = 0
+        # Fire-and-forget work (a relay's stop), kept referenced until done.
+        self._background: set[asyncio.Future[Any]] = set()
         #: The services open on the current call.
         self.services: OpenServices = self.registry.open(self, call)
 
@@ -727,6 +748,86 @@ class RobotClient:
         if self._supervisor is not None:
             return VideoReceiver(self.video_feed, **options)
         return VideoReceiver(video_channel(self.call), **options)
+
+    # -- topic relay ------------------------------------------------------------------
+
+    async def topics(self, *, timeout: float = 5.0) -> list[TopicInfo]:
+        """The topics the robot would relay to this caller (name, type, schema)."""
+        async with asyncio.timeout(timeout):
+            receiver = await self._relay_receiver()
+            return await self._until_ended(receiver.topics(timeout), receiver.call)
+
+    def relay(
+        self,
+        topic: str,
+        *,
+        rate: float | None = None,
+        latest_only: bool = False,
+        timeout: float = 5.0,
+    ) -> contextlib.AbstractAsyncContextManager[TopicStream]:
+        """Relay a robot topic: ``async with robot.relay("/scan", rate=5) as scans:
+        async for message in scans: ...`` (:class:`RelayedMessage`: CDR bytes as on the robot).
+
+        ``rate``: at most this many messages per second (None: as they come, up to the
+        robot's cap); ``latest_only``: the robot keeps only the newest unsent message. The
+        relay ends when the block is left, and with the call it started on (iteration then
+        stops). Raises :class:`~telebot.errors.UnknownTopic` (its message and ``near`` list
+        near matches) or :class:`~telebot.errors.RelayRefused` (``reason``: a reason code,
+        ``"topic_not_allowed"`` when the caller's role may not relay it).
+        """
+        return self._relay_stream(topic, rate, latest_only, timeout)
+
+    @contextlib.asynccontextmanager
+    async def _relay_stream(
+        self, topic: str, rate: float | None, latest_only: bool, timeout: float
+    ) -> AsyncIterator[TopicStream]:
+        async with asyncio.timeout(timeout):
+            receiver = await self._relay_receiver()
+        ids: list[int] = []
+
+        def start(request_id: int) -> str:
+            ids.append(request_id)
+            receiver.pending_starts[request_id] = latest_only
+            return StartRequest(request_id, topic, rate, latest_only).encode()
+
+        try:
+            answer = await self._until_ended(receiver.request(start, timeout), receiver.call)
+        finally:
+            for request_id in ids:
+                receiver.pending_starts.pop(request_id, None)
+        if isinstance(answer, RelayRefusal):
+            if answer.code == Reason.UNKNOWN_TOPIC:
+                raise UnknownTopic(answer.text, answer.near)
+            raise RelayRefused(answer.text, answer.code)
+        if not isinstance(answer, Started):
+            raise ProtocolError(f"relay: unexpected answer {answer!r}")
+        stream = receiver.streams.get(answer.stream)
+        if stream is None:  # the call ended as the answer came
+            stream = TopicStream(answer.info, answer.stream, receiver.call, latest_only=latest_only)
+            stream.end("the call ended")
+        try:
+            yield stream
+        finally:
+            receiver.forget(stream)
+            if receiver.call.active:
+                stop = receiver.request(
+                    lambda i: StopRequest(i, answer.stream).encode(), timeout=2.0
+                )
+                task = asyncio.ensure_future(stop)
+                self._background.add(task)
+                task.add_done_callback(self._background_done)
+
+    def _background_done(self, task: asyncio.Future[Any]) -> None:
+        self._background.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            log.debug("relay stop not acknowledged: %s", task.exception())
+
+    async def _relay_receiver(self) -> RelayReceiver:
+        await self._core()  # waits out a reconnection
+        receiver = self.services.get("relay")
+        if not isinstance(receiver, RelayReceiver):
+            raise TelebotError("this client has no relay service registered")
+        return receiver
 
     async def hangup(self) -> None:
         """End the call (no reconnection follows)."""
