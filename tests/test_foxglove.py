@@ -344,3 +344,33 @@ async def test_a_recording_reads_back_with_the_mcap_reader(tmp_path: Path) -> No
     # arm first, stop last; the goal and "where" ran side by side.
     assert commands[0] == commands[-1] == "safety"
     assert sorted(commands[1:-1]) == ["chat", "goal"]
+
+
+async def test_relayed_topics_are_channels_with_their_ros2msg_schema(tmp_path: Path) -> None:
+    async with (
+        robot_and_user(tmp_path) as (_, client),
+        FoxgloveBridge(client, port=0, topics=["/scan", "/no_such_topic"]) as bridge,
+        ws_client(bridge.url) as fox,
+    ):
+        await wait_until(lambda: {"/scan", "/foxglove/scan"} <= fox.channels.keys())
+        scan = fox.channels["/scan"]
+        assert (scan.encoding, scan.schema_encoding) == ("cdr", "ros2msg")
+        assert scan.schema_name == "sensor_msgs/msg/LaserScan"
+        assert "float32[] ranges" in scan.schema
+        assert fox.channels["/foxglove/scan"].schema_name == "foxglove.LaserScan"
+        await fox.subscribe("/scan", "/foxglove/scan")
+        await wait_until(
+            lambda: bool(fox.messages.get("/scan") and fox.messages.get("/foxglove/scan"))
+        )
+        from telebot.robot.ros2.types import TypeLibrary
+
+        relayed = (
+            TypeLibrary()
+            .message("sensor_msgs/msg/LaserScan")
+            .deserialize(fox.messages["/scan"][-1])
+        )
+        assert len(relayed.ranges) > 0
+        laser = fields(fox.messages["/foxglove/scan"][-1])  # LaserScan: frame_id 2, ranges 6
+        assert laser[6]  # packed doubles
+        # An unknown topic is refused by the robot: said on /telebot/connection, nothing breaks.
+        await wait_until(lambda: bool(bridge.counts.get("/telebot/connection")))

@@ -48,13 +48,14 @@ from collections.abc import AsyncIterator, Callable, Coroutine, Mapping, Sequenc
 from dataclasses import asdict
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Protocol, Self, TextIO
+from typing import Any, Self, TextIO
 
 import foxglove
 from foxglove.channels import (
     CompressedImageChannel,
     FrameTransformsChannel,
     GridChannel,
+    LaserScanChannel,
     PoseInFrameChannel,
     PosesInFrameChannel,
 )
@@ -63,6 +64,7 @@ from foxglove.messages import (
     FrameTransform,
     FrameTransforms,
     Grid,
+    LaserScan,
     PackedElementField,
     PackedElementFieldNumericType,
     Pose,
@@ -84,18 +86,18 @@ from foxglove.websocket import (
 
 from telebot.channels.transports.base import Transport
 from telebot.config import AppConfig
-from telebot.errors import CallEnded, TelebotError
+from telebot.errors import CallEnded, RelayRefused, TelebotError, UnknownTopic
 from telebot.rights import Right, may
 from telebot.services.client import ConnectionEvent, RobotClient
 from telebot.services.mapxfer import MapDownload
 from telebot.services.proto.plan import PlanUpdate
+from telebot.services.proto.relay import RelayedMessage, TopicInfo
 from telebot.services.proto.status import PoseUpdate
 from telebot.services.proto.video import CompleteFrame
 
 __all__ = [
     "GOAL_TOPIC",
     "FoxgloveBridge",
-    "RelayedTopic",
     "check_output_file",
     "check_port",
     "goal_from_pose_stamped",
@@ -113,26 +115,7 @@ MAP_FRAME = "map"
 #: The robot's body frame (``/tf`` carries map → base_link).
 BASE_FRAME = "base_link"
 _ANY_JSON: dict[str, Any] = {"type": "object"}
-
-
-class RelayedTopic(Protocol):
-    """What the bridge needs of a relayed topic's description (``TopicInfo``)."""
-
-    @property
-    def name(self) -> str: ...
-    @property
-    def type(self) -> str: ...
-    @property
-    def schema(self) -> str: ...
-    @property
-    def encoding(self) -> str: ...
-
-
-class _RelayedMessage(Protocol):
-    @property
-    def data(self) -> bytes: ...
-    @property
-    def stamp(self) -> float: ...
+LASER_SCAN = "sensor_msgs/msg/LaserScan"
 
 
 def _stamp(seconds: float) -> Timestamp:
@@ -254,6 +237,7 @@ class FoxgloveBridge:
         self._tasks: set[asyncio.Task[Any]] = set()
         self._video: Any = None
         self._relayed: dict[str, foxglove.Channel] = {}
+        self._lasers: dict[str, LaserScanChannel] = {}
         self._loop: asyncio.AbstractEventLoop | None = None
         self._closing = False
         ctx = self.context
@@ -515,7 +499,7 @@ class FoxgloveBridge:
 
     # -- relayed topics -----------------------------------------------------------------
 
-    def add_relayed(self, info: RelayedTopic) -> foxglove.Channel:
+    def add_relayed(self, info: TopicInfo) -> foxglove.Channel:
         """A channel for a relayed robot topic (its ros2msg schema, ``cdr`` messages)."""
         channel = self._relayed.get(info.name)
         if channel is None:
@@ -528,25 +512,52 @@ class FoxgloveBridge:
             self._relayed[info.name] = channel
         return channel
 
-    def log_relayed(self, topic: str, message: _RelayedMessage) -> None:
-        """Log one relayed message (bytes as the robot had them) on its topic's channel."""
-        self._relayed[topic].log(message.data)
-        self._count(topic)
+    def log_relayed(self, info: TopicInfo, message: RelayedMessage) -> None:
+        """Log one relayed message (bytes as the robot had them) on its topic's channel; a
+        ``sensor_msgs/msg/LaserScan`` also as a ``foxglove.LaserScan`` on ``/foxglove<topic>``."""
+        self.add_relayed(info).log(message.data)
+        self._count(info.name)
+        if info.type == LASER_SCAN:
+            self._log_laser(info.name, message)
+
+    def _log_laser(self, topic: str, message: RelayedMessage) -> None:
+        from telebot.robot.ros2.types import TypeLibrary
+
+        try:
+            scan = TypeLibrary().message(LASER_SCAN).deserialize(message.data)
+        except TelebotError as exc:
+            log.warning("a LaserScan on %s did not decode: %s", topic, exc)
+            return
+        channel = self._lasers.get(topic)
+        if channel is None:
+            channel = self._lasers[topic] = LaserScanChannel(
+                f"/foxglove{topic}", context=self.context
+            )
+        count = len(scan.ranges)
+        channel.log(
+            LaserScan(
+                timestamp=Timestamp(int(scan.header.stamp.sec), int(scan.header.stamp.nanosec)),
+                frame_id=str(scan.header.frame_id),
+                pose=_pose(0.0, 0.0, 0.0),
+                start_angle=float(scan.angle_min),
+                end_angle=float(scan.angle_min + scan.angle_increment * max(count - 1, 0)),
+                ranges=[float(r) for r in scan.ranges],
+                intensities=[float(i) for i in scan.intensities],
+            )
+        )
+        self._count(f"/foxglove{topic}")
 
     async def _relay(self, topic: str) -> None:
-        relay = getattr(self.client, "relay", None)
-        if relay is None:
-            log.error("cannot relay %s: this telebot has no topic relay", topic)
-            return
         try:
-            stream_cm: contextlib.AbstractAsyncContextManager[Any] = relay(topic)
-            async with stream_cm as stream:
+            async with self.client.relay(topic) as stream:
                 self.add_relayed(stream.info)
-                messages: AsyncIterator[_RelayedMessage] = aiter(stream)
-                async for message in messages:
-                    self.log_relayed(topic, message)
-        except (TelebotError, LookupError) as exc:
+                async for message in stream:
+                    self.log_relayed(stream.info, message)
+        except (UnknownTopic, RelayRefused) as exc:
             log.error("cannot relay %s: %s", topic, exc)
+            self._log_json("connection", {"state": "relay_refused", "detail": str(exc)})
+        except (TelebotError, TimeoutError) as exc:
+            log.error("the relay of %s ended: %s", topic, exc)
 
     # -- goals from Foxglove -------------------------------------------------------------
 

@@ -321,6 +321,11 @@ class RobotClient:
                 await self._supervisor
         self.services.close()
         self.video_feed.end()
+        # Relay stops still waiting for their acknowledgement: no call will answer them now.
+        background = list(self._background)
+        for task in background:
+            task.cancel()
+        await asyncio.gather(*background, return_exceptions=True)
 
     async def wait_finished(self) -> CallEnd:
         """Wait until no call will come any more (started clients; else the call's end)."""
