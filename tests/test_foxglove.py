@@ -374,3 +374,39 @@ async def test_relayed_topics_are_channels_with_their_ros2msg_schema(tmp_path: P
         assert laser[6]  # packed doubles
         # An unknown topic is refused by the robot: said on /telebot/connection, nothing breaks.
         await wait_until(lambda: bool(bridge.counts.get("/telebot/connection")))
+
+
+async def test_the_foxglove_command_serves_until_stopped(tmp_path: Path) -> None:
+    from telebot.apps.foxglove_bridge import serve_foxglove
+
+    hub = MemoryHub(seed=4)
+    config = AppConfig(call=CallSettings(timeout=GENEROUS_TIMEOUT))
+    said: list[str] = []
+    stop = asyncio.Event()
+    async with (
+        robot_on_hub(tmp_path, hub, timeout=GENEROUS_TIMEOUT, sim=FAST_SIM),
+        MemoryTransport(hub, "user") as transport,
+    ):
+        serving = asyncio.ensure_future(
+            serve_foxglove(
+                ROBOT,
+                home=tmp_path / "user",
+                config=config,
+                port=0,
+                record=tmp_path / "also.mcap",
+                stop=stop,
+                announce=said.append,
+                transport=transport,
+            )
+        )
+        await wait_until(lambda: bool(said) or serving.done())
+        url = said[0].split("connection to ", 1)[1].split(" ")[0]
+        async with ws_client(url) as fox:
+            await wait_until(lambda: "/pose" in fox.channels)
+            assert fox.server_info["name"] == f"telebot {ROBOT}"
+            await fox.subscribe("/pose")
+            await wait_until(lambda: bool(fox.messages.get("/pose")))
+        stop.set()
+        assert await serving == 0
+    _, messages = read_mcap(tmp_path / "also.mcap")  # --record beside the server
+    assert messages.get("/pose")
