@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import json
 import threading
 from collections.abc import AsyncIterator, Callable
@@ -242,7 +243,7 @@ async def test_a_relayed_scan_arrives_as_cdr_at_the_rate_asked_for(tmp_path: Pat
             (relay,) = service.relays.values()
             # The simulator publishes odometry each step (50 Hz): the rest were dropped.
             await wait_until(lambda: relay.dropped > 10)
-        gaps = [b - a for a, b in zip(stamps, stamps[1:], strict=False)]
+        gaps = [b - a for a, b in itertools.pairwise(stamps)]
         assert min(gaps) > 0.3, gaps  # 2/s, not the 50/s the robot has
         await wait_until(lambda: not service.relays)  # leaving the block stopped it
         async with rig.client.relay("scan") as scans:  # a relative name is the root's
@@ -309,20 +310,20 @@ async def test_a_relay_ends_with_the_call(tmp_path: Path) -> None:
 async def test_a_flooding_topic_is_rate_limited_and_counted_and_stops_still_go_through(
     tmp_path: Path,
 ) -> None:
-    async with robot_in_a_call(tmp_path, nav_class=FloodingSim) as rig:
-        async with (
-            rig.client.relay("/flood") as flood,
-            rig.client.relay("/scan") as scans,
-        ):
-            await wait_until(lambda: flood.received >= 2)
-            for _ in range(5):  # every stop acknowledged while megabytes flood in
-                ack = await rig.client.stop(timeout=5.0)
-                assert ack.ok
-            assert (await anext(aiter(scans))).type == "sensor_msgs/msg/LaserScan"
-            service = relay_service(rig)
-            relay = next(r for r in service.relays.values() if r.info.name == "/flood")
-            nav = rig.nav
-            assert isinstance(nav, FloodingSim)
-            # Far more was offered than sent: the rest was dropped and counted.
-            await wait_until(lambda: relay.dropped > 10)
-            assert relay.sent < nav.flooded
+    async with (
+        robot_in_a_call(tmp_path, nav_class=FloodingSim) as rig,
+        rig.client.relay("/flood") as flood,
+        rig.client.relay("/scan") as scans,
+    ):
+        await wait_until(lambda: flood.received >= 2)
+        for _ in range(5):  # every stop acknowledged while megabytes flood in
+            ack = await rig.client.stop(timeout=5.0)
+            assert ack.ok
+        assert (await anext(aiter(scans))).type == "sensor_msgs/msg/LaserScan"
+        service = relay_service(rig)
+        relay = next(r for r in service.relays.values() if r.info.name == "/flood")
+        nav = rig.nav
+        assert isinstance(nav, FloodingSim)
+        # Far more was offered than sent: the rest was dropped and counted.
+        await wait_until(lambda: relay.dropped > 10)
+        assert relay.sent < nav.flooded
