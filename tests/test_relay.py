@@ -16,17 +16,21 @@ from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from conftest import ROBOT, USER, wait_until
+from rig import Daemon, Process, free_port
 from telebot.channels.call import RobotEndpoint, UserEndpoint
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.config import CallSettings, RelaySettings, ServiceSettings, SimSettings
 from telebot.errors import ProtocolError, RelayRefused, UnknownTopic
 from telebot.identity import ContactBook, KnownRobots, Role, create_paired_homes
+from telebot.robot.mapfile import places_path_for
 from telebot.robot.nav import SourceTopic
+from telebot.robot.ros2.node import Ros2Node
 from telebot.robot.ros2.types import TypeLibrary
-from telebot.robot.sim.stack import SimNavStack
+from telebot.robot.sim.stack import SimNavStack, resolve_map
 from telebot.services.client import RobotClient
 from telebot.services.proto.relay import (
     MAX_LIST_TEXT,
@@ -327,3 +331,83 @@ async def test_a_flooding_topic_is_rate_limited_and_counted_and_stops_still_go_t
         # Far more was offered than sent: the rest was dropped and counted.
         await wait_until(lambda: relay.dropped > 10)
         assert relay.sent < nav.flooded
+
+
+# --------------------------------------------------------------------------- across processes
+
+
+@pytest.mark.zenoh
+@pytest.mark.timeout(180)
+async def test_a_topic_on_the_ros2_robots_network_arrives_with_the_same_bytes(
+    tmp_path: Path,
+) -> None:
+    """telebot-sim (its router), ``telebot-robot run --robot ros2``, and a ROS node of our
+    own that publishes a point cloud (large: fragmented) the daemon has never heard of."""
+    daemon = Daemon(tmp_path)
+    router = f"tcp/127.0.0.1:{free_port()}"
+    places = places_path_for(resolve_map("small", None))
+    with daemon.robot_config.open("a") as config:
+        config.write(
+            f'[robot]\nkind = "ros2"\n[ros2]\nrouter = ["{router}"]\n'
+            f'connect_timeout = 30.0\nplaces_file = "{places}"\n'
+        )
+    sim = Process(["telebot.apps.sim_cli", "--config", str(daemon.robot_config)])
+    node: Ros2Node | None = None
+    stop = threading.Event()
+    try:
+        assert "serving map" in sim.next_line(timeout=60), sim.stderr()
+        daemon.start()
+        node = Ros2Node(name="lidar", connect=[router], library=LIB)
+        cloud_type = LIB.message("sensor_msgs/msg/PointCloud2")
+        publisher = node.publisher("/points", cloud_type)
+        clouds = [
+            cloud_type.serialize(
+                cloud_type.make(
+                    height=1,
+                    width=20_000,
+                    point_step=4,
+                    row_step=80_000,
+                    data=np.full(80_000, i, dtype=np.uint8),
+                    is_dense=True,
+                )
+            )
+            for i in range(3)
+        ]
+
+        def publish() -> None:
+            i = 0
+            while not stop.wait(0.1):
+                publisher.publish_cdr(clouds[i % 3])
+                i += 1
+
+        threading.Thread(target=publish, daemon=True).start()
+        async with daemon.connect() as user:
+
+            async def listed() -> dict[str, TopicInfo]:
+                return {t.name: t for t in await user.topics()}
+
+            topics = await listed()
+            for _ in range(50):  # the robot's node learns of ours through the graph
+                if "/points" in topics:
+                    break
+                topics = await listed()
+            assert topics["/points"].type == "sensor_msgs/msg/PointCloud2"
+            assert "MSG: sensor_msgs/PointField" in topics["/points"].schema
+            assert "/odom" in topics and "/scan" in topics  # telebot-sim's own
+            got: list[bytes] = []
+            async with user.relay("/points") as points:
+                async for message in points:
+                    got.append(message.data)
+                    if len(got) == 3:
+                        break
+            assert all(data in clouds for data in got)  # byte for byte, fragmented and rebuilt
+            assert len(got[0]) > 80_000
+            async with user.relay("/scan", rate=5) as scans:
+                scan = await anext(aiter(scans))
+                assert LIB.message(scan.type).deserialize(scan.data).range_max > 0
+    finally:
+        stop.set()
+        if node is not None:
+            node.close()
+        daemon.stop()
+        sim.stop(graceful=True)
