@@ -12,7 +12,9 @@ Flooding cannot starve control:
   (one deep when *latest only*, :data:`QUEUE` otherwise; the oldest is dropped and counted)
   and wakes the event loop once, however many messages come;
 - each relay sends at most ``rate`` messages/s (the robot's ``[relay] max_rate`` if the user
-  gave none); a message not yet due waits in the queue;
+  gave none): a message that comes before the relay is due again is dropped and counted,
+  except with *latest only*, where the newest waits for its turn (so the user gets the
+  newest message at the rate);
 - all relays of a call share a byte budget (``[relay] max_bytes_per_second``): small messages
   (one datagram) go first, a large one's fragments are paced to the budget on the BULK lane,
   and a message that would wait more than :data:`MAX_BACKLOG` seconds is dropped and counted.
@@ -364,7 +366,11 @@ class RelayService:
         for relay in list(self.relays.values()):
             while relay.pending():
                 if now < relay.next_due:
-                    next_at = min(next_at, relay.next_due)
+                    if relay.latest_only:  # the newest waits for its turn
+                        next_at = min(next_at, relay.next_due)
+                    else:  # over the rate: dropped (messages are looked at as they come)
+                        while relay.take() is not None:
+                            relay.drop()
                     break
                 item = relay.take()
                 if item is None:
@@ -537,6 +543,9 @@ class RelayReceiver:
         self._ids = itertools.count(secrets.randbelow(2**31))
         #: Datagrams that did not decode (dropped).
         self.rejected = 0
+        # Streams end with their call, whether or not the client closes its services.
+        self._watch = asyncio.ensure_future(call.wait_ended())
+        self._watch.add_done_callback(lambda _: self._end_streams())
 
     def tick(self, now: float) -> None:
         """Drop partial messages whose time is up."""
@@ -547,6 +556,10 @@ class RelayReceiver:
         """The call ended: every stream of it ends."""
         self.control.set_callback(None)
         self.data.set_callback(None)
+        self._watch.cancel()
+        self._end_streams()
+
+    def _end_streams(self) -> None:
         for stream in list(self.streams.values()):
             stream.end("the call ended")
         self.streams.clear()

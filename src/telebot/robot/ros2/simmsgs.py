@@ -3,7 +3,7 @@
 :class:`SimMessages` builds the messages a Nav2 robot publishes (map, amcl_pose, odom, tf,
 plan, scan, battery, compressed camera images) from a
 :class:`~telebot.robot.sim.stack.SimNavStack`. :class:`~telebot.robot.ros2.simrobot.SimRobotServer`
-publishes them on rmw_zenoh; the simulator's topic source (:mod:`telebot.robot.sim.topics`)
+publishes them on rmw_zenoh; the simulator's topic source (:mod:`telebot.robot.ros2.simtopics`)
 serializes them to CDR for the ``relay`` service. No zenoh here (the simulator may import
 this module): only :class:`~telebot.robot.ros2.types.TypeLibrary`.
 """

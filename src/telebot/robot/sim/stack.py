@@ -47,6 +47,7 @@ from telebot.robot.nav import (
     normalize_angle,
     require_finite,
 )
+from telebot.robot.ros2.simtopics import SimTopics
 from telebot.robot.sim.building import resolve_map
 from telebot.robot.sim.camera import CameraModel, Renderer, default_cameras
 from telebot.robot.sim.controller import (
@@ -58,7 +59,6 @@ from telebot.robot.sim.controller import (
 )
 from telebot.robot.sim.laser import Laser, LaserScan
 from telebot.robot.sim.planner import Costmap
-from telebot.robot.sim.topics import SimTopics
 from telebot.robot.sim.world import Obstacle
 
 __all__ = ["SimGoal", "SimNavStack"]
@@ -525,7 +525,7 @@ class SimNavStack:
     # -- topics (the relay service's TopicSource)
 
     def topics(self) -> list[SourceTopic]:
-        """The simulator's streams as ROS 2 topics (see :mod:`telebot.robot.sim.topics`)."""
+        """The simulator's streams as ROS 2 topics (see :mod:`telebot.robot.ros2.simtopics`)."""
         return self._topic_source().topics()
 
     def subscribe_topic(
