@@ -212,7 +212,10 @@ async def test_foxglove_client_gets_map_pose_and_video_with_their_schemas(tmp_pa
             assert channel.encoding == "protobuf" and channel.schema_encoding == "protobuf"
             assert base64.b64decode(channel.schema)  # a FileDescriptorSet
         assert fox.channels["/telebot/safety"].encoding == "json"
+        # No recording and nobody showing /camera: the robot is not asked for video.
+        assert not client.video_feed.wanted
         await fox.subscribe("/map", "/pose", "/camera")
+        await wait_until(lambda: client.video_feed.wanted)
         await wait_until(lambda: all(fox.messages.get(t) for t in ("/map", "/pose", "/camera")))
 
         grid = fields(fox.messages["/map"][-1])

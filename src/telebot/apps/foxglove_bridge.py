@@ -179,10 +179,10 @@ class _Listener(ServerListener):
 
     def on_subscribe(self, client: Client, channel: ChannelView) -> None:
         log.info("Foxglove client %s subscribed to %s", client.id, channel.topic)
-        self._bridge._subscribed_from_thread(channel.topic)
+        self._bridge._subscribed_from_thread(channel.topic, +1)
 
     def on_unsubscribe(self, client: Client, channel: ChannelView) -> None:
-        return None
+        self._bridge._subscribed_from_thread(channel.topic, -1)
 
     def on_client_advertise(self, client: Client, channel: ClientChannel) -> None:
         with self._lock:
@@ -235,9 +235,11 @@ class FoxgloveBridge:
         self._server: WebSocketServer | None = None
         self._writer: foxglove.MCAPWriter | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
-        self._video: Any = None
+        self._video: Callable[[], None] | None = None
         self._relayed: dict[str, foxglove.Channel] = {}
         self._lasers: dict[str, LaserScanChannel] = {}
+        #: Foxglove clients subscribed, per topic.
+        self._subscribers: dict[str, int] = {}
         self._loop: asyncio.AbstractEventLoop | None = None
         self._closing = False
         ctx = self.context
@@ -283,7 +285,7 @@ class FoxgloveBridge:
         client = self.client
         client.on_activity.append(self._on_activity)
         client.on_connection.append(self._on_connection)
-        self._video = client.video_feed.subscribe(self._on_frame)
+        self._video_wanted()
         for pump in (
             self._pump_pose,
             self._pump_plan,
@@ -468,6 +470,15 @@ class FoxgloveBridge:
         )
         self._count("/map")
 
+    def _video_wanted(self) -> None:
+        """Ask the robot for video while it is recorded or a Foxglove client shows it."""
+        wanted = self._writer is not None or self._subscribers.get("/camera", 0) > 0
+        if wanted and self._video is None and not self._closing:
+            self._video = self.client.video_feed.subscribe(self._on_frame)
+        elif not wanted and self._video is not None:
+            self._video()
+            self._video = None
+
     def _on_frame(self, frame: CompleteFrame) -> None:
         # The JPEG as the robot sent it: Foxglove decodes it, nothing is re-encoded here.
         self._camera.log(
@@ -568,18 +579,23 @@ class FoxgloveBridge:
         with contextlib.suppress(RuntimeError):  # the loop has closed: nothing to do
             loop.call_soon_threadsafe(self._on_client_message, topic, encoding, schema_name, data)
 
-    def _subscribed_from_thread(self, topic: str) -> None:
+    def _subscribed_from_thread(self, topic: str, change: int) -> None:
         loop = self._loop
         if loop is None or self._closing:
             return
         with contextlib.suppress(RuntimeError):
-            loop.call_soon_threadsafe(self._on_subscribed, topic)
+            loop.call_soon_threadsafe(self._on_subscribed, topic, change)
 
-    def _on_subscribed(self, topic: str) -> None:
-        # The server keeps no latched messages: a client that subscribes late would never
-        # see the map (sent once) or a standing plan, so they are logged again for it.
+    def _on_subscribed(self, topic: str, change: int) -> None:
         if self._closing:
             return
+        self._subscribers[topic] = max(0, self._subscribers.get(topic, 0) + change)
+        if topic == "/camera":
+            self._video_wanted()
+        if change < 0:
+            return
+        # The server keeps no latched messages: a client that subscribes late would never
+        # see the map (sent once) or a standing plan, so they are logged again for it.
         if topic == "/map" and self.map is not None:
             self._log_map(self.map)
         elif topic == "/plan" and (plan := self.client.plan) is not None:
