@@ -19,6 +19,7 @@ from telebot.errors import ConfigError
 __all__ = [
     "HARD_MAX_ANGULAR_SPEED",
     "HARD_MAX_LINEAR_SPEED",
+    "SAFE_OBSERVER_TOPICS",
     "AppConfig",
     "CallSettings",
     "CipherChoice",
@@ -26,6 +27,7 @@ __all__ = [
     "ReconnectSettings",
     "RecordedStream",
     "RecordingSettings",
+    "RelaySettings",
     "RobotConfig",
     "RobotSettings",
     "Ros2Settings",
@@ -375,6 +377,38 @@ class RecordingSettings(StrictModel):
     #: Which channels of each call are recorded (both ways); call starts and ends and
     #: safety events (the audit records) always are.
     streams: list[RecordedStream] = Field(default_factory=lambda: list(ALL_RECORDED))
+#: Topics an observer may relay by default: what the robot shows anyway (no cameras
+#: beyond the video it already gets, no parameters, no logs).
+SAFE_OBSERVER_TOPICS = (
+    "/scan",
+    "/odom",
+    "/amcl_pose",
+    "/plan",
+    "/map",
+    "/tf",
+    "/tf_static",
+    "/battery_state",
+)
+
+
+class RelaySettings(StrictModel):
+    """The topic relay (``relay`` service): which topics each role may relay, and limits.
+
+    Patterns are shell globs (``fnmatch``) on fully qualified topic names (``/scan``,
+    ``/*/image/compressed``); ``*`` also matches ``/``. Admins may relay what drivers may.
+    """
+
+    #: Topics a driver (and an admin) may relay.
+    driver: list[str] = Field(default_factory=lambda: ["*"])
+    #: Topics an observer may relay.
+    observer: list[str] = Field(default_factory=lambda: list(SAFE_OBSERVER_TOPICS))
+    #: Relays one call may have at once.
+    max_relays: int = Field(default=16, ge=1, le=256)
+    #: Bytes per second all relays of one call may send (fragments are paced to it, so
+    #: large messages never crowd out control; messages beyond it are dropped and counted).
+    max_bytes_per_second: float = Field(default=8_000_000.0, gt=0)
+    #: Messages per second a relay sends at most when the user asks for no rate.
+    max_rate: float = Field(default=100.0, gt=0, le=1000)
 
 
 class RobotConfig(AppConfig):
@@ -387,3 +421,4 @@ class RobotConfig(AppConfig):
     safety: SafetySettings = Field(default_factory=SafetySettings)
     video: VideoConfig = Field(default_factory=VideoConfig)
     recording: RecordingSettings = Field(default_factory=RecordingSettings)
+    relay: RelaySettings = Field(default_factory=RelaySettings)

@@ -24,6 +24,8 @@ foreign libraries (zenoh, cryptography, pydantic) are mapped at the boundary wit
         ├── MapError(ValueError)          a missing or malformed map file (names the file)
         ├── UnknownPlace(LookupError)     a place name the robot does not know (lists known ones)
         ├── UnknownCamera(LookupError)    a camera name the robot does not have
+        ├── UnknownTopic(LookupError)     a topic the robot cannot relay (lists near matches)
+        ├── RelayRefused(PermissionError) a relay the caller's role may not have (with a code)
         ├── NoPath                        no path to a goal (outside the map, in a wall, cut off)
         ├── InvalidCommand(ValueError)    a motion request with bad numbers (NaN, infinite, …)
         └── Ros2Error                     the ROS 2 robot (rmw_zenoh) failed or misbehaved
@@ -49,6 +51,7 @@ __all__ = [
     "MapError",
     "NoPath",
     "ProtocolError",
+    "RelayRefused",
     "RobotError",
     "RobotUnreachable",
     "Ros2Error",
@@ -59,6 +62,7 @@ __all__ = [
     "UnknownPlace",
     "UnknownRobot",
     "UnknownRosType",
+    "UnknownTopic",
     "UnknownTransport",
 ]
 
@@ -142,6 +146,22 @@ class UnknownPlace(RobotError, LookupError):
 
 class UnknownCamera(RobotError, LookupError):
     """A camera name the robot does not have; the message lists its cameras."""
+
+
+class UnknownTopic(RobotError, LookupError):
+    """A topic the robot cannot relay; the message lists near matches (also in ``near``)."""
+
+    def __init__(self, message: str, near: tuple[str, ...] = ()) -> None:
+        super().__init__(message)
+        self.near = near
+
+
+class RelayRefused(RobotError, PermissionError):
+    """The robot refused a topic relay; ``reason`` is its code (``"topic_not_allowed"``, …)."""
+
+    def __init__(self, message: str, reason: str = "") -> None:
+        super().__init__(message)
+        self.reason = reason
 
 
 class NoPath(RobotError):

@@ -50,6 +50,9 @@ class Reason(enum.StrEnum):
     UNKNOWN_PLACE = "unknown_place"
     UNKNOWN_CAMERA = "unknown_camera"
     UNKNOWN_GOAL = "unknown_goal"
+    UNKNOWN_TOPIC = "unknown_topic"
+    TOPIC_NOT_ALLOWED = "topic_not_allowed"
+    TOO_MANY_RELAYS = "too_many_relays"
     INTERNAL_ERROR = "internal_error"
     # How a motion ended, or why it could not start.
     NO_PATH = "no_path"
@@ -83,6 +86,9 @@ DESCRIPTIONS: dict[Reason, str] = {
     Reason.UNKNOWN_PLACE: "no place of that name (the text lists the known ones)",
     Reason.UNKNOWN_CAMERA: "the robot has no camera of that name",
     Reason.UNKNOWN_GOAL: "a goal query for an id the robot does not know: send the goal again",
+    Reason.UNKNOWN_TOPIC: "no relayable topic of that name (the text lists near matches)",
+    Reason.TOPIC_NOT_ALLOWED: "the robot's [relay] config does not let the caller's role relay it",
+    Reason.TOO_MANY_RELAYS: "the call already has as many relays as the robot allows",
     Reason.INTERNAL_ERROR: "the robot failed to run the command",
     Reason.NO_PATH: "no path to the goal (inside an obstacle, outside the map, unreachable)",
     Reason.OBSTACLE: "an obstacle holds the robot up (notice) or stopped the motion (final)",

@@ -125,6 +125,7 @@ async def serve_robot(
                     adaptive=config.video.adaptive,
                 ),
                 services=services,
+                relay=config.relay,
             )
             await server.prepare()
             with stop_on_signals(stop):

@@ -1,7 +1,8 @@
 """``telebot-user``: the user's command line.
 
 Talk to a robot (``chat``, ``send``), fetch its map (``getmap``), ask where it is
-(``where``); manage your key and the robots you trust; list robots online; ping a robot.
+(``where``); manage your key and the robots you trust; list robots online; ping a robot;
+show the robot in Foxglove (``foxglove``) and record its streams as MCAP (``record``).
 """
 
 from __future__ import annotations
@@ -137,6 +138,7 @@ def build_parser() -> Parser:
     )
     send.add_argument("words", nargs="+", metavar="COMMAND", help="the command, e.g. fwd 2")
     chat.add_argument("robot", type=name_arg, help="the robot's name")
+    _add_record_option(chat)
     for parser_ in (chat, send):
         add_home_option(parser_, "user")
         add_connection_options(parser_)
@@ -216,6 +218,7 @@ def build_parser() -> Parser:
         "carries on; the robot stays stopped until re-armed.",
     )
     ui.add_argument("robot", type=name_arg, help="the robot's name")
+    _add_record_option(ui)
     ui.add_argument(
         "--port",
         type=_port,
@@ -230,6 +233,54 @@ def build_parser() -> Parser:
     add_home_option(ui, "user")
     add_connection_options(ui)
 
+    fox = commands.add_parser(
+        "foxglove",
+        help="serve the robot to the Foxglove app (ws://HOST:PORT): map, pose, plan, video, goals",
+        description="Call the robot and serve a Foxglove WebSocket server (open a connection "
+        "to ws://HOST:PORT in the Foxglove app). Topics: /map (foxglove.Grid), /pose "
+        "(foxglove.PoseInFrame), /tf, /plan (foxglove.PosesInFrame), /camera "
+        "(foxglove.CompressedImage), /telebot/* (JSON: telemetry, safety, goal, chat, "
+        "commands, connection) and the robot topics given with --topics (ros2msg, cdr). A pose "
+        "published on /goal_pose (the 3D panel's publish tool) is a goal: it goes through the "
+        "robot's supervisor as a click on the web page does (drivers only; the robot must be "
+        "armed).",
+    )
+    fox.add_argument("robot", type=name_arg, help="the robot's name")
+    fox.add_argument(
+        "--port", type=_port, default=8765, help="TCP port to serve on (default 8765; 0: any)"
+    )
+    fox.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to serve on (default 127.0.0.1: this machine only)",
+    )
+    _add_topics_option(fox)
+    _add_record_option(fox)
+    add_home_option(fox, "user")
+    add_connection_options(fox)
+
+    record = commands.add_parser(
+        "record",
+        help="record the robot's streams to an MCAP file (readable by Foxglove and mcap)",
+        description="Call the robot and write what reaches you to an MCAP file: map, pose, "
+        "plan, video, telemetry, safety events, goals, chat and the commands you give (the "
+        "same channels as 'telebot-user foxglove'). A progress line shows on stderr; Ctrl-C "
+        "or --duration ends the recording and finishes the file.",
+    )
+    record.add_argument("robot", type=name_arg, help="the robot's name")
+    record.add_argument(
+        "-o", "--output", type=Path, required=True, metavar="FILE.mcap", help="MCAP file to write"
+    )
+    record.add_argument(
+        "--duration",
+        type=_positive_float,
+        metavar="S",
+        help="stop after S seconds (default: until Ctrl-C or the call ends)",
+    )
+    _add_topics_option(record)
+    add_home_option(record, "user")
+    add_connection_options(record)
+
     where = commands.add_parser("where", help="print the robot's pose in the map frame")
     where.add_argument("robot", type=name_arg, help="the robot's name")
     where.add_argument(
@@ -238,6 +289,25 @@ def build_parser() -> Parser:
     add_home_option(where, "user")
     add_connection_options(where)
     return parser
+
+
+def _add_record_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--record",
+        type=Path,
+        metavar="FILE.mcap",
+        help="also record the call to this MCAP file (as 'telebot-user record' does)",
+    )
+
+
+def _add_topics_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--topics",
+        nargs="+",
+        default=[],
+        metavar="TOPIC",
+        help="robot topics to relay as well (e.g. /scan; needs the robot's relay service)",
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -269,11 +339,20 @@ def main(argv: list[str] | None = None) -> int:
                 duration=args.duration,
             )
         if args.command == "ui":
+            from telebot.apps.foxglove_bridge import check_output_file
             from telebot.apps.web.server import serve_ui
 
+            if args.record is not None and (problem := check_output_file(args.record)):
+                print(f"{PROG}: error: {problem}", file=sys.stderr)
+                return EXIT_USAGE
             try:
                 return await serve_ui(
-                    args.robot, home=home, config=app_config(args), host=args.host, port=args.port
+                    args.robot,
+                    home=home,
+                    config=app_config(args),
+                    host=args.host,
+                    port=args.port,
+                    record=args.record,
                 )
             except OSError as exc:
                 print(
@@ -281,6 +360,29 @@ def main(argv: list[str] | None = None) -> int:
                     file=sys.stderr,
                 )
                 return EXIT_USAGE
+        if args.command == "foxglove":
+            from telebot.apps.foxglove_bridge import serve_foxglove
+
+            return await serve_foxglove(
+                args.robot,
+                home=home,
+                config=app_config(args),
+                host=args.host,
+                port=args.port,
+                topics=args.topics,
+                record=args.record,
+            )
+        if args.command == "record":
+            from telebot.apps.foxglove_bridge import record_session
+
+            return await record_session(
+                args.robot,
+                args.output,
+                home=home,
+                config=app_config(args),
+                duration=args.duration,
+                topics=args.topics,
+            )
         if args.command == "video-log":
             from telebot.apps.video_cli import video_log
 
@@ -307,8 +409,18 @@ async def _talk(args: argparse.Namespace, home: Path) -> int:
             arm=args.arm,
         )
     if args.command == "chat":
+        from telebot.apps.foxglove_bridge import check_output_file
+
+        if args.record is not None and (problem := check_output_file(args.record)):
+            print(f"{PROG}: error: {problem}", file=sys.stderr)
+            return EXIT_USAGE
         return await user_client.chat_session(
-            args.robot, home=home, config=config, timeout=args.timeout, map_dir=args.map_dir
+            args.robot,
+            home=home,
+            config=config,
+            timeout=args.timeout,
+            map_dir=args.map_dir,
+            record=args.record,
         )
     if args.command == "getmap":
         return await user_client.get_map(

@@ -159,14 +159,21 @@ async def chat_session(
     timeout: float,
     map_dir: Path,
     stdin: TextIO = sys.stdin,
+    record: Path | None = None,
 ) -> int:
     """``telebot-user chat``: interactive on a terminal, one command per line otherwise.
 
     Piped input runs the commands one after the other, each to its end (a script of
     moves), and ends after the last one, all within ``timeout``. On a terminal commands
     run at once, and while the robot moves any key stops it (Escape always does).
+    ``record``: an MCAP file of the call (``--record``).
     """
-    async with _robot(robot, home, config, config.call.connect_timeout, reconnect=None) as client:
+    from telebot.apps.foxglove_bridge import recording
+
+    async with (
+        _robot(robot, home, config, config.call.connect_timeout, reconnect=None) as client,
+        recording(client, record),
+    ):
         client.on_connection.append(_say_connection)
         print(
             f"connected to {robot} (role {client.call.role}); type help, Ctrl-D to leave",

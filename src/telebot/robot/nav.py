@@ -60,7 +60,10 @@ __all__ = [
     "Pose2D",
     "PoseEstimate",
     "PoseNotifier",
+    "SourceTopic",
     "SteppedNavStack",
+    "TopicSource",
+    "TopicSubscription",
     "Velocity",
     "normalize_angle",
     "require_finite",
@@ -421,4 +424,39 @@ class PoseNotifier(Protocol):
 
     def add_pose_listener(self, listener: Callable[[], None]) -> None:
         """Call ``listener()`` (from any thread, without arguments) after each new pose."""
+        ...
+
+
+@dataclass(frozen=True, slots=True)
+class SourceTopic:
+    """A topic a :class:`TopicSource` can hand out: its name (``/scan``), ROS type
+    (``sensor_msgs/msg/LaserScan``) and schema (ros2msg text with dependencies, or ``""``)."""
+
+    name: str
+    type: str
+    schema: str = ""
+
+
+class TopicSubscription(Protocol):
+    """A subscription made by :meth:`TopicSource.subscribe_topic`."""
+
+    def close(self) -> None:
+        """Deliver nothing more (idempotent, from any thread)."""
+        ...
+
+
+@runtime_checkable
+class TopicSource(Protocol):
+    """A robot whose topics can be relayed to users as CDR (the ``relay`` service)."""
+
+    def topics(self) -> list[SourceTopic]:
+        """The topics there are now."""
+        ...
+
+    def subscribe_topic(
+        self, name: str, callback: Callable[[bytes, float], None]
+    ) -> TopicSubscription:
+        """Call ``callback(cdr, stamp)`` with each message of ``name`` (CDR with its 4-byte
+        encapsulation header; ``stamp`` is ``time.time()`` when it came), from any thread.
+        Raises LookupError for a topic that is not there."""
         ...

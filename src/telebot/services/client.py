@@ -45,7 +45,9 @@ from telebot.errors import (
     CallRejected,
     CallTimeout,
     ProtocolError,
+    RelayRefused,
     TelebotError,
+    UnknownTopic,
 )
 from telebot.identity import Identity, KnownRobots
 from telebot.reasons import Reason
@@ -55,6 +57,14 @@ from telebot.services.plan import PlanReceiver
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
 from telebot.services.proto.chat import ChatReply, decode_reply, encode_request
 from telebot.services.proto.plan import Place, PlanUpdate
+from telebot.services.proto.relay import (
+    RelayedMessage,
+    RelayRefusal,
+    Started,
+    StartRequest,
+    StopRequest,
+    TopicInfo,
+)
 from telebot.services.proto.safety import (
     SAFETY,
     RequestType,
@@ -72,13 +82,17 @@ from telebot.services.proto.status import (
     decode_pose,
     decode_telemetry,
 )
+from telebot.services.relay import RelayReceiver, TopicStream
 from telebot.services.video import VideoFeed, VideoFeedService, VideoReceiver, video_channel
 
 __all__ = [
     "ChatResult",
     "ClientCore",
     "ConnectionEvent",
+    "RelayedMessage",
     "RobotClient",
+    "TopicInfo",
+    "TopicStream",
     "backoff_delay",
     "connect",
     "default_client_services",
@@ -206,13 +220,18 @@ def _plan(client: RobotClient, call: Call) -> PlanReceiver:
     return PlanReceiver(call, client.latest_plan.set, client.latest_places.set)
 
 
+def _relay(client: RobotClient, call: Call) -> RelayReceiver:
+    return RelayReceiver(call)
+
+
 def default_client_services() -> ServiceRegistry[RobotClient]:
-    """The user side's built-in services: ``core`` (:class:`ClientCore`), ``video`` and
-    ``plan`` (the robot's planned path and named places)."""
+    """The user side's built-in services: ``core`` (:class:`ClientCore`), ``video``,
+    ``plan`` (the robot's planned path and named places) and ``relay`` (relayed topics)."""
     registry: ServiceRegistry[RobotClient] = ServiceRegistry()
     registry.register("core", ClientCore)
     registry.register("video", _video)
     registry.register("plan", _plan)
+    registry.register("relay", _relay)
     return registry
 
 
@@ -231,6 +250,10 @@ class RobotClient:
         self.video_feed = VideoFeed()
         #: Called with every :class:`ConnectionEvent` (on the event loop).
         self.on_connection: list[Callable[[ConnectionEvent], None]] = []
+        #: Called with ``(kind, fields)`` for each thing this user asks and each answer it
+        #: gets (on the event loop): ``chat`` / ``chat_reply``, ``goal`` / ``goal_update``,
+        #: ``safety`` / ``safety_ack``. Recordings (``telebot-user record``) log them.
+        self.on_activity: list[Callable[[str, Mapping[str, Any]], None]] = []
         #: The newest :class:`ConnectionEvent` (None while the first call is up).
         self.latest_connection: _Latest[ConnectionEvent] = _Latest()
         #: Calls that replaced a dropped one.
@@ -260,6 +283,8 @@ class RobotClient:
         self.latest_places: _Latest[Mapping[str, Place]] = _Latest()
         #: Datagrams from the robot that did not decode (dropped).
         self.rejected = 0
+        # Fire-and-forget work (a relay's stop), kept referenced until done.
+        self._background: set[asyncio.Future[Any]] = set()
         #: The services open on the current call.
         self.services: OpenServices = self.registry.open(self, call)
 
@@ -296,6 +321,11 @@ class RobotClient:
                 await self._supervisor
         self.services.close()
         self.video_feed.end()
+        # Relay stops still waiting for their acknowledgement: no call will answer them now.
+        background = list(self._background)
+        for task in background:
+            task.cancel()
+        await asyncio.gather(*background, return_exceptions=True)
 
     async def wait_finished(self) -> CallEnd:
         """Wait until no call will come any more (started clients; else the call's end)."""
@@ -399,6 +429,13 @@ class RobotClient:
         self.video_feed.end()
         self._emit(ConnectionEvent("ended", detail))
 
+    def _note(self, kind: str, fields: Mapping[str, Any]) -> None:
+        for listener in list(self.on_activity):
+            try:
+                listener(kind, fields)
+            except Exception:
+                log.exception("activity listener failed")
+
     def _emit(self, event: ConnectionEvent) -> None:
         self.latest_connection.set(event)
         for listener in list(self.on_connection):
@@ -450,6 +487,7 @@ class RobotClient:
         Raises TimeoutError if the robot does not finish within ``timeout`` seconds and
         :class:`~telebot.errors.CallEnded` if the call ends first.
         """
+        self._note("chat", {"command": command})
         async with asyncio.timeout(timeout):
             for attempt in range(UNMEASURED_RETRIES + 1):
                 first = True
@@ -466,6 +504,16 @@ class RobotClient:
                         ):
                             break
                         first = False
+                        self._note(
+                            "chat_reply",
+                            {
+                                "command": command,
+                                "text": reply.text,
+                                "ok": reply.ok,
+                                "final": reply.final,
+                                "code": reply.reason,
+                            },
+                        )
                         yield reply
                     else:
                         return
@@ -546,6 +594,7 @@ class RobotClient:
         acks: asyncio.Queue[SafetyAck] = asyncio.Queue()
         self._safety_waiters[request_id] = acks
         payload = SafetyRequest(kind, request_id, how).encode()
+        noted = False
         try:
             async with asyncio.timeout(timeout):
                 core = await self._core()
@@ -556,10 +605,18 @@ class RobotClient:
                         raise
                     except TelebotError as exc:  # a transient send failure: keep trying
                         log.warning("%s not sent (%s); trying again", kind, exc)
+                    if not noted:  # after the send: a stop never waits for listeners
+                        noted = True
+                        self._note("safety", {"request": kind, "how": how})
                     try:
-                        return await self._next(acks, repeat, core.call)
+                        ack = await self._next(acks, repeat, core.call)
                     except TimeoutError:
                         continue  # lost one way or the other: say it again
+                    self._note(
+                        "safety_ack",
+                        {"request": kind, "ok": ack.ok, "text": ack.text, "code": ack.reason},
+                    )
+                    return ack
         finally:
             self._safety_waiters.pop(request_id, None)
 
@@ -578,6 +635,7 @@ class RobotClient:
 
         Returns the final status (``succeeded``, ``failed``, ``cancelled`` or ``refused``).
         """
+        self._note("goal", {"x": x, "y": y, "yaw": yaw})
         async with asyncio.timeout(timeout):
             for attempt in range(UNMEASURED_RETRIES + 1):
                 update = await self._one_goal(x, y, yaw, on_update)
@@ -618,10 +676,22 @@ class RobotClient:
                     self._send(core.goals, start)  # the goal itself was lost
                     continue
                 heard = True
-                if on_update is not None and not (
-                    update.status == "refused" and update.reason == Reason.RTT_UNMEASURED
-                ):
-                    on_update(update)
+                if not (update.status == "refused" and update.reason == Reason.RTT_UNMEASURED):
+                    self._note(
+                        "goal_update",
+                        {
+                            "id": update.id,
+                            "x": x,
+                            "y": y,
+                            "yaw": yaw,
+                            "status": update.status,
+                            "progress": update.progress,
+                            "text": update.text,
+                            "code": update.reason,
+                        },
+                    )
+                    if on_update is not None:
+                        on_update(update)
                 if update.final:
                     return update
         finally:
@@ -683,6 +753,86 @@ class RobotClient:
         if self._supervisor is not None:
             return VideoReceiver(self.video_feed, **options)
         return VideoReceiver(video_channel(self.call), **options)
+
+    # -- topic relay ------------------------------------------------------------------
+
+    async def topics(self, *, timeout: float = 5.0) -> list[TopicInfo]:
+        """The topics the robot would relay to this caller (name, type, schema)."""
+        async with asyncio.timeout(timeout):
+            receiver = await self._relay_receiver()
+            return await self._until_ended(receiver.topics(timeout), receiver.call)
+
+    def relay(
+        self,
+        topic: str,
+        *,
+        rate: float | None = None,
+        latest_only: bool = False,
+        timeout: float = 5.0,
+    ) -> contextlib.AbstractAsyncContextManager[TopicStream]:
+        """Relay a robot topic: ``async with robot.relay("/scan", rate=5) as scans:
+        async for message in scans: ...`` (:class:`RelayedMessage`: CDR bytes as on the robot).
+
+        ``rate``: at most this many messages per second (None: as they come, up to the
+        robot's cap); ``latest_only``: the robot keeps only the newest unsent message. The
+        relay ends when the block is left, and with the call it started on (iteration then
+        stops). Raises :class:`~telebot.errors.UnknownTopic` (its message and ``near`` list
+        near matches) or :class:`~telebot.errors.RelayRefused` (``reason``: a reason code,
+        ``"topic_not_allowed"`` when the caller's role may not relay it).
+        """
+        return self._relay_stream(topic, rate, latest_only, timeout)
+
+    @contextlib.asynccontextmanager
+    async def _relay_stream(
+        self, topic: str, rate: float | None, latest_only: bool, timeout: float
+    ) -> AsyncIterator[TopicStream]:
+        async with asyncio.timeout(timeout):
+            receiver = await self._relay_receiver()
+        ids: list[int] = []
+
+        def start(request_id: int) -> str:
+            ids.append(request_id)
+            receiver.pending_starts[request_id] = latest_only
+            return StartRequest(request_id, topic, rate, latest_only).encode()
+
+        try:
+            answer = await self._until_ended(receiver.request(start, timeout), receiver.call)
+        finally:
+            for request_id in ids:
+                receiver.pending_starts.pop(request_id, None)
+        if isinstance(answer, RelayRefusal):
+            if answer.code == Reason.UNKNOWN_TOPIC:
+                raise UnknownTopic(answer.text, answer.near)
+            raise RelayRefused(answer.text, answer.code)
+        if not isinstance(answer, Started):
+            raise ProtocolError(f"relay: unexpected answer {answer!r}")
+        stream = receiver.streams.get(answer.stream)
+        if stream is None:  # the call ended as the answer came
+            stream = TopicStream(answer.info, answer.stream, receiver.call, latest_only=latest_only)
+            stream.end("the call ended")
+        try:
+            yield stream
+        finally:
+            receiver.forget(stream)
+            if receiver.call.active:
+                stop = receiver.request(
+                    lambda i: StopRequest(i, answer.stream).encode(), timeout=2.0
+                )
+                task = asyncio.ensure_future(stop)
+                self._background.add(task)
+                task.add_done_callback(self._background_done)
+
+    def _background_done(self, task: asyncio.Future[Any]) -> None:
+        self._background.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            log.debug("relay stop not acknowledged: %s", task.exception())
+
+    async def _relay_receiver(self) -> RelayReceiver:
+        await self._core()  # waits out a reconnection
+        receiver = self.services.get("relay")
+        if not isinstance(receiver, RelayReceiver):
+            raise TelebotError("this client has no relay service registered")
+        return receiver
 
     async def hangup(self) -> None:
         """End the call (no reconnection follows)."""

@@ -27,7 +27,7 @@ from typing import Any, TypeVar
 from telebot.channels.call import Call, RobotEndpoint
 from telebot.channels.channel import Channel, ReceivedDatagram
 from telebot.channels.transports.base import Lane
-from telebot.config import ServiceSettings
+from telebot.config import RelaySettings, ServiceSettings
 from telebot.errors import ProtocolError, TelebotError
 from telebot.identity import Role
 from telebot.reasons import Reason, Refusal
@@ -53,6 +53,7 @@ from telebot.services.proto.status import (
     Telemetry,
     decode_goal_command,
 )
+from telebot.services.relay import RelayService
 from telebot.services.supervision import SafetyDriver
 from telebot.services.video import VideoSender, VideoSettings
 
@@ -432,12 +433,14 @@ def _core(server: RobotServer, call: Call) -> CallServices:
 
 
 def default_robot_services() -> ServiceRegistry[RobotServer]:
-    """The robot's built-in services: ``core`` (:class:`CallServices`), ``video`` and
-    ``plan`` (:class:`~telebot.services.plan.PlanService`: planned path and places)."""
+    """The robot's built-in services: ``core`` (:class:`CallServices`), ``video``,
+    ``plan`` (:class:`~telebot.services.plan.PlanService`: planned path and places) and
+    ``relay`` (:class:`~telebot.services.relay.RelayService`: topics relayed as CDR)."""
     registry: ServiceRegistry[RobotServer] = ServiceRegistry()
     registry.register("core", _core)
     registry.register("video", RobotVideo)
     registry.register("plan", PlanService)
+    registry.register("relay", RelayService)
     return registry
 
 
@@ -462,8 +465,11 @@ class RobotServer:
         safety: SafetyDriver | None = None,
         video: VideoSettings | None = None,
         services: ServiceRegistry[RobotServer] | None = None,
+        relay: RelaySettings | None = None,
     ) -> None:
         self.nav = nav
+        #: Who may relay which topics, and the relay's limits (``[relay]`` of the config).
+        self.relay_settings = relay if relay is not None else RelaySettings()
         #: What every call gets (:func:`default_robot_services` unless given); register
         #: more before calls come in.
         self.registry = services if services is not None else default_robot_services()

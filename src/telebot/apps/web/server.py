@@ -610,13 +610,15 @@ async def serve_ui(
     port: int = 8080,
     stop: asyncio.Event | None = None,
     announce: Callable[[str], None] = print,
+    record: Path | None = None,
 ) -> int:
     """``telebot-user ui``: call ``robot``, serve the page until Ctrl-C / SIGTERM.
 
     ``config`` is the user's :class:`~telebot.config.AppConfig`. The robot is stopped
-    if the client exits while it moves.
+    if the client exits while it moves. ``record``: an MCAP file of the call (``--record``).
     """
     from telebot.apps.common import EXIT_OK, stop_on_signals
+    from telebot.apps.foxglove_bridge import recording
     from telebot.identity import Identity
     from telebot.services.client import connect
 
@@ -625,6 +627,7 @@ async def serve_ui(
     timeout = config.call.connect_timeout
     async with (
         connect(robot, home=home, config=config, timeout=timeout) as client,
+        recording(client, record),
         WebUI(client, host=host, port=port, user=user) as ui,
     ):
         client.on_connection.append(lambda event: print(f"[{event}]", file=sys.stderr))

@@ -332,6 +332,27 @@ class Ros2Node:
         sub = Subscription(self, self.resolve(topic), mtype, callback, qos, max_bytes)
         return self._add(sub)
 
+    def subscribe_raw(
+        self,
+        topic: str,
+        dds_type: str,
+        type_hash: str,
+        callback: Callable[[bytes, Attachment], None],
+        *,
+        qos: QoS = DEFAULT_QOS,
+        max_bytes: int | None = None,
+    ) -> Subscription:
+        """Subscribe to ``topic`` without decoding: ``callback(cdr, attachment)`` gets each
+        sample's bytes unchanged (encapsulation header included), on a zenoh thread.
+
+        For any type on the graph, known to the type library or not (the topic relay).
+        """
+        from telebot.robot.ros2.types import MessageType, ros_type_name
+
+        mtype = MessageType(ros_type_name(dds_type), dds_type, type_hash, self.library)
+        sub = Subscription(self, self.resolve(topic), mtype, callback, qos, max_bytes, raw=True)
+        return self._add(sub)
+
     def service_client(self, name: str, stype: ServiceType) -> ServiceClient:
         """A client of the service ``name``."""
         return self._add(ServiceClient(self, self.resolve(name), stype))
@@ -626,9 +647,13 @@ class Subscription(_Endpoint):
         callback: Callable[[Any, Attachment], None],
         qos: QoS,
         max_bytes: int | None,
+        *,
+        raw: bool = False,
     ) -> None:
         super().__init__(node, topic, mtype.dds_name, mtype.type_hash, qos)
         self.mtype = mtype
+        #: Deliver the CDR bytes as they came (no decoding).
+        self.raw = raw
         self.max_bytes = max_bytes
         self._callback = callback
         # Any type name and hash on this topic's name: a peer's wrong type is then seen,
@@ -687,7 +712,7 @@ class Subscription(_Endpoint):
             self._drop("too_large", f"a {len(data)}-byte sample (limit {self.max_bytes})")
             return
         try:
-            msg = self.mtype.deserialize(data)
+            msg = data if self.raw else self.mtype.deserialize(data)
         except Exception as exc:  # CdrError, and whatever a broken decoder raises
             self._drop("bad_cdr", f"a sample that is not {self.mtype.name}: {_reason(exc)}")
             return

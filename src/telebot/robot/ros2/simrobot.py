@@ -41,16 +41,15 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-import cv2
-import numpy as np
 import zenoh
 
 from telebot.config import Ros2Settings
 from telebot.errors import InvalidCommand, RobotUnreachable, TelebotError
 from telebot.reasons import Reason
-from telebot.robot.nav import GoalStatus, Pose2D, normalize_angle
+from telebot.robot.nav import GoalStatus, Pose2D
 from telebot.robot.ros2.keys import EntityKind, GraphEntity, QoS
 from telebot.robot.ros2.node import GOAL_CANCELING, GOAL_UNKNOWN, ActionServer, Ros2Node
+from telebot.robot.ros2.simmsgs import BATTERY_HZ, CAMERA_HZ, SCAN_HZ, SimMessages
 from telebot.robot.ros2.types import ActionType, TypeLibrary
 from telebot.robot.sim.stack import SimGoal, SimNavStack
 
@@ -59,14 +58,9 @@ __all__ = ["SimRobotServer", "open_router", "router_config"]
 log = logging.getLogger(__name__)
 
 #: Rates (Hz) of what is not sent every control step.
-SCAN_HZ = 10.0
 FEEDBACK_HZ = 10.0
-BATTERY_HZ = 1.0
-CAMERA_HZ = 5.0
 #: How often the camera topics' subscribers are looked up in the graph (s).
 GRAPH_POLL_S = 1.0
-#: JPEG quality of the camera topics.
-JPEG_QUALITY = 80
 #: Zenoh link lease the router announces (ms), and keep-alives per lease: its clients (the
 #: telebot daemon) know within it that this robot is gone. The other way round, a client's
 #: own announced lease says how soon the router drops a client that froze (its tokens with
@@ -205,6 +199,9 @@ class SimRobotServer:
         self.cmd_vel_count = 0
         self.cmd_vel_refused = 0
         self.orphaned_goals = 0
+        self._msgs = SimMessages(
+            self._lib, map_frame=settings.map_frame, base_frame=settings.base_frame
+        )
         m = self._lib.message
         self._t_header = m("std_msgs/msg/Header")
         self._t_time = m("builtin_interfaces/msg/Time")
@@ -624,32 +621,11 @@ class SimRobotServer:
 
     # ------------------------------------------------------------------ publishing
 
-    def _stamp(self, wall: float) -> Any:
-        sec = math.floor(wall)
-        return self._t_time.make(sec=int(sec), nanosec=int((wall - sec) * 1e9))
-
     def _duration(self, seconds: float) -> Any:
-        seconds = max(seconds, 0.0)
-        sec = math.floor(seconds)
-        return self._t_duration.make(sec=int(sec), nanosec=int((seconds - sec) * 1e9))
-
-    def _header(self, frame: str, wall: float) -> Any:
-        return self._t_header.make(stamp=self._stamp(wall), frame_id=frame)
-
-    def _quaternion(self, yaw: float) -> Any:
-        return self._t_quat.make(x=0.0, y=0.0, z=math.sin(yaw / 2.0), w=math.cos(yaw / 2.0))
-
-    def _pose_msg(self, pose: Pose2D) -> Any:
-        yaw = pose.yaw if math.isfinite(pose.yaw) else 0.0
-        return self._t_pose.make(
-            position=self._t_point.make(x=pose.x, y=pose.y, z=0.0),
-            orientation=self._quaternion(yaw),
-        )
+        return self._msgs.duration(seconds)
 
     def _pose_stamped(self, pose: Pose2D, wall: float) -> Any:
-        return self._t_pose_stamped.make(
-            header=self._header(self._settings.map_frame, wall), pose=self._pose_msg(pose)
-        )
+        return self._msgs.pose_stamped(pose, wall)
 
     def _publish_map(self, wall: float) -> None:
         version = self._stack.map_version()
@@ -657,134 +633,37 @@ class SimRobotServer:
             return
         self._map_version = version
         grid = self._stack.map()
-        info = self._t_map_info.make(
-            map_load_time=self._stamp(wall),
-            resolution=grid.resolution,
-            width=grid.width,
-            height=grid.height,
-            origin=self._pose_msg(Pose2D(grid.origin_x, grid.origin_y, 0.0)),
-        )
-        msg = self._t_map.make(
-            header=self._header(self._settings.map_frame, wall),
-            info=info,
-            data=np.ascontiguousarray(grid.data.reshape(-1), dtype=np.int8),
-        )
-        self._topics.map.publish(msg)
+        self._topics.map.publish(self._msgs.map(grid, wall))
         log.info("published map %d: %d x %d cells", version, grid.width, grid.height)
 
     def _publish_pose(self, wall: float) -> None:
-        stack, s = self._stack, self._settings
+        stack, msgs = self._stack, self._msgs
         estimate = stack.pose()
-        c = estimate.covariance
-        covariance = np.zeros(36, dtype=np.float64)
-        # (x, y, yaw) of the 3x3 go to rows/columns 0, 1 and 5 of ROS's 6x6.
-        for i, row in enumerate((0, 1, 5)):
-            for j, col in enumerate((0, 1, 5)):
-                covariance[row * 6 + col] = c[i * 3 + j]
-        pose_cov = self._t_pose_cov.make(pose=self._pose_msg(estimate.pose), covariance=covariance)
-        self._topics.amcl_pose.publish(
-            self._t_pose_cov_stamped.make(header=self._header(s.map_frame, wall), pose=pose_cov)
-        )
-        truth, velocity = stack.true_pose, stack.velocity()
-        twist = self._t_twist.make(
-            linear=self._t_vector3.make(x=velocity.linear, y=0.0, z=0.0),
-            angular=self._t_vector3.make(x=0.0, y=0.0, z=velocity.angular),
-        )
-        self._topics.odom.publish(
-            self._t_odom.make(
-                header=self._header("odom", wall),
-                child_frame_id=s.base_frame,
-                pose=self._t_pose_cov.make(pose=self._pose_msg(truth)),
-                twist=self._t_twist_cov.make(twist=twist),
-            )
-        )
-        here = estimate.pose
-        transform = self._t_transform_stamped.make(
-            header=self._header(s.map_frame, wall),
-            child_frame_id=s.base_frame,
-            transform=self._t_transform.make(
-                translation=self._t_vector3.make(x=here.x, y=here.y, z=0.0),
-                rotation=self._quaternion(here.yaw),
-            ),
-        )
-        self._topics.tf.publish(self._t_tf.make(transforms=[transform]))
+        self._topics.amcl_pose.publish(msgs.amcl_pose(estimate, wall))
+        self._topics.odom.publish(msgs.odom(stack.true_pose, stack.velocity(), wall))
+        self._topics.tf.publish(msgs.tf(estimate.pose, wall))
 
     def _publish_plan(self, wall: float) -> None:
         plan = self._stack.planned_path()
         if plan is self._plan:
             return
         self._plan = plan
-        poses = []
-        for i, point in enumerate(plan):
-            # Orientation along the path, as Nav2's planners give it.
-            nxt = plan[i + 1] if i + 1 < len(plan) else point
-            prev = plan[i - 1] if i > 0 else point
-            yaw = math.atan2(nxt.y - prev.y, nxt.x - prev.x) if len(plan) > 1 else point.yaw
-            poses.append(self._pose_stamped(Pose2D(point.x, point.y, normalize_angle(yaw)), wall))
-        self._topics.plan.publish(
-            self._t_path.make(header=self._header(self._settings.map_frame, wall), poses=poses)
-        )
+        self._topics.plan.publish(self._msgs.path(plan, wall))
 
     def _publish_scan(self, wall: float) -> None:
-        scan = self._stack.laser_scan()
-        beams = len(scan.angles)
-        ranges = scan.ranges.astype(np.float32)
-        # REP-117: a beam that hit nothing within range reads +inf.
-        ranges[scan.ranges >= scan.range_max] = np.inf
-        self._topics.scan.publish(
-            self._t_scan.make(
-                header=self._header(self._settings.base_frame, wall),
-                angle_min=float(scan.angles[0]),
-                angle_max=float(scan.angles[-1]),
-                angle_increment=2.0 * math.pi / beams,
-                time_increment=0.0,
-                scan_time=1.0 / SCAN_HZ,
-                range_min=0.0,
-                range_max=scan.range_max,
-                ranges=ranges,
-                intensities=np.zeros(0, dtype=np.float32),
-            )
-        )
+        self._topics.scan.publish(self._msgs.scan(self._stack.laser_scan(), wall))
 
     def _publish_battery(self, wall: float) -> None:
-        battery = self._stack.battery()
-        nan = math.nan
-        self._topics.battery.publish(
-            self._t_battery.make(
-                header=self._header(self._settings.base_frame, wall),
-                voltage=nan,
-                temperature=nan,
-                current=nan,
-                charge=nan,
-                capacity=nan,
-                design_capacity=nan,
-                percentage=battery.percent / 100.0,
-                power_supply_status=1 if battery.charging else 2,  # CHARGING / DISCHARGING
-                power_supply_health=1,  # GOOD
-                power_supply_technology=2,  # LION
-                present=True,
-                cell_voltage=np.zeros(0, dtype=np.float32),
-                cell_temperature=np.zeros(0, dtype=np.float32),
-                location="base",
-                serial_number="",
-            )
-        )
+        self._topics.battery.publish(self._msgs.battery(self._stack.battery(), wall))
 
     def _publish_cameras(self, wall: float) -> None:
         for camera, wanted in self._camera_wanted.items():
             if not wanted:
                 continue
             frame = self._stack.get_frame(camera)
-            ok, jpeg = cv2.imencode(".jpg", frame.image, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
-            if not ok:
-                continue
-            self._topics.cameras[camera].publish(
-                self._t_image.make(
-                    header=self._header(f"{camera}_optical_frame", wall),
-                    format="jpeg",
-                    data=np.frombuffer(jpeg.tobytes(), dtype=np.uint8),
-                )
-            )
+            msg = self._msgs.image(camera, frame.image, wall)
+            if msg is not None:
+                self._topics.cameras[camera].publish(msg)
 
 
 def _node_key(entity: GraphEntity) -> str:

@@ -70,6 +70,8 @@ from telebot.robot.nav import (
     NavStatus,
     Pose2D,
     PoseEstimate,
+    SourceTopic,
+    TopicSubscription,
     Velocity,
     normalize_angle,
     require_finite,
@@ -86,8 +88,8 @@ from telebot.robot.ros2.convert import (
     quaternion_fields,
 )
 from telebot.robot.ros2.keys import EntityKind, GraphEntity, QoS, action_names
-from telebot.robot.ros2.node import ActionClient, Ros2Node, Subscription
-from telebot.robot.ros2.types import ActionType, MessageType, TypeLibrary
+from telebot.robot.ros2.node import DEFAULT_QOS, ActionClient, Ros2Node, Subscription
+from telebot.robot.ros2.types import ActionType, MessageType, TypeLibrary, ros_type_name
 
 __all__ = ["BATTERY_LOW_PERCENT", "Ros2Goal", "Ros2NavStack"]
 
@@ -627,6 +629,55 @@ class Ros2NavStack:
                 self._pose_at = stamp
         if found is not None:
             self._notify_pose()
+
+    # -- topics (the relay service's TopicSource)
+
+    def topics(self) -> list[SourceTopic]:
+        """Every topic published on the robot's zenoh network now (from the ROS graph),
+        with its type and, when the type library knows it, its schema."""
+        found: dict[str, str] = {}
+        for entity in self._node.graph():
+            if entity.kind == EntityKind.PUBLISHER and entity.topic and entity.dds_type:
+                found.setdefault(entity.topic, entity.dds_type)
+        return [
+            SourceTopic(name, ros_type_name(dds), self._schema(ros_type_name(dds)))
+            for name, dds in sorted(found.items())
+        ]
+
+    def _schema(self, type_name: str) -> str:
+        try:
+            return self._lib.schema_text(type_name)
+        except Exception:  # a type the library does not know: relayed without a schema
+            return ""
+
+    def subscribe_topic(
+        self, name: str, callback: Callable[[bytes, float], None]
+    ) -> TopicSubscription:
+        """Relay ``name``: ``callback(cdr, time.time())`` with each sample's bytes as they
+        came (undecoded), from a zenoh thread. LookupError if nothing publishes it."""
+        publishers = [
+            e
+            for e in self._node.graph()
+            if e.kind == EntityKind.PUBLISHER and e.topic == name and e.dds_type and e.type_hash
+        ]
+        if not publishers:
+            raise LookupError(f"nothing publishes {name} on the robot's network")
+        first = min(publishers, key=lambda e: (e.dds_type or "", e.type_hash or ""))
+        assert first.dds_type is not None and first.type_hash is not None
+        # A latched topic (the map) is asked for its last message, as any late subscriber.
+        latched = first.qos is not None and first.qos.is_transient_local
+        qos = QoS.transient_local(depth=1) if latched else DEFAULT_QOS
+
+        def deliver(data: bytes, _attachment: Any) -> None:
+            callback(data, time.time())
+
+        return self._node.subscribe_raw(
+            name,
+            first.dds_type,
+            first.type_hash,
+            deliver,
+            qos=qos,
+        )
 
     def add_pose_listener(self, listener: Callable[[], None]) -> None:
         """Call ``listener()`` after each new pose (from zenoh's thread): see PoseNotifier."""

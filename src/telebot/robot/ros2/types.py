@@ -419,6 +419,15 @@ class TypeLibrary:
                 self._messages[name] = found
             return found
 
+    def schema_text(self, name: str) -> str:
+        """The ``.msg`` text of message type ``name`` with its dependencies, as MCAP's
+        ``ros2msg`` schema encoding and rosbag2 want it (each dependency after a line of 80
+        ``=`` and ``MSG: pkg/Type``). Raises :class:`UnknownRosType`."""
+        name = self.message(name).name
+        with self._lock:
+            text, _ = self._store().generate_msgdef(name, ros_version=2)
+        return text
+
     def service(self, name: str) -> ServiceType:
         """The service type ``pkg/srv/Name`` (or an action's ``..._SendGoal``/``_GetResult``)."""
         name = self._normalize(name, "srv")

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import enum
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from types import MappingProxyType
 from typing import Literal
@@ -41,10 +41,13 @@ from telebot.robot.nav import (
     NavStatus,
     Pose2D,
     PoseEstimate,
+    SourceTopic,
+    TopicSubscription,
     Velocity,
     normalize_angle,
     require_finite,
 )
+from telebot.robot.ros2.simtopics import SimTopics
 from telebot.robot.sim.building import resolve_map
 from telebot.robot.sim.camera import CameraModel, Renderer, default_cameras
 from telebot.robot.sim.controller import (
@@ -137,6 +140,8 @@ class SimNavStack:
         map_name: str = "map",
     ) -> None:
         self._settings = settings = settings if settings is not None else SimSettings()
+        # The relay's topic source, made when first asked for (it loads the ROS types).
+        self._topics: SimTopics | None = None
         self._grid = grid
         self._map_version = 0
         self._map_name = map_name
@@ -517,8 +522,30 @@ class SimNavStack:
         require_finite(percent=percent)
         self._battery = min(max(float(percent), 0.0), 100.0)
 
+    # -- topics (the relay service's TopicSource)
+
+    def topics(self) -> list[SourceTopic]:
+        """The simulator's streams as ROS 2 topics (see :mod:`telebot.robot.ros2.simtopics`)."""
+        return self._topic_source().topics()
+
+    def subscribe_topic(
+        self, name: str, callback: Callable[[bytes, float], None]
+    ) -> TopicSubscription:
+        """Call ``callback(cdr, stamp)`` with each message of topic ``name``, from :meth:`step`."""
+        return self._topic_source().subscribe_topic(name, callback)
+
+    def _topic_source(self) -> SimTopics:
+        if self._topics is None:
+            self._topics = SimTopics(self)
+        return self._topics
+
     def step(self, now: float) -> None:
         """Run one control cycle at ``now`` and move the base up to ``now``."""
+        self._step(now)
+        if self._topics is not None:
+            self._topics.step(now)
+
+    def _step(self, now: float) -> None:
         require_finite(now=now)
         requests = self._emergency_requests
         if requests != self.emergency_stops:

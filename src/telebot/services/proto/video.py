@@ -48,6 +48,7 @@ from telebot.channels.proto.frames import MAX_DATAGRAM
 from telebot.errors import ProtocolError
 
 __all__ = [
+    "CODEC_CDR",
     "CODEC_JPEG",
     "FLAG_BYE",
     "FRAGMENT_HEADER",
@@ -85,6 +86,10 @@ VIDEO: Final = "video"
 KIND_FRAGMENT: Final = 0x01
 KIND_REPORT: Final = 0x02
 CODEC_JPEG: Final = 0x01
+#: Codec of opaque payloads: the topic relay's CDR messages (:mod:`telebot.services.proto.relay`
+#: reuses these fragments; the "camera" field then names the relay stream).
+CODEC_CDR: Final = 0x02
+_WHAT: Final = {CODEC_JPEG: "video fragment", CODEC_CDR: "relay fragment"}
 #: Report flag: the receiver stops watching.
 FLAG_BYE: Final = 0x01
 #: kind, codec, seq, frame_id, index, count, size, capture_us, interval_ms, camera length.
@@ -165,12 +170,14 @@ def fragment(
     *,
     seq: int = 0,
     interval: float = 1 / 30,
+    codec: int = CODEC_JPEG,
 ) -> list[bytes]:
     """Cut one JPEG frame into fragment datagrams of at most ``max_payload`` bytes each.
 
     ``capture_time`` is wall-clock seconds (Unix epoch); ``seq`` is the sequence number of
     the first datagram (the next ones count up, modulo 2³²); ``interval`` is the sender's
-    current frame interval in seconds (the receiver waits that long for missing fragments).
+    current frame interval in seconds (the receiver waits that long for missing fragments);
+    ``codec`` says what the bytes are (JPEG for video, :data:`CODEC_CDR` for the relay).
     Raises ValueError when the frame is empty, too large, or ``max_payload`` too small.
     """
     name = _camera_bytes(camera)
@@ -192,7 +199,7 @@ def fragment(
         start, end = fragment_span(size, count, index)
         header = FRAGMENT_HEADER.pack(
             KIND_FRAGMENT,
-            CODEC_JPEG,
+            codec,
             (seq + index) % _U32,
             frame_id % _U32,
             index,
@@ -206,36 +213,37 @@ def fragment(
     return out
 
 
-def parse_fragment(payload: str | bytes) -> Fragment:
-    """Parse and check a fragment datagram; ProtocolError says what is wrong with it."""
+def parse_fragment(payload: str | bytes, *, codec: int = CODEC_JPEG) -> Fragment:
+    """Parse and check a fragment datagram of ``codec``; ProtocolError says what is wrong."""
+    what = _WHAT.get(codec, "fragment")
     if not isinstance(payload, bytes):
-        raise ProtocolError("video: expected a binary datagram")
+        raise ProtocolError(f"{what}: expected a binary datagram")
     if len(payload) < FRAGMENT_HEADER.size:
-        raise ProtocolError(f"video fragment: {len(payload)} bytes is shorter than its header")
-    kind, codec, seq, frame_id, index, count, size, capture_us, interval_ms, name_len = (
+        raise ProtocolError(f"{what}: {len(payload)} bytes is shorter than its header")
+    kind, got_codec, seq, frame_id, index, count, size, capture_us, interval_ms, name_len = (
         FRAGMENT_HEADER.unpack_from(payload)
     )
     if kind != KIND_FRAGMENT:
-        raise ProtocolError(f"video: datagram kind {kind:#04x} is not a fragment")
-    if codec != CODEC_JPEG:
-        raise ProtocolError(f"video fragment: unknown codec {codec}")
+        raise ProtocolError(f"{what}: datagram kind {kind:#04x} is not a fragment")
+    if got_codec != codec:
+        raise ProtocolError(f"{what}: unknown codec {got_codec}")
     if not 1 <= count <= MAX_FRAGMENTS or index >= count:
-        raise ProtocolError(f"video fragment: index {index} of {count} fragments")
+        raise ProtocolError(f"{what}: index {index} of {count} fragments")
     if not count <= size <= MAX_FRAME_BYTES:
-        raise ProtocolError(f"video fragment: frame size {size} for {count} fragments")
+        raise ProtocolError(f"{what}: frame size {size} for {count} fragments")
     if not 0 < name_len <= MAX_CAMERA_NAME:
-        raise ProtocolError(f"video fragment: camera name of {name_len} bytes")
+        raise ProtocolError(f"{what}: camera name of {name_len} bytes")
     data_at = FRAGMENT_HEADER.size + name_len
     if len(payload) < data_at:
-        raise ProtocolError("video fragment: truncated camera name")
+        raise ProtocolError(f"{what}: truncated camera name")
     try:
         camera = payload[FRAGMENT_HEADER.size : data_at].decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise ProtocolError("video fragment: camera name is not UTF-8") from exc
+        raise ProtocolError(f"{what}: camera name is not UTF-8") from exc
     start, end = fragment_span(size, count, index)
     if len(payload) - data_at != end - start:
         raise ProtocolError(
-            f"video fragment: {len(payload) - data_at} data bytes, "
+            f"{what}: {len(payload) - data_at} data bytes, "
             f"fragment {index} of a {size}-byte frame in {count} has {end - start}"
         )
     return Fragment(
@@ -407,10 +415,12 @@ class Reassembler:
     :meth:`next_deadline`). Bad input is dropped and counted in :attr:`stats`, never raised.
     """
 
-    def __init__(self, *, max_in_flight: int = MAX_IN_FLIGHT) -> None:
+    def __init__(self, *, max_in_flight: int = MAX_IN_FLIGHT, codec: int = CODEC_JPEG) -> None:
         if max_in_flight < 1:
             raise ValueError("max_in_flight must be at least 1")
         self.max_in_flight = max_in_flight
+        #: The codec whose fragments are taken (others are malformed).
+        self.codec = codec
         self.stats = ReassemblyStats()
         self._partials: OrderedDict[int, _Partial] = OrderedDict()
         self._newest_returned: int | None = None
@@ -446,7 +456,7 @@ class Reassembler:
         """Take one datagram; returns the frame it completes, if any."""
         self.poll(now)
         try:
-            frag = parse_fragment(payload)
+            frag = parse_fragment(payload, codec=self.codec)
         except ProtocolError:
             self.stats.malformed += 1
             return None

@@ -1,0 +1,812 @@
+"""Foxglove and MCAP: one bridge from a connected robot to Foxglove channels, two sinks.
+
+:class:`FoxgloveBridge` follows a :class:`~telebot.services.client.RobotClient` and logs
+what reaches the user as Foxglove messages (``foxglove-sdk`` schemas) on channels of its own
+:class:`foxglove.Context`. That context feeds a Foxglove WebSocket server
+(``telebot-user foxglove``: the Foxglove app at ``ws://localhost:8765`` shows the robot live),
+an MCAP file (``telebot-user record``, ``--record`` on ``ui`` and ``chat``), or both: the
+same channels go to both, so a recording holds exactly what Foxglove showed.
+
+Channels (topic — schema)::
+
+    /map                foxglove.Grid            the robot's occupancy grid (int8: -1 unknown,
+                                                 0 free … 100 occupied), again when it changes
+    /pose               foxglove.PoseInFrame     the robot's pose in "map"
+    /tf                 foxglove.FrameTransforms map → base_link, so panels can follow it
+    /plan               foxglove.PosesInFrame    the planned path (empty: none)
+    /camera             foxglove.CompressedImage the robot's video (JPEG as sent, never
+                                                 re-encoded; frame_id: the camera's name)
+    /telebot/telemetry  JSON                     battery, state, link, video settings
+    /telebot/safety     JSON                     safety state changes, and this user's
+                                                 stop / arm / take / release with their acks
+    /telebot/goal       JSON                     goals sent and their updates
+    /telebot/chat       JSON                     chat commands and the robot's replies
+    /telebot/commands   JSON                     every command this user gave (chat, goal,
+                                                 safety), in order
+    /telebot/connection JSON                     the call dropped / came back / ended
+    TOPIC (relayed)     ros2msg schema, cdr      a robot topic relayed over the call
+
+Goals from Foxglove: a client that advertises ``/goal_pose`` (the 3D panel's "publish pose"
+tool; ``geometry_msgs/msg/PoseStamped`` in ``json`` or ``cdr``) drives the robot through
+:meth:`RobotClient.goto`, the normal goal path, so the robot's supervisor rules hold (a
+driver only, armed, within its speed cap).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import math
+import os
+import socket
+import sys
+import threading
+import time
+from collections.abc import AsyncIterator, Callable, Coroutine, Mapping, Sequence
+from dataclasses import asdict
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Self, TextIO
+
+import foxglove
+from foxglove.channels import (
+    CompressedImageChannel,
+    FrameTransformsChannel,
+    GridChannel,
+    LaserScanChannel,
+    PoseInFrameChannel,
+    PosesInFrameChannel,
+)
+from foxglove.messages import (
+    CompressedImage,
+    FrameTransform,
+    FrameTransforms,
+    Grid,
+    LaserScan,
+    PackedElementField,
+    PackedElementFieldNumericType,
+    Pose,
+    PoseInFrame,
+    PosesInFrame,
+    Quaternion,
+    Timestamp,
+    Vector2,
+    Vector3,
+)
+from foxglove.websocket import (
+    Capability,
+    ChannelView,
+    Client,
+    ClientChannel,
+    ServerListener,
+    WebSocketServer,
+)
+
+from telebot.channels.transports.base import Transport
+from telebot.config import AppConfig
+from telebot.errors import CallEnded, RelayRefused, TelebotError, UnknownTopic
+from telebot.rights import Right, may
+from telebot.services.client import ConnectionEvent, RobotClient
+from telebot.services.mapxfer import MapDownload
+from telebot.services.proto.plan import PlanUpdate
+from telebot.services.proto.relay import RelayedMessage, TopicInfo
+from telebot.services.proto.status import PoseUpdate
+from telebot.services.proto.video import CompleteFrame
+
+__all__ = [
+    "GOAL_TOPIC",
+    "FoxgloveBridge",
+    "check_output_file",
+    "check_port",
+    "goal_from_pose_stamped",
+    "record_session",
+    "recording",
+    "serve_foxglove",
+]
+
+log = logging.getLogger("telebot.foxglove")
+
+#: The topic Foxglove's 3D panel publishes goals on (as RViz's "2D Goal Pose").
+GOAL_TOPIC = "/goal_pose"
+#: The frame of the map, the pose and the plan.
+MAP_FRAME = "map"
+#: The robot's body frame (``/tf`` carries map → base_link).
+BASE_FRAME = "base_link"
+_ANY_JSON: dict[str, Any] = {"type": "object"}
+LASER_SCAN = "sensor_msgs/msg/LaserScan"
+
+
+def _stamp(seconds: float) -> Timestamp:
+    return Timestamp.from_epoch_secs(max(0.0, seconds))
+
+
+def _yaw_quaternion(yaw: float) -> Quaternion:
+    return Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2.0), w=math.cos(yaw / 2.0))
+
+
+def _pose(x: float, y: float, yaw: float) -> Pose:
+    return Pose(position=Vector3(x=x, y=y, z=0.0), orientation=_yaw_quaternion(yaw))
+
+
+def _yaw_of(qx: float, qy: float, qz: float, qw: float) -> float:
+    return math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+
+
+def goal_from_pose_stamped(
+    data: bytes, encoding: str, schema_name: str = ""
+) -> tuple[float, float, float | None]:
+    """``(x, y, yaw)`` of a ``geometry_msgs/PoseStamped`` as a Foxglove client publishes it
+    (``json`` or ``cdr``); ValueError naming what was wrong otherwise. A zero quaternion
+    (no heading given) gives yaw None."""
+    if encoding == "json":
+        try:
+            msg = json.loads(data)
+            pose = msg["pose"]
+            position, orientation = pose["position"], pose.get("orientation") or {}
+            x, y = float(position["x"]), float(position["y"])
+            q = [float(orientation.get(k, 0.0)) for k in ("x", "y", "z", "w")]
+        except (ValueError, KeyError, TypeError) as exc:
+            raise ValueError(f"not a JSON PoseStamped ({exc!r})") from None
+    elif encoding == "cdr":
+        from telebot.robot.ros2.types import TypeLibrary
+
+        try:
+            msg = TypeLibrary().message("geometry_msgs/msg/PoseStamped").deserialize(data)
+        except TelebotError as exc:
+            raise ValueError(f"not a CDR PoseStamped ({exc})") from None
+        position, orientation = msg.pose.position, msg.pose.orientation
+        x, y = float(position.x), float(position.y)
+        q = [float(orientation.x), float(orientation.y), float(orientation.z), float(orientation.w)]
+    else:
+        raise ValueError(f"unsupported encoding {encoding!r} (use json or cdr)")
+    if not all(math.isfinite(v) for v in (x, y, *q)):
+        raise ValueError("a goal needs finite numbers")
+    if not any(q):
+        return x, y, None
+    return x, y, _yaw_of(*q)
+
+
+class _Listener(ServerListener):
+    """The WebSocket server's callbacks (they run on the SDK's threads): client channels
+    advertised, and their messages handed to the event loop."""
+
+    def __init__(self, bridge: FoxgloveBridge) -> None:
+        self._bridge = bridge
+        self._lock = threading.Lock()
+        self._channels: dict[tuple[int, int], ClientChannel] = {}
+
+    def on_subscribe(self, client: Client, channel: ChannelView) -> None:
+        log.info("Foxglove client %s subscribed to %s", client.id, channel.topic)
+        self._bridge._subscribed_from_thread(channel.topic, +1)
+
+    def on_unsubscribe(self, client: Client, channel: ChannelView) -> None:
+        self._bridge._subscribed_from_thread(channel.topic, -1)
+
+    def on_client_advertise(self, client: Client, channel: ClientChannel) -> None:
+        with self._lock:
+            self._channels[(client.id, channel.id)] = channel
+
+    def on_client_unadvertise(self, client: Client, client_channel_id: int) -> None:
+        with self._lock:
+            self._channels.pop((client.id, client_channel_id), None)
+
+    def on_message_data(self, client: Client, client_channel_id: int, data: bytes) -> None:
+        with self._lock:
+            channel = self._channels.get((client.id, client_channel_id))
+        if channel is None:
+            return
+        self._bridge._from_thread(channel.topic, channel.encoding, channel.schema_name, bytes(data))
+
+
+class FoxgloveBridge:
+    """A connected robot's streams as Foxglove channels, to a WebSocket server and/or MCAP.
+
+    ``async with FoxgloveBridge(client, port=8765, mcap=Path("s.mcap")) as bridge:``. ``port``
+    None: no server (0: any free port, :attr:`port` says which); ``mcap`` None: no file.
+    ``topics`` are robot topics to relay (needs the robot's relay service). Opening the
+    sinks raises OSError (port taken, file not writable) before anything else starts.
+    """
+
+    def __init__(
+        self,
+        client: RobotClient,
+        *,
+        host: str = "127.0.0.1",
+        port: int | None = None,
+        mcap: Path | None = None,
+        topics: Sequence[str] = (),
+        map_timeout: float = 120.0,
+    ) -> None:
+        self.client = client
+        self.host = host
+        self.port = port
+        self.mcap = mcap
+        self.topics = list(topics)
+        self.map_timeout = map_timeout
+        self.context = foxglove.Context()
+        #: Messages logged per topic (the progress line shows them).
+        self.counts: dict[str, int] = {}
+        #: Goals received from Foxglove clients, and those refused (bad data, observer).
+        self.goals_received = 0
+        self.goals_refused = 0
+        self.map: MapDownload | None = None
+        self._server: WebSocketServer | None = None
+        self._writer: foxglove.MCAPWriter | None = None
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._video: Callable[[], None] | None = None
+        self._relayed: dict[str, foxglove.Channel] = {}
+        self._lasers: dict[str, LaserScanChannel] = {}
+        #: Foxglove clients subscribed, per topic.
+        self._subscribers: dict[str, int] = {}
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._closing = False
+        ctx = self.context
+        self._map = GridChannel("/map", context=ctx)
+        self._pose = PoseInFrameChannel("/pose", context=ctx)
+        self._tf = FrameTransformsChannel("/tf", context=ctx)
+        self._plan = PosesInFrameChannel("/plan", context=ctx)
+        self._camera = CompressedImageChannel("/camera", context=ctx)
+        self._json = {
+            name: foxglove.Channel(f"/telebot/{name}", schema=_ANY_JSON, context=ctx)
+            for name in ("telemetry", "safety", "goal", "chat", "commands", "connection")
+        }
+
+    # -- lifecycle --------------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Open the sinks, then follow the robot's streams."""
+        self._loop = asyncio.get_running_loop()
+        if self.mcap is not None:
+            try:
+                self._writer = foxglove.open_mcap(
+                    self.mcap, allow_overwrite=True, context=self.context
+                )
+            except OSError as exc:
+                raise OSError(
+                    exc.errno, f"cannot write {self.mcap}: {exc.strerror or exc}"
+                ) from exc
+        if self.port is not None:
+            try:
+                self._server = foxglove.start_server(
+                    name=f"telebot {self.client.robot}",
+                    host=self.host,
+                    port=self.port,
+                    capabilities=[Capability.ClientPublish],
+                    supported_encodings=["json", "cdr"],
+                    server_listener=_Listener(self),
+                    context=self.context,
+                )
+            except RuntimeError as exc:  # the SDK's FoxgloveError: bind failed
+                self._close_writer()
+                raise OSError(f"cannot serve on {self.host}:{self.port}: {exc}") from exc
+            self.port = self._server.port
+        client = self.client
+        client.on_activity.append(self._on_activity)
+        client.on_connection.append(self._on_connection)
+        self._video_wanted()
+        for pump in (
+            self._pump_pose,
+            self._pump_plan,
+            self._pump_safety,
+            self._pump_telemetry,
+            self._fetch_map,
+        ):
+            self._spawn(pump())
+        for topic in self.topics:
+            self._spawn(self._relay(topic))
+        # What is already known: a new recording starts with it.
+        if (safety := client.latest_safety.value) is not None:
+            self._log_json("safety", {"event": "state", **asdict(safety)})
+        if (plan := client.plan) is not None:
+            self._log_plan(plan)
+
+    @property
+    def url(self) -> str:
+        """The WebSocket address for the Foxglove app ("" without a server)."""
+        if self._server is None:
+            return ""
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"ws://{host}:{self.port}"
+
+    async def close(self) -> None:
+        """Stop following, stop the server, finish the MCAP file; idempotent."""
+        if self._closing:
+            return
+        self._closing = True
+        with contextlib.suppress(ValueError):
+            self.client.on_activity.remove(self._on_activity)
+        with contextlib.suppress(ValueError):
+            self.client.on_connection.remove(self._on_connection)
+        if self._video is not None:
+            self._video()
+            self._video = None
+        tasks = list(self._tasks)
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        if self._server is not None:
+            self._server.stop()
+            self._server = None
+        self._close_writer()
+
+    def _close_writer(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+
+    async def __aenter__(self) -> Self:
+        try:
+            await self.start()
+        except BaseException:
+            await self.close()
+            raise
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+    def _spawn(self, coro: Coroutine[Any, Any, Any]) -> asyncio.Task[Any]:
+        task = asyncio.get_running_loop().create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._task_done)
+        return task
+
+    def _task_done(self, task: asyncio.Task[Any]) -> None:
+        self._tasks.discard(task)
+        if task.cancelled():
+            return
+        exc = task.exception()
+        if exc is not None and not isinstance(exc, CallEnded):
+            log.error("Foxglove bridge task failed", exc_info=exc)
+
+    def _count(self, topic: str) -> None:
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+
+    def _log_json(self, name: str, message: Mapping[str, Any]) -> None:
+        self._json[name].log(dict(message))
+        self._count(f"/telebot/{name}")
+
+    # -- streams ----------------------------------------------------------------------
+
+    async def _pump_pose(self) -> None:
+        latest = self.client.latest_pose
+        while True:
+            self._log_pose(await latest.next())
+
+    def _log_pose(self, pose: PoseUpdate) -> None:
+        now = time.time()
+        stamp = _stamp(now)
+        self._pose.log(
+            PoseInFrame(timestamp=stamp, frame_id=MAP_FRAME, pose=_pose(pose.x, pose.y, pose.yaw))
+        )
+        self._count("/pose")
+        self._tf.log(
+            FrameTransforms(
+                transforms=[
+                    FrameTransform(
+                        timestamp=stamp,
+                        parent_frame_id=MAP_FRAME,
+                        child_frame_id=BASE_FRAME,
+                        translation=Vector3(x=pose.x, y=pose.y, z=0.0),
+                        rotation=_yaw_quaternion(pose.yaw),
+                    )
+                ]
+            )
+        )
+        self._count("/tf")
+
+    async def _pump_plan(self) -> None:
+        latest = self.client.latest_plan
+        while True:
+            self._log_plan(await latest.next())
+
+    def _log_plan(self, plan: PlanUpdate) -> None:
+        points = list(plan.points)
+        poses = []
+        for i, (x, y) in enumerate(points):
+            # Each pose faces the next point (the last keeps its predecessor's heading).
+            j = min(i + 1, len(points) - 1)
+            k = j - 1 if j == i else i
+            yaw = math.atan2(points[j][1] - points[k][1], points[j][0] - points[k][0])
+            poses.append(_pose(x, y, yaw if j != k else 0.0))
+        self._plan.log(PosesInFrame(timestamp=_stamp(time.time()), frame_id=MAP_FRAME, poses=poses))
+        self._count("/plan")
+
+    async def _pump_safety(self) -> None:
+        latest = self.client.latest_safety
+        while True:
+            state = await latest.next()
+            self._log_json("safety", {"event": "state", **asdict(state)})
+
+    async def _pump_telemetry(self) -> None:
+        latest = self.client.latest_telemetry
+        while True:
+            telemetry = await latest.next()
+            self._log_json("telemetry", asdict(telemetry))
+            if self.map is not None and self.map.version != telemetry.map_version:
+                log.info("the robot's map changed: fetching it again")
+                self.map = None
+                self._spawn(self._fetch_map())
+
+    async def _fetch_map(self) -> None:
+        while True:
+            try:
+                download = await self.client.get_map(timeout=self.map_timeout)
+                break
+            except CallEnded:
+                if self.client.finished:
+                    return
+            except (TelebotError, TimeoutError) as exc:
+                log.error("the map did not arrive: %s", exc)
+                return
+        self.map = download
+        self._log_map(download)
+
+    def _log_map(self, download: MapDownload) -> None:
+        grid = download.grid
+        self._map.log(
+            Grid(
+                timestamp=_stamp(time.time()),
+                frame_id=MAP_FRAME,
+                pose=_pose(grid.origin_x, grid.origin_y, 0.0),
+                column_count=grid.width,
+                cell_size=Vector2(x=grid.resolution, y=grid.resolution),
+                row_stride=grid.width,
+                cell_stride=1,
+                fields=[
+                    PackedElementField(
+                        name="occupancy", offset=0, type=PackedElementFieldNumericType.Int8
+                    )
+                ],
+                data=grid.data.tobytes(),
+            )
+        )
+        self._count("/map")
+
+    def _video_wanted(self) -> None:
+        """Ask the robot for video while it is recorded or a Foxglove client shows it."""
+        wanted = self._writer is not None or self._subscribers.get("/camera", 0) > 0
+        if wanted and self._video is None and not self._closing:
+            self._video = self.client.video_feed.subscribe(self._on_frame)
+        elif not wanted and self._video is not None:
+            self._video()
+            self._video = None
+
+    def _on_frame(self, frame: CompleteFrame) -> None:
+        # The JPEG as the robot sent it: Foxglove decodes it, nothing is re-encoded here.
+        self._camera.log(
+            CompressedImage(
+                timestamp=_stamp(frame.capture_time),
+                frame_id=frame.camera,
+                data=frame.data,
+                format="jpeg",
+            )
+        )
+        self._count("/camera")
+
+    def _on_activity(self, kind: str, fields: Mapping[str, Any]) -> None:
+        message = {"kind": kind, **fields}
+        if kind in ("chat", "goal", "safety"):
+            self._log_json("commands", message)
+        if kind.startswith("chat"):
+            self._log_json("chat", message)
+        elif kind.startswith("goal"):
+            self._log_json("goal", message)
+        elif kind.startswith("safety"):
+            self._log_json("safety", {"event": kind, **fields})
+
+    def _on_connection(self, event: ConnectionEvent) -> None:
+        self._log_json(
+            "connection",
+            {"state": event.state, "detail": event.detail, "seconds": event.seconds},
+        )
+
+    # -- relayed topics -----------------------------------------------------------------
+
+    def add_relayed(self, info: TopicInfo) -> foxglove.Channel:
+        """A channel for a relayed robot topic (its ros2msg schema, ``cdr`` messages)."""
+        channel = self._relayed.get(info.name)
+        if channel is None:
+            schema = foxglove.Schema(
+                name=info.type, encoding="ros2msg", data=info.schema.encode("utf-8")
+            )
+            channel = foxglove.Channel(
+                info.name, schema=schema, message_encoding=info.encoding, context=self.context
+            )
+            self._relayed[info.name] = channel
+        return channel
+
+    def log_relayed(self, info: TopicInfo, message: RelayedMessage) -> None:
+        """Log one relayed message (bytes as the robot had them) on its topic's channel; a
+        ``sensor_msgs/msg/LaserScan`` also as a ``foxglove.LaserScan`` on ``/foxglove<topic>``."""
+        self.add_relayed(info).log(message.data)
+        self._count(info.name)
+        if info.type == LASER_SCAN:
+            self._log_laser(info.name, message)
+
+    def _log_laser(self, topic: str, message: RelayedMessage) -> None:
+        from telebot.robot.ros2.types import TypeLibrary
+
+        try:
+            scan = TypeLibrary().message(LASER_SCAN).deserialize(message.data)
+        except TelebotError as exc:
+            log.warning("a LaserScan on %s did not decode: %s", topic, exc)
+            return
+        channel = self._lasers.get(topic)
+        if channel is None:
+            channel = self._lasers[topic] = LaserScanChannel(
+                f"/foxglove{topic}", context=self.context
+            )
+        count = len(scan.ranges)
+        channel.log(
+            LaserScan(
+                timestamp=Timestamp(int(scan.header.stamp.sec), int(scan.header.stamp.nanosec)),
+                frame_id=str(scan.header.frame_id),
+                pose=_pose(0.0, 0.0, 0.0),
+                start_angle=float(scan.angle_min),
+                end_angle=float(scan.angle_min + scan.angle_increment * max(count - 1, 0)),
+                ranges=[float(r) for r in scan.ranges],
+                intensities=[float(i) for i in scan.intensities],
+            )
+        )
+        self._count(f"/foxglove{topic}")
+
+    async def _relay(self, topic: str) -> None:
+        try:
+            async with self.client.relay(topic) as stream:
+                self.add_relayed(stream.info)
+                async for message in stream:
+                    self.log_relayed(stream.info, message)
+        except (UnknownTopic, RelayRefused) as exc:
+            log.error("cannot relay %s: %s", topic, exc)
+            self._log_json("connection", {"state": "relay_refused", "detail": str(exc)})
+        except (TelebotError, TimeoutError) as exc:
+            log.error("the relay of %s ended: %s", topic, exc)
+
+    # -- goals from Foxglove -------------------------------------------------------------
+
+    def _from_thread(self, topic: str, encoding: str, schema_name: str, data: bytes) -> None:
+        loop = self._loop
+        if loop is None or self._closing:
+            return
+        with contextlib.suppress(RuntimeError):  # the loop has closed: nothing to do
+            loop.call_soon_threadsafe(self._on_client_message, topic, encoding, schema_name, data)
+
+    def _subscribed_from_thread(self, topic: str, change: int) -> None:
+        loop = self._loop
+        if loop is None or self._closing:
+            return
+        with contextlib.suppress(RuntimeError):
+            loop.call_soon_threadsafe(self._on_subscribed, topic, change)
+
+    def _on_subscribed(self, topic: str, change: int) -> None:
+        if self._closing:
+            return
+        self._subscribers[topic] = max(0, self._subscribers.get(topic, 0) + change)
+        if topic == "/camera":
+            self._video_wanted()
+        if change < 0:
+            return
+        # The server keeps no latched messages: a client that subscribes late would never
+        # see the map (sent once) or a standing plan, so they are logged again for it.
+        if topic == "/map" and self.map is not None:
+            self._log_map(self.map)
+        elif topic == "/plan" and (plan := self.client.plan) is not None:
+            self._log_plan(plan)
+
+    def _on_client_message(self, topic: str, encoding: str, schema_name: str, data: bytes) -> None:
+        if self._closing or topic != GOAL_TOPIC:
+            return
+        self.goals_received += 1
+        try:
+            x, y, yaw = goal_from_pose_stamped(data, encoding, schema_name)
+        except ValueError as exc:
+            self.goals_refused += 1
+            log.warning("a goal from Foxglove was refused: %s", exc)
+            self._log_json("goal", {"kind": "refused", "text": str(exc)})
+            return
+        if not may(self.client.call.role, Right.DRIVE):
+            self.goals_refused += 1
+            self._log_json("goal", {"kind": "refused", "text": "observers may not send goals"})
+            return
+        log.info("goal from Foxglove: (%.2f, %.2f)", x, y)
+        self._spawn(self.client.goto(x, y, yaw))
+
+
+# -- the commands -----------------------------------------------------------------------
+
+
+def check_output_file(path: Path) -> str | None:
+    """Why ``path`` cannot be written as a recording (one line), or None if it can."""
+    if path.is_dir():
+        return f"{path} is a folder, not a file"
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        return f"cannot write {path}: no folder {parent}"
+    if not os.access(parent, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        return f"cannot write {path}: permission denied"
+    return None
+
+
+def check_port(host: str, port: int) -> str | None:
+    """Why ``host:port`` cannot be served on (one line), or None if it was free a moment ago."""
+    if port == 0:
+        return None
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except OSError as exc:
+        return f"cannot serve on {host}:{port}: {exc.strerror or exc}"
+    family, kind, proto, _, address = infos[0]
+    with socket.socket(family, kind, proto) as sock:
+        # As the server will: a port in TIME_WAIT is free, one with a listener is not.
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind(address)
+        except OSError as exc:
+            return f"cannot serve on {host}:{port}: {exc.strerror or exc}"
+    return None
+
+
+class Progress:
+    """The recording's progress on stderr: one line rewritten on a terminal, a line every
+    :attr:`every` seconds otherwise, and a summary at the end."""
+
+    def __init__(self, bridge: FoxgloveBridge, stream: TextIO = sys.stderr) -> None:
+        self.bridge = bridge
+        self.stream = stream
+        self.tty = stream.isatty()
+        self.every = 0.5 if self.tty else 10.0
+        self.started = time.monotonic()
+
+    def line(self) -> str:
+        """``12.3 s, 456 messages (camera 300, pose 120, …), 1.2 MB``."""
+        counts = self.bridge.counts
+        total = sum(counts.values())
+        top = sorted(counts.items(), key=lambda kv: -kv[1])[:4]
+        parts = ", ".join(f"{topic.rsplit('/', 1)[-1]} {n}" for topic, n in top)
+        size = ""
+        if self.bridge.mcap is not None:
+            with contextlib.suppress(OSError):
+                size = f", {self.bridge.mcap.stat().st_size / 1e6:.1f} MB"
+        elapsed = time.monotonic() - self.started
+        return f"{elapsed:.1f} s, {total} messages ({parts}){size}"
+
+    async def run(self) -> None:
+        """Show the line until cancelled."""
+        while True:
+            await asyncio.sleep(self.every)
+            if self.tty:
+                self.stream.write(f"\r\033[Krecording: {self.line()}")
+            else:
+                self.stream.write(f"recording: {self.line()}\n")
+            self.stream.flush()
+
+    def finish(self, text: str) -> None:
+        if self.tty:
+            self.stream.write("\r\033[K")
+        print(text, file=self.stream, flush=True)
+
+
+def _usage_error(text: str) -> int:
+    from telebot.apps.common import EXIT_USAGE
+
+    print(f"telebot-user: error: {text}", file=sys.stderr)
+    return EXIT_USAGE
+
+
+@contextlib.asynccontextmanager
+async def recording(client: RobotClient, path: Path | None) -> AsyncIterator[FoxgloveBridge | None]:
+    """``--record FILE`` of ``ui`` and ``chat``: an MCAP of the call while the block runs."""
+    if path is None:
+        yield None
+        return
+    async with FoxgloveBridge(client, mcap=path) as bridge:
+        yield bridge
+    print(f"recorded to {path} ({sum(bridge.counts.values())} messages)", file=sys.stderr)
+
+
+async def serve_foxglove(
+    robot: str,
+    *,
+    home: Path,
+    config: AppConfig,
+    host: str = "127.0.0.1",
+    port: int = 8765,
+    topics: Sequence[str] = (),
+    record: Path | None = None,
+    stop: asyncio.Event | None = None,
+    announce: Callable[[str], None] = print,
+    transport: Transport | None = None,
+) -> int:
+    """``telebot-user foxglove``: call ``robot`` and serve it to Foxglove until Ctrl-C
+    (or ``stop``); ``transport``: an open one to share (default: one from ``config``)."""
+    from telebot.apps.common import EXIT_OK, stop_on_signals
+    from telebot.services.client import connect
+
+    if (problem := check_port(host, port)) is not None:
+        return _usage_error(problem)
+    if record is not None and (problem := check_output_file(record)) is not None:
+        return _usage_error(problem)
+    stop = stop or asyncio.Event()
+    async with connect(
+        robot, home=home, config=config, timeout=config.call.connect_timeout, transport=transport
+    ) as client:
+        bridge = FoxgloveBridge(client, host=host, port=port, mcap=record, topics=topics)
+        try:
+            await bridge.start()
+        except OSError as exc:
+            await bridge.close()
+            return _usage_error(str(exc))
+        try:
+            client.on_connection.append(lambda event: print(f"[{event}]", file=sys.stderr))
+            announce(
+                f"Foxglove: open a connection to {bridge.url} (role {client.call.role}); "
+                "Ctrl-C to quit"
+            )
+            with stop_on_signals(stop):
+                await stop.wait()
+        finally:
+            await bridge.close()
+    return EXIT_OK
+
+
+async def record_session(
+    robot: str,
+    output: Path,
+    *,
+    home: Path,
+    config: AppConfig,
+    duration: float | None = None,
+    topics: Sequence[str] = (),
+    stop: asyncio.Event | None = None,
+    stream: TextIO = sys.stderr,
+    transport: Transport | None = None,
+    announce: Callable[[str], None] = print,
+) -> int:
+    """``telebot-user record``: write an MCAP of the robot's streams until ``duration`` s
+    have passed or Ctrl-C; the file is finished (summary, index) either way."""
+    from telebot.apps.common import EXIT_OK, stop_on_signals
+    from telebot.services.client import connect
+
+    if (problem := check_output_file(output)) is not None:
+        return _usage_error(problem)
+    stop = stop or asyncio.Event()
+    async with connect(
+        robot, home=home, config=config, timeout=config.call.connect_timeout, transport=transport
+    ) as client:
+        bridge = FoxgloveBridge(client, mcap=output, topics=topics)
+        try:
+            await bridge.start()
+        except OSError as exc:
+            await bridge.close()
+            return _usage_error(str(exc))
+        until = f"for {duration:g} s" if duration else "until Ctrl-C"
+        announce(f"recording {robot} to {output} {until}")
+        sys.stdout.flush()
+        progress = Progress(bridge, stream)
+        shown = asyncio.ensure_future(progress.run())
+        try:
+            with stop_on_signals(stop):
+                ended = asyncio.ensure_future(client.wait_finished())
+                stopped = asyncio.ensure_future(stop.wait())
+                try:
+                    await asyncio.wait(
+                        {ended, stopped}, timeout=duration, return_when=asyncio.FIRST_COMPLETED
+                    )
+                finally:
+                    ended.cancel()
+                    stopped.cancel()
+        finally:
+            shown.cancel()
+            await asyncio.gather(shown, return_exceptions=True)
+            summary = progress.line()
+            await bridge.close()
+        progress.finish(f"recorded {output}: {summary}")
+    return EXIT_OK
