@@ -377,6 +377,8 @@ class RecordingSettings(StrictModel):
     #: Which channels of each call are recorded (both ways); call starts and ends and
     #: safety events (the audit records) always are.
     streams: list[RecordedStream] = Field(default_factory=lambda: list(ALL_RECORDED))
+
+
 #: Topics an observer may relay by default: what the robot shows anyway (no cameras
 #: beyond the video it already gets, no parameters, no logs).
 SAFE_OBSERVER_TOPICS = (
