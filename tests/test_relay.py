@@ -411,3 +411,11 @@ async def test_a_topic_on_the_ros2_robots_network_arrives_with_the_same_bytes(
             node.close()
         daemon.stop()
         sim.stop(graceful=True)
+
+
+async def test_the_topics_chat_command_lists_what_the_caller_may_relay(tmp_path: Path) -> None:
+    async with robot_in_a_call(tmp_path, role=Role.OBSERVER) as rig:
+        result = await rig.client.chat("topics")
+        assert result.ok and result.final_text.startswith("topics: ")
+        assert "/scan (sensor_msgs/msg/LaserScan)" in result.final_text
+        assert "/navcam/image/compressed" not in result.final_text  # not for observers

@@ -24,6 +24,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
+from telebot.config import RelaySettings
 from telebot.errors import (
     InvalidCommand,
     NoPath,
@@ -36,7 +37,7 @@ from telebot.identity import Role
 from telebot.reasons import Reason, Refusal
 from telebot.rights import Right as Privilege
 from telebot.rights import rights_of
-from telebot.robot.nav import GoalHandle, GoalStatus, NavStack, NavState
+from telebot.robot.nav import GoalHandle, GoalStatus, NavStack, NavState, TopicSource
 from telebot.services.proto.chat import (
     HELP_TEXT,
     USAGE,
@@ -59,6 +60,7 @@ from telebot.services.proto.chat import (
     Status,
     Stop,
     TakeDrive,
+    Topics,
     Turn,
     UserCam,
     Where,
@@ -66,6 +68,7 @@ from telebot.services.proto.chat import (
     parse_command,
 )
 from telebot.services.proto.mapxfer import EncodedMap, encode_map
+from telebot.services.relay import allowed_topic
 
 __all__ = [
     "FINISHED",
@@ -187,8 +190,12 @@ class ChatSession:
         user: str = "",
         gate: DriveGate | None = None,
         map_offer: Callable[[], EncodedMap] | None = None,
+        relay: RelaySettings | None = None,
     ) -> None:
         self._nav = nav
+        self._role = role
+        # Which topics the caller may relay (``topics``): the robot's [relay] config.
+        self._relay = relay if relay is not None else RelaySettings()
         # What getmap announces must be what the map channel sends: the cropped map.
         self._map_offer = map_offer or (lambda: encode_map(nav.map()))
         self._rights = rights_of(role)
@@ -323,6 +330,8 @@ class ChatSession:
                 self._reply(request_id, self._where())
             case Places():
                 self._reply(request_id, self._places())
+            case Topics():
+                self._reply(request_id, self._topics())
             case Status():
                 self._reply(request_id, self._status())
             case BatteryQuery():
@@ -374,6 +383,18 @@ class ChatSession:
         pose = self._nav.pose().pose
         heading = round(math.degrees(pose.yaw)) + 0  # "+ 0": no "-0°"
         return f"x {_metres(pose.x)} m, y {_metres(pose.y)} m, heading {heading}°"
+
+    def _topics(self) -> str:
+        nav = self._nav
+        if not isinstance(nav, TopicSource):
+            return "this robot relays no topics"
+        topics = sorted(
+            (t for t in nav.topics() if allowed_topic(self._relay, self._role, t.name)),
+            key=lambda t: t.name,
+        )
+        if not topics:
+            return "no topics you may relay"
+        return "topics: " + ", ".join(f"{t.name} ({t.type})" for t in topics)
 
     def _places(self) -> str:
         places = self._nav.places()

@@ -112,6 +112,7 @@ class CallServices:
             user=call.peer,
             gate=self.gate,
             map_offer=server.encoded_map,
+            relay=server.relay_settings,
         )
         self.map = MapService(call.channel(MAP, lane=Lane.BULK), server.encoded_map)
         # The first tick publishes both at once (a new user sees the robot straight away).

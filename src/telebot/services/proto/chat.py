@@ -61,6 +61,7 @@ __all__ = [
     "Status",
     "Stop",
     "TakeDrive",
+    "Topics",
     "Turn",
     "UserCam",
     "Where",
@@ -190,6 +191,11 @@ class Places:
 
 
 @dataclass(frozen=True, slots=True)
+class Topics:
+    """``topics``: list the robot topics the caller may relay (the ``relay`` service)."""
+
+
+@dataclass(frozen=True, slots=True)
 class Status:
     """``status``: what the robot is doing, and how far the goal has got."""
 
@@ -224,6 +230,7 @@ Command: TypeAlias = (
     | TakeDrive
     | ReleaseDrive
     | Places
+    | Topics
     | Status
     | BatteryQuery
     | Help
@@ -252,6 +259,7 @@ USAGE: dict[str, str] = {
     "take": "usage: take — take the drive (if free; an admin takes it over)",
     "release": "usage: release — give the drive up (the robot stops)",
     "places": "usage: places — list the named places",
+    "topics": "usage: topics — list the robot topics you may relay",
     "status": "usage: status — what the robot is doing",
     "battery": "usage: battery — the battery charge",
     "help": "usage: help [COMMAND] — list the commands, or explain one",
@@ -299,6 +307,8 @@ _ALIASES: dict[str, str] = {
     "release": "release",
     "release drive": "release",
     "places": "places",
+    "topics": "topics",
+    "rostopic list": "topics",
     "status": "status",
     "battery": "battery",
     "help": "help",
@@ -376,6 +386,7 @@ _SIMPLE: dict[str, Command] = {
     "take": TakeDrive(),
     "release": ReleaseDrive(),
     "places": Places(),
+    "topics": Topics(),
     "status": Status(),
     "battery": BatteryQuery(),
 }
