@@ -192,6 +192,16 @@ def room_with_boxes(*boxes: tuple[int, int, int, int]) -> OccupancyGrid:
 # A corner just before a goal near a wall, at 1 m/s: progress along the path jumped a
 # waypoint at a time and the base braked too late, overshooting into the wall.
 @example(case=(open_room(8.0, 8.0), Pose2D(5.775, 1.875, 0.0), (1.225, 0.975), 1.0))
+# Rounding a box's corner close beside it, turning as it drove: the laser checked only the
+# strip straight ahead, and the blocked base kept turning while it braked, into the box.
+@example(
+    case=(
+        room_with_boxes((20, 40, 65, 85), (23, 25, 33, 39), (38, 40, 23, 42)),
+        Pose2D(1.425, 0.975, 3.0),
+        (6.625, 0.975),
+        1.5,
+    )
+)
 def test_the_speed_limit_is_never_exceeded_on_random_maps_and_goals(
     case: tuple[OccupancyGrid, Pose2D, tuple[float, float], float],
 ) -> None:

@@ -675,7 +675,10 @@ class SimNavStack:
             if blocked:
                 # Turning on the spot keeps the disc where it is: keep turning towards
                 # the path, so a base facing a wall beside its goal can still face away.
-                command = Velocity(0.0, command.angular)
+                # But not while it still rolls: turning then bends its braking path out
+                # of the strip the laser found clear, towards what is beside it.
+                rolling = self._base.velocity.linear != 0.0
+                command = Velocity(0.0, 0.0 if rolling else command.angular)
                 if goal.blocked_since is None:
                     goal.blocked_since = now
                 if goal.kind is _Kind.STRAIGHT and static:
@@ -763,10 +766,60 @@ class SimNavStack:
         for index in np.flatnonzero((to_end < radius) & ~in_end & (ahead > 0.0)):
             in_end[index] = on_person(*points[index])  # people get no slack
         mask = (ahead > 0.0) & (in_strip | in_end)
+        mask |= self._on_arc(points, direction, reach)
         if not mask.any():
             return False, False
         static = any(not on_person(px, py) for px, py in points[mask])
         return True, static
+
+    def _on_arc(
+        self, points: npt.NDArray[np.float64], direction: float, reach: float
+    ) -> npt.NDArray[np.bool_]:
+        """Hits the disc would come nearer to and touch braking from its present turn.
+
+        The strip ahead is the sweep of a base driving straight. A base that turns as it
+        drives (round a path's corner) sweeps its disc sideways, onto what is beside the
+        strip, and turning the strip onto something close beside it finds it already
+        within the braking distance. So the way the base takes if it brakes now (speed
+        and turn both stopping within their limits, as a blocked base does), then
+        straight on along its last heading, is checked too, up to the same ``reach``.
+        """
+        velocity = self._base.velocity
+        limits = self._limits
+        none = np.zeros(len(points), dtype=bool)
+        if velocity.linear == 0.0 or velocity.angular == 0.0 or reach <= 0.0:
+            return none
+        speed, turn = abs(velocity.linear), velocity.angular
+        until = max(speed / limits.linear_accel, abs(turn) / limits.angular_accel)
+        t = np.linspace(0.0, until, max(2, math.ceil(until / 0.01) + 1))
+        dt = np.diff(t)
+        v = np.maximum(speed - limits.linear_accel * t[:-1], 0.0)
+        w = np.sign(turn) * np.maximum(abs(turn) - limits.angular_accel * t[:-1], 0.0)
+        heading = np.concatenate([[0.0], np.cumsum(w * dt)])
+        step = v * dt
+        xs = np.concatenate([[0.0], np.cumsum(direction * step * np.cos(heading[:-1]))])
+        ys = np.concatenate([[0.0], np.cumsum(direction * step * np.sin(heading[:-1]))])
+        along = np.concatenate([[0.0], np.cumsum(step)])
+        # Then straight on for the rest of ``reach`` (the stop margin).
+        rest = max(reach - float(along[-1]), 0.0)
+        extra = np.linspace(0.0, rest, max(2, math.ceil(rest / 0.02) + 1))[1:]
+        xs = np.concatenate([xs, xs[-1] + direction * extra * math.cos(heading[-1])])
+        ys = np.concatenate([ys, ys[-1] + direction * extra * math.sin(heading[-1])])
+        along = np.concatenate([along, along[-1] + extra])
+        keep = along <= reach + 1e-12
+        xs, ys = xs[keep], ys[keep]
+        if len(xs) < 2:
+            return none
+        radius = self._settings.robot_radius
+        gaps = np.hypot(points[:, 0, None] - xs[None, :], points[:, 1, None] - ys[None, :])
+        # As at the strip's end, the disc where the base stops may overlap a wall by half a
+        # cell (the planner's slack); on the way there it may overlap nothing.
+        limit = np.full(len(xs), radius)
+        limit[-1] = radius - 0.5 * self._grid.resolution
+        touched = (gaps[:, 1:] < limit[None, 1:]).any(axis=1)
+        closer = gaps[:, 1:].min(axis=1) < gaps[:, 0]
+        hits: npt.NDArray[np.bool_] = touched & closer
+        return hits
 
     def _near_dynamic_obstacle(self, x: float, y: float) -> bool:
         tolerance = 2.0 * self._grid.resolution
