@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import math
 import sys
 import tempfile
@@ -173,6 +174,16 @@ def goal_acks(probe: Ros2Node, library: TypeLibrary, goals: int) -> list[float]:
 # --------------------------------------------------------------------------- B, C, D
 
 
+async def farther_place(robot: Any) -> str:
+    """room-b or start, whichever is farther from the robot (a stop can leave it anywhere)."""
+    here = await robot.pose()
+    places = robot.places
+    return max(
+        ("room-b", "start"),
+        key=lambda name: math.hypot(places[name].x - here.x, places[name].y - here.y),
+    )
+
+
 async def wait_moving(robot: Any) -> None:
     async for pose in robot.poses():
         if abs(pose.v) > 0.05:
@@ -301,15 +312,26 @@ async def measure_stops(robot: Any, probe: Ros2Node, library: TypeLibrary, n: in
     sub = probe.subscribe("cmd_vel", library.message("geometry_msgs/msg/Twist"), on_cmd_vel)
     latencies: list[float] = []
     try:
-        leg = 0
         while len(latencies) < n:
             await robot.arm()
-            target = ("room-b", "start")[leg % 2]
-            leg += 1
+            target = await farther_place(robot)
             replies = robot.chat_replies(f"goto {target}", timeout=120)
-            async for _ in replies:
+            first = None
+            async for first in replies:  # noqa: B007 (the first reply is kept)
                 break
-            await asyncio.wait_for(wait_moving(robot), 30)
+            try:
+                await asyncio.wait_for(wait_moving(robot), 30)
+            except TimeoutError:
+                telemetry = await robot.telemetry(timeout=5)
+                later = []
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(3):
+                        async for reply in replies:
+                            later.append(reply.text)
+                raise SystemExit(
+                    f"bench: the robot did not move after 'goto {target}' "
+                    f"(replies {first!r} {later}; state {telemetry.state} {telemetry.detail!r})"
+                ) from None
             await asyncio.sleep(0.4)  # past the previous stop's zero stream (0.3 s)
             t0 = time.monotonic()
             assert (await robot.stop()).ok
