@@ -43,12 +43,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from rig import Daemon, Process, free_port
+from rig import Daemon, start_telebot_sim
 from ros2 import measure_stops, percentile, raw_zenoh, summary  # bench/ros2.py
-from telebot.robot.mapfile import places_path_for
 from telebot.robot.ros2.node import Ros2Node
 from telebot.robot.ros2.types import TypeLibrary
-from telebot.robot.sim.stack import resolve_map
 
 TARGETS_MS = {"relay_added": 20.0, "stop": 20.0}
 CLOUD_BYTES = 1_000_000
@@ -122,19 +120,12 @@ async def main_async(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix="telebot-bench-relay-") as tmp:
         base = Path(tmp)
         daemon = Daemon(base)
-        router = f"tcp/127.0.0.1:{free_port()}"
-        places = places_path_for(resolve_map("small", None))
-        with daemon.robot_config.open("a") as config:
-            config.write(
-                f'[robot]\nkind = "ros2"\n[services]\npose_hz = 50.0\n'
-                f'[ros2]\nrouter = ["{router}"]\nconnect_timeout = 30.0\n'
-                f'places_file = "{places}"\nstop_stream_s = 0.3\n'
-            )
-        sim = Process(["telebot.apps.sim_cli", "--config", str(daemon.robot_config)])
+        sim, router = start_telebot_sim(
+            daemon, ros2={"stop_stream_s": 0.3}, tables="[services]\npose_hz = 50.0\n"
+        )
         node: Ros2Node | None = None
         stop = threading.Event()
         try:
-            assert "serving map" in sim.next_line(timeout=60), sim.stderr()
             daemon.start()
             library = TypeLibrary("jazzy")
             node = Ros2Node(name="bench_lidar", connect=[router], library=library)

@@ -52,12 +52,10 @@ import zenoh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from rig import Daemon, Process, free_port
-from telebot.robot.mapfile import places_path_for
+from rig import Daemon, start_telebot_sim
 from telebot.robot.ros2.keys import QoS
 from telebot.robot.ros2.node import Ros2Node
 from telebot.robot.ros2.types import TypeLibrary
-from telebot.robot.sim.stack import resolve_map
 
 TARGETS_MS = {"goal_ack": 20.0, "pose": 20.0, "stop": 10.0, "map": 300.0}
 MAP_SIZE = 4000
@@ -194,20 +192,11 @@ async def main_async(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix="telebot-bench-ros2-") as tmp:
         base = Path(tmp)
         daemon = Daemon(base)
-        port = free_port()
-        router = f"tcp/127.0.0.1:{port}"
-        places = places_path_for(resolve_map("small", None))
-        with daemon.robot_config.open("a") as config:
-            config.write(
-                f'[robot]\nkind = "ros2"\n[services]\npose_hz = 50.0\n'
-                f'[ros2]\nrouter = ["{router}"]\nconnect_timeout = 30.0\n'
-                f'places_file = "{places}"\nstop_stream_s = 0.3\n'
-            )
-        sim = Process(["telebot.apps.sim_cli", "--config", str(daemon.robot_config)])
+        sim, router = start_telebot_sim(
+            daemon, ros2={"stop_stream_s": 0.3}, tables="[services]\npose_hz = 50.0\n"
+        )
         probe: Ros2Node | None = None
         try:
-            line = sim.next_line(timeout=60)
-            assert "serving map" in line, sim.stderr()
             daemon.start()
             library = TypeLibrary("jazzy")
             probe = Ros2Node(name="bench_probe", connect=[router], library=library)

@@ -51,7 +51,8 @@ from telebot.channels.call import RobotEndpoint
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.config import AppConfig, CallSettings, ServiceSettings, SimSettings, ZenohSettings
 from telebot.identity import ContactBook, Identity, KnownRobots, Role, create_paired_homes
-from telebot.robot.sim.stack import SimNavStack
+from telebot.robot.mapfile import places_path_for
+from telebot.robot.sim.stack import SimNavStack, resolve_map
 from telebot.services.base import ServiceRegistry
 from telebot.services.client import RobotClient, connect
 from telebot.services.robot import RobotServer
@@ -353,6 +354,36 @@ class Daemon:
         """The robot's audit log, one record per line (``t``: the robot's monotonic clock)."""
         lines = (self.robot_home / "audit.jsonl").read_text(encoding="utf-8").splitlines()
         return [json.loads(line) for line in lines]
+
+
+def start_telebot_sim(
+    daemon: Daemon, *, ros2: Mapping[str, Any] | None = None, tables: str = ""
+) -> tuple[Process, str]:
+    """Make ``daemon`` drive ``telebot-sim``: a ROS 2 robot in its own process, its own
+    zenoh router on a free port, the daemon's ``[sim]`` with the small map's places.
+
+    Appends ``[robot] kind = "ros2"`` and ``[ros2]`` (with the keys of ``ros2``) and then
+    ``tables`` (more TOML tables) to the daemon's config, starts the sim with that config and
+    waits until it serves. Returns its process and router endpoint; start the daemon next.
+    """
+    router = f"tcp/127.0.0.1:{free_port()}"
+    places = places_path_for(resolve_map("small", None))
+    settings = {"router": [router], "connect_timeout": 30.0, "places_file": str(places)}
+    settings.update(ros2 or {})
+    lines = ["[robot]", 'kind = "ros2"', "[ros2]"]
+    for key, value in settings.items():
+        text = json.dumps(value) if isinstance(value, list) else _toml_value(value)
+        lines.append(f"{key} = {text}")
+    with daemon.robot_config.open("a") as config:
+        config.write("\n".join(lines) + "\n" + tables)
+    sim = Process(["telebot.apps.sim_cli", "--config", str(daemon.robot_config)])
+    try:
+        line = sim.next_line(timeout=60)
+        assert "serving map" in line, f"{line} {sim.stderr()}"
+    except BaseException:
+        sim.stop()
+        raise
+    return sim, router
 
 
 @contextlib.asynccontextmanager

@@ -20,17 +20,16 @@ import numpy as np
 import pytest
 
 from conftest import ROBOT, USER, wait_until
-from rig import Daemon, Process, free_port
+from rig import Daemon, start_telebot_sim
 from telebot.channels.call import RobotEndpoint, UserEndpoint
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.config import CallSettings, RelaySettings, ServiceSettings, SimSettings
 from telebot.errors import ProtocolError, RelayRefused, UnknownTopic
 from telebot.identity import ContactBook, KnownRobots, Role, create_paired_homes
-from telebot.robot.mapfile import places_path_for
 from telebot.robot.nav import SourceTopic
 from telebot.robot.ros2.node import Ros2Node
 from telebot.robot.ros2.types import TypeLibrary
-from telebot.robot.sim.stack import SimNavStack, resolve_map
+from telebot.robot.sim.stack import SimNavStack
 from telebot.services.client import RobotClient
 from telebot.services.proto.relay import (
     MAX_LIST_TEXT,
@@ -344,18 +343,10 @@ async def test_a_topic_on_the_ros2_robots_network_arrives_with_the_same_bytes(
     """telebot-sim (its router), ``telebot-robot run --robot ros2``, and a ROS node of our
     own that publishes a point cloud (large: fragmented) the daemon has never heard of."""
     daemon = Daemon(tmp_path)
-    router = f"tcp/127.0.0.1:{free_port()}"
-    places = places_path_for(resolve_map("small", None))
-    with daemon.robot_config.open("a") as config:
-        config.write(
-            f'[robot]\nkind = "ros2"\n[ros2]\nrouter = ["{router}"]\n'
-            f'connect_timeout = 30.0\nplaces_file = "{places}"\n'
-        )
-    sim = Process(["telebot.apps.sim_cli", "--config", str(daemon.robot_config)])
+    sim, router = start_telebot_sim(daemon)
     node: Ros2Node | None = None
     stop = threading.Event()
     try:
-        assert "serving map" in sim.next_line(timeout=60), sim.stderr()
         daemon.start()
         node = Ros2Node(name="lidar", connect=[router], library=LIB)
         cloud_type = LIB.message("sensor_msgs/msg/PointCloud2")

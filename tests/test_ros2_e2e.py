@@ -19,11 +19,9 @@ from typing import Any
 import pytest
 
 from conftest import wait_until
-from rig import SLACK, Daemon, Process, free_port
-from telebot.robot.mapfile import places_path_for
+from rig import SLACK, Daemon, Process, start_telebot_sim
 from telebot.robot.ros2.node import Ros2Node
 from telebot.robot.ros2.types import TypeLibrary
-from telebot.robot.sim.stack import resolve_map
 
 pytestmark = [pytest.mark.zenoh, pytest.mark.timeout(180)]
 
@@ -59,17 +57,9 @@ class Robot:
 async def ros2_robot(tmp_path: Path) -> AsyncIterator[Robot]:
     """telebot-sim on a free port, the daemon driving it, and a probe on /odom."""
     daemon = Daemon(tmp_path)
-    router = f"tcp/127.0.0.1:{free_port()}"
-    places = places_path_for(resolve_map("small", None))
-    with daemon.robot_config.open("a") as config:
-        config.write(
-            f'[robot]\nkind = "ros2"\n[ros2]\nrouter = ["{router}"]\n'
-            f'connect_timeout = 30.0\nplaces_file = "{places}"\n'
-        )
-    sim = Process(["telebot.apps.sim_cli", "--config", str(daemon.robot_config)])
+    sim, router = start_telebot_sim(daemon)
     probe: Ros2Node | None = None
     try:
-        assert "serving map" in sim.next_line(timeout=60), sim.stderr()
         daemon.start()
         library = TypeLibrary("jazzy")
         probe = Ros2Node(name="probe", connect=[router], library=library)

@@ -23,20 +23,18 @@ import numpy as np
 import pytest
 import zenoh
 
-from conftest import SLACK, Homes, Process, free_port, wait_until
-from rig import Daemon
+from conftest import SLACK, Homes, free_port, wait_until
+from rig import Daemon, start_telebot_sim
 from telebot.config import RobotConfig
 from telebot.errors import RobotUnreachable
 from telebot.reasons import Reason
 from telebot.robot import create_robot
-from telebot.robot.mapfile import places_path_for
 from telebot.robot.nav import GoalStatus, NavState, PoseNotifier
 from telebot.robot.ros2 import stack as stack_module
 from telebot.robot.ros2.convert import quaternion_fields
 from telebot.robot.ros2.keys import QoS
 from telebot.robot.ros2.node import Ros2Node
 from telebot.robot.ros2.stack import Ros2NavStack
-from telebot.robot.sim.building import resolve_map
 
 pytestmark = pytest.mark.zenoh
 
@@ -685,18 +683,13 @@ def test_telebot_robot_run_without_a_router_exits_2_with_one_line(
 async def test_table_i_commands_drive_telebot_sim_across_processes(tmp_path: Path) -> None:
     """telebot-sim (its own router) and telebot-robot run --robot ros2, a user chatting."""
     daemon = Daemon(tmp_path)
-    port = free_port()
-    places = places_path_for(resolve_map("small", None))
-    with daemon.robot_config.open("a") as config:
-        config.write(
-            f'[robot]\nkind = "ros2"\n[ros2]\nrouter = ["tcp/127.0.0.1:{port}"]\n'
-            f'connect_timeout = 30.0\nplaces_file = "{places}"\n'
-            "max_linear_speed = 1.5\nmax_angular_speed = 3.0\n[ros2.cameras]\n"
-            'navcam = "navcam/image/compressed"\nusercam = "usercam/image/compressed"\n'
-        )
-    sim = Process(["telebot.apps.sim_cli", "--config", str(daemon.robot_config)])
+    sim, _ = start_telebot_sim(
+        daemon,
+        ros2={"max_linear_speed": 1.5, "max_angular_speed": 3.0},
+        tables='[ros2.cameras]\nnavcam = "navcam/image/compressed"\n'
+        'usercam = "usercam/image/compressed"\n',
+    )
     try:
-        assert "serving map" in sim.next_line(timeout=60), sim.stderr()
         daemon.start()
         async with daemon.connect() as robot:
             assert (await robot.stop()).ok
