@@ -15,6 +15,7 @@ the latest roster, the messages heard, listeners, and :meth:`ConferenceState.say
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 import weakref
@@ -157,10 +158,10 @@ class RobotConference:
             for message in conference.since(request.seq):
                 self.send(message.encode())
             return
-        said, message = conference.say(self.call.id, request, self.server.now())
-        if message is not None:
-            self.server.emit({"event": "say", "peer": self.call.peer, "text": message.text})
-            self.room.broadcast(message)
+        said, spoken = conference.say(self.call.id, request, self.server.now())
+        if spoken is not None:
+            self.server.emit({"event": "say", "peer": self.call.peer, "text": spoken.text})
+            self.room.broadcast(spoken)
         self.send(said.encode())
 
     def send(self, text: str) -> None:
@@ -231,8 +232,8 @@ class ConferenceState:
             self._floor = max(self._floor, message.seq - HISTORY)
             self.roster = message
             self._advance()
-            for listener in list(self.on_roster):
-                _call(listener, message)
+            for on_roster in list(self.on_roster):
+                _call(on_roster, message)
             return self._missing(now)
         if self._floor is None:
             self._floor = message.seq - 1
@@ -328,10 +329,8 @@ class ConferenceReceiver:
         """Ask again for missing messages."""
         request = self.state.due(now)
         if request is not None and self.call.active:
-            try:
+            with contextlib.suppress(TelebotError):
                 self.channel.send(request)
-            except TelebotError:
-                pass
 
     def close(self) -> None:
         """Deliver nothing more from this call."""

@@ -115,7 +115,13 @@ class Message:
     def encode(self) -> str:
         """The datagram text."""
         return encode_object(
-            {"type": "msg", "seq": self.seq, "from": self.sender, "kind": self.kind, "text": self.text}
+            {
+                "type": "msg",
+                "seq": self.seq,
+                "from": self.sender,
+                "kind": self.kind,
+                "text": self.text,
+            }
         )
 
 
