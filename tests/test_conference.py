@@ -178,3 +178,42 @@ async def test_messages_lost_on_the_way_are_asked_for_again(tmp_path: Path) -> N
         assert heard == notes
         seqs = [m.seq for m in bob.conference.messages]
         assert seqs == sorted(set(seqs))
+
+
+async def test_the_chat_cli_shows_the_roster_and_the_others_messages_and_says(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from telebot.apps.user_client import _run_command, _show_conference
+
+    async with two_users(tmp_path, MemoryHub(seed=4)) as (alice, bob):
+        await wait_until(lambda: len(_names(alice.conference.roster)) == 2)
+        _show_conference(alice)
+        assert (await bob.say("anyone there?")).ok
+        seen: list[str] = []
+
+        def heard(text: str) -> bool:
+            seen.append(capsys.readouterr().err)
+            return text in "".join(seen)
+
+        await wait_until(lambda: heard("[bob] anyone there?"))
+        assert "[in the call: alice (you) (driver, driving), bob (observer)]" in "".join(seen)
+        # "say" in the chat is a message to everyone, not a robot command.
+        assert await _run_command(alice, "say yes, alice here", None, tmp_path)
+        await wait_until(lambda: ("alice", "user", "yes, alice here") in _texts(bob))
+        assert not await _run_command(alice, "say", None, tmp_path)
+        out, err = capsys.readouterr()
+        assert "! say refused: nothing to say" in out
+        assert "[alice] yes, alice here" not in err  # what alice typed is not echoed back
+
+
+def test_the_roster_line_of_the_chat() -> None:
+    from telebot.apps.user_client import format_message, format_roster
+
+    room = Conference("bot1")
+    room.join("c1", "alice", "driver")
+    room.join("c2", "bob", "observer")
+    assert format_roster(room.roster("c1", "alice")) == (
+        "alice (you) (driver, driving), bob (observer)"
+    )
+    assert format_message(Message(3, "bot1", "robot", "bob left")) == "[bot1: bob left]"
+    assert format_message(Message(4, "bob", "user", "hi")) == "[bob] hi"

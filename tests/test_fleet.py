@@ -20,7 +20,7 @@ from fleet_rig import FleetRobot, make_homes, running_robot, user_endpoint, user
 from telebot.apps.web.fleet import FleetUI
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.identity import Role
-from telebot.services.client import connect
+from telebot.services.client import RobotClient, connect
 from test_web_ui import ARTIFACTS, browser_page
 
 ROBOTS = ["bot1", "bot2", "bot3"]
@@ -30,7 +30,7 @@ ROBOTS = ["bot1", "bot2", "bot3"]
 async def fleet_rig(
     base: Path, hub: MemoryHub, *, stop_timeout: float = 2.0
 ) -> AsyncIterator[tuple[FleetUI, dict[str, FleetRobot]]]:
-    make_homes(base, ROBOTS, {"alice": Role.DRIVER})
+    make_homes(base, ROBOTS, {"alice": Role.DRIVER, "bob": Role.OBSERVER})
     async with contextlib.AsyncExitStack() as stack:
         robots = {
             name: await stack.enter_async_context(running_robot(base, name, hub)) for name in ROBOTS
@@ -101,6 +101,34 @@ async def test_the_fleet_page_lists_opens_two_and_stops_all(tmp_path: Path) -> N
         await page.wait_for_function(
             "() => window.telebotFleet.state.robots.filter(x => x.open).length === 2"
         )
+        # Many users, one robot: bob watches bot1; alice's bot1 page shows him in the call
+        # and his message, and her "say" in the chat box reaches him.
+        frame = await _frame(page, "robot-bot1")
+        async with user_endpoint(tmp_path, "bob", hub) as bob_end:
+            bob = RobotClient(await bob_end.call("bot1", timeout=10))
+            bob.start()
+            try:
+                await frame.wait_for_function(
+                    "() => document.getElementById('roster').textContent.includes('bob')",
+                    timeout=10000,
+                )
+                assert "alice (you) · driver · driving" in await frame.inner_text("#roster")
+                assert (await bob.say("hello from bob")).ok
+                await frame.wait_for_function(
+                    "() => document.getElementById('chat-log').textContent"
+                    ".includes('[bob] hello from bob')",
+                    timeout=10000,
+                )
+                await frame.fill("#chat-input", "say hi bob")
+                await frame.press("#chat-input", "Enter")
+                await wait_until(
+                    lambda: any(
+                        (m.sender, m.text) == ("alice", "hi bob") for m in bob.conference.messages
+                    )
+                )
+            finally:
+                await bob.hangup()
+                await bob.aclose()
         for name in ("bot1", "bot2"):
             await _drive(fleet, robots[name])
         await wait_until(

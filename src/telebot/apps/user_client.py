@@ -121,6 +121,8 @@ def _show_conference(client: RobotClient) -> None:
 
     client.conference.on_message.append(on_message)
     client.conference.on_roster.append(on_roster)
+    if client.conference.roster is not None:
+        on_roster(client.conference.roster)
 
 
 def _print_reply(reply: ChatReply) -> None:
