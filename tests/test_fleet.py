@@ -238,3 +238,51 @@ async def test_connect_works_for_several_robots_in_one_program(tmp_path: Path) -
         assert poses[0].x > poses[1].x + 0.4
         stops = await asyncio.gather(one.stop(), two.stop())
         assert all(ack.ok for ack in stops)
+
+
+async def test_telebot_user_ui_without_a_robot_serves_the_fleet_page(tmp_path: Path) -> None:
+    from telebot.apps.web.fleet import serve_fleet
+    from telebot.config import AppConfig
+
+    hub_name = f"fleet-{tmp_path.name}"
+    hub = MemoryHub.named(hub_name)
+    make_homes(tmp_path, ["bot1", "bot2"], {"alice": Role.DRIVER})
+    config = AppConfig.model_validate(
+        {"transport": {"kind": "memory", "memory": {"hub": hub_name, "node": "alice"}}}
+    )
+    said: list[str] = []
+    stop = asyncio.Event()
+    async with running_robot(tmp_path, "bot1", hub), running_robot(tmp_path, "bot2", hub):
+        serving = asyncio.create_task(
+            serve_fleet(
+                home=user_home(tmp_path, "alice"),
+                config=config,
+                port=0,
+                stop=stop,
+                announce=said.append,
+            )
+        )
+        try:
+            await wait_until(lambda: bool(said) or serving.done())
+            url = said[0].split()[1]
+            async with aiohttp.ClientSession() as http:
+                async with http.get(url) as response:
+                    assert "fleet.js" in await response.text()
+                async with http.ws_connect(url + "fleet/ws") as ws:
+                    while True:
+                        message = await ws.receive_json(timeout=10)
+                        robots = message.get("robots", [])
+                        if message["type"] == "fleet" and sum(r["called"] for r in robots) == 2:
+                            break
+            assert [r["name"] for r in robots] == ["bot1", "bot2"]
+        finally:
+            stop.set()
+            assert await serving == 0
+
+
+def test_ui_record_needs_a_robot_name(tmp_path: Path, capsys: Any) -> None:
+    from telebot.apps.user_cli import main
+
+    code = main(["ui", "--record", str(tmp_path / "x.mcap"), "--home", str(tmp_path)])
+    assert code == 2
+    assert capsys.readouterr().err.strip() == "telebot-user: error: --record needs a robot name"

@@ -140,6 +140,7 @@ class RobotConference:
         self.channel = call.channel(CONFERENCE, lane=Lane.CONTROL)
         self.channel.set_callback(self._on_datagram)
         self.rejected = 0
+        self._since_at = -math.inf
         role = str(call.role) if call.role is not None else "observer"
         self.room.calls[call.id] = self
         self.room.broadcast(self.room.conference.join(call.id, call.peer, role))
@@ -155,6 +156,11 @@ class RobotConference:
             return
         conference = self.room.conference
         if isinstance(request, Since):
+            # One small request makes up to HISTORY answers: at most one per RESEND_AFTER.
+            now = self.server.now()
+            if now - self._since_at < RESEND_AFTER * 0.8:
+                return
+            self._since_at = now
             for message in conference.since(request.seq):
                 self.send(message.encode())
             return

@@ -2,7 +2,8 @@
 
 One :class:`WebUI` wraps one connected :class:`~telebot.services.client.RobotClient`
 and serves ``static/`` (no build step, nothing fetched from the internet), the robot's map
-as ``/map.png``, and a websocket at ``/ws``. Any number of pages may be open; the robot
+as ``/map.png``, and a websocket at ``/ws`` (the page's URLs are relative, so the fleet
+page serves the same page at ``/robot/NAME/`` through :meth:`WebUI.handle`). Any number of pages may be open; the robot
 streams video while at least one is.
 
 Websocket protocol (JSON text messages unless stated)::
@@ -11,13 +12,14 @@ Websocket protocol (JSON text messages unless stated)::
       {"type": "stop", "how": "button" | "key"}         stop now (anyone, never refused)
       {"type": "arm"} | {"type": "take"} | {"type": "release"}
       {"type": "goal", "x": 1.0, "y": 2.0, "yaw": 0.5}   map frame; yaw may be null
-      {"type": "chat", "id": 3, "text": "fwd 1"}         a Table I command
+      {"type": "chat", "id": 3, "text": "fwd 1"}         a Table I command ("say …": a say)
+      {"type": "say", "id": 5, "text": "hello all"}      to everyone in the robot's calls
       {"type": "camera", "id": 4, "name": "usercam"}     switch camera (a chat command)
       {"type": "ping", "t": 1234.5}                      answered with pong (page ↔ client)
 
     client → page
       {"type": "hello", "robot", "user", "role", "may_drive", "map": MAP | null}
-      {"type": "map", "url": "/map.png", "resolution", "origin_x", "origin_y",
+      {"type": "map", "url": "map.png", "resolution", "origin_x", "origin_y",
        "width", "height", "version"}                     when the map has arrived, and
                                                          again whenever it changed (SLAM)
       {"type": "pose", "x", "y", "yaw", "v", "w", "state", "detail", "goal", "t",
@@ -36,6 +38,10 @@ Websocket protocol (JSON text messages unless stated)::
       {"type": "chat", "id", "text", "ok", "final", "code"}   replies, to the page that asked
       {"type": "ack", "what": "stop" | "arm" | ..., "ok", "reason", "code"}
       {"type": "pong", "t"}
+      {"type": "roster", "users": [{"name", "role", "driving", "you"}, ...]}   on change
+      {"type": "msg", "seq", "from", "kind": "user" | "robot", "text"}   the conference's
+                                                         messages (the last 50 on opening)
+      {"type": "said", "id", "ok", "reason", "code"}     the answer to this page's say
       binary: video frame = 4-byte big-endian header length, UTF-8 JSON header
               {"camera", "frame_id", "capture_time"}, then the JPEG bytes as the robot
               sent them (never decoded or re-encoded here)
