@@ -165,7 +165,7 @@ async def _frame(page: Any, name: str) -> Any:
 
 async def test_bad_names_a_vanished_robot_and_stop_all_say_why(tmp_path: Path) -> None:
     hub = MemoryHub(seed=9)
-    async with fleet_rig(tmp_path, hub, stop_timeout=1.0) as (fleet, _):
+    async with fleet_rig(tmp_path, hub, stop_timeout=1.0) as (fleet, robots):
         await wait_until(lambda: _called(fleet, ROBOTS), timeout=15.0)
         async with aiohttp.ClientSession() as http:
             for path, text in (
@@ -196,6 +196,14 @@ async def test_bad_names_a_vanished_robot_and_stop_all_say_why(tmp_path: Path) -
             async with http.get(fleet.url + "robot/bot2/") as response:
                 assert response.status == 200 and "app.js" in await response.text()
             assert fleet.robots["bot2"].ui is not None
+
+        # Closing a robot's page while it moves stops it (nobody watches it any more).
+        assert await fleet.open("bot1") is None
+        await _drive(fleet, robots["bot1"])
+        await wait_until(lambda: robots["bot1"].nav.velocity().linear > 0.3, timeout=10.0)
+        await fleet.close_robot("bot1")
+        await wait_until(lambda: robots["bot1"].nav.velocity().linear == 0.0)
+        assert not robots["bot1"].safety.state().armed and fleet.robots["bot1"].ui is None
 
         # bot2 vanishes while open: listed offline, its client reconnecting; stop all
         # still stops the others and names bot2 as not answering.

@@ -374,14 +374,22 @@ class FleetUI:
         return None
 
     async def close_robot(self, name: str) -> None:
-        """Close robot ``name``'s page (its call stays: it is still listed)."""
+        """Close robot ``name``'s page (its call stays: it is still listed); a robot that
+        moves or is armed is stopped first."""
         robot = self.robots.get(name)
         if robot is None:
             return
         robot.wanted = False
         ui, robot.ui = robot.ui, None
         if ui is not None:
-            await ui.close()  # a page closed while the robot moves stops it (WebUI)
+            # As when a robot's page closes (WebUI): a robot that may move with nobody
+            # watching it any more is stopped first.
+            safety = ui.client.latest_safety.value
+            if ui.may_drive and (ui.moving() or (safety is not None and safety.armed)):
+                log.warning("%s closed while it might move: stopping it", name)
+                with contextlib.suppress(TimeoutError, TelebotError):
+                    await ui.client.stop(how="tab_closed", timeout=self.stop_timeout)
+            await ui.close()
         self._broadcast({"type": "closed", "robot": name})
         self._broadcast_list()
 
