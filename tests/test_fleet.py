@@ -28,7 +28,7 @@ ROBOTS = ["bot1", "bot2", "bot3"]
 
 @contextlib.asynccontextmanager
 async def fleet_rig(
-    base: Path, hub: MemoryHub, *, stop_timeout: float = 2.0
+    base: Path, hub: MemoryHub, *, stop_timeout: float = 2.0, watch: bool = True
 ) -> AsyncIterator[tuple[FleetUI, dict[str, FleetRobot]]]:
     make_homes(base, ROBOTS, {"alice": Role.DRIVER, "bob": Role.OBSERVER})
     async with contextlib.AsyncExitStack() as stack:
@@ -37,7 +37,7 @@ async def fleet_rig(
         }
         endpoint = await stack.enter_async_context(user_endpoint(base, "alice", hub))
         fleet = await stack.enter_async_context(
-            FleetUI(endpoint, port=0, stop_timeout=stop_timeout)
+            FleetUI(endpoint, port=0, stop_timeout=stop_timeout, watch=watch)
         )
         yield fleet, robots
 
@@ -221,6 +221,23 @@ async def test_bad_names_a_vanished_robot_and_stop_all_say_why(tmp_path: Path) -
             lambda: fleet.robots["bot2"].summary()["connection"] == "connected", timeout=15.0
         )
         assert fleet.robots["bot2"].ui is not None
+
+
+async def test_a_fleet_page_that_does_not_watch_calls_a_robot_only_when_opened(
+    tmp_path: Path,
+) -> None:
+    async with fleet_rig(tmp_path, MemoryHub(seed=4), watch=False) as (fleet, robots):
+        await wait_until(lambda: all(n in fleet.robots for n in ROBOTS))
+        await wait_until(lambda: all(fleet.robots[n].trusted for n in ROBOTS))
+        # Listed by name only: no call, so nothing but presence is known.
+        row = fleet.robots["bot2"].summary()
+        assert row["online"] and not row["called"] and row["battery"] is None
+        assert all(not robot.endpoint.calls for robot in robots.values())
+        assert await fleet.open("bot2") is None
+        client = fleet.robots["bot2"].client
+        assert client is not None and fleet.robots["bot2"].ui is not None
+        await wait_until(lambda: fleet.robots["bot2"].summary()["battery"] is not None)
+        assert not robots["bot1"].endpoint.calls and not robots["bot3"].endpoint.calls
 
 
 async def test_connect_works_for_several_robots_in_one_program(tmp_path: Path) -> None:

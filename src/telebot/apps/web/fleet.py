@@ -153,6 +153,7 @@ class FleetUI:
         call_timeout: float = CALL_TIMEOUT,
         max_calls: int = MAX_CALLS,
         stop_timeout: float = STOP_ALL_TIMEOUT,
+        watch: bool = True,
     ) -> None:
         self.endpoint = endpoint
         self.host = host
@@ -162,6 +163,8 @@ class FleetUI:
         self.call_timeout = call_timeout
         self.max_calls = max_calls
         self.stop_timeout = stop_timeout
+        #: Call every trusted robot online (False: only those opened; see FleetSettings).
+        self.watch = watch
         #: Every robot seen online (or called), by name.
         self.robots: dict[str, FleetRobot] = {}
         self.pages: set[web.WebSocketResponse] = set()
@@ -270,7 +273,7 @@ class FleetUI:
             robot.problem = f"unknown robot: add its key with 'telebot-user known add {name}'"
         elif not robot.trusted:
             robot.problem = "KEY MISMATCH: online with another key than the one you trust"
-        elif robot.client is None and robot.calling is None:
+        elif robot.client is None and robot.calling is None and (self.watch or robot.wanted):
             if sum(r.client is not None for r in self.robots.values()) >= self.max_calls:
                 robot.problem = f"not called: the fleet page calls at most {self.max_calls}"
                 return
@@ -318,7 +321,12 @@ class FleetUI:
         robot.client = None
         ui, robot.ui = robot.ui, None
         self._spawn(self._retire(ui, client))
-        if robot.online and robot.trusted and robot.calling is None:
+        if (
+            robot.online
+            and robot.trusted
+            and robot.calling is None
+            and (self.watch or robot.wanted)
+        ):
             robot.calling = self._spawn(self._call(robot))
 
     async def _retire(self, ui: WebUI | None, client: RobotClient) -> None:
@@ -347,7 +355,7 @@ class FleetUI:
         robot = self.robots.get(name)
         if robot is None or (not robot.online and robot.client is None):
             return f"no robot named {name!r} is online"
-        if robot.client is None:
+        if robot.client is None and (self.watch or robot.calling is not None or not robot.trusted):
             return f"{name}: {robot.problem or 'calling…'}"
         return None
 
@@ -357,9 +365,13 @@ class FleetUI:
         if problem is not None:
             return problem
         robot = self.robots[name]
-        client = robot.client
-        assert client is not None
         robot.wanted = True
+        if robot.client is None:  # not watched: call it now (it opens when the call is up)
+            robot.problem = ""
+            robot.calling = self._spawn(self._call(robot))
+            await asyncio.shield(robot.calling)
+            return None if robot.client is not None else f"{name}: {robot.problem}"
+        client = robot.client
         if robot.ui is None:
             ui = WebUI(client, host=self.host, port=self.port, user=self.user)
             ui.follow()
@@ -570,6 +582,9 @@ async def serve_fleet(
             user=identity.name,
             reconnect=config.reconnect,
             call_timeout=config.call.connect_timeout or CALL_TIMEOUT,
+            max_calls=config.fleet.max_calls,
+            stop_timeout=config.fleet.stop_timeout,
+            watch=config.fleet.watch,
         ) as fleet,
     ):
         announce(f"open {fleet.url} in a browser (the fleet page); Ctrl-C to quit")
