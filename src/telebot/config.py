@@ -132,6 +132,22 @@ class ReconnectSettings(StrictModel):
     give_up_after: float = Field(default=300.0, ge=0)
 
 
+class FleetSettings(StrictModel):
+    """The fleet page (``telebot-user ui`` without a robot name).
+
+    Presence shows only a robot's name and key; its battery, state, driver and link come
+    from a call. ``watch``: call every trusted robot online to show them (False: list names
+    only, and call a robot when it is opened).
+    """
+
+    #: Call each trusted robot online to show its battery, state, driver and link.
+    watch: bool = True
+    #: Robots the page calls at most.
+    max_calls: int = Field(default=32, ge=1, le=1000)
+    #: A robot that has not acknowledged STOP ALL within this many seconds is reported.
+    stop_timeout: float = Field(default=2.0, gt=0, le=30)
+
+
 #: No configuration may make the simulated base faster than this (m/s).
 HARD_MAX_LINEAR_SPEED = 1.5
 #: No configuration may make the simulated base turn faster than this (rad/s).
@@ -311,6 +327,8 @@ class AppConfig(StrictModel):
     call: CallSettings = Field(default_factory=CallSettings)
     #: The user's side: calling the robot again after a drop (the robot ignores it).
     reconnect: ReconnectSettings = Field(default_factory=ReconnectSettings)
+    #: The user's side: the fleet page (the robot ignores it).
+    fleet: FleetSettings = Field(default_factory=FleetSettings)
 
 
 class ServiceSettings(StrictModel):

@@ -62,6 +62,10 @@ class Reason(enum.StrEnum):
     REPLACED = "replaced"
     BATTERY_EMPTY = "battery_empty"
     FAILED = "failed"
+    # Conference messages (``say``) refused.
+    EMPTY = "empty"
+    TOO_LONG = "too_long"
+    TOO_FAST = "too_fast"
 
 
 #: What each code means (the table of docs/protocol.md §13.1 says the same).
@@ -97,6 +101,9 @@ DESCRIPTIONS: dict[Reason, str] = {
     Reason.REPLACED: "a newer goal or manual driving replaced the motion",
     Reason.BATTERY_EMPTY: "the battery is empty",
     Reason.FAILED: "the motion failed for another reason (the text says which)",
+    Reason.EMPTY: "a conference message with no text",
+    Reason.TOO_LONG: "a conference message longer than 1000 characters",
+    Reason.TOO_FAST: "more than 10 conference messages in 10 s from one call: wait",
 }
 
 

@@ -115,13 +115,16 @@ def build_parser() -> Parser:
 
     chat = commands.add_parser(
         "chat",
-        help="chat with a robot (Table I commands); reads commands from stdin when piped",
+        help="chat with a robot (Table I commands, 'say TEXT' to everyone in its calls); reads "
+        "commands from stdin when piped",
         description="Chat with a robot. On a terminal, commands run as you type them and, "
         "while the robot moves, any key stops it (Escape always does). Piped, one command "
         "per line runs to its end before the next, and the command exits after the last one "
         "(within --timeout). The robot starts stopped: send 'arm' before moving it. If the "
         "call drops, chat calls the robot again by itself and says so on stderr ([reconnect] "
-        "in the config); the robot stays stopped until you send 'arm' again.",
+        "in the config); the robot stays stopped until you send 'arm' again. Everyone in the "
+        "robot's calls is a conference: 'say TEXT' reaches all of them with your name; their "
+        "messages, the robot's announcements and who is in the call show on stderr.",
     )
     send = commands.add_parser(
         "send",
@@ -210,14 +213,26 @@ def build_parser() -> Parser:
 
     ui = commands.add_parser(
         "ui",
-        help="serve a local web page to drive the robot: map, click-to-goal, stop, video, chat",
+        help="serve a local web page to drive a robot (map, click-to-goal, stop, video, chat), "
+        "or without a robot name the fleet page",
         description="Call the robot and serve its web UI at http://HOST:PORT/ (open it in a "
         "browser). Any key on the page stops the robot; closing the page while it moves "
         "stops it too. The robot starts stopped: re-arm it on the page. If the call drops, the "
         "client calls the robot again by itself ([reconnect] in the config) and the page "
-        "carries on; the robot stays stopped until re-armed.",
+        "carries on; the robot stays stopped until re-armed. 'say TEXT' in the chat box speaks "
+        "to everyone in the robot's calls. Without a robot name: the fleet page, every robot "
+        "online with its battery, state, driver and link (each trusted robot is called to "
+        "learn them; a robot that refuses says why); open robots to drive them side by side "
+        "(each its own call and STOP, at /robot/NAME/); STOP ALL stops every robot you have "
+        "a call with and says which did not answer.",
     )
-    ui.add_argument("robot", type=name_arg, help="the robot's name")
+    ui.add_argument(
+        "robot",
+        type=name_arg,
+        nargs="?",
+        default=None,
+        help="the robot's name (none: the fleet page)",
+    )
     _add_record_option(ui)
     ui.add_argument(
         "--port",
@@ -345,7 +360,16 @@ def main(argv: list[str] | None = None) -> int:
             if args.record is not None and (problem := check_output_file(args.record)):
                 print(f"{PROG}: error: {problem}", file=sys.stderr)
                 return EXIT_USAGE
+            if args.robot is None and args.record is not None:
+                print(f"{PROG}: error: --record needs a robot name", file=sys.stderr)
+                return EXIT_USAGE
             try:
+                if args.robot is None:
+                    from telebot.apps.web.fleet import serve_fleet
+
+                    return await serve_fleet(
+                        home=home, config=app_config(args), host=args.host, port=args.port
+                    )
                 return await serve_ui(
                     args.robot,
                     home=home,

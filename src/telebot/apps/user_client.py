@@ -16,6 +16,7 @@ from telebot.config import AppConfig
 from telebot.errors import CallEnded
 from telebot.services.client import ConnectionEvent, RobotClient, connect
 from telebot.services.proto.chat import ChatReply
+from telebot.services.proto.conference import Message, Roster, say_text
 
 __all__ = ["chat_session", "format_pose", "get_map", "send_command", "where"]
 
@@ -84,6 +85,46 @@ async def _fetch_and_save(client: RobotClient, png_path: Path, timeout: float) -
     return yaml_path
 
 
+def format_roster(roster: Roster) -> str:
+    """Who is in the robot's calls, as the chat shows it: ``alice (driver, driving), …``."""
+    people = []
+    for member in roster.users:
+        notes = [member.role] + (["driving"] if member.driving else [])
+        people.append(f"{member.name}{' (you)' if member.you else ''} ({', '.join(notes)})")
+    return ", ".join(people) or "nobody"
+
+
+def format_message(message: Message) -> str:
+    """A conference message as the chat shows it: ``[alice] hello`` or ``[bot1: …]``."""
+    if message.kind == "robot":
+        return f"[{message.sender}: {message.text}]"
+    return f"[{message.sender}] {message.text}"
+
+
+def _show_conference(client: RobotClient) -> None:
+    """Print other users' messages, the robot's announcements and roster changes (stderr:
+    stdout is the replies to this user's commands)."""
+    shown: list[str] = []
+
+    def on_message(message: Message) -> None:
+        roster = client.conference.roster
+        me = next((m.name for m in roster.users if m.you), None) if roster else None
+        if message.kind == "user" and message.sender == me:
+            return  # what this user typed: already on the screen
+        print(format_message(message), file=sys.stderr, flush=True)
+
+    def on_roster(roster: Roster) -> None:
+        text = format_roster(roster)
+        if shown != [text]:
+            shown[:] = [text]
+            print(f"[in the call: {text}]", file=sys.stderr, flush=True)
+
+    client.conference.on_message.append(on_message)
+    client.conference.on_roster.append(on_roster)
+    if client.conference.roster is not None:
+        on_roster(client.conference.roster)
+
+
 def _print_reply(reply: ChatReply) -> None:
     print(f"{'' if reply.ok or not reply.final else '! '}{reply.text}", flush=True)
 
@@ -104,6 +145,12 @@ async def _run_command(
     ok = False
     attachment = None
     try:
+        if (message := say_text(command)) is not None:
+            # "say TEXT": to everyone in the robot's calls (the conference), not a command.
+            said = await client.say(message, timeout=timeout or 5.0)
+            if not said.ok:
+                print(f"! say refused: {said.text}", flush=True)
+            return said.ok
         async for reply in client.chat_replies(command, timeout=timeout):
             _print_reply(reply)
             if reply.final:
@@ -175,6 +222,7 @@ async def chat_session(
         recording(client, record),
     ):
         client.on_connection.append(_say_connection)
+        _show_conference(client)
         print(
             f"connected to {robot} (role {client.call.role}); type help, Ctrl-D to leave",
             file=sys.stderr,

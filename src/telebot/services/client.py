@@ -52,10 +52,12 @@ from telebot.errors import (
 from telebot.identity import Identity, KnownRobots
 from telebot.reasons import Reason
 from telebot.services.base import CLIENT_TICK, OpenServices, ServiceRegistry
+from telebot.services.conference import ConferenceReceiver, ConferenceState
 from telebot.services.mapxfer import MapDownload, fetch_map
 from telebot.services.plan import PlanReceiver
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
 from telebot.services.proto.chat import ChatReply, decode_reply, encode_request
+from telebot.services.proto.conference import Said
 from telebot.services.proto.plan import Place, PlanUpdate
 from telebot.services.proto.relay import (
     RelayedMessage,
@@ -226,12 +228,14 @@ def _relay(client: RobotClient, call: Call) -> RelayReceiver:
 
 def default_client_services() -> ServiceRegistry[RobotClient]:
     """The user side's built-in services: ``core`` (:class:`ClientCore`), ``video``,
-    ``plan`` (the robot's planned path and named places) and ``relay`` (relayed topics)."""
+    ``plan`` (the robot's planned path and named places), ``relay`` (relayed topics) and
+    ``conference`` (the roster and messages of everyone in the robot's calls)."""
     registry: ServiceRegistry[RobotClient] = ServiceRegistry()
     registry.register("core", ClientCore)
     registry.register("video", _video)
     registry.register("plan", _plan)
     registry.register("relay", _relay)
+    registry.register("conference", ConferenceReceiver)
     return registry
 
 
@@ -283,6 +287,8 @@ class RobotClient:
         self.latest_places: _Latest[Mapping[str, Place]] = _Latest()
         #: Datagrams from the robot that did not decode (dropped).
         self.rejected = 0
+        #: The robot's conference: roster, messages, ``say`` (lives across reconnections).
+        self.conference = ConferenceState(self)
         # Fire-and-forget work (a relay's stop), kept referenced until done.
         self._background: set[asyncio.Future[Any]] = set()
         #: The services open on the current call.
@@ -833,6 +839,10 @@ class RobotClient:
         if not isinstance(receiver, RelayReceiver):
             raise TelebotError("this client has no relay service registered")
         return receiver
+
+    async def say(self, text: str, *, timeout: float = 5.0) -> Said:
+        """Say ``text`` to every user in the robot's calls (:meth:`ConferenceState.say`)."""
+        return await self.conference.say(text, timeout=timeout)
 
     async def hangup(self) -> None:
         """End the call (no reconnection follows)."""

@@ -36,6 +36,7 @@ from telebot.robot.nav import GoalHandle, GoalStatus, NavStack, PoseNotifier, St
 from telebot.safety import SafetyState
 from telebot.services.base import OpenServices, ServiceRegistry
 from telebot.services.chat import NO_SUPERVISOR, ChatSession, error_reason, goal_reason
+from telebot.services.conference import RobotConference
 from telebot.services.mapxfer import MapService
 from telebot.services.plan import PlanService
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
@@ -436,12 +437,14 @@ def _core(server: RobotServer, call: Call) -> CallServices:
 def default_robot_services() -> ServiceRegistry[RobotServer]:
     """The robot's built-in services: ``core`` (:class:`CallServices`), ``video``,
     ``plan`` (:class:`~telebot.services.plan.PlanService`: planned path and places) and
-    ``relay`` (:class:`~telebot.services.relay.RelayService`: topics relayed as CDR)."""
+    ``relay`` (:class:`~telebot.services.relay.RelayService`: topics relayed as CDR) and
+    ``conference`` (:class:`~telebot.services.conference.RobotConference`: roster, messages)."""
     registry: ServiceRegistry[RobotServer] = ServiceRegistry()
     registry.register("core", _core)
     registry.register("video", RobotVideo)
     registry.register("plan", PlanService)
     registry.register("relay", RelayService)
+    registry.register("conference", RobotConference)
     return registry
 
 

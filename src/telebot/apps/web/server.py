@@ -2,7 +2,8 @@
 
 One :class:`WebUI` wraps one connected :class:`~telebot.services.client.RobotClient`
 and serves ``static/`` (no build step, nothing fetched from the internet), the robot's map
-as ``/map.png``, and a websocket at ``/ws``. Any number of pages may be open; the robot
+as ``/map.png``, and a websocket at ``/ws`` (the page's URLs are relative, so the fleet
+page serves the same page at ``/robot/NAME/`` through :meth:`WebUI.handle`). Any number of pages may be open; the robot
 streams video while at least one is.
 
 Websocket protocol (JSON text messages unless stated)::
@@ -11,13 +12,14 @@ Websocket protocol (JSON text messages unless stated)::
       {"type": "stop", "how": "button" | "key"}         stop now (anyone, never refused)
       {"type": "arm"} | {"type": "take"} | {"type": "release"}
       {"type": "goal", "x": 1.0, "y": 2.0, "yaw": 0.5}   map frame; yaw may be null
-      {"type": "chat", "id": 3, "text": "fwd 1"}         a Table I command
+      {"type": "chat", "id": 3, "text": "fwd 1"}         a Table I command ("say …": a say)
+      {"type": "say", "id": 5, "text": "hello all"}      to everyone in the robot's calls
       {"type": "camera", "id": 4, "name": "usercam"}     switch camera (a chat command)
       {"type": "ping", "t": 1234.5}                      answered with pong (page ↔ client)
 
     client → page
       {"type": "hello", "robot", "user", "role", "may_drive", "map": MAP | null}
-      {"type": "map", "url": "/map.png", "resolution", "origin_x", "origin_y",
+      {"type": "map", "url": "map.png", "resolution", "origin_x", "origin_y",
        "width", "height", "version"}                     when the map has arrived, and
                                                          again whenever it changed (SLAM)
       {"type": "pose", "x", "y", "yaw", "v", "w", "state", "detail", "goal", "t",
@@ -36,6 +38,10 @@ Websocket protocol (JSON text messages unless stated)::
       {"type": "chat", "id", "text", "ok", "final", "code"}   replies, to the page that asked
       {"type": "ack", "what": "stop" | "arm" | ..., "ok", "reason", "code"}
       {"type": "pong", "t"}
+      {"type": "roster", "users": [{"name", "role", "driving", "you"}, ...]}   on change
+      {"type": "msg", "seq", "from", "kind": "user" | "robot", "text"}   the conference's
+                                                         messages (the last 50 on opening)
+      {"type": "said", "id", "ok", "reason", "code"}     the answer to this page's say
       binary: video frame = 4-byte big-endian header length, UTF-8 JSON header
               {"camera", "frame_id", "capture_time"}, then the JPEG bytes as the robot
               sent them (never decoded or re-encoded here)
@@ -82,6 +88,7 @@ from telebot.reasons import Reason
 from telebot.rights import Right, may
 from telebot.services.client import ConnectionEvent, RobotClient
 from telebot.services.mapxfer import MapDownload
+from telebot.services.proto.conference import Message, Roster, say_text
 from telebot.services.proto.plan import Place, PlanUpdate
 from telebot.services.proto.safety import STOP_HOWS, SafetyAck
 from telebot.services.proto.status import GoalUpdate, PoseUpdate
@@ -150,6 +157,7 @@ class WebUI:
         #: Unsubscribes from the client's video feed (set while a page is open).
         self._video: Callable[[], None] | None = None
         self._closing = False
+        self._last_roster: dict[str, Any] | None = None
         #: The newest connection state as the pages get it.
         self.connection: dict[str, Any] = {
             "type": "connection",
@@ -186,7 +194,25 @@ class WebUI:
             server = site._server
             sockets = getattr(server, "sockets", None) or []
             self.port = int(sockets[0].getsockname()[1])
+        self.follow()
+        log.info("web UI for %s at %s", self.client.robot, self.url)
+
+    async def handle(self, request: web.Request, path: str) -> web.StreamResponse:
+        """Serve ``path`` of the page (``""``, ``map.png``, ``ws``) for a server that hosts
+        several pages under prefixes (the fleet page's ``/robot/NAME/``: the page's URLs
+        are relative); anything else is a 404."""
+        handlers = {"": self._index, "map.png": self._map_png, "ws": self._websocket}
+        handler = handlers.get(path)
+        if handler is None:
+            return web.Response(status=404, text=f"no such page: {path}")
+        return await handler(request)
+
+    def follow(self) -> None:
+        """Start following the robot's streams (:meth:`start` does; a host that serves
+        the page itself through :meth:`handle` calls it instead)."""
         self.client.on_connection.append(self._on_connection)
+        self.client.conference.on_message.append(self._on_conference_message)
+        self.client.conference.on_roster.append(self._on_roster)
         self._map_fetch = self._spawn(self._fetch_map())
         pumps = (
             self._pump_pose,
@@ -198,7 +224,6 @@ class WebUI:
         for pump in pumps:
             self._spawn(pump())
         self._spawn(self._pump_link())
-        log.info("web UI for %s at %s", self.client.robot, self.url)
 
     async def close(self) -> None:
         """Close the pages and the server, end every task; idempotent."""
@@ -207,6 +232,10 @@ class WebUI:
         self._closing = True
         with contextlib.suppress(ValueError):
             self.client.on_connection.remove(self._on_connection)
+        with contextlib.suppress(ValueError):
+            self.client.conference.on_message.remove(self._on_conference_message)
+        with contextlib.suppress(ValueError):
+            self.client.conference.on_roster.remove(self._on_roster)
         if self._video is not None:
             self._video()
             self._video = None
@@ -265,7 +294,7 @@ class WebUI:
             return None
         return {
             "type": "map",
-            "url": "/map.png",
+            "url": "map.png",  # relative: the page may live under a prefix (fleet page)
             "resolution": self.map.resolution,
             "origin_x": self.map.origin_x,
             "origin_y": self.map.origin_y,
@@ -321,6 +350,51 @@ class WebUI:
         if client.places:
             await page.ws.send_json(self._places_message(client.places))
         await page.ws.send_json(self.connection)
+        if (roster := client.conference.roster) is not None:
+            await page.ws.send_json(self._roster_message(roster))
+        for message in client.conference.messages[-50:]:  # what was said before it opened
+            await page.ws.send_json(self._conference_message(message))
+
+    @staticmethod
+    def _roster_message(roster: Roster) -> dict[str, Any]:
+        return {"type": "roster", "users": [asdict(member) for member in roster.users]}
+
+    @staticmethod
+    def _conference_message(message: Message) -> dict[str, Any]:
+        return {
+            "type": "msg",
+            "seq": message.seq,
+            "from": message.sender,
+            "kind": message.kind,
+            "text": message.text,
+        }
+
+    def _on_conference_message(self, message: Message) -> None:
+        self._broadcast(self._conference_message(message))
+
+    def _on_roster(self, roster: Roster) -> None:
+        message = self._roster_message(roster)
+        if message != self._last_roster:  # pushed every second: tell the pages changes only
+            self._last_roster = message
+            self._broadcast(message)
+
+    async def _say(self, page: _Page, request_id: Any, text: str) -> None:
+        try:
+            said = await self.client.say(text)
+        except (TimeoutError, TelebotError) as exc:
+            reason = "no answer" if isinstance(exc, TimeoutError) else str(exc)
+            self._send(page, {"type": "said", "id": request_id, "ok": False, "reason": reason})
+            return
+        self._send(
+            page,
+            {
+                "type": "said",
+                "id": request_id,
+                "ok": said.ok,
+                "reason": said.text,
+                "code": said.reason,
+            },
+        )
 
     def _on_connection(self, event: ConnectionEvent) -> None:
         self.connection = {
@@ -347,7 +421,13 @@ class WebUI:
         elif kind == "goal":
             self._on_goal(page, msg)
         elif kind == "chat":
-            self._spawn(self._chat(page, msg.get("id"), str(msg.get("text", ""))))
+            text = str(msg.get("text", ""))
+            if (said := say_text(text)) is not None:  # "say …": to everyone in the call
+                self._spawn(self._say(page, msg.get("id"), said))
+            else:
+                self._spawn(self._chat(page, msg.get("id"), text))
+        elif kind == "say":
+            self._spawn(self._say(page, msg.get("id"), str(msg.get("text", ""))))
         elif kind == "camera":
             name = msg.get("name")
             if name in ("navcam", "usercam"):

@@ -19,13 +19,17 @@
     // Measurements for tests and benchmarks (wall-clock ms).
     stats: { keyTimes: [], poseDraw: [], frameTimes: [] },
   };
+  ui.handlers = {};
   window.telebotUI = ui;
 
   // ------------------------------------------------------------------ websocket
   let ws = null;
   let chatId = 0;
   function connect() {
-    ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws");
+    // Relative to the page: it may live under a prefix (the fleet page's /robot/NAME/).
+    const url = new URL("ws", location.href);
+    url.protocol = location.protocol === "https:" ? "wss:" : "ws:";
+    ws = new WebSocket(url.href);
     ws.binaryType = "arraybuffer";
     ws.onopen = () => { ui.state.connected = true; showConn(); };
     ws.onclose = () => { ui.state.connected = false; showConn(); setTimeout(connect, 1000); };
@@ -103,7 +107,12 @@
         if (!m.ok) addChat(m.what + " refused: " + m.reason, "fail");
         break;
       case "error": addChat("error: " + m.text, "fail"); break;
-      default: break;
+      default: {
+        // Messages other page scripts handle (conference.js): ui.handlers[type] = fn.
+        const handler = ui.handlers[m.type];
+        if (handler) handler(m);
+        break;
+      }
     }
   }
 
@@ -415,6 +424,7 @@
     while (log.childNodes.length > 500) log.removeChild(log.firstChild);
     log.scrollTop = log.scrollHeight;
   }
+  ui.addChat = addChat;
   $("chat-form").addEventListener("submit", (ev) => {
     ev.preventDefault();
     const input = $("chat-input");

@@ -1,0 +1,343 @@
+"""The conference service: many users, one robot (the paper's robot teleconferencing).
+
+Every call to a robot opens the ``conference`` channel (protocol:
+:mod:`telebot.services.proto.conference`, ``docs/protocol.md`` §20). On the robot one
+:class:`Conference` per :class:`~telebot.services.robot.RobotServer` (its *room*) knows
+every call: it pushes the roster (who is watching, who drives) to each call when it
+changes and once a second, relays each user's ``say`` to every call with the sender's name,
+and announces what everyone should know (who joined, left, holds the drive, stopped the
+robot). Replies to a chat command still go only to its sender (the ``chat`` channel).
+
+On the user's side :class:`ConferenceState` (``client.conference``) outlives reconnections:
+the latest roster, the messages heard, listeners, and :meth:`ConferenceState.say`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import weakref
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from telebot.channels.channel import ReceivedDatagram
+from telebot.channels.transports.base import Lane
+from telebot.errors import CallEnded, ProtocolError, TelebotError
+from telebot.services.proto.conference import (
+    CONFERENCE,
+    HISTORY,
+    Conference,
+    Message,
+    Roster,
+    Said,
+    Say,
+    Since,
+    decode_conference_reply,
+    decode_conference_request,
+)
+
+if TYPE_CHECKING:
+    from telebot.channels.call import Call
+    from telebot.services.client import RobotClient
+    from telebot.services.robot import RobotServer
+
+__all__ = [
+    "ROSTER_EVERY",
+    "ConferenceReceiver",
+    "ConferenceState",
+    "RobotConference",
+    "announce",
+    "room_of",
+]
+
+log = logging.getLogger("telebot.conference")
+
+#: The roster is pushed to every call this often (s), besides on each change.
+ROSTER_EVERY = 1.0
+#: A ``say`` or ``since`` nobody answered is sent again after this long (s).
+RESEND_AFTER = 0.3
+#: Messages a user's client keeps.
+KEEP = 500
+
+
+class _Room:
+    """One robot's conference: the sans-IO :class:`Conference` and each call's channel."""
+
+    def __init__(self, server: RobotServer, robot: str) -> None:
+        self.server = server
+        self.conference = Conference(robot)
+        self.calls: dict[str, RobotConference] = {}
+        self._tick_at = -math.inf
+        self._next_roster = -math.inf
+        self._holder: str | None = None
+        self._armed: bool | None = None
+
+    def holder(self) -> str | None:
+        return self.server.safety_status().holder if self.server.safety is not None else None
+
+    def broadcast(self, message: Message) -> None:
+        text = message.encode()
+        for service in list(self.calls.values()):
+            service.send(text)
+
+    def push_roster(self) -> None:
+        holder = self.holder()
+        for call_id, service in list(self.calls.items()):
+            service.send(self.conference.roster(call_id, holder).encode())
+
+    def tick(self, now: float) -> None:
+        """Once per robot cycle (every call's tick has the same ``now``): announce drive
+        and stop changes, and push the roster when it changed or is due."""
+        if now == self._tick_at:
+            return
+        self._tick_at = now
+        changed = False
+        if self.server.safety is not None:
+            status = self.server.safety_status()
+            if status.holder != self._holder:
+                self._holder = status.holder
+                text = f"{status.holder} holds the drive" if status.holder else "the drive is free"
+                self.broadcast(self.conference.announce(text))
+                changed = True
+            if status.armed != self._armed:
+                was, self._armed = self._armed, status.armed
+                if was is not None:  # not at start-up: only real changes are news
+                    text = "armed" if status.armed else f"stopped: {status.reason or 'stopped'}"
+                    self.broadcast(self.conference.announce(text))
+        if changed or now >= self._next_roster:
+            self._next_roster = now + ROSTER_EVERY
+            self.push_roster()
+
+
+_ROOMS: weakref.WeakKeyDictionary[RobotServer, _Room] = weakref.WeakKeyDictionary()
+
+
+def room_of(server: RobotServer, robot: str = "robot") -> _Room:
+    """The conference room of ``server`` (made on first use; ``robot``: its name)."""
+    room = _ROOMS.get(server)
+    if room is None:
+        room = _ROOMS[server] = _Room(server, robot)
+    return room
+
+
+def announce(server: RobotServer, text: str) -> None:
+    """Tell every user in ``server``'s calls ``text``, from the robot (robot-side code)."""
+    room = room_of(server)
+    room.broadcast(room.conference.announce(text))
+
+
+class RobotConference:
+    """The robot's ``conference`` service on one call (registered as ``conference``)."""
+
+    def __init__(self, server: RobotServer, call: Call) -> None:
+        self.server = server
+        self.call = call
+        endpoint = getattr(call, "_endpoint", None)
+        identity = getattr(endpoint, "identity", None)
+        self.room = room_of(server, getattr(identity, "name", "robot"))
+        self.channel = call.channel(CONFERENCE, lane=Lane.CONTROL)
+        self.channel.set_callback(self._on_datagram)
+        self.rejected = 0
+        self._since_at = -math.inf
+        role = str(call.role) if call.role is not None else "observer"
+        self.room.calls[call.id] = self
+        self.room.broadcast(self.room.conference.join(call.id, call.peer, role))
+        self.room.push_roster()
+
+    def _on_datagram(self, datagram: ReceivedDatagram) -> None:
+        try:
+            request = decode_conference_request(datagram.payload)
+        except ProtocolError as exc:
+            self.rejected += 1
+            self.channel.stats.rejected += 1
+            log.debug("call %s: conference datagram dropped: %s", self.call.id, exc)
+            return
+        conference = self.room.conference
+        if isinstance(request, Since):
+            # One small request makes up to HISTORY answers: at most one per RESEND_AFTER.
+            now = self.server.now()
+            if now - self._since_at < RESEND_AFTER * 0.8:
+                return
+            self._since_at = now
+            for message in conference.since(request.seq):
+                self.send(message.encode())
+            return
+        said, spoken = conference.say(self.call.id, request, self.server.now())
+        if spoken is not None:
+            self.server.emit({"event": "say", "peer": self.call.peer, "text": spoken.text})
+            self.room.broadcast(spoken)
+        self.send(said.encode())
+
+    def send(self, text: str) -> None:
+        """Send ``text`` on this call's channel (nothing once the call is over)."""
+        if not self.call.active:
+            return
+        try:
+            self.channel.send(text)
+        except TelebotError as exc:
+            log.debug("call %s: conference not sent: %s", self.call.id, exc)
+
+    def tick(self, now: float) -> None:
+        """Drive/stop announcements and the roster (once per robot cycle for all calls)."""
+        self.room.tick(now)
+
+    def close(self) -> None:
+        """The call ended: everyone else hears who left."""
+        self.channel.set_callback(None)
+        if self.room.calls.pop(self.call.id, None) is None:
+            return
+        left = self.room.conference.leave(self.call.id)
+        if left is not None:
+            self.room.broadcast(left)
+        self.room.push_roster()
+
+
+class ConferenceState:
+    """What a user's client knows of the conference, across reconnections.
+
+    ``roster``: the latest :class:`Roster` (None before the first); ``messages``: the
+    last :data:`KEEP` messages heard (users' and the robot's), in the robot's order; listeners in ``on_message`` and
+    ``on_roster`` are called on the event loop with each new one.
+    """
+
+    def __init__(self, client: RobotClient) -> None:
+        self._client = client
+        self.roster: Roster | None = None
+        self.messages: list[Message] = []
+        self.on_message: list[Callable[[Message], None]] = []
+        self.on_roster: list[Callable[[Roster], None]] = []
+        self._floor: int | None = None  # every message up to this seq is seen
+        self._seen: set[int] = set()
+        self._top = 0
+        self._asked = -math.inf
+        self._said: dict[int, asyncio.Queue[Said]] = {}
+        self._ids = 0
+
+    # -- from the channel -------------------------------------------------------------
+
+    def deliver(self, payload: str | bytes, now: float) -> str | None:
+        """One datagram from the robot; returns a ``since`` request to send, if one is due."""
+        try:
+            message = decode_conference_reply(payload)
+        except ProtocolError:
+            self._client.rejected += 1
+            return None
+        if isinstance(message, Said):
+            waiter = self._said.get(message.id)
+            if waiter is not None:
+                waiter.put_nowait(message)
+            return None
+        if isinstance(message, Roster):
+            if self._floor is None or message.seq < self._floor:  # first, or robot restarted
+                self._floor = message.seq
+                self._seen.clear()
+            self._top = max(self._top, message.seq)
+            # What the robot no longer holds is gone: do not ask for it forever.
+            self._floor = max(self._floor, message.seq - HISTORY)
+            self.roster = message
+            self._advance()
+            for on_roster in list(self.on_roster):
+                _call(on_roster, message)
+            return self._missing(now)
+        if self._floor is None:
+            self._floor = message.seq - 1
+        if message.seq <= self._floor or message.seq in self._seen:
+            return None
+        self._seen.add(message.seq)
+        self._top = max(self._top, message.seq)
+        self._advance()
+        self.messages.append(message)
+        if len(self.messages) > 1 and self.messages[-2].seq > message.seq:
+            self.messages.sort(key=lambda m: m.seq)  # one asked for again: in its place
+        del self.messages[:-KEEP]
+        for listener in list(self.on_message):
+            _call(listener, message)
+        return self._missing(now)
+
+    def _advance(self) -> None:
+        assert self._floor is not None
+        while self._floor + 1 in self._seen:
+            self._floor += 1
+            self._seen.discard(self._floor)
+        self._seen = {seq for seq in self._seen if seq > self._floor}
+
+    def _missing(self, now: float) -> str | None:
+        if self._floor is None or self._floor >= self._top or now - self._asked < RESEND_AFTER:
+            return None
+        self._asked = now
+        return Since(self._floor).encode()
+
+    def due(self, now: float) -> str | None:
+        """A ``since`` to send again while messages are missing (from the service's tick)."""
+        return self._missing(now)
+
+    # -- the user's API ---------------------------------------------------------------
+
+    async def say(self, text: str, *, timeout: float = 5.0) -> Said:
+        """Say ``text`` to everyone in the robot's calls; the robot's answer (``ok``, code).
+
+        Repeated until answered; raises TimeoutError after ``timeout`` s and
+        :class:`~telebot.errors.CallEnded` when the call ends first.
+        """
+        client = self._client
+        self._ids = (self._ids + 1) % 2**32
+        say_id = self._ids
+        answers: asyncio.Queue[Said] = asyncio.Queue()
+        self._said[say_id] = answers
+        payload = Say(say_id, text).encode()
+        try:
+            async with asyncio.timeout(timeout):
+                await client._core()  # waits out a reconnection
+                receiver = client.services.get(CONFERENCE)
+                if not isinstance(receiver, ConferenceReceiver):
+                    raise TelebotError("this client has no conference service registered")
+                while True:
+                    receiver.send(payload)
+                    try:
+                        return await client._next(answers, RESEND_AFTER, receiver.call)
+                    except TimeoutError:
+                        continue
+        finally:
+            self._said.pop(say_id, None)
+
+
+def _call(listener: Callable[[Any], None], value: Any) -> None:
+    try:
+        listener(value)
+    except Exception:
+        log.exception("conference listener failed")
+
+
+class ConferenceReceiver:
+    """The user's ``conference`` service on one call: feeds ``client.conference``."""
+
+    def __init__(self, client: RobotClient, call: Call) -> None:
+        self.call = call
+        self.state: ConferenceState = client.conference
+        self._loop = asyncio.get_running_loop()
+        self.channel = call.channel(CONFERENCE, lane=Lane.CONTROL)
+        self.channel.set_callback(self._on_datagram)
+
+    def _on_datagram(self, datagram: ReceivedDatagram) -> None:
+        request = self.state.deliver(datagram.payload, self._loop.time())
+        if request is not None:
+            self.send(request)
+
+    def send(self, text: str) -> None:
+        """Send on this call (raises CallEnded once it is over)."""
+        if not self.call.active:
+            raise CallEnded("the call ended", self.call.end.kind if self.call.end else "")
+        self.channel.send(text)
+
+    def tick(self, now: float) -> None:
+        """Ask again for missing messages."""
+        request = self.state.due(now)
+        if request is not None and self.call.active:
+            with contextlib.suppress(TelebotError):
+                self.channel.send(request)
+
+    def close(self) -> None:
+        """Deliver nothing more from this call."""
+        self.channel.set_callback(None)
