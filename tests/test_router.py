@@ -26,7 +26,7 @@ from rig import REAL_TIMEOUT, SLACK, Process
 from router_rig import RouterRig
 from telebot.channels.transports.zenoh import ZenohTransport
 from telebot.config import ZenohSettings
-from telebot.errors import CallEnded, TransportError
+from telebot.errors import CallEnded, CallTimeout, TransportError
 from telebot.identity import ContactBook, Identity, KnownRobots, Role
 from telebot.router import acl, certs
 from telebot.services.client import ConnectionEvent, connect
@@ -258,6 +258,22 @@ def test_a_revoked_name_leaves_the_acl(tmp_path: Path) -> None:
     assert ["user:b"] in names and ["robot:a"] not in names
     certs.issue_client(root, "robot", "a", force=True)  # a new certificate lets it back in
     assert certs.read_revoked(root) == set()
+
+
+async def test_a_certificate_outside_the_acl_gets_a_reason_not_a_hang(fleet: Fleet) -> None:
+    # Issued after the router started, so not in its ACL: the same as a revoked one.
+    late = fleet.router.issue("user", "mallory")
+    home = fleet.base / "mallory"
+    Identity.generate("mallory").save(home)
+    known = KnownRobots.load(home)
+    known.add("guiabot", Identity.load(fleet.base / "guiabot").public_key)
+    known.save()
+    config = fleet.router.app_config(late)
+    with pytest.raises(CallTimeout) as refused:
+        async with connect("guiabot", home=home, config=config, timeout=2):
+            pass
+    message = str(refused.value)
+    assert "\n" not in message and "access control" in message and "user:mallory" in message
 
 
 async def test_router_restart_mid_call_the_call_comes_back_and_the_robot_stayed_latched(

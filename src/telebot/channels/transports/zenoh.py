@@ -242,6 +242,19 @@ def tls_options(settings: ZenohSettings) -> dict[str, Any]:
     }
 
 
+def _cert_name(path: Path) -> str:
+    """The common name of the certificate in ``path`` (as the router's ACL sees it)."""
+    from cryptography import x509
+    from cryptography.x509.oid import NameOID
+
+    try:
+        cert = x509.load_pem_x509_certificate(path.read_bytes())
+        names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    except (OSError, ValueError):
+        return f"the certificate {path}"
+    return f"certificate {names[0].value!s}" if names else f"the certificate {path}"
+
+
 def keep_freed_memory() -> bool:
     """Make glibc reuse freed heap instead of handing it back to the kernel at once.
 
@@ -631,6 +644,12 @@ class ZenohTransport(Transport):
         # Strong references to everything declared: tokens and publishers die with
         # their Python object, and close() must reach every subscriber.
         self._entities: dict[int, _Entity] = {}
+        if self.settings.mode == "client" and self.settings.tls.cert is not None:
+            # A router's ACL drops what it does not allow without a word to the sender.
+            self.unanswered_hint = (
+                f"or the router's access control does not let {_cert_name(self.settings.tls.cert)} "
+                "reach it (revoked, or not issued by telebot-router cert)"
+            )
 
     @classmethod
     def from_settings(cls, settings: TransportSettings) -> Self:
