@@ -20,11 +20,23 @@ __all__ = ["RouterRig"]
 class RouterRig:
     """A router directory under ``base`` (CA, router certificate) and its process."""
 
-    def __init__(self, base: Path) -> None:
+    def __init__(self, base: Path, *, create: bool = True) -> None:
         self.dir = base / "router"
-        certs.init_ca(self.dir)
+        if create:
+            certs.init_ca(self.dir)
         self.port = 0
         self.process: Process | None = None
+
+    @classmethod
+    def existing(cls, base: Path, endpoint: str) -> RouterRig:
+        """The rig of a router directory made by another process, reached at ``endpoint``."""
+        rig = cls(base, create=False)
+        rig.port = int(endpoint.rsplit(":", 1)[1])
+        return rig
+
+    def client(self, kind: certs.Kind, name: str) -> certs.ClientCert:
+        """The certificate already issued to ``name``."""
+        return certs.ClientCert(kind, name, certs.client_dir(self.dir, kind, name))
 
     @property
     def endpoint(self) -> str:
