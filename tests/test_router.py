@@ -25,7 +25,7 @@ from conftest import wait_until
 from rig import REAL_TIMEOUT, SLACK, Process
 from router_rig import RouterRig
 from telebot.channels.transports.zenoh import ZenohTransport
-from telebot.config import ZenohSettings
+from telebot.config import AppConfig, RobotConfig, ZenohSettings, load_toml
 from telebot.errors import CallEnded, CallTimeout, TransportError
 from telebot.identity import ContactBook, Identity, KnownRobots, Role
 from telebot.router import acl, certs
@@ -258,6 +258,16 @@ def test_a_revoked_name_leaves_the_acl(tmp_path: Path) -> None:
     assert ["user:b"] in names and ["robot:a"] not in names
     certs.issue_client(root, "robot", "a", force=True)  # a new certificate lets it back in
     assert certs.read_revoked(root) == set()
+
+
+def test_the_example_configs_are_valid() -> None:
+    root = Path(__file__).resolve().parents[1] / "configs" / "router"
+    robot = load_toml(root / "robot.toml", RobotConfig)
+    user = load_toml(root / "user.toml", AppConfig)
+    for config in (robot, user):
+        zenoh_settings = config.transport.zenoh
+        assert zenoh_settings.mode == "client" and zenoh_settings.tls.enabled
+        assert all(e.startswith("tls/") for e in zenoh_settings.connect)
 
 
 async def test_a_certificate_outside_the_acl_gets_a_reason_not_a_hang(fleet: Fleet) -> None:
