@@ -20,13 +20,16 @@ from typing import Any
 
 import pytest
 import zenoh
+from cryptography import x509
+from cryptography.x509.oid import NameOID
 
 from conftest import wait_until
 from rig import REAL_TIMEOUT, SLACK, Process
 from router_rig import RouterRig
-from telebot.channels.transports.zenoh import ZenohTransport
+from telebot.apps import router_cli
+from telebot.channels.transports.zenoh import ZenohTransport, build_zenoh_config
 from telebot.config import AppConfig, RobotConfig, ZenohSettings, load_toml
-from telebot.errors import CallEnded, CallTimeout, TransportError
+from telebot.errors import CallEnded, CallTimeout, ConfigError, TransportError
 from telebot.identity import ContactBook, Identity, KnownRobots, Role
 from telebot.router import acl, certs
 from telebot.services.client import ConnectionEvent, connect
@@ -101,12 +104,8 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet]:
 
 
 def _raw_session(fleet: Fleet, client: certs.ClientCert) -> zenoh.Session:
-    config = zenoh.Config()
-    settings = fleet.router.zenoh(client)
-    from telebot.channels.transports.zenoh import build_zenoh_config
-
-    config = build_zenoh_config(settings)
-    return zenoh.open(config)
+    """A bare zenoh session through the router with ``client``'s certificate."""
+    return zenoh.open(build_zenoh_config(fleet.router.zenoh(client)))
 
 
 async def test_presence_of_every_robot_comes_through_the_router(fleet: Fleet) -> None:
@@ -268,6 +267,50 @@ def test_the_example_configs_are_valid() -> None:
         zenoh_settings = config.transport.zenoh
         assert zenoh_settings.mode == "client" and zenoh_settings.tls.enabled
         assert all(e.startswith("tls/") for e in zenoh_settings.connect)
+
+
+def test_certificates_name_their_holder_and_the_router_its_addresses(tmp_path: Path) -> None:
+    root = tmp_path / "r"
+    certs.init_ca(root, ["10.1.2.3", "router.example.org"])
+    router = x509.load_pem_x509_certificate((root / "router.pem").read_bytes())
+    sans = router.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert {str(ip) for ip in sans.get_values_for_type(x509.IPAddress)} >= {"127.0.0.1", "10.1.2.3"}
+    assert set(sans.get_values_for_type(x509.DNSName)) == {"localhost", "router.example.org"}
+    robot = certs.issue_client(root, "robot", "guiabot")
+    cert = x509.load_pem_x509_certificate(robot.cert.read_bytes())
+    assert cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value == "robot:guiabot"
+    certs.check_signed_by(robot.cert, root / "ca.pem")
+    with pytest.raises(ConfigError, match="already has a CA"):
+        certs.init_ca(root)
+    # An existing certificate is taken only from this CA and with the right common name.
+    other = tmp_path / "o"
+    certs.init_ca(other)
+    stranger = certs.issue_client(other, "robot", "rover")
+    with pytest.raises(ConfigError, match="not issued by the CA"):
+        certs.import_client(root, "robot", "rover", stranger.cert)
+    with pytest.raises(ConfigError, match="expected 'user:guiabot'"):
+        certs.import_client(root, "user", "guiabot", robot.cert)
+
+
+def test_half_a_tls_setting_is_named_before_any_connection(tmp_path: Path) -> None:
+    settings = ZenohSettings.model_validate(
+        {"mode": "client", "connect": ["tls/127.0.0.1:1"], "tls": {"ca": str(tmp_path)}}
+    )
+    with pytest.raises(TransportError, match=r"transport\.zenoh\.tls\.cert is not set"):
+        build_zenoh_config(settings)
+
+
+def test_router_commands_fail_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert router_cli.main(["config", str(tmp_path / "none")]) == 2
+    assert router_cli.main(["cert", str(tmp_path / "none"), "--user", "bob"]) == 2
+    root = tmp_path / "r"
+    assert router_cli.main(["init", str(root)]) == 0
+    assert router_cli.main(["config", str(root), "--listen", "tcp/127.0.0.1:1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 3 and all(line.startswith("telebot-router: error: ") for line in err)
+    assert "init" in err[0] and "ca.pem" in err[1] and "not a tls/ endpoint" in err[2]
 
 
 async def test_a_certificate_outside_the_acl_gets_a_reason_not_a_hang(fleet: Fleet) -> None:

@@ -231,7 +231,8 @@ def tls_options(settings: ZenohSettings) -> dict[str, Any]:
             raise TransportError(
                 f"transport.zenoh.tls.{name} is not set (ca, cert and key go together)"
             )
-        if not path.is_file():
+    for name, path in files.items():
+        if path is not None and not path.is_file():
             raise TransportError(f"transport.zenoh.tls.{name}: no such file {path}")
     assert tls.ca is not None and tls.cert is not None and tls.key is not None
     return {
