@@ -36,8 +36,9 @@ from telebot.services.client import ConnectionEvent, connect
 
 pytestmark = pytest.mark.zenoh
 
-ROBOTS = ("guiabot", "rover")
+ROBOTS = ("guiabot", "rover", "scout")
 USER = "alice"
+OTHER_USER = "bob"
 
 
 @dataclass
@@ -49,6 +50,7 @@ class Fleet:
     user_home: Path
     user: certs.ClientCert
     admin: certs.ClientCert
+    other_user: certs.ClientCert
     robot_certs: dict[str, certs.ClientCert]
     daemons: dict[str, Process]
 
@@ -91,12 +93,13 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet]:
     known.save()
     user = router.issue("user", USER)
     admin = router.issue("admin", "ops")
+    other_user = router.issue("user", OTHER_USER)
     router.start()
     daemons: dict[str, Process] = {}
     try:
         for name in ROBOTS:
             daemons[name] = _start_robot(base, router, name, robot_certs[name])
-        yield Fleet(base, router, user_home, user, admin, robot_certs, daemons)
+        yield Fleet(base, router, user_home, user, admin, other_user, robot_certs, daemons)
     finally:
         for process in daemons.values():
             process.stop()
@@ -150,12 +153,19 @@ async def test_the_acl_keeps_a_robot_off_another_robots_keys(fleet: Fleet) -> No
     admin = await asyncio.to_thread(_raw_session, fleet, fleet.admin)
     rover = await asyncio.to_thread(_raw_session, fleet, fleet.robot_certs["rover"])
     user = await asyncio.to_thread(_raw_session, fleet, fleet.user)
+    bob = await asyncio.to_thread(_raw_session, fleet, fleet.other_user)
+    bob_got: list[str] = []
     try:
         admin.declare_subscriber("telebot/**", lambda s: got.append(s.payload.to_string()))
+        # bob may not read alice's keys: his subscription is dropped by the router.
+        bob.declare_subscriber(f"telebot/user/{USER}/**", lambda s: bob_got.append(""))
+        bob_token = bob.liveliness().declare_token(f"telebot/presence/user/{OTHER_USER}/0")
         admin.liveliness().declare_subscriber(
-            "telebot/presence/robot/*/*", lambda s: tokens.append(str(s.key_expr)), history=True
+            "telebot/presence/*/*/*", lambda s: tokens.append(str(s.key_expr)), history=True
         )
-        await wait_until(lambda: any("/guiabot/" in t for t in tokens))  # the real guiabot
+        # The real guiabot, and bob's token, declared after his subscription (same link).
+        await wait_until(lambda: any("/guiabot/" in t for t in tokens))
+        await wait_until(lambda: any(f"/{OTHER_USER}/" in t for t in tokens))
         # rover sends on guiabot's inbox, claims guiabot's presence and subscribes to its
         # inbox, then does what it may (a put to a user, a token of its own): once those
         # came through, the router had handled the others, on the same link, before.
@@ -170,10 +180,12 @@ async def test_the_acl_keeps_a_robot_off_another_robots_keys(fleet: Fleet) -> No
         assert "from-rover" not in got
         assert not any(t.endswith("/FAKE") for t in tokens)
         assert not rover_got  # nor may rover read guiabot's inbox
+        assert not bob_got  # "rover-allowed" went to alice's inbox, not to bob
         fake.undeclare()
         probe.undeclare()
+        bob_token.undeclare()
     finally:
-        for session in (admin, rover, user):
+        for session in (admin, rover, user, bob):
             await asyncio.to_thread(session.close)
 
 
