@@ -432,14 +432,16 @@ async def main() -> None:
             router.stop()
         router_per, robot_per, observer_per = results["cpu"]
         cores = os.cpu_count() or 1
+        per_core = 1 / max(router_per, 1e-9)
+        per_gb = 1024 / max(mb_per_robot, 1e-9)
+        router_limit = "CPU" if per_core < per_gb else "memory"
         print(
-            f"runs out first: CPU of the simulated robots and their calls "
-            f"({robot_per * 100:.1f} % of a core per streaming robot + "
-            f"{observer_per * 100:.1f} % per observer call: about "
-            f"{cores / (robot_per + observer_per + router_per):.0f} streaming robots fill "
-            f"{cores} cores), long before the router (CPU {router_per * 100:.2f} % per streamed "
-            f"robot: about {1 / max(router_per, 1e-9):.0f} per core; memory "
-            f"{mb_per_robot:.2f} MB per robot)",
+            f"runs out first here: CPU of the simulated robots and their observers "
+            f"({robot_per * 100:.1f} % of a core per streaming robot + {observer_per * 100:.1f} % "
+            f"per observer call: about {cores / (robot_per + observer_per + router_per):.0f} "
+            f"streaming robots fill this machine's {cores} cores with the router); the router "
+            f"itself runs out of {router_limit} first: about {per_core:.0f} streaming robots per "
+            f"core, {per_gb:.0f} robots per GB",
             flush=True,
         )
         poses = sum(int(s.get("poses", 0)) for s in stats if isinstance(s.get("poses", 0), int))
