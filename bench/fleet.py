@@ -4,7 +4,9 @@ Everything on this machine, over mutual TLS on loopback, with the ACL on:
 
 - one ``telebot-router run`` process (zenoh-python router mode), certificates made by
   ``telebot.router.certs`` for every robot and user;
-- N lightweight simulated robots, :data:`PER_PROCESS` per child process (each robot has its own
+- N lightweight simulated robots: robot 0 (the one stopped in B) alone in a child process,
+  as a real robot has its own computer, the others :data:`PER_PROCESS` per child process
+  (a hundred Python processes would not fit on a 2-core machine; each robot has its own
   zenoh session, its own certificate and its own ``RobotServer`` with the ``core`` services
   only: the small map, a 10 Hz control loop, 32 laser beams, no camera service at all), added
   in steps so that N = 10, 50, 100 are measured in one run;
@@ -15,21 +17,21 @@ Everything on this machine, over mutual TLS on loopback, with the ACL on:
 
 Measured:
 
-A. Presence listing time at N = 10, 50, 100: a new user process-side session (TLS handshake
-   included) opened, watching ``{ns}/presence/robot/*/*`` with history, until all N robots
-   are seen (:data:`LISTINGS` runs, median and worst). Raw zenoh: a raw zenoh-python session
-   with the same certificate and a liveliness subscriber with history, through the same
-   router, same run.
+A. Presence listing time at N = 10, 50, 100: from opening a new session of the driver's
+   (TLS handshake included), watching ``{ns}/presence/robot/*/*`` with history, until all
+   N robots are seen (:data:`LISTINGS` runs, median and worst). Raw zenoh: a bare
+   zenoh-python session (an ``admin:`` certificate, which the ACL lets do anything) and a
+   liveliness subscriber with history, through the same router, same run.
 B. Stop → acknowledgement at N = 50 while the 50 robots stream to their observers: p50/p99 of
    ``await client.stop()`` (the request on the CONTROL lane, the robot's ack back), robot 0
    reached through the router. Raw zenoh: a put/subscribe ping-pong through the same router
-   with the CONTROL lane's QoS, between two raw sessions in this process.
+   with the CONTROL lane's QoS, between two bare sessions in this process (``admin:``).
 C. Router cost: its resident memory (``/proc/PID/status`` VmRSS) with no client, and at each
    N (idle robots, then 50 streamed calls); CPU (user + system time from ``/proc/PID/stat``)
    over the stop series, as a share of one core, per robot and per streamed call. Also the
    CPU share of the robot and observer processes, which is what runs out first here.
 
-Run: ``python bench/fleet.py`` (a few minutes). Targets: listing of 100 robots <= 1 s, stop
+Run: ``python bench/fleet.py`` (about a minute). Targets: listing of 100 robots <= 1 s, stop
 p99 <= 20 ms at N = 50, router memory <= 2 MB per robot. The last line is
 ``RESULT list100_ms=... stop_p99_ms_n50=... router_mb_per_robot=...`` (memory per robot:
 router RSS at N = 100 with 50 streamed calls minus its RSS with no client, over 100).
@@ -358,7 +360,9 @@ async def main() -> None:
             started = 0
             for n in STEPS:
                 while started < n:
-                    count = min(PER_PROCESS, n - started)
+                    # Robot 0, the one stopped in B, has a process of its own, as a real
+                    # robot has its own computer; the others share processes.
+                    count = 1 if started == 0 else min(PER_PROCESS, n - started)
                     child = Child(
                         __file__, "robots", tmp, router.endpoint, str(started), str(count)
                     )
