@@ -9,6 +9,7 @@ the router forwards. The router-restart test runs last: it kills the shared rout
 from __future__ import annotations
 
 import asyncio
+import datetime
 import json
 import subprocess
 import sys
@@ -21,6 +22,8 @@ from typing import Any
 import pytest
 import zenoh
 from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import rsa
 from cryptography.x509.oid import NameOID
 
 from conftest import wait_until
@@ -302,6 +305,36 @@ def test_certificates_name_their_holder_and_the_router_its_addresses(tmp_path: P
         certs.import_client(root, "robot", "rover", stranger.cert)
     with pytest.raises(ConfigError, match="expected 'user:guiabot'"):
         certs.import_client(root, "user", "guiabot", robot.cert)
+
+
+def test_an_existing_rsa_ca_issues_the_certificates(tmp_path: Path) -> None:
+    key = rsa.generate_private_key(public_exponent=65537, key_size=2048)
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "our CA")])
+    now = datetime.datetime.now(datetime.UTC)
+    ca = (
+        x509.CertificateBuilder()
+        .subject_name(name)
+        .issuer_name(name)
+        .public_key(key.public_key())
+        .serial_number(1)
+        .not_valid_before(now)
+        .not_valid_after(now + datetime.timedelta(days=1))
+        .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
+        .sign(key, hashes.SHA256())
+    )
+    (tmp_path / "ca.pem").write_bytes(ca.public_bytes(serialization.Encoding.PEM))
+    (tmp_path / "ca.key").write_bytes(
+        key.private_bytes(
+            serialization.Encoding.PEM,
+            serialization.PrivateFormat.PKCS8,
+            serialization.NoEncryption(),
+        )
+    )
+    root = tmp_path / "r"
+    certs.init_ca(root, ca=tmp_path / "ca.pem", ca_key=tmp_path / "ca.key")
+    user = certs.issue_client(root, "user", "alice")
+    certs.check_signed_by(user.cert, tmp_path / "ca.pem")
+    certs.check_signed_by(root / "router.pem", tmp_path / "ca.pem")
 
 
 def test_half_a_tls_setting_is_named_before_any_connection(tmp_path: Path) -> None:

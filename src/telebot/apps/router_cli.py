@@ -177,7 +177,7 @@ def plan_of(args: argparse.Namespace) -> RouterPlan:
         raise ConfigError(str(exc)) from exc
 
 
-def _client_settings(client: certs.ClientCert, router: str) -> str:
+def _client_settings(client: certs.ClientCert, router: str, key: str | None = None) -> str:
     return "\n".join(
         [
             "[transport.zenoh]",
@@ -187,7 +187,7 @@ def _client_settings(client: certs.ClientCert, router: str) -> str:
             "[transport.zenoh.tls]",
             f"ca = {json.dumps(str(client.ca.resolve()))}",
             f"cert = {json.dumps(str(client.cert.resolve()))}",
-            f"key = {json.dumps(str(client.key.resolve()))}",
+            f"key = {json.dumps(key or str(client.key.resolve()))}",
         ]
     )
 
@@ -205,12 +205,14 @@ def _cmd_cert(args: argparse.Namespace) -> int:
     kind, name = _who(args)
     if args.import_cert is not None:
         client = certs.import_client(args.dir, kind, name, args.import_cert, force=args.force)
-        print(f"{client.common_name}: registered {client.cert}; use its own key file")
+        print(f"{client.common_name}: registered {client.cert}; its key stays with its owner")
+        key = "PATH/TO/ITS/KEY.pem"
     else:
         client = certs.issue_client(args.dir, kind, name, force=args.force)
         print(f"{client.common_name}: certificate in {client.directory}")
+        key = None
     print(f"# the {kind}'s config (TOML):")
-    print(_client_settings(client, args.router))
+    print(_client_settings(client, args.router, key))
     return EXIT_OK
 
 

@@ -25,7 +25,7 @@ from typing import Final, Literal
 from cryptography import x509
 from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives import hashes, serialization
-from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.hazmat.primitives.asymmetric import ec, rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from telebot.channels.proto.frames import validate_name
@@ -48,6 +48,8 @@ __all__ = [
 ]
 
 Kind = Literal["robot", "user", "admin"]
+#: A CA's key: made here (EC P-256) or brought along (EC or RSA).
+CAKey = ec.EllipticCurvePrivateKey | rsa.RSAPrivateKey
 KINDS: Final[tuple[Kind, ...]] = ("robot", "user", "admin")
 #: Ten years: a CA of one's own; revocation is by the ACL (``revoked.txt``).
 _VALIDITY = datetime.timedelta(days=3650)
@@ -111,7 +113,7 @@ def _new_key() -> ec.EllipticCurvePrivateKey:
     return ec.generate_private_key(ec.SECP256R1())
 
 
-def _write_key(path: Path, key: ec.EllipticCurvePrivateKey) -> None:
+def _write_key(path: Path, key: CAKey) -> None:
     data = key.private_bytes(
         serialization.Encoding.PEM,
         serialization.PrivateFormat.PKCS8,
@@ -135,15 +137,15 @@ def _load_cert(path: Path) -> x509.Certificate:
         raise ConfigError(f"{path} is not a PEM certificate: {exc}") from exc
 
 
-def _load_key(path: Path) -> ec.EllipticCurvePrivateKey:
+def _load_key(path: Path) -> CAKey:
     try:
         key = serialization.load_pem_private_key(path.read_bytes(), password=None)
     except FileNotFoundError as exc:
         raise ConfigError(f"key file {path} does not exist") from exc
     except (OSError, ValueError, TypeError) as exc:
         raise ConfigError(f"{path} is not an unencrypted PEM private key: {exc}") from exc
-    if not isinstance(key, ec.EllipticCurvePrivateKey):
-        raise ConfigError(f"{path}: the CA key must be an EC key")
+    if not isinstance(key, ec.EllipticCurvePrivateKey | rsa.RSAPrivateKey):
+        raise ConfigError(f"{path}: a CA key must be an EC or RSA key")
     return key
 
 
@@ -190,7 +192,7 @@ def init_ca(
 def _use_ca(
     root: Path,
     given: x509.Certificate | None,
-    given_key: ec.EllipticCurvePrivateKey | None,
+    given_key: CAKey | None,
     hosts: list[str] | None,
 ) -> None:
     if given is not None and given_key is not None:
@@ -227,9 +229,7 @@ def _new_ca(ca_key: ec.EllipticCurvePrivateKey) -> x509.Certificate:
     )
 
 
-def _router_cert(
-    root: Path, ca: x509.Certificate, ca_key: ec.EllipticCurvePrivateKey, hosts: list[str] | None
-) -> None:
+def _router_cert(root: Path, ca: x509.Certificate, ca_key: CAKey, hosts: list[str] | None) -> None:
     sans: list[x509.GeneralName] = [
         x509.IPAddress(ipaddress.ip_address("127.0.0.1")),
         x509.IPAddress(ipaddress.ip_address("::1")),
@@ -254,7 +254,7 @@ def _router_cert(
 def _leaf(
     cn: str,
     ca: x509.Certificate,
-    ca_key: ec.EllipticCurvePrivateKey,
+    ca_key: CAKey,
     key: ec.EllipticCurvePrivateKey,
     *,
     server: bool,
