@@ -1,8 +1,8 @@
 """telebot-router: robots and users as zenoh clients of a TLS router with access control.
 
 One router per module (``telebot-router run`` in its own process, mutual TLS on a free
-loopback port, the ACL made from the certificates issued), two robot daemons and a user
-in this process; an admin certificate gives a raw zenoh session that sees everything
+loopback port, the ACL made from the certificates issued), three robot daemons; the user
+and a second user in this process; an admin certificate gives a raw zenoh session that sees everything
 the router forwards. The router-restart test runs last: it kills the shared router.
 """
 
