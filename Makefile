@@ -32,6 +32,7 @@ bench: install
 	$(BIN)/python bench/mapxfer.py
 	$(BIN)/python bench/video.py
 	$(BIN)/python bench/safety.py
+	$(BIN)/python bench/fleet.py
 	$(BIN)/python bench/ros2.py
 	.ci/install-browser
 	$(BIN)/python bench/ui.py

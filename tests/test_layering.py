@@ -3,7 +3,7 @@
 Layers, lowest first (a module may import from its own layer and those below)::
 
     errors < registry < config < channels.proto < identity < reasons, rights
-           < channels.transports
+           < router (certificates, router configs) < channels.transports
            < channels (call, channel) < robot < safety < services < apps
 """
 
@@ -26,6 +26,7 @@ LAYERS = [
     "telebot.identity",
     "telebot.reasons",
     "telebot.rights",
+    "telebot.router",
     "telebot.channels.transports",
     "telebot.channels",
     "telebot.robot",
@@ -118,6 +119,7 @@ SANS_IO_SOURCES = sorted(
         SRC / "safety.py",
         SRC / "reasons.py",
         SRC / "rights.py",
+        SRC / "router" / "acl.py",
     ]
 )
 

@@ -38,6 +38,7 @@ __all__ = [
     "TransportSettings",
     "VideoConfig",
     "ZenohSettings",
+    "ZenohTlsSettings",
     "default_home",
     "format_validation_error",
     "load_toml",
@@ -48,6 +49,27 @@ class StrictModel(BaseModel):
     """Base of every settings model: unknown keys are errors, values are checked on assignment."""
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False)
+
+
+class ZenohTlsSettings(StrictModel):
+    """Mutual TLS to a telebot router (``telebot-router cert`` makes the three files).
+
+    Set all three or none; each must name an existing file (relative paths are taken
+    from the current directory). With them, ``tls/...`` endpoints prove this client's
+    certificate to the router and check the router's against ``ca``.
+    """
+
+    #: The router's CA certificate (PEM): the router must present a certificate it signed.
+    ca: Path | None = None
+    #: This client's certificate (PEM), issued by the router's CA.
+    cert: Path | None = None
+    #: This client's private key (PEM).
+    key: Path | None = None
+
+    @property
+    def enabled(self) -> bool:
+        """Whether any TLS file is set."""
+        return any(p is not None for p in (self.ca, self.cert, self.key))
 
 
 class ZenohSettings(StrictModel):
@@ -72,6 +94,8 @@ class ZenohSettings(StrictModel):
     #: ...and at most this many bytes per subscription (8 MB: 256 full 32 KB frames), so a
     #: flood costs bounded memory whatever its frame size.
     queue_bytes: int = Field(default=8 << 20, ge=64 << 10, le=1 << 30)
+    #: Client certificate, key and CA for ``tls/`` endpoints (telebot-router).
+    tls: ZenohTlsSettings = Field(default_factory=ZenohTlsSettings)
 
 
 class MemorySettings(StrictModel):

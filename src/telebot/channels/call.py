@@ -946,6 +946,8 @@ class UserEndpoint(_Endpoint):
                 raise
             online = robot in {p.name for p in await self.robots_online(wait=0.0)}
             hint = "it is online but did not answer" if online else "is it online?"
+            if self.transport.unanswered_hint:
+                hint += f" {self.transport.unanswered_hint}"
             raise CallTimeout(
                 f"robot {robot} did not answer within {timeout:g} s ({hint})"
             ) from None

@@ -155,6 +155,9 @@ class Transport(abc.ABC):
 
     #: Registry name of the transport ("zenoh", "memory", ...).
     name: str = ""
+    #: What on the path may silently drop frames (a router's access control), added to
+    #: "did not answer" errors; empty when nothing does.
+    unanswered_hint: str = ""
 
     def __init__(self) -> None:
         self.stats = TransportStats()

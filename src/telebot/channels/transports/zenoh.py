@@ -53,6 +53,7 @@ import re
 import sys
 import threading
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, Final, Protocol, Self, TypeVar
 
 import zenoh
@@ -82,6 +83,8 @@ __all__ = [
     "ZenohTransport",
     "build_zenoh_config",
     "keep_freed_memory",
+    "reason_of",
+    "tls_options",
 ]
 
 logger = logging.getLogger("telebot.transport.zenoh")
@@ -150,6 +153,11 @@ def _reason(exc: BaseException) -> str:
     return " ".join(text.split()) or type(exc).__name__
 
 
+def reason_of(exc: BaseException) -> str:
+    """The human part of a zenoh error message, on one line (for other zenoh users)."""
+    return _reason(exc)
+
+
 def _insert(config: zenoh.Config, key: str, value: Any, what: str) -> None:
     try:
         config.insert_json5(key, json.dumps(value))
@@ -202,9 +210,50 @@ def build_zenoh_config(settings: ZenohSettings) -> zenoh.Config:
         # After a blip, come back within half a second (zenoh's own default retries every
         # 1 s, then 2 s, 4 s): a call that reconnects is only as quick as its session.
         _insert(config, "connect/retry", CONNECT_RETRY, "connect/retry")
+    if settings.tls.enabled:
+        for path, value in tls_options(settings).items():
+            _insert(config, path, value, f"{path} =")
     for path, value in settings.options.items():
         _insert(config, path, value, f"option {path!r} =")
     return config
+
+
+def tls_options(settings: ZenohSettings) -> dict[str, Any]:
+    """The zenoh config paths of ``settings.tls`` (mutual TLS); TransportError if unusable.
+
+    All three files must be set and exist: a missing one is named by its key, here,
+    rather than found by zenoh as a failed handshake.
+    """
+    tls = settings.tls
+    files: dict[str, Path | None] = {"ca": tls.ca, "cert": tls.cert, "key": tls.key}
+    for name, path in files.items():
+        if path is None:
+            raise TransportError(
+                f"transport.zenoh.tls.{name} is not set (ca, cert and key go together)"
+            )
+    for name, path in files.items():
+        if path is not None and not path.is_file():
+            raise TransportError(f"transport.zenoh.tls.{name}: no such file {path}")
+    assert tls.ca is not None and tls.cert is not None and tls.key is not None
+    return {
+        "transport/link/tls/root_ca_certificate": str(tls.ca),
+        "transport/link/tls/connect_certificate": str(tls.cert),
+        "transport/link/tls/connect_private_key": str(tls.key),
+        "transport/link/tls/enable_mtls": True,
+    }
+
+
+def _cert_name(path: Path) -> str:
+    """The common name of the certificate in ``path`` (as the router's ACL sees it)."""
+    from cryptography import x509
+    from cryptography.x509.oid import NameOID
+
+    try:
+        cert = x509.load_pem_x509_certificate(path.read_bytes())
+        names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    except (OSError, ValueError):
+        return f"the certificate {path}"
+    return f"certificate {names[0].value!s}" if names else f"the certificate {path}"
 
 
 def keep_freed_memory() -> bool:
@@ -596,6 +645,12 @@ class ZenohTransport(Transport):
         # Strong references to everything declared: tokens and publishers die with
         # their Python object, and close() must reach every subscriber.
         self._entities: dict[int, _Entity] = {}
+        if self.settings.mode == "client" and self.settings.tls.cert is not None:
+            # A router's ACL drops what it does not allow without a word to the sender.
+            self.unanswered_hint = (
+                f"or the router's access control does not let {_cert_name(self.settings.tls.cert)} "
+                "reach it (revoked, or not issued by telebot-router cert)"
+            )
 
     @classmethod
     def from_settings(cls, settings: TransportSettings) -> Self:
@@ -632,10 +687,18 @@ class ZenohTransport(Transport):
             task.add_done_callback(_close_late_session)
             raise
         except zenoh.ZError as exc:
+            hint = ""
+            if any(e.startswith("tls/") for e in self.settings.connect):
+                # zenoh says only "Unable to connect"; through a telebot router the usual
+                # cause is the certificate, which the router refuses without a word.
+                hint = (
+                    " (is the router up? a TLS router refuses a client without a "
+                    "certificate from its CA: check transport.zenoh.tls)"
+                )
             raise TransportError(
                 f"cannot open zenoh session (mode={self.settings.mode}, "
                 f"listen={self.settings.listen}, connect={self.settings.connect}): "
-                f"{_reason(exc)}"
+                f"{_reason(exc)}{hint}"
             ) from exc
         finally:
             self._opening = False

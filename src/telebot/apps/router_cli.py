@@ -1,0 +1,299 @@
+"""``telebot-router``: a zenoh router with TLS, client certificates and access control.
+
+``init`` makes a router directory (a CA and the router's certificate), ``cert`` issues a
+client certificate for a robot, a user or an admin (or imports one signed elsewhere by the
+same CA), ``revoke`` takes a name out of the access-control list, ``config`` prints the
+zenoh config (``zenohd -c`` runs the same router), and ``run`` runs the router in this
+process (zenoh-python, router mode) until SIGINT or SIGTERM.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from telebot.apps.common import (
+    EXIT_OK,
+    EXIT_USAGE,
+    Parser,
+    name_arg,
+    new_parser,
+    run,
+    stop_on_signals,
+)
+from telebot.errors import ConfigError, TransportError
+from telebot.router import certs
+from telebot.router.acl import DEFAULT_PORT, Member, RouterPlan, router_config
+
+PROG = "telebot-router"
+DEFAULT_LISTEN = f"tls/0.0.0.0:{DEFAULT_PORT}"
+
+
+def _add_who(parser: argparse.ArgumentParser) -> None:
+    who = parser.add_mutually_exclusive_group(required=True)
+    for kind in certs.KINDS:
+        who.add_argument(
+            f"--{kind}", type=name_arg, metavar="NAME", help=f"a certificate for {kind} NAME"
+        )
+
+
+def _who(args: argparse.Namespace) -> tuple[certs.Kind, str]:
+    for kind in certs.KINDS:
+        name = getattr(args, kind)
+        if name is not None:
+            return kind, name
+    raise AssertionError("argparse requires one of --robot, --user, --admin")
+
+
+def _add_router_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("dir", type=Path, help="the router directory made by 'init'")
+    parser.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help=f"TLS endpoint to listen on (repeatable; default {DEFAULT_LISTEN})",
+    )
+    parser.add_argument(
+        "--tcp",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="also listen on this plain TCP endpoint, e.g. tcp/127.0.0.1:7448 (no "
+        "certificate, so the ACL lets it do nothing unless --no-acl; off by default)",
+    )
+    parser.add_argument(
+        "--namespace", default="telebot", help="the telebot namespace (default: telebot)"
+    )
+    parser.add_argument(
+        "--no-acl",
+        action="store_true",
+        help="no access control: any client with a certificate from the CA may do anything",
+    )
+
+
+def build_parser() -> Parser:
+    """The argument parser of telebot-router."""
+    parser = new_parser(
+        PROG,
+        "A zenoh router for telebot across networks: TLS with client certificates from its "
+        "own CA, and an access-control list that keeps each robot and user to its own keys.",
+    )
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
+    commands.required = True
+
+    init = commands.add_parser(
+        "init", help="make a router directory: a CA and the router's certificate"
+    )
+    init.add_argument("dir", type=Path, help="the directory to create")
+    init.add_argument(
+        "--host",
+        action="append",
+        default=[],
+        metavar="HOST",
+        help="an address or DNS name clients use to reach the router (repeatable; "
+        "127.0.0.1, ::1 and localhost are always in)",
+    )
+    init.add_argument("--ca", type=Path, default=None, help="use this existing CA certificate")
+    init.add_argument("--ca-key", type=Path, default=None, help="...and its private key (PEM)")
+    init.add_argument("--force", action="store_true", help="replace an existing CA")
+
+    cert = commands.add_parser(
+        "cert", help="issue a client certificate (prints the client's [transport.zenoh] settings)"
+    )
+    cert.add_argument("dir", type=Path, help="the router directory")
+    _add_who(cert)
+    cert.add_argument(
+        "--import",
+        dest="import_cert",
+        type=Path,
+        default=None,
+        metavar="CERT",
+        help="register an existing certificate signed by this CA (its common name must be "
+        "KIND:NAME) instead of issuing one",
+    )
+    cert.add_argument(
+        "--router",
+        default=f"tls/127.0.0.1:{DEFAULT_PORT}",
+        metavar="ENDPOINT",
+        help="the router endpoint to print in the client settings",
+    )
+    cert.add_argument("--force", action="store_true", help="replace an existing certificate")
+
+    revoke = commands.add_parser(
+        "revoke", help="take a name out of the ACL (takes effect when the router restarts)"
+    )
+    revoke.add_argument("dir", type=Path, help="the router directory")
+    _add_who(revoke)
+
+    listing = commands.add_parser("list", help="list the client certificates and revocations")
+    listing.add_argument("dir", type=Path, help="the router directory")
+
+    config = commands.add_parser(
+        "config", help="print the router's zenoh config (JSON5; 'zenohd -c FILE' runs it)"
+    )
+    _add_router_options(config)
+
+    runp = commands.add_parser("run", help="run the router until SIGINT/SIGTERM")
+    _add_router_options(runp)
+    runp.add_argument(
+        "--events", action="store_true", help="print a JSON 'ready' line on stdout when listening"
+    )
+    return parser
+
+
+def plan_of(args: argparse.Namespace) -> RouterPlan:
+    """The router plan of ``config``/``run``: its files, endpoints and allowed members."""
+    root: Path = args.dir
+    for name in ("ca.pem", "router.pem", "router.key"):
+        if not (root / name).is_file():
+            raise ConfigError(f"{root / name}: no such file (run '{PROG} init {root}' first)")
+    revoked = certs.read_revoked(root)
+    members = tuple(
+        Member(c.kind, c.name) for c in certs.list_clients(root) if c.common_name not in revoked
+    )
+    for endpoint in args.listen:
+        if not endpoint.startswith("tls/"):
+            raise ConfigError(f"--listen {endpoint}: not a tls/ endpoint (plain TCP: --tcp)")
+    for endpoint in args.tcp:
+        if not endpoint.startswith("tcp/"):
+            raise ConfigError(f"--tcp {endpoint}: not a tcp/ endpoint")
+    try:
+        return RouterPlan(
+            ca=str((root / "ca.pem").resolve()),
+            cert=str((root / "router.pem").resolve()),
+            key=str((root / "router.key").resolve()),
+            members=members,
+            namespace=args.namespace,
+            listen_tls=tuple(args.listen or [DEFAULT_LISTEN]),
+            listen_tcp=tuple(args.tcp),
+            acl=not args.no_acl,
+        )
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from exc
+
+
+def _client_settings(client: certs.ClientCert, router: str, key: str | None = None) -> str:
+    return "\n".join(
+        [
+            "[transport.zenoh]",
+            'mode = "client"',
+            f"connect = [{json.dumps(router)}]",
+            "multicast_scouting = false",
+            "[transport.zenoh.tls]",
+            f"ca = {json.dumps(str(client.ca.resolve()))}",
+            f"cert = {json.dumps(str(client.cert.resolve()))}",
+            f"key = {json.dumps(key or str(client.key.resolve()))}",
+        ]
+    )
+
+
+def _cmd_init(args: argparse.Namespace) -> int:
+    if (args.ca is None) != (args.ca_key is None):
+        raise ConfigError("--ca and --ca-key go together")
+    certs.init_ca(args.dir, args.host, force=args.force, ca=args.ca, ca_key=args.ca_key)
+    print(f"CA and router certificate written to {args.dir}")
+    print(f"next: {PROG} cert {args.dir} --robot NAME, then {PROG} run {args.dir}")
+    return EXIT_OK
+
+
+def _cmd_cert(args: argparse.Namespace) -> int:
+    kind, name = _who(args)
+    if args.import_cert is not None:
+        client = certs.import_client(args.dir, kind, name, args.import_cert, force=args.force)
+        print(f"{client.common_name}: registered {client.cert}; its key stays with its owner")
+        key = "PATH/TO/ITS/KEY.pem"
+    else:
+        client = certs.issue_client(args.dir, kind, name, force=args.force)
+        print(f"{client.common_name}: certificate in {client.directory}")
+        key = None
+    print(f"# the {kind}'s config (TOML):")
+    print(_client_settings(client, args.router, key))
+    return EXIT_OK
+
+
+def _cmd_revoke(args: argparse.Namespace) -> int:
+    kind, name = _who(args)
+    cn = certs.revoke(args.dir, kind, name)
+    print(f"{cn} revoked: the router's ACL lets it do nothing once the router restarts")
+    return EXIT_OK
+
+
+def _cmd_list(args: argparse.Namespace) -> int:
+    revoked = certs.read_revoked(args.dir)
+    for client in certs.list_clients(args.dir):
+        state = "revoked" if client.common_name in revoked else "allowed"
+        print(f"{client.common_name}\t{state}\t{client.directory}")
+    return EXIT_OK
+
+
+def _cmd_config(args: argparse.Namespace) -> int:
+    print(json.dumps(router_config(plan_of(args)), indent=2))
+    return EXIT_OK
+
+
+async def _run_router(plan: RouterPlan, events: bool) -> int:
+    import zenoh  # only 'run' needs zenoh
+
+    from telebot.channels.transports.zenoh import reason_of
+
+    config_text = json.dumps(router_config(plan))
+    try:
+        config = zenoh.Config.from_json5(config_text)
+        session = await asyncio.to_thread(zenoh.open, config)
+    except zenoh.ZError as exc:
+        raise TransportError(f"cannot start the router: {reason_of(exc)}") from exc
+    stop = asyncio.Event()
+    try:
+        with stop_on_signals(stop):
+            ready: dict[str, Any] = {
+                "event": "ready",
+                "zid": str(session.zid()),
+                "listen": [*plan.listen_tls, *plan.listen_tcp],
+                "members": [m.common_name for m in plan.members],
+                "acl": plan.acl,
+            }
+            if events:
+                print(json.dumps(ready), flush=True)
+            else:
+                print(
+                    f"{PROG}: listening on {', '.join(ready['listen'])}; "
+                    f"{len(plan.members)} certificate(s) allowed",
+                    flush=True,
+                )
+            await stop.wait()
+    finally:
+        await asyncio.to_thread(session.close)
+    return EXIT_OK
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``telebot-router``."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    handlers = {
+        "init": _cmd_init,
+        "cert": _cmd_cert,
+        "revoke": _cmd_revoke,
+        "list": _cmd_list,
+        "config": _cmd_config,
+    }
+    if args.command == "run":
+
+        async def main_run() -> int:
+            return await _run_router(plan_of(args), args.events)
+
+        return run(PROG, main_run, args.log_level)
+    try:
+        return handlers[args.command](args)
+    except (ConfigError, ValueError) as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+
+
+if __name__ == "__main__":
+    sys.exit(main())

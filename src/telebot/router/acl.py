@@ -1,0 +1,214 @@
+"""Sans-IO: the zenoh configs of a telebot router and of its clients, with the ACL.
+
+Everything here returns plain dicts (JSON-serialisable, also valid JSON5) built from
+names and paths; nothing is opened or read. ``apps/router_cli.py`` loads them into
+zenoh-python, and ``telebot-router config`` prints the router's one for ``zenohd -c``.
+
+The access-control list follows the key layout of docs/protocol.md §2.1; per common
+name (``robot:R``, ``user:U``, ``admin:A``), on what the client *sends* to the router
+(ingress; what the router forwards to it is whatever it was allowed to subscribe to):
+
+=========================  ==============================================================
+robot R may                keys
+=========================  ==============================================================
+subscribe                  ``{ns}/robot/R/**`` (its inbox and its calls' keys)
+publish (put)              ``{ns}/user/*/*/in``, ``{ns}/user/*/*/call/*/ctl|data``
+liveliness token           ``{ns}/presence/robot/R/*``
+watch liveliness           ``{ns}/presence/user/*/*``
+user U may
+subscribe                  ``{ns}/user/U/**``
+publish (put)              ``{ns}/robot/*/in``, ``{ns}/robot/*/call/*/ctl|data``
+liveliness token           ``{ns}/presence/user/U/*``
+watch liveliness           ``{ns}/presence/robot/*/*``
+admin A may                everything
+=========================  ==============================================================
+
+Everything else is denied (``default_permission: deny``): a robot cannot publish to or
+read any robot's keys, its own included (nobody calls a robot from a robot), a user
+cannot read another user's keys or pose as another user's presence, and no certificate
+outside the list (or on ``revoked.txt``) can do anything at all.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any, Final
+
+from telebot.channels.proto.frames import validate_name
+
+__all__ = [
+    "DEFAULT_PORT",
+    "Member",
+    "RouterPlan",
+    "acl_config",
+    "client_tls_options",
+    "router_config",
+]
+
+DEFAULT_PORT: Final = 7447
+_ALL_MESSAGES: Final = [
+    "put",
+    "delete",
+    "declare_subscriber",
+    "query",
+    "reply",
+    "declare_queryable",
+    "liveliness_token",
+    "liveliness_query",
+    "declare_liveliness_subscriber",
+]
+
+
+@dataclass(frozen=True, slots=True)
+class Member:
+    """One certificate holder the router lets in: its kind, name and common name."""
+
+    kind: str  # "robot", "user" or "admin"
+    name: str
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("robot", "user", "admin"):
+            raise ValueError(f"invalid member kind {self.kind!r}: robot, user or admin")
+        validate_name(self.name, self.kind)
+
+    @property
+    def common_name(self) -> str:
+        """The certificate common name the ACL matches: ``kind:name``."""
+        return f"{self.kind}:{self.name}"
+
+
+@dataclass(frozen=True, slots=True)
+class RouterPlan:
+    """What a router config is made of: where it listens, its files, who may connect."""
+
+    ca: str
+    cert: str
+    key: str
+    members: tuple[Member, ...] = ()
+    namespace: str = "telebot"
+    listen_tls: tuple[str, ...] = (f"tls/127.0.0.1:{DEFAULT_PORT}",)
+    #: Plain TCP endpoints (no certificates, hence no ACL subject: denied everything
+    #: unless ``acl`` is off). Off unless asked.
+    listen_tcp: tuple[str, ...] = ()
+    acl: bool = True
+
+
+def _rule(rid: str, messages: list[str], keys: Iterable[str]) -> dict[str, Any]:
+    return {
+        "id": rid,
+        "messages": messages,
+        "flows": ["ingress"],
+        "permission": "allow",
+        "key_exprs": list(keys),
+    }
+
+
+def _member_rules(member: Member, ns: str) -> list[dict[str, Any]]:
+    tag, name = f"{member.kind}-{member.name}", member.name
+    call_keys = ("in", "call/*/ctl", "call/*/data")
+    if member.kind == "robot":
+        return [
+            _rule(f"{tag}-sub", ["declare_subscriber"], [f"{ns}/robot/{name}/**"]),
+            _rule(f"{tag}-put", ["put"], [f"{ns}/user/*/*/{k}" for k in call_keys]),
+            _rule(
+                f"{tag}-token",
+                ["liveliness_token", "liveliness_query"],
+                [f"{ns}/presence/robot/{name}/*"],
+            ),
+            _rule(
+                f"{tag}-watch",
+                ["declare_liveliness_subscriber", "liveliness_query"],
+                [f"{ns}/presence/user/*/*"],
+            ),
+        ]
+    if member.kind == "user":
+        return [
+            _rule(f"{tag}-sub", ["declare_subscriber"], [f"{ns}/user/{name}/**"]),
+            _rule(f"{tag}-put", ["put"], [f"{ns}/robot/*/{k}" for k in call_keys]),
+            _rule(
+                f"{tag}-token",
+                ["liveliness_token", "liveliness_query"],
+                [f"{ns}/presence/user/{name}/*"],
+            ),
+            _rule(
+                f"{tag}-watch",
+                ["declare_liveliness_subscriber", "liveliness_query"],
+                [f"{ns}/presence/robot/*/*"],
+            ),
+        ]
+    return [_rule(f"{tag}-all", _ALL_MESSAGES, ["**"])]
+
+
+def acl_config(members: Iterable[Member], namespace: str = "telebot") -> dict[str, Any]:
+    """zenoh's ``access_control`` section: deny by default, allow each member its keys.
+
+    Egress (what the router sends to a client) is allowed for every message: a client
+    only gets what it was allowed to subscribe to.
+    """
+    validate_name(namespace, "namespace")
+    members = list(members)
+    rules: list[dict[str, Any]] = [
+        {
+            "id": "egress",
+            "messages": _ALL_MESSAGES,
+            "flows": ["egress"],
+            "permission": "allow",
+            "key_exprs": ["**"],
+        }
+    ]
+    subjects: list[dict[str, Any]] = [{"id": "anyone"}]
+    policies: list[dict[str, Any]] = [{"id": "egress", "rules": ["egress"], "subjects": ["anyone"]}]
+    for member in members:
+        tag = f"{member.kind}-{member.name}"
+        mine = _member_rules(member, namespace)
+        rules.extend(mine)
+        subjects.append({"id": tag, "cert_common_names": [member.common_name]})
+        policies.append({"id": tag, "rules": [r["id"] for r in mine], "subjects": [tag]})
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
+    }
+
+
+def router_config(plan: RouterPlan) -> dict[str, Any]:
+    """The whole zenoh config of the router (``zenohd -c`` reads it as it is)."""
+    config: dict[str, Any] = {
+        "mode": "router",
+        "listen": {"endpoints": [*plan.listen_tls, *plan.listen_tcp]},
+        "connect": {"endpoints": []},
+        # Across networks nothing is found by multicast, and answering it on a LAN would
+        # only advertise the router to strangers.
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {
+            "link": {
+                "tls": {
+                    "root_ca_certificate": plan.ca,
+                    "listen_certificate": plan.cert,
+                    "listen_private_key": plan.key,
+                    # Mutual TLS: no client certificate from this CA, no connection.
+                    "enable_mtls": True,
+                    "connect_certificate": plan.cert,
+                    "connect_private_key": plan.key,
+                }
+            }
+        },
+        # zenoh's admin space and REST plugin stay off: the ACL is the only door.
+        "adminspace": {"enabled": False},
+    }
+    if plan.acl:
+        config["access_control"] = acl_config(plan.members, plan.namespace)
+    return config
+
+
+def client_tls_options(ca: str, cert: str, key: str) -> dict[str, Any]:
+    """The zenoh config paths a client sets to reach the router over mutual TLS."""
+    return {
+        "transport/link/tls/root_ca_certificate": ca,
+        "transport/link/tls/connect_certificate": cert,
+        "transport/link/tls/connect_private_key": key,
+        "transport/link/tls/enable_mtls": True,
+    }
