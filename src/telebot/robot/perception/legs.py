@@ -2,9 +2,9 @@
 
 The approach of ROS's ``leg_detector`` / ``leg_tracker``, without their trained classifier:
 
-1. **Segment** the scan: consecutive beams belong to one cluster while neighbouring ranges
-   differ by less than a jump of ``jump + jump_per_m · range`` (a person in front of a wall
-   is split from it; a wall seen at a grazing angle stays one cluster).
+1. **Segment** the scan: consecutive beams belong to one cluster while their points are
+   less than ``jump + jump_per_m · range`` apart (a person in front of a wall is split from
+   it, and so is a leg from the chair beside it).
 2. **Leg-like clusters**: narrow (``min_width`` … ``max_width`` end to end), in range, and
    *in front* of both neighbours (each neighbouring beam reads farther, or nothing): a leg
    occludes what is behind it, whereas the end of a wall or a corner continues into it.
@@ -37,7 +37,7 @@ class LegParams:
     jump_per_m: float = 0.03
     min_width: float = 0.0
     max_width: float = 0.22
-    max_merged_width: float = 0.42
+    max_merged_width: float = 0.22
     max_pair_gap: float = 0.5
     min_range: float = 0.15
     max_range: float = 8.0
@@ -92,9 +92,15 @@ class LegDetector:
         step = float(np.median(np.diff(angles))) if n > 1 else 0.0
         closed = abs(n * step - 2.0 * math.pi) < 1.5 * abs(step)
         nxt = np.roll(r, -1)
+        finite_r = np.where(valid, ranges, 0.0)
+        xs = finite_r * np.cos(angles)
+        ys = finite_r * np.sin(angles)
+        # Neighbouring beams join when their points are close: a range jump (something in
+        # front of something else) or a wide gap between them splits clusters.
+        gap = np.hypot(xs - np.roll(xs, -1), ys - np.roll(ys, -1))
         with np.errstate(invalid="ignore"):
             limit = p.jump + p.jump_per_m * np.minimum(r, nxt)
-            joined = valid & np.roll(valid, -1) & (np.abs(r - nxt) < limit)
+            joined = valid & np.roll(valid, -1) & (gap < limit)
         if not closed:
             joined[-1] = False
         # Cluster starts: valid beams not joined to the previous one.
@@ -102,9 +108,6 @@ class LegDetector:
         if starts.size == 0:
             return []  # nothing seen, or one cluster all round (inside a ring)
         out: list[Leg] = []
-        finite_r = np.where(valid, ranges, 0.0)
-        xs = finite_r * np.cos(angles)
-        ys = finite_r * np.sin(angles)
         for start in starts:
             end = start
             count = 1

@@ -10,7 +10,8 @@ on the map's walls dropped (a door jamb is as narrow as a leg), and the rest han
 HOG takes tens of milliseconds a frame, longer than a control cycle may, so with
 ``threaded=True`` (the daemon) it runs on one worker thread, off the event loop (OpenCV
 releases the GIL): a frame is handed over when the previous one is done and its people are
-collected at a later step. Tests and benchmarks pass ``threaded=False`` and get the same
+collected at a later step. It looks only when the laser has a candidate in front of the
+camera (the camera confirms; in an empty corridor it costs nothing). Tests and benchmarks pass ``threaded=False`` and get the same
 results synchronously.
 
 It is a :class:`~telebot.robot.perception.tracks.PeopleSource` (follow-me reads it) and keeps
@@ -31,7 +32,7 @@ import numpy.typing as npt
 
 from telebot.config import PeopleSettings
 from telebot.robot.grid import OccupancyGrid
-from telebot.robot.nav import LaserScanLike, LaserSource, NavStack, Pose2D
+from telebot.robot.nav import LaserScanLike, LaserSource, NavStack, Pose2D, normalize_angle
 from telebot.robot.perception.alerts import AlertWatcher, PeopleAlert
 from telebot.robot.perception.camera import CameraDetection, HogPeopleDetector
 from telebot.robot.perception.legs import LegDetector
@@ -44,6 +45,10 @@ log = logging.getLogger("telebot.people")
 
 #: Leg candidates this close (m) to a wall or unknown space of the map are the map's own.
 STATIC_CLEARANCE = 0.1
+#: The camera looks when a laser candidate is within this range (m) …
+CAMERA_RANGE = 8.0
+#: … and within its field of view widened by this much (radians) either side.
+CAMERA_MARGIN = math.radians(5.0)
 #: Alerts kept for the services to pick up.
 KEPT_ALERTS = 32
 
@@ -108,6 +113,7 @@ class PeoplePerception:
         self.alerts: deque[NumberedAlert] = deque(maxlen=KEPT_ALERTS)
         #: Camera detections of the last frame looked at (for the video overlay).
         self.last_camera: list[CameraDetection] = []
+        self._camera_fov: float | None = None
         self._failed = False
         self._closed = False
 
@@ -128,7 +134,8 @@ class PeoplePerception:
             if now >= self._next_scan:
                 self._next_scan = now + 1.0 / self.settings.scan_hz
                 self._scan(now)
-            if self.settings.camera_hz > 0 and now >= self._next_frame and self._pending is None:
+            camera_due = self.settings.camera_hz > 0 and now >= self._next_frame
+            if camera_due and self._pending is None and self._someone_in_view():
                 self._next_frame = now + 1.0 / self.settings.camera_hz
                 self._start_frame(now)
             self.tracker.tick(now)
@@ -191,21 +198,40 @@ class PeoplePerception:
             self._hog = HogPeopleDetector()
         return self._hog
 
+    def _someone_in_view(self) -> bool:
+        # HOG costs tens of milliseconds a frame: it looks only when the laser has a
+        # candidate (tentative tracks too) in front of the camera, to confirm it.
+        pose = self.nav.pose().pose
+        fov = self._fov()
+        if fov is None:
+            return False
+        half = math.radians(fov) / 2.0 + CAMERA_MARGIN
+        for x, y in self.tracker.candidates():
+            dx, dy = x - pose.x, y - pose.y
+            bearing = normalize_angle(math.atan2(dy, dx) - pose.yaw)
+            if abs(bearing) <= half and math.hypot(dx, dy) <= CAMERA_RANGE:
+                return True
+        return False
+
+    def _fov(self) -> float | None:
+        if self._camera_fov is None:
+            infos = {info.name: info.fov_deg for info in self.nav.cameras()}
+            self._camera_fov = infos.get(self.settings.camera, math.nan)
+        return None if math.isnan(self._camera_fov) else self._camera_fov
+
     def _start_frame(self, now: float) -> None:
-        camera = self.settings.camera
-        infos = {info.name: info for info in self.nav.cameras()}
-        info = infos.get(camera)
-        if info is None:
+        fov = self._fov()
+        if fov is None:
             return
-        frame = self.nav.get_frame(camera)
+        frame = self.nav.get_frame(self.settings.camera)
         pose = self.nav.pose().pose
         detector = self._detector()
         if not self._threaded:
-            self._camera_done(now, pose, detector.detect(frame.image, info.fov_deg))
+            self._camera_done(now, pose, detector.detect(frame.image, fov))
             return
         if self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="people-hog")
-        future = self._pool.submit(detector.detect, frame.image, info.fov_deg)
+        future = self._pool.submit(detector.detect, frame.image, fov)
         self._pending = (future, pose, now)
 
     def _collect_frame(self, now: float) -> None:

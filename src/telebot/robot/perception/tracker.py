@@ -45,6 +45,7 @@ class TrackerParams:
     beta: float = 0.15
     confirm_hits: int = 3
     lost_after: float = 1.2
+    max_coast: float = 0.4
     tentative_lost_after: float = 0.5
     merge_distance: float = 0.35
     camera_bearing_gate: float = math.radians(7.0)
@@ -218,6 +219,10 @@ class PeopleTracker:
             )
         return out
 
+    def candidates(self) -> list[tuple[float, float]]:
+        """Where every track is, tentative ones too (map frame, as last corrected)."""
+        return [(t.x, t.y) for t in self._tracks]
+
     @property
     def now(self) -> float:
         """The latest loop time given."""
@@ -233,7 +238,8 @@ class PeopleTracker:
         return True
 
     def _predict(self, track: _Track, now: float) -> tuple[float, float]:
-        dt = min(max(now - track.updated_at, 0.0), self.params.lost_after)
+        # Coasting is short: someone unseen may have stopped (at a wall, behind a door).
+        dt = min(max(now - track.updated_at, 0.0), self.params.max_coast)
         return track.x + track.vx * dt, track.y + track.vy * dt
 
     def _correct(
