@@ -126,6 +126,7 @@ async def serve_robot(
                 ),
                 services=services,
                 relay=config.relay,
+                follow=config.follow,
             )
             await server.prepare()
             with stop_on_signals(stop):

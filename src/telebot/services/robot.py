@@ -27,7 +27,7 @@ from typing import Any, TypeVar
 from telebot.channels.call import Call, RobotEndpoint
 from telebot.channels.channel import Channel, ReceivedDatagram
 from telebot.channels.transports.base import Lane
-from telebot.config import RelaySettings, ServiceSettings
+from telebot.config import FollowSettings, RelaySettings, ServiceSettings
 from telebot.errors import ProtocolError, TelebotError
 from telebot.identity import Role
 from telebot.reasons import Reason, Refusal
@@ -36,6 +36,7 @@ from telebot.robot.nav import GoalHandle, GoalStatus, NavStack, PoseNotifier, St
 from telebot.safety import SafetyState
 from telebot.services.base import OpenServices, ServiceRegistry
 from telebot.services.chat import NO_SUPERVISOR, ChatSession, error_reason, goal_reason
+from telebot.services.follow import CallFollow, FollowService, TrackSource
 from telebot.services.mapxfer import MapService
 from telebot.services.plan import PlanService
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
@@ -113,6 +114,7 @@ class CallServices:
             gate=self.gate,
             map_offer=server.encoded_map,
             relay=server.relay_settings,
+            follow=CallFollow(server.follow, call.id, server.now),
         )
         self.map = MapService(call.channel(MAP, lane=Lane.BULK), server.encoded_map)
         # The first tick publishes both at once (a new user sees the robot straight away).
@@ -467,6 +469,8 @@ class RobotServer:
         video: VideoSettings | None = None,
         services: ServiceRegistry[RobotServer] | None = None,
         relay: RelaySettings | None = None,
+        follow: FollowSettings | None = None,
+        people: TrackSource | None = None,
     ) -> None:
         self.nav = nav
         #: Who may relay which topics, and the relay's limits (``[relay]`` of the config).
@@ -480,6 +484,10 @@ class RobotServer:
         #: The safety supervisor's driver; None runs the robot without one (tests of the
         #: services alone): then nothing latches and roles alone decide who may drive.
         self.safety = safety
+        #: Follow-me (the ``follow`` command); ``people`` (the tracker) may be set later.
+        self.follow = FollowService(
+            nav, follow, people=people, safety_state=safety.state if safety is not None else None
+        )
         if safety is not None:
             safety.on_state = self._broadcast_safety
         self.settings = settings if settings is not None else ServiceSettings()
@@ -593,6 +601,7 @@ class RobotServer:
             # happens in the clean-up after it.
             if self.safety is not None:
                 self._guarded(self.safety.leave, call)
+            self._guarded(self.follow.call_ended, call.id)
             self.services.pop(call.id, None)
             opened = self.open.pop(call.id, None)
             if opened is not None:  # None: setting the services up failed
@@ -643,6 +652,8 @@ class RobotServer:
         return SafetyStatus(state.armed, state.reason, holder, state.cap, state.blocked)
 
     def _broadcast_safety(self, state: SafetyState) -> None:
+        # A stop or a hand-over ends a follow before anyone hears of it.
+        self._guarded(self.follow.safety_changed, state)
         status = SafetyStatus(state.armed, state.reason, state.holder, state.cap, state.blocked)
         for services in list(self.services.values()):
             self._guarded(services.send_safety_state, status)
@@ -667,6 +678,12 @@ class RobotServer:
                 except Exception:
                     log.exception("safety tick failed: stopping the robot")
                     self._emergency("safety tick failed")
+            try:
+                # After the supervisor's tick: a stop latched there ends the follow first.
+                self.follow.tick(now)
+            except Exception:
+                log.exception("follow-me failed: stopping the robot")
+                self._emergency("follow-me failed")
             self._guarded(self._reencode_changed_map)
             for opened in list(self.open.values()):
                 opened.tick(now)  # each service guarded
