@@ -213,6 +213,8 @@ class FollowController:
         self._command = Velocity(start.linear, start.angular)
         # Smoothed position and velocity of the person; None until first seen.
         self._position: tuple[float, float] | None = None
+        # The latest accepted measurement as it came: "too close" must not wait for smoothing.
+        self._raw: tuple[float, float] | None = None
         self._velocity = (0.0, 0.0)
         self._seen = float(now)  # last accepted measurement (the start counts as one)
         self._last_stamp = -math.inf
@@ -265,7 +267,8 @@ class FollowController:
             return self._end(Reason.LOST_PERSON, "lost the person")
         px, py = self._position
         distance = math.hypot(px - pose.x, py - pose.y)
-        if distance < self.settings.min_distance:
+        raw = self._raw if self._raw is not None else self._position
+        if min(distance, math.dist(raw, (pose.x, pose.y))) < self.settings.min_distance:
             return self._end(Reason.PERSON_TOO_CLOSE, "person too close")
         self._update_trail(pose)
         linear, angular, wanted, waiting = self._wanted(pose, distance, cap, clearance)
@@ -306,6 +309,7 @@ class FollowController:
         vx, vy = float(track.vx), float(track.vy)
         if self._position is None:
             self._position, self._velocity = (float(track.x), float(track.y)), (vx, vy)
+            self._raw = self._position
             self._seen, self._last_stamp = now, stamp
             return
         self._coast(dt)
@@ -314,6 +318,7 @@ class FollowController:
             self.jumps += 1
             return
         a = SMOOTHING
+        self._raw = (float(track.x), float(track.y))
         self._position = (ex + a * (track.x - ex), ey + a * (track.y - ey))
         ovx, ovy = self._velocity
         self._velocity = (ovx + a * (vx - ovx), ovy + a * (vy - ovy))
