@@ -49,6 +49,7 @@ from telebot.robot.sim.laser import (
     RayCaster,
     intersect_circles,
 )
+from telebot.robot.sim.people import PersonTruth
 from telebot.robot.sim.world import Obstacle
 
 __all__ = [
@@ -219,9 +220,16 @@ class Renderer:
         self._optics: dict[CameraModel, _Optics] = {}
 
     def render(
-        self, pose: Pose2D, camera: CameraModel, obstacles: Sequence[Obstacle] = ()
+        self,
+        pose: Pose2D,
+        camera: CameraModel,
+        obstacles: Sequence[Obstacle] = (),
+        people: Sequence[PersonTruth] = (),
     ) -> npt.NDArray[np.uint8]:
-        """The BGR ``uint8`` image (camera.height, camera.width, 3) seen from ``pose``."""
+        """The BGR ``uint8`` image (camera.height, camera.width, 3) seen from ``pose``.
+
+        ``people`` are drawn as human figures (see :mod:`telebot.robot.sim.figure`).
+        """
         if not all(math.isfinite(v) for v in (pose.x, pose.y, pose.yaw)):
             raise ValueError(f"camera pose must be finite, not {pose}")
         if camera.mount_height >= self.wall_height:
