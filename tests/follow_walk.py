@@ -2,23 +2,24 @@
 
 The walker starts in room A just in front of the robot, walks south out of room A's door
 into the corridor, east along the corridor, north through room B's door, and stops in
-room B: two rooms, two doors and a 7 m straight stretch. It stands in the simulation as a
-round obstacle (the laser sees it, the base cannot drive into it) and is tracked without
-error (:class:`TruthTracks`) unless a track source is given: this measures the follow
-controller, not the detector. The simulation is stepped with a fast clock (numbers, no
-sleeping) through :class:`~telebot.services.follow.FollowService`, the robot's own path.
+room B: two rooms, two doors and a 7 m straight stretch. It is a simulated person
+(:class:`~telebot.robot.sim.people.Walker`: two legs in the laser, a figure in the
+cameras; the base cannot drive into it) and is tracked without error
+(:class:`TruthTracks`): this measures the follow controller, not the detector. The
+simulation is stepped with a fast clock (numbers, no sleeping) through
+:class:`~telebot.services.follow.FollowService`, the robot's own path.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 from telebot.config import FollowSettings, SimSettings
 from telebot.robot.nav import Pose2D
+from telebot.robot.perception.tracks import PersonTrack
+from telebot.robot.sim.people import Walker
 from telebot.robot.sim.stack import SimNavStack
-from telebot.robot.sim.world import Obstacle
 from telebot.services.follow import FollowService
 
 #: Where the robot starts: in room A, facing south towards the walker and the door.
@@ -29,82 +30,30 @@ ROUTE = ((2.5, 3.2), (2.5, 1.2), (9.5, 1.2), (9.5, 3.9))
 STRAIGHT = (ROUTE[1], ROUTE[2])
 #: Walking speed (m/s), within the robot's 0.5 m/s.
 WALK_SPEED = 0.4
-PERSON_RADIUS = 0.2
+#: The walker stands this long before setting off (s).
+START_DELAY = 1.0
 CONTROL_HZ = 20.0
 
 
-@dataclass(frozen=True, slots=True)
-class TrackedPerson:
-    """A track as the people tracker reports it (the fields follow-me reads)."""
-
-    id: int
-    x: float
-    y: float
-    vx: float
-    vy: float
-    last_seen: float
-
-
-class Walker:
-    """A person walking a route at a steady speed, standing still at its end."""
-
-    def __init__(
-        self, route: Sequence[tuple[float, float]], speed: float, start_at: float = 1.0
-    ) -> None:
-        self.route = list(route)
-        self.speed = speed
-        self.start_at = start_at
-        self.x, self.y = self.route[0]
-        self.vx = self.vy = 0.0
-        self._leg = 1
-        #: When the walker reached the end of its route (None while it walks).
-        self.stopped_at: float | None = None
-
-    @property
-    def leg(self) -> int:
-        """Index of the route point the walker heads for (len(route) once it stands)."""
-        return self._leg
-
-    def advance(self, now: float, dt: float) -> None:
-        """Walk on for ``dt`` seconds (ending at ``now``)."""
-        self.vx = self.vy = 0.0
-        if now < self.start_at or self._leg >= len(self.route):
-            return
-        left = self.speed * dt
-        while left > 1e-12 and self._leg < len(self.route):
-            tx, ty = self.route[self._leg]
-            gap = math.hypot(tx - self.x, ty - self.y)
-            if gap <= left:
-                self.x, self.y = tx, ty
-                left -= gap
-                self._leg += 1
-                if self._leg == len(self.route):
-                    self.stopped_at = now
-            else:
-                ux, uy = (tx - self.x) / gap, (ty - self.y) / gap
-                self.x += ux * left
-                self.y += uy * left
-                self.vx, self.vy = ux * self.speed, uy * self.speed
-                left = 0.0
-
-
 class TruthTracks:
-    """Tracks straight from the simulation's truth (id 1 is the walker)."""
+    """Tracks straight from the simulation's truth (a perfect people tracker)."""
 
-    def __init__(self, walker: Walker, clock: Callable[[], float]) -> None:
-        self.walker = walker
-        self.clock = clock
+    def __init__(self, nav: SimNavStack) -> None:
+        self.nav = nav
         #: Replaces the reported position when set (a detector error: a jumping track).
         self.override: tuple[float, float] | None = None
         self.visible = True
 
-    def tracks(self) -> list[TrackedPerson]:
-        """The walker's track, if visible."""
+    def tracks(self) -> list[PersonTrack]:
+        """Every simulated person's track, if visible."""
         if not self.visible:
             return []
-        w = self.walker
-        x, y = self.override if self.override is not None else (w.x, w.y)
-        return [TrackedPerson(1, x, y, w.vx, w.vy, self.clock())]
+        now = self.nav.now
+        out = []
+        for p in self.nav.people_truth():
+            x, y = self.override if self.override is not None else (p.x, p.y)
+            out.append(PersonTrack(p.id, x, y, p.vx, p.vy, 1.0, 0.0, now, frozenset({"laser"})))
+        return out
 
 
 @dataclass
@@ -146,43 +95,40 @@ class Walk:
         self, settings: FollowSettings | None = None, sim: SimSettings | None = None
     ) -> None:
         self.now = 0.0
-        self.nav = SimNavStack.from_settings(
+        base = SimNavStack.from_settings(
             sim if sim is not None else SimSettings(map="small", control_hz=CONTROL_HZ)
         )
-        # from_settings starts at the map's first place: put the robot where the walk starts.
-        self.nav = SimNavStack(
-            self.nav.map(), self.nav.places(), self.nav.settings, start=ROBOT_START
-        )
-        self.walker = Walker(ROUTE, WALK_SPEED)
-        self.people = TruthTracks(self.walker, lambda: self.now)
+        self.nav = SimNavStack(base.map(), base.places(), base.settings, start=ROBOT_START)
+        self.walker = Walker.along(ROUTE, speed=WALK_SPEED, start_delay=START_DELAY)
+        self.person = self.nav.add_person(self.walker)
+        self.people = TruthTracks(self.nav)
         self.service = FollowService(self.nav, settings, people=self.people)
-        self._obstacle = self.nav.add_obstacle(self._body())
         self.result = WalkResult()
 
-    def _body(self) -> Obstacle:
-        return Obstacle(self.walker.x, self.walker.y, PERSON_RADIUS)
+    @property
+    def walker_at(self) -> tuple[float, float]:
+        """Where the walker is now (ground truth)."""
+        truth = self.nav.people_truth()[0]
+        return truth.x, truth.y
 
     def step(self) -> None:
-        """One control cycle: the walker moves, the follow service commands, the sim moves."""
-        dt = 1.0 / CONTROL_HZ
-        self.now += dt
-        self.walker.advance(self.now, dt)
-        self.nav.remove_obstacle(self._obstacle)
-        self._obstacle = self.nav.add_obstacle(self._body())
-        # The daemon's order: the robot steps, then the follow commands the next cycle.
+        """One control cycle, in the daemon's order: the world and the robot move, then
+        the follow service commands the next cycle."""
+        self.now += 1.0 / CONTROL_HZ
         self.nav.step(self.now)
         self.service.tick(self.now)
         robot = self.nav.true_pose
-        w = self.walker
+        wx, wy = self.walker_at
         r = self.result
         r.t.append(self.now)
-        r.distance.append(math.hypot(w.x - robot.x, w.y - robot.y))
+        r.distance.append(math.hypot(wx - robot.x, wy - robot.y))
         r.speed.append(self.nav.velocity().linear)
         (sx, sy), (ex, _) = STRAIGHT
         # Both on the corridor leg, and the robot settled behind the corner (1 m past it).
-        on_leg = w.leg == 2 and abs(w.y - sy) < 1e-6 and w.x < ex
+        on_leg = abs(wy - sy) < 1e-6 and sx < wx < ex
         r.straight.append(on_leg and robot.x > sx + 1.0 and abs(robot.y - sy) < 0.3)
-        r.walker_stopped_at = w.stopped_at
+        if self.now >= self.walker.duration and r.walker_stopped_at is None:
+            r.walker_stopped_at = self.walker.duration
         r.collisions = self.nav.collisions
 
     def run(self, seconds: float) -> WalkResult:

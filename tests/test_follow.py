@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from follow_walk import TrackedPerson, Walk
+from follow_walk import Walk
 from telebot.channels.proto.session import CallStats
 from telebot.config import FollowSettings
 from telebot.identity import Role
@@ -27,6 +27,7 @@ from telebot.robot.follow import (
     pick_target,
 )
 from telebot.robot.nav import GoalStatus, Pose2D
+from telebot.robot.perception.tracks import PersonTrack
 from telebot.services.chat import ChatSession
 from telebot.services.follow import CallFollow, FollowService
 from telebot.services.proto.chat import (
@@ -46,8 +47,8 @@ DT = 0.05
 
 def person(
     x: float, y: float, t: float, vx: float = 0.0, vy: float = 0.0, pid: int = 1
-) -> TrackedPerson:
-    return TrackedPerson(pid, x, y, vx, vy, t)
+) -> PersonTrack:
+    return PersonTrack(pid, x, y, vx, vy, 1.0, 0.0, t)
 
 
 # -- the controller, with plain numbers --------------------------------------------------
@@ -290,9 +291,6 @@ class Guarded:
             self.call.last_heard = self.clock
         w = self.walk
         w.now = self.clock
-        w.walker.advance(w.now, DT)
-        w.nav.remove_obstacle(w._obstacle)
-        w._obstacle = w.nav.add_obstacle(w._body())
         w.nav.step(w.now)
         self.driver.tick()  # the supervisor first, as in RobotServer.run
         self.service.tick(w.now)
@@ -424,7 +422,7 @@ def test_refusals_when_nobody_is_tracked_or_the_id_does_not_exist() -> None:
     assert replies[-1].reason == Reason.UNKNOWN_TRACK
     assert replies[-1].text == "refused: no tracked person with id 7 (tracked: 1)"
     # Somebody tracked, but behind the robot: nobody in front.
-    w.walker.x, w.walker.y = 2.5, 6.0
+    w.people.override = (2.5, 6.0)
     session.handle_text(3, "follow")
     assert replies[-1].reason == Reason.NO_PERSON and "person 1, 1.6 m away" in replies[-1].text
     assert w.service.goal is None
