@@ -465,3 +465,13 @@ def test_another_motion_replaces_the_follow() -> None:
     final = [r for r in replies if r.id == 1][-1]
     assert final.reason == Reason.REPLACED and final.final
     assert w.nav.current_goal() is not None  # the turn runs on
+
+
+def test_users_see_the_robot_moving_while_it_follows_even_standing() -> None:
+    w = Walk()
+    session, _ = chat(w.service)
+    session.handle_text(1, "follow")
+    w.step()
+    assert str(w.service.status(w.nav.status())) == "moving: follow person 1"
+    w.service.unfollow()
+    assert w.service.status(w.nav.status()) == w.nav.status()

@@ -42,7 +42,7 @@ from telebot.robot.follow import (
     clearance_ahead,
     pick_target,
 )
-from telebot.robot.nav import GoalRecord, GoalStatus, NavStack, NavState, Pose2D
+from telebot.robot.nav import GoalRecord, GoalStatus, NavStack, NavState, NavStatus, Pose2D
 from telebot.safety import SafetyState
 
 __all__ = [
@@ -141,6 +141,14 @@ class FollowService:
     def controller(self) -> FollowController | None:
         """The running follow's controller, if any."""
         return self._controller
+
+    def status(self, status: NavStatus) -> NavStatus:
+        """The robot's status as users see it: ``moving: follow person N`` while following
+        (also while it waits for a standing person), else ``status`` unchanged."""
+        goal = self._goal
+        if goal is None or status.state is NavState.BLOCKED:
+            return status
+        return NavStatus(NavState.MOVING, goal.description)
 
     # -- commands ---------------------------------------------------------------------
 

@@ -334,7 +334,9 @@ class CallServices:
         nav = self.server.nav
         estimate = nav.pose()
         velocity = nav.velocity()
-        status = nav.status()
+        # While following, the robot is moving even as it waits for the person: a key in
+        # the terminal chat must stop it then too.
+        status = self.server.follow.status(nav.status())
         goal = nav.current_goal()
         cov = estimate.covariance
         update = PoseUpdate(
@@ -355,7 +357,7 @@ class CallServices:
         """Send battery, state, goal, camera, link quality and diagnostics."""
         nav = self.server.nav
         battery = nav.battery()
-        status = nav.status()
+        status = self.server.follow.status(nav.status())
         goal = nav.current_goal()
         rtt = self.call.stats.rtt
         safety = self.server.safety_status()
