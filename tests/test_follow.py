@@ -9,13 +9,15 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from follow_walk import Walk
 from telebot.channels.proto.session import CallStats
-from telebot.config import FollowSettings
+from telebot.config import FollowSettings, RobotConfig, load_toml
+from telebot.errors import ConfigError
 from telebot.identity import Role
 from telebot.reasons import Reason, Refusal
 from telebot.robot.follow import (
@@ -475,3 +477,15 @@ def test_users_see_the_robot_moving_while_it_follows_even_standing() -> None:
     assert str(w.service.status(w.nav.status())) == "moving: follow person 1"
     w.service.unfollow()
     assert w.service.status(w.nav.status()) == w.nav.status()
+
+
+def test_a_follow_config_with_min_distance_beyond_distance_is_one_clear_error(
+    tmp_path: Path,
+) -> None:
+    config = tmp_path / "robot.toml"
+    config.write_text("[follow]\ndistance = 1.0\nmin_distance = 1.5\n", encoding="utf-8")
+    with pytest.raises(ConfigError) as info:
+        load_toml(config, RobotConfig)
+    text = str(info.value)
+    assert "\n" not in text and "min_distance (1.5 m) must be below distance (1 m)" in text
+    assert str(config) in text

@@ -12,7 +12,7 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from telebot.errors import ConfigError
 
@@ -383,6 +383,15 @@ class FollowSettings(StrictModel):
     start_range: float = Field(default=5.0, gt=0, le=20.0)
     #: … and this angle either side of the robot's heading (degrees).
     front_angle_deg: float = Field(default=60.0, gt=0, le=180.0)
+
+    @model_validator(mode="after")
+    def _min_below_distance(self) -> FollowSettings:
+        if self.min_distance >= self.distance:
+            raise ValueError(
+                f"min_distance ({self.min_distance:g} m) must be below distance "
+                f"({self.distance:g} m)"
+            )
+        return self
 
 
 #: The streams ``[recording] streams`` may name: the robot's JSON channels.
