@@ -25,6 +25,7 @@ __all__ = [
     "CipherChoice",
     "FollowSettings",
     "MemorySettings",
+    "PeopleSettings",
     "ReconnectSettings",
     "RecordedStream",
     "RecordingSettings",
@@ -450,6 +451,30 @@ class RelaySettings(StrictModel):
     max_rate: float = Field(default=100.0, gt=0, le=1000)
 
 
+class PeopleSettings(StrictModel):
+    """``[people]``: person detection, tracking, the ``people`` stream and its alerts.
+
+    See :mod:`telebot.robot.perception` and ``docs/protocol.md`` (the ``people`` channel).
+    """
+
+    #: Detect and track people at all (off: the stream sends no tracks, no alerts).
+    enabled: bool = True
+    #: Laser scans looked at per second.
+    scan_hz: float = Field(default=10.0, gt=0, le=50)
+    #: Camera frames run through the HOG person detector per second (0: laser only).
+    camera_hz: float = Field(default=2.0, ge=0, le=30)
+    #: The camera the detector looks through.
+    camera: str = "navcam"
+    #: Rate of the ``people`` stream to each user (Hz).
+    stream_hz: float = Field(default=5.0, gt=0, le=20)
+    #: Someone closing in within this distance (m) raises "person approaching from …".
+    alert_distance: float = Field(default=2.5, gt=0, le=10.0)
+    #: Someone standing this close (m) in front of the usercam …
+    screen_distance: float = Field(default=1.5, gt=0, le=5.0)
+    #: … for this long (s) raises "someone is in front of the screen".
+    screen_seconds: float = Field(default=1.5, ge=0, le=60.0)
+
+
 class RobotConfig(AppConfig):
     """The config file of ``telebot-robot`` (``configs/robot.toml``): adds the robot."""
 
@@ -462,3 +487,4 @@ class RobotConfig(AppConfig):
     recording: RecordingSettings = Field(default_factory=RecordingSettings)
     relay: RelaySettings = Field(default_factory=RelaySettings)
     follow: FollowSettings = Field(default_factory=FollowSettings)
+    people: PeopleSettings = Field(default_factory=PeopleSettings)

@@ -5,7 +5,8 @@ it if it is a :class:`~telebot.robot.nav.SteppedNavStack` (``loop.time()`` is th
 simulation's clock; a robot that runs by itself is not stepped). Each call gets every
 service of the server's :class:`~telebot.services.base.ServiceRegistry`
 (:func:`default_robot_services`: ``core``, the :class:`CallServices` of chat, map, pose,
-goals, telemetry and safety; ``video``; ``plan``, the planned path and named places),
+goals, telemetry and safety; ``video``; ``plan``, the planned path and named places;
+``people``, tracked people and alerts),
 ticked on every cycle and closed when the call ends. The map is encoded once per
 :meth:`~telebot.robot.nav.NavStack.map_version` (:meth:`RobotServer.encoded_map`): a map
 that changes (SLAM) is served fresh, and each call's telemetry carries the version so users
@@ -27,17 +28,19 @@ from typing import Any, TypeVar
 from telebot.channels.call import Call, RobotEndpoint
 from telebot.channels.channel import Channel, ReceivedDatagram
 from telebot.channels.transports.base import Lane
-from telebot.config import FollowSettings, RelaySettings, ServiceSettings
+from telebot.config import FollowSettings, PeopleSettings, RelaySettings, ServiceSettings
 from telebot.errors import ProtocolError, TelebotError
 from telebot.identity import Role
 from telebot.reasons import Reason, Refusal
 from telebot.rights import Right, may
 from telebot.robot.nav import GoalHandle, GoalStatus, NavStack, PoseNotifier, SteppedNavStack
+from telebot.robot.perception.runner import PeoplePerception
 from telebot.safety import SafetyState
 from telebot.services.base import OpenServices, ServiceRegistry
 from telebot.services.chat import NO_SUPERVISOR, ChatSession, error_reason, goal_reason
 from telebot.services.follow import CallFollow, FollowService, TrackSource
 from telebot.services.mapxfer import MapService
+from telebot.services.people import PeopleService
 from telebot.services.plan import PlanService
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
 from telebot.services.proto.chat import ChatReply, decode_request
@@ -439,13 +442,15 @@ def _core(server: RobotServer, call: Call) -> CallServices:
 
 def default_robot_services() -> ServiceRegistry[RobotServer]:
     """The robot's built-in services: ``core`` (:class:`CallServices`), ``video``,
-    ``plan`` (:class:`~telebot.services.plan.PlanService`: planned path and places) and
-    ``relay`` (:class:`~telebot.services.relay.RelayService`: topics relayed as CDR)."""
+    ``plan`` (:class:`~telebot.services.plan.PlanService`: planned path and places),
+    ``relay`` (:class:`~telebot.services.relay.RelayService`: topics relayed as CDR) and
+    ``people`` (:class:`~telebot.services.people.PeopleService`: tracked people, alerts)."""
     registry: ServiceRegistry[RobotServer] = ServiceRegistry()
     registry.register("core", _core)
     registry.register("video", RobotVideo)
     registry.register("plan", PlanService)
     registry.register("relay", RelayService)
+    registry.register("people", PeopleService)
     return registry
 
 
@@ -473,8 +478,12 @@ class RobotServer:
         relay: RelaySettings | None = None,
         follow: FollowSettings | None = None,
         people: TrackSource | None = None,
+        people_settings: PeopleSettings | None = None,
     ) -> None:
         self.nav = nav
+        #: Person detection and tracking (``[people]``), stepped with the robot; the
+        #: ``people`` service streams its tracks and alerts.
+        self.perception = PeoplePerception(nav, people_settings)
         #: Who may relay which topics, and the relay's limits (``[relay]`` of the config).
         self.relay_settings = relay if relay is not None else RelaySettings()
         #: What every call gets (:func:`default_robot_services` unless given); register
@@ -486,9 +495,13 @@ class RobotServer:
         #: The safety supervisor's driver; None runs the robot without one (tests of the
         #: services alone): then nothing latches and roles alone decide who may drive.
         self.safety = safety
-        #: Follow-me (the ``follow`` command); ``people`` (the tracker) may be set later.
+        #: Follow-me (the ``follow`` command) on the people tracker's tracks (``people``
+        #: replaces them: a test's perfect tracker).
         self.follow = FollowService(
-            nav, follow, people=people, safety_state=safety.state if safety is not None else None
+            nav,
+            follow,
+            people=people if people is not None else self.perception,
+            safety_state=safety.state if safety is not None else None,
         )
         if safety is not None:
             safety.on_state = self._broadcast_safety
@@ -680,13 +693,15 @@ class RobotServer:
                 except Exception:
                     log.exception("safety tick failed: stopping the robot")
                     self._emergency("safety tick failed")
+            self._guarded(self._reencode_changed_map)
+            self._guarded(self.perception.step, now)
             try:
-                # After the supervisor's tick: a stop latched there ends the follow first.
+                # After the supervisor's tick (a stop latched there ends the follow first)
+                # and the people tracker's step (the freshest tracks).
                 self.follow.tick(now)
             except Exception:
                 log.exception("follow-me failed: stopping the robot")
                 self._emergency("follow-me failed")
-            self._guarded(self._reencode_changed_map)
             for opened in list(self.open.values()):
                 opened.tick(now)  # each service guarded
             next_step += period

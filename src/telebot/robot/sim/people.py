@@ -90,6 +90,8 @@ class PersonTruth:
     walking: bool
     legs: tuple[Obstacle, Obstacle]
     walker: Walker
+    #: Metres walked so far (the gait phase, for the cameras' figure).
+    travelled: float = 0.0
 
 
 def _segments(points: tuple[Waypoint, ...]) -> tuple[tuple[float, float, float], ...]:

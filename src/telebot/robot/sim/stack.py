@@ -556,6 +556,7 @@ class SimNavStack:
                     walking=state.walking,
                     legs=legs_of(state),
                     walker=walker,
+                    travelled=state.travelled,
                 )
             )
         self._people_now = tuple(truths)
