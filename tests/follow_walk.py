@@ -15,8 +15,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from telebot.config import FollowSettings, SimSettings
+from telebot.config import FollowSettings, PeopleSettings, SimSettings
+from telebot.reasons import Refusal
 from telebot.robot.nav import Pose2D
+from telebot.robot.perception.runner import PeoplePerception
 from telebot.robot.perception.tracks import PersonTrack
 from telebot.robot.sim.people import Walker
 from telebot.robot.sim.stack import SimNavStack
@@ -92,8 +94,14 @@ class Walk:
     """The robot, the walker and the follow service, stepped together."""
 
     def __init__(
-        self, settings: FollowSettings | None = None, sim: SimSettings | None = None
+        self,
+        settings: FollowSettings | None = None,
+        sim: SimSettings | None = None,
+        *,
+        perception: PeopleSettings | None = None,
     ) -> None:
+        """``perception``: track the walker with the robot's own people tracker (laser legs
+        and the HOG camera detector) instead of the simulation's truth."""
         self.now = 0.0
         base = SimNavStack.from_settings(
             sim if sim is not None else SimSettings(map="small", control_hz=CONTROL_HZ)
@@ -102,7 +110,13 @@ class Walk:
         self.walker = Walker.along(ROUTE, speed=WALK_SPEED, start_delay=START_DELAY)
         self.person = self.nav.add_person(self.walker)
         self.people = TruthTracks(self.nav)
-        self.service = FollowService(self.nav, settings, people=self.people)
+        self.perception = (
+            PeoplePerception(self.nav, perception, threaded=False)
+            if perception is not None
+            else None
+        )
+        source = self.perception if self.perception is not None else self.people
+        self.service = FollowService(self.nav, settings, people=source)
         self.result = WalkResult()
 
     @property
@@ -116,6 +130,8 @@ class Walk:
         the follow service commands the next cycle."""
         self.now += 1.0 / CONTROL_HZ
         self.nav.step(self.now)
+        if self.perception is not None:
+            self.perception.step(self.now)
         self.service.tick(self.now)
         robot = self.nav.true_pose
         wx, wy = self.walker_at
@@ -132,9 +148,16 @@ class Walk:
         r.collisions = self.nav.collisions
 
     def run(self, seconds: float) -> WalkResult:
-        """Follow for ``seconds`` of simulated time (or until the follow ends)."""
+        """Follow until ``seconds`` of simulated time (or until the follow ends).
+
+        With the robot's own tracker, the follow starts once it has confirmed the walker
+        (it is refused until then, as the driver's ``follow`` would be).
+        """
         started = self.service.start("call", None, self.now)
-        if not hasattr(started, "status"):
+        while isinstance(started, Refusal) and self.perception is not None and self.now < 5.0:
+            self.step()
+            started = self.service.start("call", None, self.now)
+        if isinstance(started, Refusal):
             raise AssertionError(f"follow refused: {started}")
         goal = self.service.goal
         assert goal is not None

@@ -16,7 +16,7 @@ import pytest
 
 from follow_walk import Walk
 from telebot.channels.proto.session import CallStats
-from telebot.config import FollowSettings, RobotConfig, load_toml
+from telebot.config import FollowSettings, PeopleSettings, RobotConfig, load_toml
 from telebot.errors import ConfigError
 from telebot.identity import Role
 from telebot.reasons import Reason, Refusal
@@ -208,9 +208,12 @@ def test_clearance_ahead_ignores_the_followed_person() -> None:
 # -- the scripted walk on the simulator ---------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def the_walk() -> Walk:
-    w = Walk()
+@pytest.fixture(scope="module", params=["truth", "laser_tracker"])
+def the_walk(request: pytest.FixtureRequest) -> Walk:
+    # The walker tracked by the simulation's truth, and by the robot's own leg tracker
+    # (laser only: the HOG camera detector's cost belongs to bench/_follow.py).
+    perception = PeopleSettings(camera_hz=0) if request.param == "laser_tracker" else None
+    w = Walk(perception=perception)
     w.run(34.0)
     return w
 
