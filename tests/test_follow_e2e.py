@@ -1,4 +1,5 @@
-"""Follow-me end to end: the page asks to follow a person, the robot follows, a key stops it.
+"""Follow-me end to end: the page asks to follow a person, the robot follows, a key stops
+it; a follow asked by chat over a call ends when the call drops.
 
 The in-process robot of ``test_web_ui`` (SimNavStack + SafetyDriver + RobotServer on a
 memory hub, the UI in Debian's chromium) with a simulated walker and a perfect tracker.
@@ -9,11 +10,17 @@ from __future__ import annotations
 import asyncio
 from pathlib import Path
 
-from conftest import USER
+from conftest import ROBOT, USER
 from follow_walk import TruthTracks
-from rig import SLACK
+from rig import FAST_SIM, GENEROUS_TIMEOUT, SLACK, robot_on_hub
+from telebot.channels.call import UserEndpoint
+from telebot.channels.transports.memory import MemoryHub, MemoryTransport
+from telebot.config import CallSettings
+from telebot.identity import Identity, KnownRobots
+from telebot.reasons import Reason
 from telebot.robot.nav import Velocity
 from telebot.robot.sim.people import Walker
+from telebot.services.client import RobotClient
 from test_web_ui import arm, browser_page, page_ready, robot_rig, wait_for
 
 
@@ -59,3 +66,47 @@ async def test_the_page_follows_a_clicked_person_and_any_key_ends_it(tmp_path: P
         await asyncio.sleep(0.3)  # the person walks on: the robot must not
         assert rig.nav.velocity() == Velocity()
         assert rig.stops()[-1] == (USER, "key")
+
+
+async def test_a_dropped_call_ends_the_follow_and_stops_the_robot(tmp_path: Path) -> None:
+    """Over a real call on the memory hub: ``follow`` by chat, then the link is cut."""
+    hub = MemoryHub(seed=3)
+    async with (
+        robot_on_hub(tmp_path, hub, timeout=GENEROUS_TIMEOUT, sim=FAST_SIM) as (
+            nav,
+            safety,
+            server,
+            _,
+        ),
+        MemoryTransport(hub, "user") as transport,
+        UserEndpoint(
+            transport,
+            Identity.load(tmp_path / "user"),
+            KnownRobots.load(tmp_path / "user"),
+            settings=CallSettings(timeout=GENEROUS_TIMEOUT),
+        ) as user,
+    ):
+        server.follow.people = TruthTracks(nav)
+        pose = nav.true_pose  # the start place: the corridor's west end, facing east
+        nav.add_person(Walker.along([(pose.x + 1.3, pose.y), (pose.x + 8.5, pose.y)], speed=0.4))
+        client = RobotClient(await user.call(ROBOT))
+        assert (await client.arm()).ok
+        replies = client.chat_replies("follow", timeout=30)
+        first = await anext(replies)
+        assert (first.text, first.reason) == ("following person 1", Reason.ACCEPTED)
+        await wait_for(lambda: nav.velocity().linear > 0.2, what="the robot following")
+        goal = server.follow.goal
+        assert goal is not None
+        hub.cut("robot", "user")  # the driver's link is gone: no hang-up, no stop
+        await wait_for(
+            lambda: server.follow.goal is None,
+            timeout=GENEROUS_TIMEOUT + 2.0 + SLACK,
+            what="the follow ended",
+        )
+        await wait_for(lambda: nav.velocity() == Velocity(), what="the robot stopped")
+        assert not safety.supervisor.armed
+        # Presence lost: the call dropped, the supervisor stopped, the follow ended with it.
+        assert goal.code == Reason.STOPPED and "dropped" in goal.reason, goal.reason
+        await asyncio.sleep(0.3)  # the person walks on: the robot must not
+        assert nav.velocity() == Velocity()
+        await replies.aclose()
