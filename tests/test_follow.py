@@ -30,6 +30,7 @@ from telebot.robot.follow import (
 )
 from telebot.robot.nav import GoalStatus, Pose2D
 from telebot.robot.perception.tracks import PersonTrack
+from telebot.robot.sim.world import Obstacle
 from telebot.services.chat import ChatSession
 from telebot.services.follow import CallFollow, FollowService
 from telebot.services.proto.chat import (
@@ -492,3 +493,21 @@ def test_a_follow_config_with_min_distance_beyond_distance_is_one_clear_error(
     text = str(info.value)
     assert "\n" not in text and "min_distance (1.5 m) must be below distance (1 m)" in text
     assert str(config) in text
+
+
+def test_an_obstacle_stepping_in_stops_the_robot_and_ends_the_follow() -> None:
+    w = Walk()
+    goal = w.service.start("call", None, w.now)
+    assert not isinstance(goal, Refusal)
+    for _ in range(int(14 / DT)):  # into the corridor, following at speed
+        w.step()
+    here = w.nav.true_pose
+    assert w.nav.velocity().linear > 0.3 and abs(here.y - 1.2) < 0.1
+    # Someone else steps in between (not the followed person): a box on the robot's way.
+    w.nav.add_obstacle(Obstacle(here.x + 0.8, here.y, 0.2))
+    for _ in range(int((SETTINGS.obstacle_timeout + 1.5) / DT)):
+        w.step()
+    assert goal.status is GoalStatus.FAILED and goal.code == Reason.OBSTACLE
+    assert goal.reason == "stopped following person 1: obstacle"
+    assert w.nav.collisions == 0
+    assert w.nav.velocity().linear == 0.0

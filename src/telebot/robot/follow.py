@@ -70,6 +70,8 @@ BRAKING_MARGIN = 0.1
 SMOOTHING = 0.5
 #: A standing person farther than ``distance`` + this (m) is still approached.
 STANDING_SLACK = 0.4
+#: An obstacle hold ends only after this long without one (s).
+UNBLOCKED_AFTER = 0.5
 #: Longest time step the controller integrates at once (s): a stalled loop must not turn
 #: into one big velocity change.
 MAX_DT = 0.2
@@ -165,7 +167,7 @@ def clearance_ahead(
     points: npt.NDArray[np.float64],
     radius: float,
     person: tuple[float, float] | None = None,
-    person_radius: float = 0.5,
+    person_radius: float = 0.35,
 ) -> float:
     """Free distance straight ahead of a round base (m), from laser hits in its own frame.
 
@@ -220,6 +222,7 @@ class FollowController:
         self._last_stamp = -math.inf
         self._trail: deque[tuple[float, float]] = deque()
         self._held_since: float | None = None
+        self._clear_since: float | None = None
         self._ended: Ended | None = None
         #: Measurements ignored as jumps (detector errors).
         self.jumps = 0
@@ -274,13 +277,19 @@ class FollowController:
         linear, angular, wanted, waiting = self._wanted(pose, distance, cap, clearance)
         held = (blocked or clearance <= BRAKING_MARGIN) and wanted
         if held:
+            self._clear_since = None
             if self._held_since is None:
                 self._held_since = now
             elif now - self._held_since >= self.settings.obstacle_timeout:
                 return self._end(Reason.OBSTACLE, "obstacle")
             linear = 0.0
-        else:
-            self._held_since = None
+        elif self._held_since is not None:
+            # A base held still flickers between blocked and clear (it is blocked only
+            # while it tries to move): clear means clear for a while.
+            if self._clear_since is None:
+                self._clear_since = now
+            elif now - self._clear_since >= UNBLOCKED_AFTER:
+                self._held_since = self._clear_since = None
         command = self._limit(Velocity(linear, angular), dt)
         self._command = command
         return Drive(command.linear, command.angular, distance, waiting)

@@ -42,7 +42,15 @@ from telebot.robot.follow import (
     clearance_ahead,
     pick_target,
 )
-from telebot.robot.nav import GoalRecord, GoalStatus, NavStack, NavState, NavStatus, Pose2D
+from telebot.robot.nav import (
+    GoalRecord,
+    GoalStatus,
+    LaserSource,
+    NavStack,
+    NavState,
+    NavStatus,
+    Pose2D,
+)
 from telebot.safety import SafetyState
 
 __all__ = [
@@ -50,7 +58,6 @@ __all__ = [
     "Drivable",
     "FollowGoal",
     "FollowService",
-    "LaserPoints",
     "TrackSource",
 ]
 
@@ -71,21 +78,6 @@ class Drivable(Protocol):
 
     def drive(self, linear: float, angular: float) -> None:
         """Command this velocity (m/s, rad/s; REP-103) until the next command."""
-        ...
-
-
-@runtime_checkable
-class LaserPoints(Protocol):
-    """A robot whose latest laser scan is at hand (the simulator)."""
-
-    def laser_scan(self) -> _Scan:
-        """The latest scan."""
-        ...
-
-
-class _Scan(Protocol):
-    def points(self) -> np.ndarray[tuple[int, int], np.dtype[np.float64]]:
-        """Hits in the base frame, ``(N, 2)``."""
         ...
 
 
@@ -303,10 +295,18 @@ class FollowService:
     def _clearance(self, pose: Pose2D, controller: FollowController) -> float:
         """Free distance ahead from the robot's laser, the followed person aside."""
         nav = self.nav
-        if not isinstance(nav, LaserPoints):
-            return math.inf  # a ROS 2 base guards itself (collision monitor); status still counts
+        if not isinstance(nav, LaserSource):
+            return math.inf  # a base without a laser here guards itself (collision monitor)
         try:
-            points = nav.laser_scan().points()
+            scan = nav.laser_scan()
+            if scan is None:
+                return 0.0  # fail safe: no scan yet, no driving ahead
+            angles = np.asarray(scan.angles, dtype=np.float64)
+            ranges = np.asarray(scan.ranges, dtype=np.float64)
+            hit = np.isfinite(ranges) & (ranges < scan.range_max)
+            points = np.column_stack(
+                (ranges[hit] * np.cos(angles[hit]), ranges[hit] * np.sin(angles[hit]))
+            )
         except Exception:
             log.exception("laser scan unavailable")
             return 0.0  # fail safe: no scan, no driving ahead
@@ -317,7 +317,7 @@ class FollowService:
             c, s = math.cos(pose.yaw), math.sin(pose.yaw)
             local = (dx * c + dy * s, -dx * s + dy * c)
         radius = float(getattr(getattr(nav, "settings", None), "robot_radius", 0.25))
-        return clearance_ahead(np.asarray(points, dtype=np.float64), radius, local)
+        return clearance_ahead(points, radius, local)
 
     def _nobody(self, tracks: Sequence[Track], pose: Pose2D) -> str:
         if not tracks:
