@@ -26,7 +26,7 @@ import zenoh
 from conftest import SLACK, Homes, free_port, wait_until
 from rig import Daemon, start_telebot_sim
 from telebot.config import RobotConfig
-from telebot.errors import RobotUnreachable
+from telebot.errors import InvalidCommand, RobotUnreachable
 from telebot.reasons import Reason
 from telebot.robot import create_robot
 from telebot.robot.nav import GoalStatus, NavState, PoseNotifier
@@ -742,3 +742,27 @@ async def test_table_i_commands_drive_telebot_sim_across_processes(tmp_path: Pat
     finally:
         daemon.stop(graceful=True)
         sim.stop(graceful=True)
+
+
+# --------------------------------------------------------------------------- follow-me
+
+
+async def test_drive_publishes_cmd_vel_within_the_caps_and_replaces_a_goal(
+    stack: Ros2NavStack, nav2: FakeNav2
+) -> None:
+    handle = stack.navigate_to(1.0, 1.0)
+    await wait_until(lambda: len(nav2.goals["navigate"]) == 1)
+    stack.set_speed_limit(0.3)
+    stack.drive(0.8, 5.0)  # follow-me's velocity: clipped to the speed cap and top turn
+    assert handle.status is GoalStatus.CANCELLED and handle.code == Reason.REPLACED
+    await wait_until(lambda: len(nav2.cancels) >= 1)
+    await wait_until(lambda: any(getattr(m, "twist", m).linear.x != 0.0 for _, m in nav2.cmd_vel))
+    twist = next(getattr(m, "twist", m) for _, m in nav2.cmd_vel if getattr(m, "twist", m).linear.x)
+    assert (twist.linear.x, twist.angular.z) == (pytest.approx(0.3), pytest.approx(1.0))
+    # A stop streams zeros; the next velocity (after a re-arm) ends the stream.
+    stack.stop()
+    assert stack._zero.streaming
+    stack.drive(0.1, 0.0)
+    assert not stack._zero.streaming
+    with pytest.raises(InvalidCommand):
+        stack.drive(math.nan, 0.0)

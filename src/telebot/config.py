@@ -12,7 +12,7 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from telebot.errors import ConfigError
 
@@ -23,6 +23,7 @@ __all__ = [
     "AppConfig",
     "CallSettings",
     "CipherChoice",
+    "FollowSettings",
     "MemorySettings",
     "PeopleSettings",
     "ReconnectSettings",
@@ -358,6 +359,42 @@ class SafetySettings(StrictModel):
     audit_log: Path = Path("audit.jsonl")
 
 
+class FollowSettings(StrictModel):
+    """``[follow]``: the follow-me primitive (``follow`` chat command, :mod:`telebot.robot.follow`).
+
+    Distances are between the centres of the robot and the person (metres).
+    """
+
+    #: Distance the robot keeps behind the person.
+    distance: float = Field(default=1.2, gt=0.3, le=5.0)
+    #: Closer than this the robot stops and the follow ends ("person too close").
+    min_distance: float = Field(default=0.6, gt=0.2, le=3.0)
+    #: Top speed while following (m/s); the safety cap and the robot's own limit still apply.
+    max_speed: float = Field(default=0.5, gt=0, le=HARD_MAX_LINEAR_SPEED)
+    #: A person unseen (or seen only jumping) this long is lost: the follow ends (s).
+    lost_after: float = Field(default=1.0, gt=0, le=10.0)
+    #: A track that moves further than this from where it should be between two updates is
+    #: a detector error: the jump is ignored, never followed (m).
+    max_jump: float = Field(default=0.8, gt=0, le=5.0)
+    #: A person slower than this stands: the robot stops too (m/s).
+    standing_speed: float = Field(default=0.15, gt=0, le=1.0)
+    #: Held up by an obstacle this long while the person walks on: the follow ends (s).
+    obstacle_timeout: float = Field(default=2.0, gt=0, le=60.0)
+    #: ``follow`` with no id picks the nearest person within this range (m) …
+    start_range: float = Field(default=5.0, gt=0, le=20.0)
+    #: … and this angle either side of the robot's heading (degrees).
+    front_angle_deg: float = Field(default=60.0, gt=0, le=180.0)
+
+    @model_validator(mode="after")
+    def _min_below_distance(self) -> FollowSettings:
+        if self.min_distance >= self.distance:
+            raise ValueError(
+                f"min_distance ({self.min_distance:g} m) must be below distance "
+                f"({self.distance:g} m)"
+            )
+        return self
+
+
 #: The streams ``[recording] streams`` may name: the robot's JSON channels.
 RecordedStream = Literal["pose", "telemetry", "plan", "goals", "chat", "safety"]
 ALL_RECORDED: tuple[RecordedStream, ...] = ("pose", "telemetry", "plan", "goals", "chat", "safety")
@@ -449,4 +486,5 @@ class RobotConfig(AppConfig):
     video: VideoConfig = Field(default_factory=VideoConfig)
     recording: RecordingSettings = Field(default_factory=RecordingSettings)
     relay: RelaySettings = Field(default_factory=RelaySettings)
+    follow: FollowSettings = Field(default_factory=FollowSettings)
     people: PeopleSettings = Field(default_factory=PeopleSettings)

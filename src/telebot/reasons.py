@@ -62,6 +62,12 @@ class Reason(enum.StrEnum):
     REPLACED = "replaced"
     BATTERY_EMPTY = "battery_empty"
     FAILED = "failed"
+    # Follow-me (the ``follow`` command): whom to follow, and why a follow ended.
+    NO_PERSON = "no_person"
+    UNKNOWN_TRACK = "unknown_track"
+    NO_PEOPLE_SOURCE = "no_people_source"
+    LOST_PERSON = "lost_person"
+    PERSON_TOO_CLOSE = "person_too_close"
 
 
 #: What each code means (the table of docs/protocol.md §13.1 says the same).
@@ -97,6 +103,11 @@ DESCRIPTIONS: dict[Reason, str] = {
     Reason.REPLACED: "a newer goal or manual driving replaced the motion",
     Reason.BATTERY_EMPTY: "the battery is empty",
     Reason.FAILED: "the motion failed for another reason (the text says which)",
+    Reason.NO_PERSON: "follow refused: nobody is tracked in front of the robot",
+    Reason.UNKNOWN_TRACK: "follow refused: no tracked person has that id (the text lists them)",
+    Reason.NO_PEOPLE_SOURCE: "follow refused: this robot tracks no people",
+    Reason.LOST_PERSON: "a follow ended: the person was lost (unseen, or only jumping tracks)",
+    Reason.PERSON_TOO_CLOSE: "a follow ended: the person came closer than the minimum distance",
 }
 
 

@@ -121,7 +121,9 @@ def build_parser() -> Parser:
         "per line runs to its end before the next, and the command exits after the last one "
         "(within --timeout). The robot starts stopped: send 'arm' before moving it. If the "
         "call drops, chat calls the robot again by itself and says so on stderr ([reconnect] "
-        "in the config); the robot stays stopped until you send 'arm' again.",
+        "in the config); the robot stays stopped until you send 'arm' again. 'follow' "
+        "makes the robot follow the person in front of it (any key stops that too); 'help' "
+        "lists every command.",
     )
     send = commands.add_parser(
         "send",

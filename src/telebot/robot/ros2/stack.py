@@ -1122,6 +1122,39 @@ class Ros2NavStack:
         )
         return self._send(goal, message)
 
+    def drive(self, linear: float, angular: float) -> None:
+        """One velocity command on ``cmd_vel`` (follow-me); repeat it at the control rate.
+
+        The linear speed is clipped to the speed cap in force and the turn to ``[ros2]
+        max_angular_speed``. It ends the zero stream of an earlier stop and cancels a
+        running goal (manual driving replaces it, as on the simulator). A base stops by
+        itself when the commands stop coming (its cmd_vel timeout); :meth:`stop` streams
+        zeros.
+        """
+        require_finite(linear=linear, angular=angular)
+        cap = self._speed_limit
+        top_turn = self._settings.max_angular_speed
+        linear = max(-cap, min(cap, float(linear)))
+        angular = max(-top_turn, min(top_turn, float(angular)))
+        with self._lock:
+            goal = self._goal
+        if goal is not None:
+            self._end(goal, GoalStatus.CANCELLED, "replaced by manual driving", Reason.REPLACED)
+            if goal.ros_id is not None:
+                self._cancel_remote(goal)
+        self._zero.end()
+        twist = {"linear": {"x": linear}, "angular": {"z": angular}}
+        if self._settings.twist_stamped:
+            now = time.time()
+            sec = math.floor(now)
+            header = self._header.make(
+                stamp=self._time.make(sec=int(sec), nanosec=int((now - sec) * 1e9)),
+                frame_id=self._settings.base_frame,
+            )
+            self._cmd_vel.publish(self._twist_stamped.make(header=header, twist=twist))
+        else:
+            self._cmd_vel.publish(self._twist.make(**twist))
+
     def stop(self) -> None:
         """Stop now: cancel every goal of the three actions and stream zero velocity."""
         self._halt("stopped", Reason.STOPPED)

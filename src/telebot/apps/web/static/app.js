@@ -427,9 +427,16 @@
     const text = input.value.trim();
     input.value = "";
     if (!text) return;
-    addChat("> " + text, "cmd");
-    send({ type: "chat", id: ++chatId, text });
+    sendChat(text);
   });
+  // A chat command from page code (static/follow.js), shown in the log like a typed one;
+  // returns its request id (replies carry it), or 0 when the page is not connected.
+  function sendChat(text) {
+    addChat("> " + text, "cmd");
+    const id = ++chatId;
+    return send({ type: "chat", id, text }) ? id : 0;
+  }
+  ui.chat = sendChat;
 
   resize();
   connect();
