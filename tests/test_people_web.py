@@ -42,5 +42,8 @@ async def test_the_page_draws_people_marks_them_in_the_video_and_shows_alerts(
                 }"""
             )
             assert yellow > 20
+            # Listed under the video with a follow button (follow-me picks it by id).
+            row = await page.locator("#people-list .person").first.inner_text()
+            assert row.startswith("#") and "ahead" in row and "follow" in row
             ARTIFACTS.mkdir(exist_ok=True)
             await page.screenshot(path=str(ARTIFACTS / "web_ui_people.png"))

@@ -1,7 +1,9 @@
 // telebot web UI: people near the robot (the robot's `people` stream, see
 // telebot/apps/web/server.py). Draws each tracked person on the map (a disc, its id and
 // where it walks), marks them in the video (a box at the person's bearing, sized by the
-// distance), and shows alerts in the chat and as a banner over the video.
+// distance), lists them under the video with a "follow" button each (the follow-me page
+// code, static/follow.js, listens for the "telebot:follow" event), and shows alerts in the
+// chat and as a banner over the video.
 "use strict";
 
 (function () {
@@ -28,6 +30,47 @@
     box.appendChild(banner);
   }
   let bannerTimer = null;
+
+  // One row per tracked person, kept while the id lives (a row rebuilt under the pointer
+  // would swallow the click on its button).
+  const list = document.createElement("div");
+  list.id = "people-list";
+  if (box) box.parentNode.insertBefore(list, box.nextSibling);
+  const rows = new Map();
+  function side(b) {
+    const deg = b * 180 / Math.PI;
+    if (Math.abs(deg) <= 30) return "ahead";
+    if (Math.abs(deg) >= 150) return "behind";
+    return deg > 0 ? "left" : "right";
+  }
+  function showList() {
+    const msg = ui.state.people;
+    const live = new Set();
+    for (const t of msg ? msg.tracks : []) {
+      live.add(t.id);
+      let row = rows.get(t.id);
+      if (!row) {
+        row = document.createElement("div");
+        row.className = "person";
+        const label = document.createElement("span");
+        const follow = document.createElement("button");
+        follow.textContent = "follow";
+        follow.className = "drive";
+        follow.disabled = !ui.state.mayDrive;
+        follow.title = "follow this person (any key stops)";
+        follow.onclick = () => document.dispatchEvent(
+          new CustomEvent("telebot:follow", { detail: { id: t.id } }));
+        row.append(label, " ", follow);
+        list.appendChild(row);
+        rows.set(t.id, row);
+      }
+      row.firstChild.textContent = "#" + t.id + " · " + t.r.toFixed(1) + " m " + side(t.b) +
+        (t.src.includes("camera") ? " · seen" : "");
+    }
+    for (const [id, row] of rows) {
+      if (!live.has(id)) { row.remove(); rows.delete(id); }
+    }
+  }
 
   function markVideo() {
     if (!video || !box) return;
@@ -62,6 +105,7 @@
     if (m.type === "people") {
       ui.state.people = m;
       markVideo();
+      showList();
       ui.draw();
     } else if (m.type === "people_alert") {
       ui.state.peopleAlerts.push(m);
