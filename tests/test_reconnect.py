@@ -299,7 +299,7 @@ async def test_a_registered_service_opens_ticks_closes_and_reopens_with_the_call
         await wait_until(lambda: log.of("robot", "close") == [first])
         assert log.of("user", "close") == [first]
         assert log.of("robot", "open") == log.of("user", "open") == [first, second]
-        assert r.server.open[second].names() == ["core", "video", "plan", "relay", "toy"]
+        assert r.server.open[second].names() == ["core", "video", "plan", "relay", "people", "toy"]
         new_toy = r.client.services["toy"]
         assert isinstance(new_toy, Toy) and new_toy is not user_toy
         new_toy.channel.send(b"2")
