@@ -33,6 +33,10 @@ Websocket protocol (JSON text messages unless stated)::
       {"type": "plan", "seq", "goal", "points": [[x, y], ...]}   the robot's planned path
                                                          (map frame; [] when it has none)
       {"type": "places", "places": [{"name", "x", "y", "yaw"}, ...]}   named places
+      {"type": "people", "seq", "t", "cams": {NAME: FOV_DEG}, "tracks": [{"id", "x", "y",
+       "vx", "vy", "c", "src", "r", "b"}, ...]}           tracked people (5 Hz; the
+                                                         robot's ``people`` message)
+      {"type": "people_alert", "kind", "id", "text", "distance", "bearing"}   once each
       {"type": "chat", "id", "text", "ok", "final", "code"}   replies, to the page that asked
       {"type": "ack", "what": "stop" | "arm" | ..., "ok", "reason", "code"}
       {"type": "pong", "t"}
@@ -82,6 +86,7 @@ from telebot.reasons import Reason
 from telebot.rights import Right, may
 from telebot.services.client import ConnectionEvent, RobotClient
 from telebot.services.mapxfer import MapDownload
+from telebot.services.proto.people import PeopleAlertMessage
 from telebot.services.proto.plan import Place, PlanUpdate
 from telebot.services.proto.safety import STOP_HOWS, SafetyAck
 from telebot.services.proto.status import GoalUpdate, PoseUpdate
@@ -187,6 +192,7 @@ class WebUI:
             sockets = getattr(server, "sockets", None) or []
             self.port = int(sockets[0].getsockname()[1])
         self.client.on_connection.append(self._on_connection)
+        self.client.on_people_alert.append(self._on_people_alert)
         self._map_fetch = self._spawn(self._fetch_map())
         pumps = (
             self._pump_pose,
@@ -194,6 +200,7 @@ class WebUI:
             self._pump_safety,
             self._pump_plan,
             self._pump_places,
+            self._pump_people,
         )
         for pump in pumps:
             self._spawn(pump())
@@ -207,6 +214,8 @@ class WebUI:
         self._closing = True
         with contextlib.suppress(ValueError):
             self.client.on_connection.remove(self._on_connection)
+        with contextlib.suppress(ValueError):
+            self.client.on_people_alert.remove(self._on_people_alert)
         if self._video is not None:
             self._video()
             self._video = None
@@ -548,6 +557,17 @@ class WebUI:
         latest = self.client.latest_places
         while True:
             self._broadcast(self._places_message(await latest.next()))
+
+    async def _pump_people(self) -> None:
+        latest = self.client.latest_people
+        while True:
+            update = await latest.next()
+            self._broadcast(json.loads(update.encode()))
+
+    def _on_people_alert(self, alert: PeopleAlertMessage) -> None:
+        message = json.loads(alert.encode())
+        message["type"] = "people_alert"
+        self._broadcast(message)
 
     async def _pump_safety(self) -> None:
         latest = self.client.latest_safety

@@ -135,9 +135,10 @@ class PeoplePerception:
                 self._next_scan = now + 1.0 / self.settings.scan_hz
                 self._scan(now)
             camera_due = self.settings.camera_hz > 0 and now >= self._next_frame
-            if camera_due and self._pending is None and self._someone_in_view():
+            near = self._in_view() if camera_due and self._pending is None else []
+            if near:
                 self._next_frame = now + 1.0 / self.settings.camera_hz
-                self._start_frame(now)
+                self._start_frame(now, near)
             self.tracker.tick(now)
             pose = self.nav.pose().pose
             for alert in self.watcher.update(now, pose, self.tracker.tracks()):
@@ -198,20 +199,22 @@ class PeoplePerception:
             self._hog = HogPeopleDetector()
         return self._hog
 
-    def _someone_in_view(self) -> bool:
+    def _in_view(self) -> list[tuple[float, float]]:
         # HOG costs tens of milliseconds a frame: it looks only when the laser has a
-        # candidate (tentative tracks too) in front of the camera, to confirm it.
+        # candidate (tentative tracks too) in front of the camera, and only where it is.
         pose = self.nav.pose().pose
         fov = self._fov()
         if fov is None:
-            return False
+            return []
         half = math.radians(fov) / 2.0 + CAMERA_MARGIN
+        near = []
         for x, y in self.tracker.candidates():
             dx, dy = x - pose.x, y - pose.y
             bearing = normalize_angle(math.atan2(dy, dx) - pose.yaw)
-            if abs(bearing) <= half and math.hypot(dx, dy) <= CAMERA_RANGE:
-                return True
-        return False
+            distance = math.hypot(dx, dy)
+            if abs(bearing) <= half and distance <= CAMERA_RANGE:
+                near.append((bearing, distance))
+        return near
 
     def _fov(self) -> float | None:
         if self._camera_fov is None:
@@ -219,7 +222,7 @@ class PeoplePerception:
             self._camera_fov = infos.get(self.settings.camera, math.nan)
         return None if math.isnan(self._camera_fov) else self._camera_fov
 
-    def _start_frame(self, now: float) -> None:
+    def _start_frame(self, now: float, near: list[tuple[float, float]]) -> None:
         fov = self._fov()
         if fov is None:
             return
@@ -227,11 +230,11 @@ class PeoplePerception:
         pose = self.nav.pose().pose
         detector = self._detector()
         if not self._threaded:
-            self._camera_done(now, pose, detector.detect(frame.image, fov))
+            self._camera_done(now, pose, detector.detect(frame.image, fov, near))
             return
         if self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="people-hog")
-        future = self._pool.submit(detector.detect, frame.image, fov)
+        future = self._pool.submit(detector.detect, frame.image, fov, near)
         self._pending = (future, pose, now)
 
     def _collect_frame(self, now: float) -> None:

@@ -13,6 +13,7 @@ NavStack                     ROS 2
                              ``map`` → ``base_link`` chain of ``/tf`` + ``/tf_static``
 ``velocity()``               ``/odom`` ``nav_msgs/Odometry`` twist
 ``battery()``                ``/battery_state`` ``sensor_msgs/BatteryState`` (low < 20 %)
+``laser_scan()``             ``/scan`` ``sensor_msgs/LaserScan`` (people detection)
 ``planned_path()``           ``/plan`` ``nav_msgs/Path`` while a navigation goal runs
 ``get_frame()``              ``sensor_msgs/CompressedImage`` topics of ``[ros2] cameras``,
                              subscribed while frames are asked for; ``navcam`` is black
@@ -77,6 +78,7 @@ from telebot.robot.nav import (
     require_finite,
 )
 from telebot.robot.ros2.convert import (
+    ScanData,
     TfTree,
     battery_from_msg,
     covariance_xy_yaw,
@@ -86,6 +88,7 @@ from telebot.robot.ros2.convert import (
     path_from_msg,
     pose_from_msg,
     quaternion_fields,
+    scan_from_msg,
 )
 from telebot.robot.ros2.keys import EntityKind, GraphEntity, QoS, action_names
 from telebot.robot.ros2.node import DEFAULT_QOS, ActionClient, Ros2Node, Subscription
@@ -335,6 +338,7 @@ class Ros2NavStack:
         self._odom_at = 0.0
         self._scan_at = 0.0
         self._scan_beams = 0
+        self._scan: ScanData | None = None
         self._battery: Battery | None = None
         self._battery_at = 0.0
         self._path: tuple[Pose2D, ...] = ()
@@ -705,9 +709,20 @@ class Ros2NavStack:
 
     def _on_scan(self, msg: Any, _attachment: Any) -> None:
         beams = len(msg.ranges)
+        try:
+            scan: ScanData | None = scan_from_msg(msg)
+        except ValueError:
+            scan = None  # counted as a scan for health; not looked at for people
         with self._lock:
             self._scan_beams = beams
             self._scan_at = time.monotonic()
+            if scan is not None:
+                self._scan = scan
+
+    def laser_scan(self) -> ScanData | None:
+        """The latest ``scan`` message (for person detection), None before the first."""
+        with self._lock:
+            return self._scan
 
     def _on_battery(self, msg: Any, _attachment: Any) -> None:
         battery = battery_from_msg(msg, BATTERY_LOW_PERCENT)

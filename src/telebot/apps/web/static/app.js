@@ -20,6 +20,9 @@
     stats: { keyTimes: [], poseDraw: [], frameTimes: [] },
   };
   window.telebotUI = ui;
+  // Extensions (static/people.js, …): called with each websocket message and after each
+  // map draw (ctx, worldToScreen, pixels per metre).
+  ui.hooks = { message: [], draw: [] };
 
   // ------------------------------------------------------------------ websocket
   let ws = null;
@@ -105,6 +108,7 @@
       case "error": addChat("error: " + m.text, "fail"); break;
       default: break;
     }
+    for (const hook of ui.hooks.message) hook(m);
   }
 
   // ------------------------------------------------------------------ status
@@ -271,6 +275,7 @@
       ctx.beginPath(); ctx.moveTo(rx, ry);
       ctx.lineTo(rx + Math.cos(p.yaw) * r * 1.6, ry - Math.sin(p.yaw) * r * 1.6); ctx.stroke();
     }
+    for (const hook of ui.hooks.draw) hook(ctx, worldToScreen, pxm);
     // A goal being dragged: where, and the heading.
     if (drag && drag.kind === "goal") {
       ctx.strokeStyle = "#ff0"; ctx.lineWidth = 2;
@@ -406,6 +411,7 @@
   $("usercam").onclick = () => send({ type: "camera", id: ++chatId, name: "usercam" });
 
   // ------------------------------------------------------------------ chat
+  ui.addChat = (text, cls) => addChat(text, cls);
   function addChat(text, cls) {
     const log = $("chat-log");
     const div = document.createElement("div");
