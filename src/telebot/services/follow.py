@@ -120,7 +120,6 @@ class FollowService:
         self._goal: FollowGoal | None = None
         self._call: str | None = None
         self._next_id = 1
-        self._now = -math.inf
         #: The last command sent while following (for telemetry and tests).
         self.last_drive: Drive | None = None
 
@@ -185,7 +184,7 @@ class FollowService:
         )
         goal = FollowGoal(self, self._next_id, chosen.id)
         self._next_id += 1
-        self._goal, self._call, self._now = goal, call_id, now
+        self._goal, self._call = goal, call_id
         distance = math.hypot(chosen.x - pose.x, chosen.y - pose.y)
         log.info("following person %s (%.1f m away) for call %s", chosen.id, distance, call_id)
         return goal
@@ -231,7 +230,6 @@ class FollowService:
         goal, controller = self._goal, self._controller
         if goal is None or controller is None:
             return
-        self._now = now
         cap = self.nav.speed_limit
         if self._safety_state is not None:
             state = self._safety_state()
