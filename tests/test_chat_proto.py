@@ -241,7 +241,7 @@ def test_command_error_is_a_protocol_error_and_a_value_error() -> None:
 def test_usage_covers_table_one_and_help_lists_every_usage_line() -> None:
     table_one = {"goto", "getmap", "where?", "fwd", "turn", "left", "right", "navcam", "usercam"}
     ours = {"stop", "cancel", "places", "topics", "status", "battery", "help"}
-    ours |= {"arm", "take", "release"}
+    ours |= {"arm", "take", "release", "follow", "unfollow"}
     assert set(USAGE) == table_one | ours
     for line in USAGE.values():
         assert line.startswith("usage: ")

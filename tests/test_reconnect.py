@@ -305,6 +305,7 @@ async def test_a_registered_service_opens_ticks_closes_and_reopens_with_the_call
             "plan",
             "relay",
             "conference",
+            "people",
             "toy",
         ]
         new_toy = r.client.services["toy"]

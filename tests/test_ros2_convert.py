@@ -23,6 +23,7 @@ from telebot.robot.ros2.convert import (
     path_from_msg,
     pose_from_msg,
     quaternion_fields,
+    scan_from_msg,
     yaw_of,
 )
 from telebot.robot.ros2.types import TypeLibrary
@@ -190,3 +191,27 @@ def test_nav2_error_codes_map_to_reasons() -> None:
     assert nav2_reason(204) is Reason.NO_PATH  # GOAL_OUTSIDE_MAP
     assert nav2_reason(723) is Reason.OBSTACLE  # DriveOnHeading COLLISION_AHEAD
     assert nav2_reason(9000) is Reason.FAILED
+
+
+def test_a_laser_scan_message_becomes_scan_data_for_people_detection() -> None:
+    ranges = np.array([1.0, math.inf, 0.01, 50.0, math.nan, 2.5], dtype=np.float32)
+    scan = scan_from_msg(
+        wire(
+            "sensor_msgs/msg/LaserScan",
+            msg(
+                "sensor_msgs/msg/LaserScan",
+                angle_min=0.5,
+                angle_max=-0.5,
+                angle_increment=-0.2,
+                range_min=0.05,
+                range_max=10.0,
+                ranges=ranges,
+            ),
+        )
+    )
+    # A clockwise scanner comes out in increasing angles; readings out of range are inf.
+    assert scan.angles == pytest.approx([-0.5, -0.3, -0.1, 0.1, 0.3, 0.5])
+    assert list(scan.ranges) == [2.5, math.inf, math.inf, math.inf, math.inf, 1.0]
+    assert scan.range_max == 10.0
+    with pytest.raises(ValueError, match="angle_increment"):
+        scan_from_msg(msg("sensor_msgs/msg/LaserScan", angle_increment=0.0, range_max=10.0))

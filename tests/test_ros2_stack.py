@@ -7,6 +7,7 @@ process; :mod:`telebot.robot.ros2.stack` reaches it through a zenoh router, as i
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import math
@@ -26,15 +27,17 @@ import zenoh
 from conftest import SLACK, Homes, free_port, wait_until
 from rig import Daemon, start_telebot_sim
 from telebot.config import RobotConfig
-from telebot.errors import RobotUnreachable
-from telebot.reasons import Reason
+from telebot.errors import InvalidCommand, RobotUnreachable
+from telebot.reasons import Reason, Refusal
 from telebot.robot import create_robot
 from telebot.robot.nav import GoalStatus, NavState, PoseNotifier
+from telebot.robot.perception.tracks import PersonTrack
 from telebot.robot.ros2 import stack as stack_module
 from telebot.robot.ros2.convert import quaternion_fields
 from telebot.robot.ros2.keys import QoS
 from telebot.robot.ros2.node import Ros2Node
 from telebot.robot.ros2.stack import Ros2NavStack
+from telebot.services.follow import FollowService
 
 pytestmark = pytest.mark.zenoh
 
@@ -742,3 +745,82 @@ async def test_table_i_commands_drive_telebot_sim_across_processes(tmp_path: Pat
     finally:
         daemon.stop(graceful=True)
         sim.stop(graceful=True)
+
+
+# --------------------------------------------------------------------------- follow-me
+
+
+async def test_drive_publishes_cmd_vel_within_the_caps_and_replaces_a_goal(
+    stack: Ros2NavStack, nav2: FakeNav2
+) -> None:
+    handle = stack.navigate_to(1.0, 1.0)
+    await wait_until(lambda: len(nav2.goals["navigate"]) == 1)
+    stack.set_speed_limit(0.3)
+    stack.drive(0.8, 5.0)  # follow-me's velocity: clipped to the speed cap and top turn
+    assert handle.status is GoalStatus.CANCELLED and handle.code == Reason.REPLACED
+    await wait_until(lambda: len(nav2.cancels) >= 1)
+    await wait_until(lambda: any(getattr(m, "twist", m).linear.x != 0.0 for _, m in nav2.cmd_vel))
+    twist = next(getattr(m, "twist", m) for _, m in nav2.cmd_vel if getattr(m, "twist", m).linear.x)
+    assert (twist.linear.x, twist.angular.z) == (pytest.approx(0.3), pytest.approx(1.0))
+    # A stop streams zeros; the next velocity (after a re-arm) ends the stream.
+    stack.stop()
+    assert stack._zero.streaming
+    stack.drive(0.1, 0.0)
+    assert not stack._zero.streaming
+    with pytest.raises(InvalidCommand):
+        stack.drive(math.nan, 0.0)
+
+
+async def test_follow_me_drives_a_ros2_robot_on_cmd_vel_once_its_laser_sees_the_way_clear(
+    stack: Ros2NavStack, nav2: FakeNav2
+) -> None:
+    nav2.publish_state()  # the robot at (1.0, 0.5), heading 45°
+    await wait_until(lambda: stack.pose().pose.x == pytest.approx(1.0))
+    heading = math.pi / 4
+    ux, uy = math.cos(heading), math.sin(heading)
+    now = [0.0]
+
+    class Ahead:
+        """One person 2 m ahead, walking away at 0.3 m/s."""
+
+        def tracks(self) -> list[PersonTrack]:
+            x, y = 1.0 + ux * (2.0 + 0.3 * now[0]), 0.5 + uy * (2.0 + 0.3 * now[0])
+            return [PersonTrack(4, x, y, 0.3 * ux, 0.3 * uy, 1.0, 0.0, now[0])]
+
+    follow = FollowService(stack, people=Ahead())
+    goal = follow.start("call", None, 0.0)
+    assert not isinstance(goal, Refusal) and goal.description == "follow person 4"
+
+    def tick_for(seconds: float) -> None:
+        end = now[0] + seconds
+        while now[0] < end:
+            now[0] += 0.05
+            follow.tick(now[0])
+
+    def linear() -> list[float]:
+        return [getattr(m, "twist", m).linear.x for _, m in list(nav2.cmd_vel)]
+
+    # No scan yet: it does not drive ahead. Odometry says 0.25 m/s: it brakes from there
+    # within its deceleration limit, never speeding up.
+    tick_for(1.0)
+    await wait_until(lambda: len(nav2.cmd_vel) >= 20)
+    speeds = linear()
+    assert speeds[0] <= 0.25 and all(b <= a for a, b in itertools.pairwise(speeds))
+    assert speeds[-1] == 0.0
+    nav2.cmd_vel.clear()
+    scan = nav2.node.publisher("scan", nav2.m("sensor_msgs/msg/LaserScan"))
+    scan.publish(
+        nav2.m("sensor_msgs/msg/LaserScan").make(
+            angle_min=-math.pi,
+            angle_increment=math.pi / 180,
+            range_min=0.1,
+            range_max=10.0,
+            ranges=np.full(360, np.inf, dtype=np.float32),
+        )
+    )
+    await wait_until(lambda: stack.laser_scan() is not None)
+    tick_for(0.5)
+    await wait_until(lambda: max(linear(), default=0.0) > 0.1)
+    assert max(linear()) <= stack.speed_limit + 1e-9
+    follow.unfollow()  # the robot stops: zero velocity streams
+    assert stack._zero.streaming

@@ -59,6 +59,8 @@ class Rig:
     audit: Path
     #: Wall-clock times (s) at which the base's velocity became zero by a stop.
     zeroed: list[float] = field(default_factory=list)
+    #: The robot's server (its follow-me service: ``server.follow``).
+    server: RobotServer | None = None
 
     def stops(self) -> list[tuple[str, str]]:
         """Who stopped the robot and how, from its audit log (a repeated stop once)."""
@@ -139,7 +141,7 @@ async def robot_rig(
                 call = await user.call(ROBOT, timeout=10)
                 client = RobotClient(call)
                 async with WebUI(client, port=0, user=USER) as ui:
-                    yield Rig(nav, safety, client, ui, audit, zeroed)
+                    yield Rig(nav, safety, client, ui, audit, zeroed, server)
                 with contextlib.suppress(Exception):
                     await call.hangup()
             finally:

@@ -12,7 +12,7 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from telebot.errors import ConfigError
 
@@ -23,7 +23,9 @@ __all__ = [
     "AppConfig",
     "CallSettings",
     "CipherChoice",
+    "FollowSettings",
     "MemorySettings",
+    "PeopleSettings",
     "ReconnectSettings",
     "RecordedStream",
     "RecordingSettings",
@@ -399,6 +401,42 @@ class SafetySettings(StrictModel):
     audit_log: Path = Path("audit.jsonl")
 
 
+class FollowSettings(StrictModel):
+    """``[follow]``: the follow-me primitive (``follow`` chat command, :mod:`telebot.robot.follow`).
+
+    Distances are between the centres of the robot and the person (metres).
+    """
+
+    #: Distance the robot keeps behind the person.
+    distance: float = Field(default=1.2, gt=0.3, le=5.0)
+    #: Closer than this the robot stops and the follow ends ("person too close").
+    min_distance: float = Field(default=0.6, gt=0.2, le=3.0)
+    #: Top speed while following (m/s); the safety cap and the robot's own limit still apply.
+    max_speed: float = Field(default=0.5, gt=0, le=HARD_MAX_LINEAR_SPEED)
+    #: A person unseen (or seen only jumping) this long is lost: the follow ends (s).
+    lost_after: float = Field(default=1.0, gt=0, le=10.0)
+    #: A track that moves further than this from where it should be between two updates is
+    #: a detector error: the jump is ignored, never followed (m).
+    max_jump: float = Field(default=0.8, gt=0, le=5.0)
+    #: A person slower than this stands: the robot stops too (m/s).
+    standing_speed: float = Field(default=0.15, gt=0, le=1.0)
+    #: Held up by an obstacle this long while the person walks on: the follow ends (s).
+    obstacle_timeout: float = Field(default=2.0, gt=0, le=60.0)
+    #: ``follow`` with no id picks the nearest person within this range (m) …
+    start_range: float = Field(default=5.0, gt=0, le=20.0)
+    #: … and this angle either side of the robot's heading (degrees).
+    front_angle_deg: float = Field(default=60.0, gt=0, le=180.0)
+
+    @model_validator(mode="after")
+    def _min_below_distance(self) -> FollowSettings:
+        if self.min_distance >= self.distance:
+            raise ValueError(
+                f"min_distance ({self.min_distance:g} m) must be below distance "
+                f"({self.distance:g} m)"
+            )
+        return self
+
+
 #: The streams ``[recording] streams`` may name: the robot's JSON channels.
 RecordedStream = Literal["pose", "telemetry", "plan", "goals", "chat", "safety"]
 ALL_RECORDED: tuple[RecordedStream, ...] = ("pose", "telemetry", "plan", "goals", "chat", "safety")
@@ -455,6 +493,30 @@ class RelaySettings(StrictModel):
     max_rate: float = Field(default=100.0, gt=0, le=1000)
 
 
+class PeopleSettings(StrictModel):
+    """``[people]``: person detection, tracking, the ``people`` stream and its alerts.
+
+    See :mod:`telebot.robot.perception` and ``docs/protocol.md`` (the ``people`` channel).
+    """
+
+    #: Detect and track people at all (off: the stream sends no tracks, no alerts).
+    enabled: bool = True
+    #: Laser scans looked at per second.
+    scan_hz: float = Field(default=10.0, gt=0, le=50)
+    #: Camera frames run through the HOG person detector per second (0: laser only).
+    camera_hz: float = Field(default=2.0, ge=0, le=30)
+    #: The camera the detector looks through.
+    camera: str = "navcam"
+    #: Rate of the ``people`` stream to each user (Hz).
+    stream_hz: float = Field(default=5.0, gt=0, le=20)
+    #: Someone closing in within this distance (m) raises "person approaching from …".
+    alert_distance: float = Field(default=2.5, gt=0, le=10.0)
+    #: Someone standing this close (m) in front of the usercam …
+    screen_distance: float = Field(default=1.5, gt=0, le=5.0)
+    #: … for this long (s) raises "someone is in front of the screen".
+    screen_seconds: float = Field(default=1.5, ge=0, le=60.0)
+
+
 class RobotConfig(AppConfig):
     """The config file of ``telebot-robot`` (``configs/robot.toml``): adds the robot."""
 
@@ -466,3 +528,5 @@ class RobotConfig(AppConfig):
     video: VideoConfig = Field(default_factory=VideoConfig)
     recording: RecordingSettings = Field(default_factory=RecordingSettings)
     relay: RelaySettings = Field(default_factory=RelaySettings)
+    follow: FollowSettings = Field(default_factory=FollowSettings)
+    people: PeopleSettings = Field(default_factory=PeopleSettings)

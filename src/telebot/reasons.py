@@ -66,6 +66,12 @@ class Reason(enum.StrEnum):
     EMPTY = "empty"
     TOO_LONG = "too_long"
     TOO_FAST = "too_fast"
+    # Follow-me (the ``follow`` command): whom to follow, and why a follow ended.
+    NO_PERSON = "no_person"
+    UNKNOWN_TRACK = "unknown_track"
+    NO_PEOPLE_SOURCE = "no_people_source"
+    LOST_PERSON = "lost_person"
+    PERSON_TOO_CLOSE = "person_too_close"
 
 
 #: What each code means (the table of docs/protocol.md §13.1 says the same).
@@ -104,6 +110,11 @@ DESCRIPTIONS: dict[Reason, str] = {
     Reason.EMPTY: "a conference message with no text",
     Reason.TOO_LONG: "a conference message longer than 1000 characters",
     Reason.TOO_FAST: "more than 10 conference messages in 10 s from one call: wait",
+    Reason.NO_PERSON: "follow refused: nobody is tracked in front of the robot",
+    Reason.UNKNOWN_TRACK: "follow refused: no tracked person has that id (the text lists them)",
+    Reason.NO_PEOPLE_SOURCE: "follow refused: this robot tracks no people",
+    Reason.LOST_PERSON: "a follow ended: the person was lost (unseen, or only jumping tracks)",
+    Reason.PERSON_TOO_CLOSE: "a follow ended: the person came closer than the minimum distance",
 }
 
 

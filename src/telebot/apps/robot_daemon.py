@@ -126,6 +126,8 @@ async def serve_robot(
                 ),
                 services=services,
                 relay=config.relay,
+                follow=config.follow,
+                people_settings=config.people,
             )
             await server.prepare()
             with stop_on_signals(stop):

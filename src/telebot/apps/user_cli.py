@@ -124,7 +124,9 @@ def build_parser() -> Parser:
         "call drops, chat calls the robot again by itself and says so on stderr ([reconnect] "
         "in the config); the robot stays stopped until you send 'arm' again. Everyone in the "
         "robot's calls is a conference: 'say TEXT' reaches all of them with your name; their "
-        "messages, the robot's announcements and who is in the call show on stderr.",
+        "messages, the robot's announcements and who is in the call show on stderr. 'follow' "
+        "makes the robot follow the person in front of it (any key stops that too); 'help' "
+        "lists every command.",
     )
     send = commands.add_parser(
         "send",

@@ -17,6 +17,7 @@ from telebot.errors import CallEnded
 from telebot.services.client import ConnectionEvent, RobotClient, connect
 from telebot.services.proto.chat import ChatReply
 from telebot.services.proto.conference import Message, Roster, say_text
+from telebot.services.proto.people import PeopleAlertMessage
 
 __all__ = ["chat_session", "format_pose", "get_map", "send_command", "where"]
 
@@ -46,6 +47,11 @@ async def _robot(
 def _say_connection(event: ConnectionEvent) -> None:
     """Tell the chat user the call dropped / came back (stderr: stdout is the replies)."""
     print(f"[{event}]", file=sys.stderr, flush=True)
+
+
+def _say_people_alert(alert: PeopleAlertMessage) -> None:
+    """Tell the chat user about someone near the robot (stderr, like connection news)."""
+    print(f"[{alert.text}]", file=sys.stderr, flush=True)
 
 
 class _Progress:
@@ -223,6 +229,7 @@ async def chat_session(
     ):
         client.on_connection.append(_say_connection)
         _show_conference(client)
+        client.on_people_alert.append(_say_people_alert)
         print(
             f"connected to {robot} (role {client.call.role}); type help, Ctrl-D to leave",
             file=sys.stderr,

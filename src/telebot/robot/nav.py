@@ -24,6 +24,8 @@ Two more abilities, each its own protocol, say how the daemon runs an adapter:
 - :class:`SteppedNavStack` (optional): an adapter driven by the caller's clock (the
   simulator) has ``step(now)``, which the daemon calls at its control rate; an adapter that
   runs by itself (a real robot's stack) has none and is not stepped.
+- :class:`LaserSource` (optional): an adapter with a 2-D laser gives its latest scan, for
+  person detection (:mod:`telebot.robot.perception`).
 - :class:`PoseNotifier` (optional): an adapter whose poses arrive by themselves (a real
   robot's localisation) says when a new one is in, so the daemon sends it to users at once
   instead of at its next poll.
@@ -54,6 +56,8 @@ __all__ = [
     "GoalHandle",
     "GoalRecord",
     "GoalStatus",
+    "LaserScanLike",
+    "LaserSource",
     "NavStack",
     "NavState",
     "NavStatus",
@@ -459,4 +463,32 @@ class TopicSource(Protocol):
         """Call ``callback(cdr, stamp)`` with each message of ``name`` (CDR with its 4-byte
         encapsulation header; ``stamp`` is ``time.time()`` when it came), from any thread.
         Raises LookupError for a topic that is not there."""
+        ...
+
+
+class LaserScanLike(Protocol):
+    """A planar laser scan in the robot frame (REP-103), as a ROS ``LaserScan`` has it."""
+
+    @property
+    def angles(self) -> npt.NDArray[np.float64]:
+        """Beam angles (radians, CCW from the heading), increasing."""
+        ...
+
+    @property
+    def ranges(self) -> npt.NDArray[np.float64]:
+        """Metres; ``range_max`` or more, ``inf`` or NaN where nothing was hit."""
+        ...
+
+    @property
+    def range_max(self) -> float:
+        """The scanner's range (metres)."""
+        ...
+
+
+@runtime_checkable
+class LaserSource(Protocol):
+    """An adapter that has a 2-D laser: its latest scan (None before the first one)."""
+
+    def laser_scan(self) -> LaserScanLike | None:
+        """The latest scan; the same object until a new one is in."""
         ...

@@ -47,6 +47,7 @@ from telebot.services.proto.chat import (
     ChatReply,
     Command,
     CommandError,
+    Follow,
     Forward,
     GetMap,
     GotoPlace,
@@ -62,6 +63,7 @@ from telebot.services.proto.chat import (
     TakeDrive,
     Topics,
     Turn,
+    Unfollow,
     UserCam,
     Where,
     decode_request,
@@ -72,11 +74,13 @@ from telebot.services.relay import allowed_topic
 
 __all__ = [
     "FINISHED",
+    "NO_FOLLOW",
     "NO_SUPERVISOR",
     "OBSERVER_REFUSAL",
     "UNBLOCK_POLLS",
     "ChatSession",
     "DriveGate",
+    "FollowHook",
     "error_reason",
     "goal_reason",
 ]
@@ -98,7 +102,20 @@ _ACK_TURN = "Turn command received"
 # The right each command needs beyond observing (table: telebot.rights).
 _NEEDS: dict[type, Privilege] = {
     **dict.fromkeys(
-        (GotoPlace, GotoPoint, Forward, Turn, Left, Right, Cancel, Arm, TakeDrive, ReleaseDrive),
+        (
+            GotoPlace,
+            GotoPoint,
+            Forward,
+            Turn,
+            Left,
+            Right,
+            Cancel,
+            Arm,
+            TakeDrive,
+            ReleaseDrive,
+            Follow,
+            Unfollow,
+        ),
         Privilege.DRIVE,
     ),
     NavCam: Privilege.CAMERA,
@@ -108,7 +125,7 @@ _NEEDS: dict[type, Privilege] = {
 # Commands that move the robot or change what it shows: logged at INFO.
 _DRIVING = tuple(command for command, right in _NEEDS.items() if right is not Privilege.STOP)
 # Commands that start a motion: the safety supervisor must allow each.
-_MOVING = (GotoPlace, GotoPoint, Forward, Turn, Left, Right)
+_MOVING = (GotoPlace, GotoPoint, Forward, Turn, Left, Right, Follow)
 
 
 def _describe(command: Command) -> str:
@@ -122,6 +139,8 @@ def _describe(command: Command) -> str:
             return f"fwd {metres:g}"
         case Turn(degrees):
             return f"turn {degrees:g}"
+        case Follow(target):
+            return "follow" if target is None else f"follow {target}"
         case _:
             return type(command).__name__.lower()
 
@@ -157,6 +176,21 @@ class DriveGate(Protocol):
         ...
 
 
+class FollowHook(Protocol):
+    """The robot's follow-me for one caller (see :mod:`telebot.services.follow`)."""
+
+    def start(self, target: int | None) -> GoalHandle | Refusal:
+        """Follow ``target`` (None: the nearest person in front): the follow, or why not."""
+        ...
+
+    def unfollow(self) -> bool:
+        """End the running follow (the robot stops); False when there was none."""
+        ...
+
+
+#: The reply to ``follow`` on a robot without follow-me.
+NO_FOLLOW = "this robot cannot follow people"
+
 #: Replies to the drive-holding commands when the robot runs no supervisor.
 NO_SUPERVISOR = "this robot has no safety supervisor: nothing to arm or hand over"
 
@@ -191,8 +225,10 @@ class ChatSession:
         gate: DriveGate | None = None,
         map_offer: Callable[[], EncodedMap] | None = None,
         relay: RelaySettings | None = None,
+        follow: FollowHook | None = None,
     ) -> None:
         self._nav = nav
+        self._follow = follow
         self._role = role
         # Which topics the caller may relay (``topics``): the robot's [relay] config.
         self._relay = relay if relay is not None else RelaySettings()
@@ -326,6 +362,19 @@ class ChatSession:
                     return
                 nav.select_camera(camera)
                 self._reply(request_id, f"{nav.active_camera} selected")
+            case Follow(target):
+                if self._follow is None:
+                    self._reply(request_id, NO_FOLLOW, Reason.NO_PEOPLE_SOURCE, ok=False)
+                    return
+                started = self._follow.start(target)
+                if isinstance(started, Refusal):
+                    self._refused(request_id, started)
+                    return
+                self._start_motion(request_id, started, _following(started))
+            case Unfollow():
+                stopped = self._follow is not None and self._follow.unfollow()
+                self._finish_done_motions()  # the follow's final reply goes first
+                self._reply(request_id, "stopped following" if stopped else "not following anyone")
             case Where():
                 self._reply(request_id, self._where())
             case Places():
@@ -528,6 +577,11 @@ def _final_text(handle: GoalHandle) -> str:
     if reason.startswith(("stopped", "cancelled")):
         return reason
     return f"cancelled: {reason}"
+
+
+def _following(handle: GoalHandle) -> str:
+    """The acknowledgement of a follow: "following person 3"."""
+    return handle.description.replace("follow", "following", 1)
 
 
 def _metres(value: float) -> str:

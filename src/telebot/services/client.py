@@ -54,10 +54,12 @@ from telebot.reasons import Reason
 from telebot.services.base import CLIENT_TICK, OpenServices, ServiceRegistry
 from telebot.services.conference import ConferenceReceiver, ConferenceState
 from telebot.services.mapxfer import MapDownload, fetch_map
+from telebot.services.people import PeopleReceiver
 from telebot.services.plan import PlanReceiver
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
 from telebot.services.proto.chat import ChatReply, decode_reply, encode_request
 from telebot.services.proto.conference import Said
+from telebot.services.proto.people import PeopleAlertMessage, PeopleUpdate, TrackInfo
 from telebot.services.proto.plan import Place, PlanUpdate
 from telebot.services.proto.relay import (
     RelayedMessage,
@@ -222,6 +224,10 @@ def _plan(client: RobotClient, call: Call) -> PlanReceiver:
     return PlanReceiver(call, client.latest_plan.set, client.latest_places.set)
 
 
+def _people(client: RobotClient, call: Call) -> PeopleReceiver:
+    return PeopleReceiver(call, client.latest_people.set, client._on_people_alert)
+
+
 def _relay(client: RobotClient, call: Call) -> RelayReceiver:
     return RelayReceiver(call)
 
@@ -229,13 +235,15 @@ def _relay(client: RobotClient, call: Call) -> RelayReceiver:
 def default_client_services() -> ServiceRegistry[RobotClient]:
     """The user side's built-in services: ``core`` (:class:`ClientCore`), ``video``,
     ``plan`` (the robot's planned path and named places), ``relay`` (relayed topics) and
-    ``conference`` (the roster and messages of everyone in the robot's calls)."""
+    ``conference`` (the roster and messages of everyone in the robot's calls) and
+    ``people`` (tracked people and alerts)."""
     registry: ServiceRegistry[RobotClient] = ServiceRegistry()
     registry.register("core", ClientCore)
     registry.register("video", _video)
     registry.register("plan", _plan)
     registry.register("relay", _relay)
     registry.register("conference", ConferenceReceiver)
+    registry.register("people", _people)
     return registry
 
 
@@ -285,6 +293,11 @@ class RobotClient:
         self.latest_plan: _Latest[PlanUpdate] = _Latest()
         #: The robot's named places by name (see :attr:`places`).
         self.latest_places: _Latest[Mapping[str, Place]] = _Latest()
+        #: The people the robot tracks (see :meth:`people`, :meth:`people_updates`).
+        self.latest_people: _Latest[PeopleUpdate] = _Latest()
+        #: The newest people alert (see :meth:`people_alerts`); callbacks get every one.
+        self.latest_people_alert: _Latest[PeopleAlertMessage] = _Latest()
+        self.on_people_alert: list[Callable[[PeopleAlertMessage], None]] = []
         #: Datagrams from the robot that did not decode (dropped).
         self.rejected = 0
         #: The robot's conference: roster, messages, ``say`` (lives across reconnections).
@@ -730,6 +743,29 @@ class RobotClient:
         client, as :meth:`poses` does."""
         while True:
             yield await self._until_finished(self.latest_plan.next())
+
+    def people(self) -> tuple[TrackInfo, ...]:
+        """The people the robot tracks now (its latest ``people`` message; empty before it)."""
+        update = self.latest_people.value
+        return update.tracks if update is not None else ()
+
+    async def people_updates(self) -> AsyncIterator[PeopleUpdate]:
+        """Each ``people`` message as it comes (5 Hz; latest only). Ends with the client."""
+        while True:
+            yield await self._until_finished(self.latest_people.next())
+
+    async def people_alerts(self) -> AsyncIterator[PeopleAlertMessage]:
+        """Alerts as they come ("person approaching from the left, 2.1 m"; latest only)."""
+        while True:
+            yield await self._until_finished(self.latest_people_alert.next())
+
+    def _on_people_alert(self, alert: PeopleAlertMessage) -> None:
+        self.latest_people_alert.set(alert)
+        for callback in list(self.on_people_alert):
+            try:
+                callback(alert)
+            except Exception:
+                log.exception("people alert callback failed")
 
     @property
     def places(self) -> Mapping[str, Place]:

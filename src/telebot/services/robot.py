@@ -5,7 +5,8 @@ it if it is a :class:`~telebot.robot.nav.SteppedNavStack` (``loop.time()`` is th
 simulation's clock; a robot that runs by itself is not stepped). Each call gets every
 service of the server's :class:`~telebot.services.base.ServiceRegistry`
 (:func:`default_robot_services`: ``core``, the :class:`CallServices` of chat, map, pose,
-goals, telemetry and safety; ``video``; ``plan``, the planned path and named places),
+goals, telemetry and safety; ``video``; ``plan``, the planned path and named places;
+``people``, tracked people and alerts),
 ticked on every cycle and closed when the call ends. The map is encoded once per
 :meth:`~telebot.robot.nav.NavStack.map_version` (:meth:`RobotServer.encoded_map`): a map
 that changes (SLAM) is served fresh, and each call's telemetry carries the version so users
@@ -27,17 +28,20 @@ from typing import Any, TypeVar
 from telebot.channels.call import Call, RobotEndpoint
 from telebot.channels.channel import Channel, ReceivedDatagram
 from telebot.channels.transports.base import Lane
-from telebot.config import RelaySettings, ServiceSettings
+from telebot.config import FollowSettings, PeopleSettings, RelaySettings, ServiceSettings
 from telebot.errors import ProtocolError, TelebotError
 from telebot.identity import Role
 from telebot.reasons import Reason, Refusal
 from telebot.rights import Right, may
 from telebot.robot.nav import GoalHandle, GoalStatus, NavStack, PoseNotifier, SteppedNavStack
+from telebot.robot.perception.runner import PeoplePerception
 from telebot.safety import SafetyState
 from telebot.services.base import OpenServices, ServiceRegistry
 from telebot.services.chat import NO_SUPERVISOR, ChatSession, error_reason, goal_reason
 from telebot.services.conference import RobotConference
+from telebot.services.follow import CallFollow, FollowService, TrackSource
 from telebot.services.mapxfer import MapService
+from telebot.services.people import PeopleService
 from telebot.services.plan import PlanService
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
 from telebot.services.proto.chat import ChatReply, decode_request
@@ -114,6 +118,7 @@ class CallServices:
             gate=self.gate,
             map_offer=server.encoded_map,
             relay=server.relay_settings,
+            follow=CallFollow(server.follow, call.id, server.now),
         )
         self.map = MapService(call.channel(MAP, lane=Lane.BULK), server.encoded_map)
         # The first tick publishes both at once (a new user sees the robot straight away).
@@ -333,7 +338,9 @@ class CallServices:
         nav = self.server.nav
         estimate = nav.pose()
         velocity = nav.velocity()
-        status = nav.status()
+        # While following, the robot is moving even as it waits for the person: a key in
+        # the terminal chat must stop it then too.
+        status = self.server.follow.status(nav.status())
         goal = nav.current_goal()
         cov = estimate.covariance
         update = PoseUpdate(
@@ -354,7 +361,7 @@ class CallServices:
         """Send battery, state, goal, camera, link quality and diagnostics."""
         nav = self.server.nav
         battery = nav.battery()
-        status = nav.status()
+        status = self.server.follow.status(nav.status())
         goal = nav.current_goal()
         rtt = self.call.stats.rtt
         safety = self.server.safety_status()
@@ -436,15 +443,17 @@ def _core(server: RobotServer, call: Call) -> CallServices:
 
 def default_robot_services() -> ServiceRegistry[RobotServer]:
     """The robot's built-in services: ``core`` (:class:`CallServices`), ``video``,
-    ``plan`` (:class:`~telebot.services.plan.PlanService`: planned path and places) and
-    ``relay`` (:class:`~telebot.services.relay.RelayService`: topics relayed as CDR) and
-    ``conference`` (:class:`~telebot.services.conference.RobotConference`: roster, messages)."""
+    ``plan`` (:class:`~telebot.services.plan.PlanService`: planned path and places),
+    ``relay`` (:class:`~telebot.services.relay.RelayService`: topics relayed as CDR),
+    ``conference`` (:class:`~telebot.services.conference.RobotConference`: roster, messages) and
+    ``people`` (:class:`~telebot.services.people.PeopleService`: tracked people, alerts)."""
     registry: ServiceRegistry[RobotServer] = ServiceRegistry()
     registry.register("core", _core)
     registry.register("video", RobotVideo)
     registry.register("plan", PlanService)
     registry.register("relay", RelayService)
     registry.register("conference", RobotConference)
+    registry.register("people", PeopleService)
     return registry
 
 
@@ -470,8 +479,14 @@ class RobotServer:
         video: VideoSettings | None = None,
         services: ServiceRegistry[RobotServer] | None = None,
         relay: RelaySettings | None = None,
+        follow: FollowSettings | None = None,
+        people: TrackSource | None = None,
+        people_settings: PeopleSettings | None = None,
     ) -> None:
         self.nav = nav
+        #: Person detection and tracking (``[people]``), stepped with the robot; the
+        #: ``people`` service streams its tracks and alerts.
+        self.perception = PeoplePerception(nav, people_settings)
         #: Who may relay which topics, and the relay's limits (``[relay]`` of the config).
         self.relay_settings = relay if relay is not None else RelaySettings()
         #: What every call gets (:func:`default_robot_services` unless given); register
@@ -483,6 +498,14 @@ class RobotServer:
         #: The safety supervisor's driver; None runs the robot without one (tests of the
         #: services alone): then nothing latches and roles alone decide who may drive.
         self.safety = safety
+        #: Follow-me (the ``follow`` command) on the people tracker's tracks (``people``
+        #: replaces them: a test's perfect tracker).
+        self.follow = FollowService(
+            nav,
+            follow,
+            people=people if people is not None else self.perception,
+            safety_state=safety.state if safety is not None else None,
+        )
         if safety is not None:
             safety.on_state = self._broadcast_safety
         self.settings = settings if settings is not None else ServiceSettings()
@@ -596,6 +619,7 @@ class RobotServer:
             # happens in the clean-up after it.
             if self.safety is not None:
                 self._guarded(self.safety.leave, call)
+            self._guarded(self.follow.call_ended, call.id)
             self.services.pop(call.id, None)
             opened = self.open.pop(call.id, None)
             if opened is not None:  # None: setting the services up failed
@@ -646,6 +670,8 @@ class RobotServer:
         return SafetyStatus(state.armed, state.reason, holder, state.cap, state.blocked)
 
     def _broadcast_safety(self, state: SafetyState) -> None:
+        # A stop or a hand-over ends a follow before anyone hears of it.
+        self._guarded(self.follow.safety_changed, state)
         status = SafetyStatus(state.armed, state.reason, state.holder, state.cap, state.blocked)
         for services in list(self.services.values()):
             self._guarded(services.send_safety_state, status)
@@ -671,6 +697,14 @@ class RobotServer:
                     log.exception("safety tick failed: stopping the robot")
                     self._emergency("safety tick failed")
             self._guarded(self._reencode_changed_map)
+            self._guarded(self.perception.step, now)
+            try:
+                # After the supervisor's tick (a stop latched there ends the follow first)
+                # and the people tracker's step (the freshest tracks).
+                self.follow.tick(now)
+            except Exception:
+                log.exception("follow-me failed: stopping the robot")
+                self._emergency("follow-me failed")
             for opened in list(self.open.values()):
                 opened.tick(now)  # each service guarded
             next_step += period

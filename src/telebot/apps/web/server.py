@@ -35,6 +35,10 @@ Websocket protocol (JSON text messages unless stated)::
       {"type": "plan", "seq", "goal", "points": [[x, y], ...]}   the robot's planned path
                                                          (map frame; [] when it has none)
       {"type": "places", "places": [{"name", "x", "y", "yaw"}, ...]}   named places
+      {"type": "people", "seq", "t", "cams": {NAME: FOV_DEG}, "tracks": [{"id", "x", "y",
+       "vx", "vy", "c", "src", "r", "b"}, ...]}           tracked people (5 Hz; the
+                                                         robot's ``people`` message)
+      {"type": "people_alert", "kind", "id", "text", "distance", "bearing"}   once each
       {"type": "chat", "id", "text", "ok", "final", "code"}   replies, to the page that asked
       {"type": "ack", "what": "stop" | "arm" | ..., "ok", "reason", "code"}
       {"type": "pong", "t"}
@@ -89,6 +93,7 @@ from telebot.rights import Right, may
 from telebot.services.client import ConnectionEvent, RobotClient
 from telebot.services.mapxfer import MapDownload
 from telebot.services.proto.conference import Message, Roster, say_text
+from telebot.services.proto.people import PeopleAlertMessage
 from telebot.services.proto.plan import Place, PlanUpdate
 from telebot.services.proto.safety import STOP_HOWS, SafetyAck
 from telebot.services.proto.status import GoalUpdate, PoseUpdate
@@ -213,6 +218,7 @@ class WebUI:
         self.client.on_connection.append(self._on_connection)
         self.client.conference.on_message.append(self._on_conference_message)
         self.client.conference.on_roster.append(self._on_roster)
+        self.client.on_people_alert.append(self._on_people_alert)
         self._map_fetch = self._spawn(self._fetch_map())
         pumps = (
             self._pump_pose,
@@ -220,6 +226,7 @@ class WebUI:
             self._pump_safety,
             self._pump_plan,
             self._pump_places,
+            self._pump_people,
         )
         for pump in pumps:
             self._spawn(pump())
@@ -236,6 +243,7 @@ class WebUI:
             self.client.conference.on_message.remove(self._on_conference_message)
         with contextlib.suppress(ValueError):
             self.client.conference.on_roster.remove(self._on_roster)
+            self.client.on_people_alert.remove(self._on_people_alert)
         if self._video is not None:
             self._video()
             self._video = None
@@ -628,6 +636,17 @@ class WebUI:
         latest = self.client.latest_places
         while True:
             self._broadcast(self._places_message(await latest.next()))
+
+    async def _pump_people(self) -> None:
+        latest = self.client.latest_people
+        while True:
+            update = await latest.next()
+            self._broadcast(json.loads(update.encode()))
+
+    def _on_people_alert(self, alert: PeopleAlertMessage) -> None:
+        message = json.loads(alert.encode())
+        message["type"] = "people_alert"
+        self._broadcast(message)
 
     async def _pump_safety(self) -> None:
         latest = self.client.latest_safety

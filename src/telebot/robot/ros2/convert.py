@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from telebot.reasons import Reason
 from telebot.robot.grid import OccupancyGrid
@@ -22,6 +23,7 @@ from telebot.robot.nav import Battery, Pose2D, normalize_angle
 
 __all__ = [
     "ORIGIN_YAW_TOLERANCE",
+    "ScanData",
     "TfTree",
     "battery_from_msg",
     "compose",
@@ -32,6 +34,7 @@ __all__ = [
     "path_from_msg",
     "pose_from_msg",
     "quaternion_fields",
+    "scan_from_msg",
     "yaw_of",
 ]
 
@@ -146,6 +149,37 @@ def battery_from_msg(msg: Any, low_percent: float) -> Battery:
     percent = min(max(percent, 0.0), 100.0)
     charging = int(msg.power_supply_status) == _POWER_SUPPLY_STATUS_CHARGING
     return Battery(percent=round(percent, 2), low=percent < low_percent, charging=charging)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class ScanData:
+    """A ``sensor_msgs/LaserScan`` as :class:`~telebot.robot.nav.LaserScanLike` (people)."""
+
+    angles: npt.NDArray[np.float64]
+    ranges: npt.NDArray[np.float64]
+    range_max: float
+
+
+def scan_from_msg(msg: Any) -> ScanData:
+    """A ``sensor_msgs/LaserScan`` as :class:`ScanData`; readings outside the scanner's
+    ``range_min`` … ``range_max`` become ``inf`` (nothing there). ValueError when malformed.
+
+    The scan is taken as seen from the base's centre, facing its heading (a laser mounted
+    off-centre or turned is off by that much).
+    """
+    ranges = np.asarray(msg.ranges, dtype=np.float64)
+    start, step = float(msg.angle_min), float(msg.angle_increment)
+    low, high = float(msg.range_min), float(msg.range_max)
+    if not (_finite(start, step, high) and step != 0.0 and high > 0.0 and ranges.ndim == 1):
+        raise ValueError("laser scan with a bad angle_min, angle_increment or range_max")
+    angles = start + step * np.arange(len(ranges), dtype=np.float64)
+    if step < 0:  # a scanner turning the other way: increasing angles, as the detector wants
+        angles, ranges = angles[::-1], ranges[::-1]
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(ranges) | (ranges < (low if math.isfinite(low) else 0.0))
+        bad |= ranges > high
+    ranges = np.where(bad, np.inf, ranges)
+    return ScanData(np.ascontiguousarray(angles), np.ascontiguousarray(ranges), high)
 
 
 def nav2_reason(error_code: int) -> Reason:

@@ -13,6 +13,7 @@ NavStack                     ROS 2
                              ``map`` → ``base_link`` chain of ``/tf`` + ``/tf_static``
 ``velocity()``               ``/odom`` ``nav_msgs/Odometry`` twist
 ``battery()``                ``/battery_state`` ``sensor_msgs/BatteryState`` (low < 20 %)
+``laser_scan()``             ``/scan`` ``sensor_msgs/LaserScan`` (people detection)
 ``planned_path()``           ``/plan`` ``nav_msgs/Path`` while a navigation goal runs
 ``get_frame()``              ``sensor_msgs/CompressedImage`` topics of ``[ros2] cameras``,
                              subscribed while frames are asked for; ``navcam`` is black
@@ -77,6 +78,7 @@ from telebot.robot.nav import (
     require_finite,
 )
 from telebot.robot.ros2.convert import (
+    ScanData,
     TfTree,
     battery_from_msg,
     covariance_xy_yaw,
@@ -86,6 +88,7 @@ from telebot.robot.ros2.convert import (
     path_from_msg,
     pose_from_msg,
     quaternion_fields,
+    scan_from_msg,
 )
 from telebot.robot.ros2.keys import EntityKind, GraphEntity, QoS, action_names
 from telebot.robot.ros2.node import DEFAULT_QOS, ActionClient, Ros2Node, Subscription
@@ -335,6 +338,7 @@ class Ros2NavStack:
         self._odom_at = 0.0
         self._scan_at = 0.0
         self._scan_beams = 0
+        self._scan: ScanData | None = None
         self._battery: Battery | None = None
         self._battery_at = 0.0
         self._path: tuple[Pose2D, ...] = ()
@@ -705,9 +709,20 @@ class Ros2NavStack:
 
     def _on_scan(self, msg: Any, _attachment: Any) -> None:
         beams = len(msg.ranges)
+        try:
+            scan: ScanData | None = scan_from_msg(msg)
+        except ValueError:
+            scan = None  # counted as a scan for health; not looked at for people
         with self._lock:
             self._scan_beams = beams
             self._scan_at = time.monotonic()
+            if scan is not None:
+                self._scan = scan
+
+    def laser_scan(self) -> ScanData | None:
+        """The latest ``scan`` message (for person detection), None before the first."""
+        with self._lock:
+            return self._scan
 
     def _on_battery(self, msg: Any, _attachment: Any) -> None:
         battery = battery_from_msg(msg, BATTERY_LOW_PERCENT)
@@ -1106,6 +1121,39 @@ class Ros2NavStack:
             time_allowance=self._duration.make(**duration_fields(allowance)),
         )
         return self._send(goal, message)
+
+    def drive(self, linear: float, angular: float) -> None:
+        """One velocity command on ``cmd_vel`` (follow-me); repeat it at the control rate.
+
+        The linear speed is clipped to the speed cap in force and the turn to ``[ros2]
+        max_angular_speed``. It ends the zero stream of an earlier stop and cancels a
+        running goal (manual driving replaces it, as on the simulator). A base stops by
+        itself when the commands stop coming (its cmd_vel timeout); :meth:`stop` streams
+        zeros.
+        """
+        require_finite(linear=linear, angular=angular)
+        cap = self._speed_limit
+        top_turn = self._settings.max_angular_speed
+        linear = max(-cap, min(cap, float(linear)))
+        angular = max(-top_turn, min(top_turn, float(angular)))
+        with self._lock:
+            goal = self._goal
+        if goal is not None:
+            self._end(goal, GoalStatus.CANCELLED, "replaced by manual driving", Reason.REPLACED)
+            if goal.ros_id is not None:
+                self._cancel_remote(goal)
+        self._zero.end()
+        twist = {"linear": {"x": linear}, "angular": {"z": angular}}
+        if self._settings.twist_stamped:
+            now = time.time()
+            sec = math.floor(now)
+            header = self._header.make(
+                stamp=self._time.make(sec=int(sec), nanosec=int((now - sec) * 1e9)),
+                frame_id=self._settings.base_frame,
+            )
+            self._cmd_vel.publish(self._twist_stamped.make(header=header, twist=twist))
+        else:
+            self._cmd_vel.publish(self._twist.make(**twist))
 
     def stop(self) -> None:
         """Stop now: cancel every goal of the three actions and stream zero velocity."""

@@ -41,6 +41,7 @@ import numpy.typing as npt
 
 from telebot.robot.grid import OccupancyGrid
 from telebot.robot.nav import CameraInfo, Pose2D
+from telebot.robot.sim.figure import draw_people
 from telebot.robot.sim.laser import (
     CELL_OCCUPIED,
     CELL_UNKNOWN,
@@ -49,6 +50,7 @@ from telebot.robot.sim.laser import (
     RayCaster,
     intersect_circles,
 )
+from telebot.robot.sim.people import PersonTruth
 from telebot.robot.sim.world import Obstacle
 
 __all__ = [
@@ -219,9 +221,16 @@ class Renderer:
         self._optics: dict[CameraModel, _Optics] = {}
 
     def render(
-        self, pose: Pose2D, camera: CameraModel, obstacles: Sequence[Obstacle] = ()
+        self,
+        pose: Pose2D,
+        camera: CameraModel,
+        obstacles: Sequence[Obstacle] = (),
+        people: Sequence[PersonTruth] = (),
     ) -> npt.NDArray[np.uint8]:
-        """The BGR ``uint8`` image (camera.height, camera.width, 3) seen from ``pose``."""
+        """The BGR ``uint8`` image (camera.height, camera.width, 3) seen from ``pose``.
+
+        ``people`` are drawn as human figures (see :mod:`telebot.robot.sim.figure`).
+        """
         if not all(math.isfinite(v) for v in (pose.x, pose.y, pose.yaw)):
             raise ValueError(f"camera pose must be finite, not {pose}")
         if camera.mount_height >= self.wall_height:
@@ -234,6 +243,20 @@ class Renderer:
         wall_depth = self._draw_walls(image, pose, camera, optics)
         if obstacles:
             self._draw_obstacles(image, pose, camera, optics, obstacles, wall_depth)
+        if people:
+            view = self.view_distance
+            draw_people(
+                image,
+                pose,
+                people,
+                focal=optics.focal,
+                cx=optics.cx,
+                cy=optics.cy,
+                mount_height=camera.mount_height,
+                wall_depth=wall_depth,
+                fade=lambda depth: float(_fade(np.array([depth]), view)[0]),
+                fog_bgr=FOG_BGR,
+            )
         # White on a black outline: readable on the light ceiling and on dark fog alike.
         for colour, thickness in (((0, 0, 0), 3), ((255, 255, 255), 1)):
             cv2.putText(

@@ -58,6 +58,7 @@ from telebot.robot.sim.controller import (
     straight_command,
 )
 from telebot.robot.sim.laser import Laser, LaserScan
+from telebot.robot.sim.people import PersonTruth, Walker, legs_of
 from telebot.robot.sim.planner import Costmap
 from telebot.robot.sim.world import Obstacle
 
@@ -188,6 +189,10 @@ class SimNavStack:
         )
         self._obstacles: dict[int, Obstacle] = {}
         self._next_obstacle_id = 1
+        # Simulated people: id -> (walker, time added); their legs as of the last step.
+        self._people: dict[int, tuple[Walker, float]] = {}
+        self._people_now: tuple[PersonTruth, ...] = ()
+        self._next_person_id = 1
         self._next_goal_id = 1
         self._goal: SimGoal | None = None
         self._last_goal: SimGoal | None = None
@@ -370,7 +375,9 @@ class SimNavStack:
         model = self._camera(camera if camera is not None else self._active_camera)
         if self._renderer is None:
             self._renderer = Renderer(self._grid)
-        image = self._renderer.render(self._base.pose, model, tuple(self._obstacles.values()))
+        image = self._renderer.render(
+            self._base.pose, model, tuple(self._obstacles.values()), self._people_now
+        )
         self._frame_id += 1
         return CameraFrame(camera=model.name, image=image, stamp=self._now, frame_id=self._frame_id)
 
@@ -517,6 +524,48 @@ class SimNavStack:
         """The dynamic obstacles by id."""
         return MappingProxyType(self._obstacles)
 
+    def add_person(self, walker: Walker) -> int:
+        """Put a walker in the world, starting its script now; returns its id."""
+        person_id = self._next_person_id
+        self._next_person_id += 1
+        self._people[person_id] = (walker, self._now)
+        self._update_people(self._now)
+        return person_id
+
+    def remove_person(self, person_id: int) -> None:
+        """Take a person out of the world (unknown ids are ignored)."""
+        if self._people.pop(person_id, None) is not None:
+            self._update_people(self._now)
+
+    def people_truth(self) -> tuple[PersonTruth, ...]:
+        """Where the simulated people really are, as of the last step (ground truth)."""
+        return self._people_now
+
+    def _update_people(self, now: float) -> None:
+        truths = []
+        for person_id, (walker, added) in self._people.items():
+            state = walker.state_at(now - added)
+            truths.append(
+                PersonTruth(
+                    id=person_id,
+                    x=state.x,
+                    y=state.y,
+                    yaw=state.yaw,
+                    vx=state.vx,
+                    vy=state.vy,
+                    walking=state.walking,
+                    legs=legs_of(state),
+                    walker=walker,
+                    travelled=state.travelled,
+                )
+            )
+        self._people_now = tuple(truths)
+
+    def _world_obstacles(self) -> tuple[Obstacle, ...]:
+        """Everything round in the world: the obstacles and every person's two legs."""
+        legs = tuple(leg for person in self._people_now for leg in person.legs)
+        return (*self._obstacles.values(), *legs)
+
     def set_battery(self, percent: float) -> None:
         """Set the charge (for tests and demonstrations)."""
         require_finite(percent=percent)
@@ -555,7 +604,9 @@ class SimNavStack:
         if dt_total <= 0:
             return
         self._update_localisation(dt_total)
-        obstacles = tuple(self._obstacles.values())
+        if self._people:
+            self._update_people(now)
+        obstacles = self._world_obstacles()
         self._scan = self._laser.scan(self._base.pose, obstacles)
         if self._goal is not None:
             self._control(self._goal, self._now)
@@ -714,7 +765,7 @@ class SimNavStack:
                 Reason.OBSTACLE,
             )
             return
-        costmap = self._costmap.with_obstacles(tuple(self._obstacles.values()))
+        costmap = self._costmap.with_obstacles(self._world_obstacles())
         try:
             path = costmap.plan((here.x, here.y), goal.tracker.goal)
         except NoPath as exc:
@@ -825,7 +876,7 @@ class SimNavStack:
         tolerance = 2.0 * self._grid.resolution
         return any(
             math.hypot(x - obs.x, y - obs.y) <= obs.radius + tolerance
-            for obs in self._obstacles.values()
+            for obs in self._world_obstacles()
         )
 
     def _guard_teleop(self) -> None:

@@ -48,6 +48,7 @@ __all__ = [
     "ChatRequest",
     "Command",
     "CommandError",
+    "Follow",
     "Forward",
     "GetMap",
     "GotoPlace",
@@ -63,6 +64,7 @@ __all__ = [
     "TakeDrive",
     "Topics",
     "Turn",
+    "Unfollow",
     "UserCam",
     "Where",
     "decode_reply",
@@ -186,6 +188,18 @@ class ReleaseDrive:
 
 
 @dataclass(frozen=True, slots=True)
+class Follow:
+    """``follow`` (the nearest person in front) or ``follow ID`` (a tracked person's id)."""
+
+    target: int | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Unfollow:
+    """``unfollow``: stop following (the robot stops)."""
+
+
+@dataclass(frozen=True, slots=True)
 class Places:
     """``places``: list the named places with their coordinates."""
 
@@ -229,6 +243,8 @@ Command: TypeAlias = (
     | Arm
     | TakeDrive
     | ReleaseDrive
+    | Follow
+    | Unfollow
     | Places
     | Topics
     | Status
@@ -258,6 +274,11 @@ USAGE: dict[str, str] = {
     "arm": "usage: arm — re-arm the robot after a stop (the driver holding the drive)",
     "take": "usage: take — take the drive (if free; an admin takes it over)",
     "release": "usage: release — give the drive up (the robot stops)",
+    "follow": (
+        "usage: follow [ID] — follow the nearest person in front, or the tracked person ID, "
+        "at walking pace (unfollow or stop ends it)"
+    ),
+    "unfollow": "usage: unfollow — stop following (the robot stops)",
     "places": "usage: places — list the named places",
     "topics": "usage: topics — list the robot topics you may relay",
     "status": "usage: status — what the robot is doing",
@@ -306,6 +327,10 @@ _ALIASES: dict[str, str] = {
     "take over": "take",
     "release": "release",
     "release drive": "release",
+    "follow": "follow",
+    "follow me": "follow",
+    "unfollow": "unfollow",
+    "stop following": "unfollow",
     "places": "places",
     "topics": "topics",
     "rostopic list": "topics",
@@ -368,6 +393,8 @@ def parse_command(text: str) -> Command:
             return Where()
         case "help":
             return _help(args)
+        case "follow":
+            return _follow(args)
         case _:
             if args:
                 raise CommandError(USAGE[name])
@@ -385,11 +412,25 @@ _SIMPLE: dict[str, Command] = {
     "arm": Arm(),
     "take": TakeDrive(),
     "release": ReleaseDrive(),
+    "unfollow": Unfollow(),
     "places": Places(),
     "topics": Topics(),
     "status": Status(),
     "battery": BatteryQuery(),
 }
+
+
+def _follow(args: list[str]) -> Follow:
+    if not args:
+        return Follow()
+    # "follow person 3", "follow #3", "follow id 3": the number is what counts.
+    words = [arg for arg in args if arg not in ("person", "id", "track")]
+    if len(words) != 1 or not words[0].lstrip("#").isascii() or not words[0].lstrip("#").isdigit():
+        raise CommandError(USAGE["follow"])
+    target = int(words[0].lstrip("#"))
+    if target > 2**31:
+        raise CommandError(USAGE["follow"])
+    return Follow(target)
 
 
 def _unknown(word: str) -> str:

@@ -21,6 +21,9 @@
   };
   ui.handlers = {};
   window.telebotUI = ui;
+  // Extensions (static/people.js, …): called with each websocket message and after each
+  // map draw (ctx, worldToScreen, pixels per metre).
+  ui.hooks = { message: [], draw: [] };
 
   // ------------------------------------------------------------------ websocket
   let ws = null;
@@ -114,6 +117,7 @@
         break;
       }
     }
+    for (const hook of ui.hooks.message) hook(m);
   }
 
   // ------------------------------------------------------------------ status
@@ -280,6 +284,7 @@
       ctx.beginPath(); ctx.moveTo(rx, ry);
       ctx.lineTo(rx + Math.cos(p.yaw) * r * 1.6, ry - Math.sin(p.yaw) * r * 1.6); ctx.stroke();
     }
+    for (const hook of ui.hooks.draw) hook(ctx, worldToScreen, pxm);
     // A goal being dragged: where, and the heading.
     if (drag && drag.kind === "goal") {
       ctx.strokeStyle = "#ff0"; ctx.lineWidth = 2;
@@ -415,6 +420,7 @@
   $("usercam").onclick = () => send({ type: "camera", id: ++chatId, name: "usercam" });
 
   // ------------------------------------------------------------------ chat
+  ui.addChat = (text, cls) => addChat(text, cls);
   function addChat(text, cls) {
     const log = $("chat-log");
     const div = document.createElement("div");
@@ -431,9 +437,16 @@
     const text = input.value.trim();
     input.value = "";
     if (!text) return;
-    addChat("> " + text, "cmd");
-    send({ type: "chat", id: ++chatId, text });
+    sendChat(text);
   });
+  // A chat command from page code (static/follow.js), shown in the log like a typed one;
+  // returns its request id (replies carry it), or 0 when the page is not connected.
+  function sendChat(text) {
+    addChat("> " + text, "cmd");
+    const id = ++chatId;
+    return send({ type: "chat", id, text }) ? id : 0;
+  }
+  ui.chat = sendChat;
 
   resize();
   connect();

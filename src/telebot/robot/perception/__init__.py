@@ -1,0 +1,1 @@
+"""Person perception on the robot: laser legs, camera people, tracks (sans-IO)."""
