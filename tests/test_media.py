@@ -299,3 +299,17 @@ async def test_the_robot_speaks_its_chat_replies_into_the_users_audio(homes: Hom
     freqs = np.fft.rfftfreq(len(np.concatenate(heard)), 1 / SAMPLE_RATE)
     near_700 = spectrum[(freqs > 680) & (freqs < 720)].max()
     assert near_700 > 0.1 * spectrum.max()
+
+
+async def test_talk_with_a_missing_wav_file_is_a_usage_error(tmp_path: Path) -> None:
+    import io
+
+    from telebot.apps.talk_cli import talk
+    from telebot.config import AppConfig
+
+    err = io.StringIO()
+    code = await talk(
+        "guiabot", home=tmp_path, config=AppConfig(), mic=str(tmp_path / "nope.wav"), stream=err
+    )
+    assert code == 2 and "cannot read WAV file" in err.getvalue()
+    assert err.getvalue().count("\n") == 1

@@ -82,6 +82,7 @@ from telebot.services.proto.media import (
     USER_VIDEO,
     AudioPacket,
     AudioSequencer,
+    codec_id,
     encode_audio,
     parse_media_report,
 )
@@ -96,6 +97,7 @@ from telebot.services.video import (
 
 if TYPE_CHECKING:
     from telebot.channels.call import Call
+    from telebot.config import MediaConfig
     from telebot.services.client import RobotClient
     from telebot.services.proto.chat import ChatReply
     from telebot.services.robot import RobotServer
@@ -113,6 +115,8 @@ __all__ = [
     "UserMediaService",
     "Voice",
     "install_robot_media",
+    "media_settings",
+    "media_video_settings",
     "open_user_media",
 ]
 
@@ -625,6 +629,36 @@ class RobotMediaService:
             self.media.speaker.write(samples)
             if packet is not None:
                 self.media._on_user_audio(packet)
+
+
+def media_settings(config: MediaConfig, *, simulated: bool) -> MediaSettings:
+    """The :class:`MediaSettings` of a ``[media]`` config section."""
+    return MediaSettings(
+        codec=config.codec,
+        min_bitrate=config.min_bitrate,
+        max_bitrate=config.max_bitrate,
+        keyframe_interval=config.keyframe_interval,
+        mic=config.mic,
+        speaker=config.speaker,
+        voice=config.voice,
+        voice_command=tuple(config.voice_command),
+        stamp=simulated if config.stamp is None else config.stamp,
+        user_video_ring=config.user_video_ring,
+    )
+
+
+def media_video_settings(config: MediaConfig, *, simulated: bool) -> dict[str, Any]:
+    """The :class:`VideoSettings` fields ``[media]`` sets: codecs (the configured one first,
+    JPEG always last), bit rates, keyframe interval, stamping."""
+    preferred = codec_id(config.codec)
+    codecs = (preferred, *(c for c in (CODEC_H264, CODEC_VP8, CODEC_JPEG) if c != preferred))
+    return {
+        "codecs": codecs,
+        "min_bitrate": config.min_bitrate,
+        "max_bitrate": config.max_bitrate,
+        "keyframe_interval": config.keyframe_interval,
+        "stamp": simulated if config.stamp is None else config.stamp,
+    }
 
 
 def install_robot_media(server: RobotServer, settings: MediaSettings | None = None) -> RobotMedia:
