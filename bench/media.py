@@ -212,7 +212,7 @@ async def main(quick: bool) -> None:
     print(f"A. H.264 against JPEG q80, 640 x 480, {n} frames at {FPS} fps")
     sim_ratio = compare("A1 simulator camera", sim_frames(n))
     tex_ratio = compare("A2 textured scene", textured_frames(n))
-    print("B. stop round trip while media streams both ways (memory transport)")
+    print("B. stop round trip while media streams both ways (robot daemon, zenoh loopback)")
     times = await stop_while_streaming(3.0 if quick else 10.0)
     stop_p50, stop_p99 = pct(times, 0.5) * 1000, pct(times, 0.99) * 1000
     print(f"  {len(times)} stops: p50 {stop_p50:.2f} ms, p99 {stop_p99:.2f} ms")
