@@ -54,8 +54,8 @@ from telebot.reasons import Reason
 from telebot.services.base import CLIENT_TICK, OpenServices, ServiceRegistry
 from telebot.services.conference import ConferenceReceiver, ConferenceState
 from telebot.services.mapxfer import MapDownload, fetch_map
-from telebot.services.people import PeopleReceiver
 from telebot.services.media import AudioReceiver, UserMedia, open_user_media
+from telebot.services.people import PeopleReceiver
 from telebot.services.plan import PlanReceiver
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
 from telebot.services.proto.chat import ChatReply, decode_reply, encode_request
