@@ -28,7 +28,7 @@ from telebot.robot.follow import (
     clearance_ahead,
     pick_target,
 )
-from telebot.robot.nav import GoalStatus, Pose2D
+from telebot.robot.nav import GoalStatus, Pose2D, Velocity
 from telebot.robot.perception.tracks import PersonTrack
 from telebot.robot.sim.world import Obstacle
 from telebot.services.chat import ChatSession
@@ -274,7 +274,10 @@ class Guarded:
             self.walk.nav, timeout=0.5, max_speed=0.5, clock=lambda: self.clock
         )
         self.service = FollowService(
-            self.walk.nav, people=self.walk.people, safety_state=self.driver.state
+            self.walk.nav,
+            people=self.walk.people,
+            safety_state=self.driver.state,
+            watchdog_stops=lambda: self.driver.watchdog_stops,
         )
         self.walk.service = self.service
         self.driver.on_state = self.service.safety_changed
@@ -511,3 +514,25 @@ def test_an_obstacle_stepping_in_stops_the_robot_and_ends_the_follow() -> None:
     assert goal.reason == "stopped following person 1: obstacle"
     assert w.nav.collisions == 0
     assert w.nav.velocity().linear == 0.0
+
+
+def test_the_watchdog_thread_s_stop_ends_the_follow_before_the_supervisor_latches() -> None:
+    g = Guarded()
+    g.step()
+    g.gate.rearm()
+    g.follow()
+    for _ in range(100):
+        g.step()
+    assert g.walk.nav.velocity().linear > 0.2
+    # The watchdog thread (wall clock) finds the driver silent and asks for an emergency
+    # stop; the supervisor (loop clock) has not latched yet and the robot is still armed.
+    g.driver._watch_once()
+    assert g.driver.watchdog_stops == 1
+    g.step()
+    assert g.driver.supervisor.armed
+    assert g.service.goal is None
+    final = [r for r in g.replies if r.id == 1][-1]
+    assert final.reason == Reason.STOPPED and "watchdog" in final.text
+    for _ in range(10):  # nothing drives on
+        g.step()
+        assert g.walk.nav.velocity() == Velocity()

@@ -107,14 +107,20 @@ class FollowService:
         *,
         people: TrackSource | None = None,
         safety_state: Callable[[], SafetyState] | None = None,
+        watchdog_stops: Callable[[], int] | None = None,
         limits: MotionLimits | None = None,
     ) -> None:
+        """``safety_state``: the supervisor's state now; ``watchdog_stops``: how many
+        emergency stops the safety watchdog thread has asked for (its stop reaches the
+        robot before the supervisor latches it: the follow must not drive on in between)."""
         self.nav = nav
         self.settings = settings if settings is not None else FollowSettings()
         #: The people tracker; None: ``follow`` is refused (``no_people_source``).
         self.people = people
         # None: no supervisor (tests of the services alone); roles then decide, as elsewhere.
         self._safety_state = safety_state
+        self._watchdog_stops = watchdog_stops if watchdog_stops is not None else (lambda: 0)
+        self._watchdog_mark = 0
         self.limits = limits if limits is not None else _limits_of(nav)
         self._controller: FollowController | None = None
         self._goal: FollowGoal | None = None
@@ -185,6 +191,7 @@ class FollowService:
         goal = FollowGoal(self, self._next_id, chosen.id)
         self._next_id += 1
         self._goal, self._call = goal, call_id
+        self._watchdog_mark = self._watchdog_stops()
         distance = math.hypot(chosen.x - pose.x, chosen.y - pose.y)
         log.info("following person %s (%.1f m away) for call %s", chosen.id, distance, call_id)
         return goal
@@ -229,6 +236,10 @@ class FollowService:
         """One control cycle: check the safety state, then command the next velocity."""
         goal, controller = self._goal, self._controller
         if goal is None or controller is None:
+            return
+        if self._watchdog_stops() != self._watchdog_mark:
+            why = "stopped: the driver's link was silent (safety watchdog)"
+            self.end_follow(goal, GoalStatus.CANCELLED, why, Reason.STOPPED)
             return
         cap = self.nav.speed_limit
         if self._safety_state is not None:

@@ -512,6 +512,7 @@ class RobotServer:
             follow,
             people=people if people is not None else self.perception,
             safety_state=safety.state if safety is not None else None,
+            watchdog_stops=(lambda: safety.watchdog_stops) if safety is not None else None,
         )
         if safety is not None:
             safety.on_state = self._broadcast_safety
