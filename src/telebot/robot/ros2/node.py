@@ -85,7 +85,18 @@ class _Closable(Protocol):
 
 
 def _undeclare(raw: _Undeclarable) -> None:
-    raw.undeclare()
+    # zenoh-python's objects are Rust cells: while another thread is inside one of the
+    # object's methods (a put from an executor, a cache query on an advanced publisher),
+    # undeclare() raises "Already borrowed" instead of waiting. That method returns within
+    # microseconds, so wait for it (up to ~50 ms) rather than leak the declaration.
+    for attempt in range(50):
+        try:
+            raw.undeclare()
+            return
+        except RuntimeError as exc:
+            if "Already borrowed" not in str(exc) or attempt == 49:
+                raise
+            time.sleep(0.001)
 
 
 def _close(raw: _Closable) -> None:
