@@ -23,17 +23,21 @@ import asyncio
 import contextlib
 import json
 import logging
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
 from importlib import resources
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Self
+from typing import TYPE_CHECKING, Any, Self
 
 from aiohttp import WSMsgType, web
 
 from telebot.apps.web.media_relay import pack_media
+from telebot.config import ScreenSettings
 
-__all__ = ["RobotScreen"]
+if TYPE_CHECKING:
+    from telebot.services.robot import RobotServer
+
+__all__ = ["RobotScreen", "parse_screen_option", "robot_screen"]
 
 log = logging.getLogger("telebot.screen")
 
@@ -211,3 +215,85 @@ class RobotScreen:
             exc = task.exception()
             if not isinstance(exc, ConnectionError | RuntimeError):
                 log.warning("screen page send failed: %s", exc)
+
+
+def parse_screen_option(text: str, settings: ScreenSettings) -> ScreenSettings:
+    """``--screen``: ``off``, ``HOST:PORT``, ``:PORT`` or ``PORT`` (ValueError if neither)."""
+    if text.strip().lower() == "off":
+        return settings.model_copy(update={"enabled": False})
+    host, sep, port_text = text.strip().rpartition(":")
+    if not sep:
+        host = settings.host
+    host = host.strip("[]") or settings.host
+    try:
+        port = int(port_text)
+    except ValueError:
+        raise ValueError(f"expected HOST:PORT or off, got {text!r}") from None
+    if not 0 <= port <= 65535:
+        raise ValueError(f"port must be 0..65535, got {port}")
+    return ScreenSettings(enabled=True, host=host, port=port)
+
+
+@contextlib.asynccontextmanager
+async def robot_screen(
+    settings: ScreenSettings, server: RobotServer
+) -> AsyncIterator[RobotScreen | None]:
+    """The robot's screen as ``[screen]`` says, fed from ``server``'s calls; None when off.
+
+    A taken port is logged as a warning and the robot runs on without a screen: a display
+    is a comfort, never a reason for the robot not to answer calls.
+    """
+    if not settings.enabled:
+        yield None
+        return
+    screen = RobotScreen(host=settings.host, port=settings.port)
+    try:
+        await screen.start()
+    except OSError as exc:
+        log.warning("robot screen not served at %s: %s", screen.url, exc.strerror or exc)
+        yield None
+        return
+    try:
+        unbind = bind_screen(screen, server)
+        try:
+            yield screen
+        finally:
+            unbind()
+    finally:
+        await screen.close()
+
+
+#: How often (s) the screen's call-state line is brought up to date.
+STATE_EVERY = 0.25
+
+
+def call_state(peers: list[str], holder: str | None) -> tuple[str, str]:
+    """The screen's (user, text) for the users on the line and the drive's holder."""
+    if not peers:
+        return "", "waiting for a call"
+    if holder is not None and holder in peers:
+        others = [p for p in peers if p != holder]
+        text = f"{holder} is driving" + (f" · {', '.join(others)} watching" if others else "")
+        return holder, text
+    if len(peers) == 1:
+        return peers[0], f"{peers[0]} is watching"
+    return peers[0], f"{', '.join(peers)} are watching"
+
+
+def bind_screen(screen: RobotScreen, server: RobotServer) -> Callable[[], None]:
+    """Keep ``screen`` fed from ``server``: its calls' state; returns the unbinding."""
+
+    async def follow() -> None:
+        while True:
+            peers = list(dict.fromkeys(opened.call.peer for opened in server.open.values()))
+            holder = server.safety_status().holder
+            user, text = call_state(peers, holder)
+            screen.show_state(user, text, call=bool(peers))
+            await asyncio.sleep(STATE_EVERY)
+
+    task = asyncio.get_running_loop().create_task(follow(), name="robot-screen")
+
+    def unbind() -> None:
+        task.cancel()
+
+    return unbind
