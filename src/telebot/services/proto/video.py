@@ -49,8 +49,12 @@ from telebot.errors import ProtocolError
 
 __all__ = [
     "CODEC_CDR",
+    "CODEC_H264",
     "CODEC_JPEG",
+    "CODEC_KEYFRAME",
+    "CODEC_VP8",
     "FLAG_BYE",
+    "FLAG_KEYFRAME",
     "FRAGMENT_HEADER",
     "KIND_FRAGMENT",
     "KIND_REPORT",
@@ -59,9 +63,11 @@ __all__ = [
     "MAX_FRAME_BYTES",
     "MAX_IN_FLIGHT",
     "MAX_PIXELS",
+    "MAX_REPORT_CODECS",
     "REPORT",
     "SCALES",
     "VIDEO",
+    "VIDEO_CODECS",
     "CompleteFrame",
     "Fragment",
     "Reassembler",
@@ -89,9 +95,27 @@ CODEC_JPEG: Final = 0x01
 #: Codec of opaque payloads: the topic relay's CDR messages (:mod:`telebot.services.proto.relay`
 #: reuses these fragments; the "camera" field then names the relay stream).
 CODEC_CDR: Final = 0x02
-_WHAT: Final = {CODEC_JPEG: "video fragment", CODEC_CDR: "relay fragment"}
+#: Codecs of the media streams (``docs/protocol.md`` "Media"): H.264 Annex B access units
+#: (SPS/PPS before every IDR) and VP8 frames; see :mod:`telebot.services.proto.media`.
+CODEC_H264: Final = 0x03
+CODEC_VP8: Final = 0x04
+#: The video codecs a fragment may carry on a video channel.
+VIDEO_CODECS: Final = frozenset({CODEC_JPEG, CODEC_H264, CODEC_VP8})
+#: Bit 7 of the codec byte: this frame is a keyframe (decodable alone). A JPEG frame
+#: always is, with or without the bit (old senders leave it clear).
+CODEC_KEYFRAME: Final = 0x80
+_WHAT: Final = {
+    CODEC_JPEG: "video fragment",
+    CODEC_CDR: "relay fragment",
+    CODEC_H264: "video fragment",
+    CODEC_VP8: "video fragment",
+}
 #: Report flag: the receiver stops watching.
 FLAG_BYE: Final = 0x01
+#: Report flag: the receiver needs a keyframe (it lost a frame of a delta codec).
+FLAG_KEYFRAME: Final = 0x02
+#: Most codec ids in a report's codec list.
+MAX_REPORT_CODECS: Final = 8
 #: kind, codec, seq, frame_id, index, count, size, capture_us, interval_ms, camera length.
 FRAGMENT_HEADER: Final = struct.Struct(">BBIIHHIQHB")
 #: kind, flags, receiver_ms, highest_seq, fragments, bytes, frames, dropped, queue_delay_ms.
@@ -152,6 +176,8 @@ class Fragment:
     camera: str
     data: bytes
     codec: int = CODEC_JPEG
+    #: The frame decodes alone (bit 7 of the codec byte; always True for JPEG).
+    keyframe: bool = True
 
 
 def _camera_bytes(camera: str) -> bytes:
@@ -171,14 +197,16 @@ def fragment(
     seq: int = 0,
     interval: float = 1 / 30,
     codec: int = CODEC_JPEG,
+    keyframe: bool = False,
 ) -> list[bytes]:
     """Cut one JPEG frame into fragment datagrams of at most ``max_payload`` bytes each.
 
     ``capture_time`` is wall-clock seconds (Unix epoch); ``seq`` is the sequence number of
     the first datagram (the next ones count up, modulo 2³²); ``interval`` is the sender's
     current frame interval in seconds (the receiver waits that long for missing fragments);
-    ``codec`` says what the bytes are (JPEG for video, :data:`CODEC_CDR` for the relay).
-    Raises ValueError when the frame is empty, too large, or ``max_payload`` too small.
+    ``codec`` says what the bytes are (JPEG for video, :data:`CODEC_CDR` for the relay,
+    :data:`CODEC_H264` or :data:`CODEC_VP8` for coded video); ``keyframe`` sets bit 7 of the
+    codec byte (a frame that decodes alone). Raises ValueError when the frame is empty, too large, or ``max_payload`` too small.
     """
     name = _camera_bytes(camera)
     header_len = FRAGMENT_HEADER.size + len(name)
@@ -191,6 +219,9 @@ def fragment(
     count = -(-size // room)
     if count > MAX_FRAGMENTS:
         raise ValueError(f"a {size}-byte frame needs {count} fragments (at most {MAX_FRAGMENTS})")
+    if not 0 < codec < CODEC_KEYFRAME:
+        raise ValueError(f"codec must be 1..127, got {codec}")
+    codec_byte = codec | (CODEC_KEYFRAME if keyframe else 0)
     capture_us = max(0, min(round(capture_time * 1e6), (1 << 64) - 1))
     interval_ms = max(1, min(round(interval * 1000), 0xFFFF))
     view = memoryview(jpeg)
@@ -199,7 +230,7 @@ def fragment(
         start, end = fragment_span(size, count, index)
         header = FRAGMENT_HEADER.pack(
             KIND_FRAGMENT,
-            codec,
+            codec_byte,
             (seq + index) % _U32,
             frame_id % _U32,
             index,
@@ -213,19 +244,24 @@ def fragment(
     return out
 
 
-def parse_fragment(payload: str | bytes, *, codec: int = CODEC_JPEG) -> Fragment:
-    """Parse and check a fragment datagram of ``codec``; ProtocolError says what is wrong."""
-    what = _WHAT.get(codec, "fragment")
+def parse_fragment(payload: str | bytes, *, codec: int | frozenset[int] = CODEC_JPEG) -> Fragment:
+    """Parse and check a fragment datagram of ``codec`` (one id or a set of accepted ids).
+
+    ProtocolError says what is wrong. Bit 7 of the codec byte is the keyframe flag.
+    """
+    codecs = frozenset({codec}) if isinstance(codec, int) else codec
+    what = _WHAT.get(min(codecs, default=0), "fragment")
     if not isinstance(payload, bytes):
         raise ProtocolError(f"{what}: expected a binary datagram")
     if len(payload) < FRAGMENT_HEADER.size:
         raise ProtocolError(f"{what}: {len(payload)} bytes is shorter than its header")
-    kind, got_codec, seq, frame_id, index, count, size, capture_us, interval_ms, name_len = (
+    kind, codec_byte, seq, frame_id, index, count, size, capture_us, interval_ms, name_len = (
         FRAGMENT_HEADER.unpack_from(payload)
     )
+    got_codec = codec_byte & ~CODEC_KEYFRAME
     if kind != KIND_FRAGMENT:
         raise ProtocolError(f"{what}: datagram kind {kind:#04x} is not a fragment")
-    if got_codec != codec:
+    if got_codec not in codecs:
         raise ProtocolError(f"{what}: unknown codec {got_codec}")
     if not 1 <= count <= MAX_FRAGMENTS or index >= count:
         raise ProtocolError(f"{what}: index {index} of {count} fragments")
@@ -256,7 +292,8 @@ def parse_fragment(payload: str | bytes, *, codec: int = CODEC_JPEG) -> Fragment
         interval_ms=interval_ms,
         camera=camera,
         data=payload[data_at:],
-        codec=codec,
+        codec=got_codec,
+        keyframe=bool(codec_byte & CODEC_KEYFRAME) or got_codec == CODEC_JPEG,
     )
 
 
@@ -276,6 +313,11 @@ class Report:
     queue_delay_ms: int
     #: The receiver stops watching (flag bit 0): the sender may stop at once.
     bye: bool = False
+    #: The receiver needs a keyframe (flag bit 1): it lost a frame of a delta codec.
+    keyframe: bool = False
+    #: Codecs the receiver accepts, in preference order (the report's extension); empty:
+    #: an old receiver, which takes JPEG only.
+    codecs: tuple[int, ...] = ()
 
     def encode(self) -> bytes:
         """The report datagram."""
@@ -283,10 +325,17 @@ class Report:
 
 
 def encode_report(report: Report) -> bytes:
-    """The 28-byte report datagram (counters wrap modulo 2³², the delay saturates)."""
-    return REPORT.pack(
+    """The report datagram (counters wrap modulo 2³², the delay saturates).
+
+    28 bytes, then, when ``report.codecs`` is not empty, one byte ``n`` and ``n`` codec ids.
+    """
+    codecs = report.codecs
+    if len(codecs) > MAX_REPORT_CODECS or not all(0 < c < CODEC_KEYFRAME for c in codecs):
+        raise ValueError(f"a report lists 0..{MAX_REPORT_CODECS} codec ids in 1..127")
+    flags = (FLAG_BYE if report.bye else 0) | (FLAG_KEYFRAME if report.keyframe else 0)
+    fixed = REPORT.pack(
         KIND_REPORT,
-        FLAG_BYE if report.bye else 0,
+        flags,
         report.receiver_ms % _U32,
         report.highest_seq % _U32,
         report.fragments % _U32,
@@ -295,17 +344,28 @@ def encode_report(report: Report) -> bytes:
         report.dropped % _U32,
         max(0, min(report.queue_delay_ms, 0xFFFF)),
     )
+    return fixed + bytes((len(codecs), *codecs)) if codecs else fixed
 
 
 def parse_report(payload: str | bytes) -> Report:
-    """Parse a report datagram; ProtocolError when it is not one."""
-    if not isinstance(payload, bytes) or len(payload) != REPORT.size:
-        raise ProtocolError("video: a report is a 28-byte binary datagram")
+    """Parse a report datagram (28 bytes, or with its codec list); ProtocolError if not one."""
+    if not isinstance(payload, bytes) or len(payload) < REPORT.size:
+        raise ProtocolError("video: a report is a binary datagram of at least 28 bytes")
     kind, flags, receiver_ms, highest, fragments, data_bytes, frames, dropped, delay = (
-        REPORT.unpack(payload)
+        REPORT.unpack_from(payload)
     )
     if kind != KIND_REPORT:
         raise ProtocolError(f"video: datagram kind {kind:#04x} is not a report")
+    codecs: tuple[int, ...] = ()
+    if len(payload) > REPORT.size:
+        count = payload[REPORT.size]
+        if not 0 < count <= MAX_REPORT_CODECS or len(payload) != REPORT.size + 1 + count:
+            raise ProtocolError(
+                f"video: a report's codec list of {count} ids in {len(payload)} bytes"
+            )
+        codecs = tuple(payload[REPORT.size + 1 :])
+        if not all(0 < c < CODEC_KEYFRAME for c in codecs) or len(set(codecs)) != count:
+            raise ProtocolError("video: a report's codec list has bad or repeated ids")
     return Report(
         receiver_ms,
         highest,
@@ -315,6 +375,8 @@ def parse_report(payload: str | bytes) -> Report:
         dropped,
         delay,
         bye=bool(flags & FLAG_BYE),  # the other flag bits are reserved and ignored
+        keyframe=bool(flags & FLAG_KEYFRAME),
+        codecs=codecs,
     )
 
 
@@ -335,6 +397,10 @@ class CompleteFrame:
     fragments: int
     #: The receiver's ``now`` when the last fragment arrived.
     completed_at: float
+    #: What the bytes are (:data:`CODEC_JPEG`, :data:`CODEC_H264`, :data:`CODEC_VP8`…).
+    codec: int = CODEC_JPEG
+    #: The frame decodes alone (a JPEG always does).
+    keyframe: bool = True
 
 
 @dataclass(slots=True)
@@ -375,11 +441,13 @@ class _Partial:
         "buffer",
         "camera",
         "capture_us",
+        "codec",
         "count",
         "deadline",
         "first_seen",
         "have",
         "interval_ms",
+        "keyframe",
         "missing",
         "size",
     )
@@ -390,6 +458,8 @@ class _Partial:
         self.camera = first.camera
         self.capture_us = first.capture_us
         self.interval_ms = first.interval_ms
+        self.codec = first.codec
+        self.keyframe = first.keyframe
         self.buffer = bytearray(first.size)
         self.have = bytearray(first.count)
         self.missing = first.count
@@ -397,12 +467,13 @@ class _Partial:
         self.deadline = now + min(max(first.interval_ms / 1000, MIN_HOLD), MAX_HOLD)
 
     def matches(self, frag: Fragment) -> bool:
-        return (frag.count, frag.size, frag.camera, frag.capture_us) == (
+        return (frag.count, frag.size, frag.camera, frag.capture_us, frag.codec) == (
             self.count,
             self.size,
             self.camera,
             self.capture_us,
-        )
+            self.codec,
+        ) and frag.keyframe == self.keyframe
 
 
 class Reassembler:
@@ -415,11 +486,13 @@ class Reassembler:
     :meth:`next_deadline`). Bad input is dropped and counted in :attr:`stats`, never raised.
     """
 
-    def __init__(self, *, max_in_flight: int = MAX_IN_FLIGHT, codec: int = CODEC_JPEG) -> None:
+    def __init__(
+        self, *, max_in_flight: int = MAX_IN_FLIGHT, codec: int | frozenset[int] = CODEC_JPEG
+    ) -> None:
         if max_in_flight < 1:
             raise ValueError("max_in_flight must be at least 1")
         self.max_in_flight = max_in_flight
-        #: The codec whose fragments are taken (others are malformed).
+        #: The codec (or set of codecs) whose fragments are taken (others are malformed).
         self.codec = codec
         self.stats = ReassemblyStats()
         self._partials: OrderedDict[int, _Partial] = OrderedDict()
@@ -510,8 +583,18 @@ class Reassembler:
         """Count a returned frame whose JPEG did not decode (the driver decodes)."""
         self.stats.corrupt += 1
 
-    def report(self, receiver_ms: int, *, bye: bool = False) -> Report:
-        """A receiver report of the counters now (``receiver_ms``: this side's clock in ms)."""
+    def report(
+        self,
+        receiver_ms: int,
+        *,
+        bye: bool = False,
+        keyframe: bool = False,
+        codecs: tuple[int, ...] = (),
+    ) -> Report:
+        """A receiver report of the counters now (``receiver_ms``: this side's clock in ms).
+
+        ``keyframe`` asks for a keyframe; ``codecs`` lists the codecs taken, best first.
+        """
         stats = self.stats
         return Report(
             receiver_ms=receiver_ms,
@@ -522,6 +605,8 @@ class Reassembler:
             dropped=stats.dropped,
             queue_delay_ms=round(self._queue_delay * 1000),
             bye=bye,
+            keyframe=keyframe,
+            codecs=codecs,
         )
 
     # -- internals
@@ -551,6 +636,8 @@ class Reassembler:
             data=bytes(partial.buffer),
             fragments=partial.count,
             completed_at=now,
+            codec=partial.codec,
+            keyframe=partial.keyframe,
         )
 
     def _note_seq(self, seq: int) -> None:
