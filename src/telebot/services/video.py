@@ -57,17 +57,27 @@ from telebot.channels.channel import Channel, ReceivedDatagram
 from telebot.channels.transports.base import Lane
 from telebot.errors import CallEnded, ProtocolError, TelebotError
 from telebot.robot.nav import CameraFrame, NavStack
+from telebot.services.codecs import ThreadedEncoder, VideoDecoder, VideoEncoder
+from telebot.services.proto.media import (
+    CODEC_H264,
+    CODEC_VP8,
+    KeyframeGate,
+    KeyframePacer,
+    KeyframeRequests,
+    choose_codec,
+)
 from telebot.services.proto.video import (
+    CODEC_JPEG,
     FRAGMENT_HEADER,
     MAX_CAMERA_NAME,
     MAX_PIXELS,
     VIDEO,
+    VIDEO_CODECS,
     CompleteFrame,
     Reassembler,
     ReassemblyStats,
     VideoRateController,
     VideoSettings,
-    decode_jpeg,
     encode_jpeg,
     fragment,
     parse_report,
@@ -96,6 +106,8 @@ log = logging.getLogger("telebot.services.video")
 
 #: Seconds between receiver reports (they are also the sender's sign that someone watches).
 REPORT_INTERVAL = 0.2
+#: What a Python receiver decodes (PyAV), best first.
+DECODED_CODECS = (CODEC_H264, CODEC_VP8, CODEC_JPEG)
 #: Window (s) over which frame rates are measured.
 _RATE_WINDOW = 1.0
 
@@ -203,6 +215,10 @@ class VideoSenderStats:
     rejected: int = 0
     #: Frames not sent because grabbing, encoding or sending failed (logged).
     errors: int = 0
+    #: H.264 / VP8 keyframes sent; frame times skipped because the receiver takes no codec
+    #: the sender has.
+    keyframes: int = 0
+    no_codec: int = 0
 
 
 class VideoSender:
@@ -245,6 +261,11 @@ class VideoSender:
         )
         self.stats = VideoSenderStats()
         self._camera = _shared_camera(nav)
+        #: Keyframes of H.264 / VP8: periodic and on the receiver's request (paced).
+        self.pacer = KeyframePacer(interval=self.settings.keyframe_interval)
+        #: The codecs the receiver's last report listed (empty: JPEG only).
+        self.accepted: tuple[int, ...] = ()
+        self._encoder: ThreadedEncoder | None = None
         self._frame_id = 0
         self._seq = 0
         self._size = (self.settings.width, self.settings.height)
@@ -291,6 +312,11 @@ class VideoSender:
         return self.controller.quality
 
     @property
+    def codec(self) -> int | None:
+        """The codec used for the receiver now (None: they share none)."""
+        return choose_codec(self.accepted, self.settings.codecs)
+
+    @property
     def watched(self) -> bool:
         """Whether a receiver is asking for video (reports are coming)."""
         return self.controller.watching(self._loop.time())
@@ -322,6 +348,8 @@ class VideoSender:
         for task in (self._task, self._watch):
             if task is not None:
                 task.cancel()
+        if self._encoder is not None:
+            self._encoder.close()
 
     async def close(self) -> None:
         """Stop streaming and wait until the sender's tasks are gone; idempotent."""
@@ -360,6 +388,10 @@ class VideoSender:
         idle = not self.controller.watching(now)
         self.controller.on_report(report, now)
         self.stats.reports += 1
+        self.accepted = report.codecs
+        if report.keyframe:
+            rtt = self._call_stats.rtt if self._call_stats is not None else None
+            self.pacer.request(now, rtt)
         if idle:
             self._wake.set()
 
@@ -381,7 +413,13 @@ class VideoSender:
                 await asyncio.sleep(due - now)
                 continue
             try:
-                self._send_frame(now)
+                codec = self.codec
+                if codec is None:
+                    self.stats.no_codec += 1
+                elif codec == CODEC_JPEG:
+                    self._send_frame(now)
+                else:
+                    await self._send_coded(now, codec)
             except CallEnded:
                 return
             except Exception:  # a camera or encoder hiccup costs one frame, not the stream
@@ -421,6 +459,58 @@ class VideoSender:
             self.stats.bytes += len(datagram)
         self.stats.frames += 1
         self._meter.tick(now)
+
+    async def _send_coded(self, now: float, codec: int) -> None:
+        """One H.264 / VP8 frame, encoded on the encoder's thread (off the event loop)."""
+        controller = self.controller
+        shot = self._camera.grab(self.nav, now, 0.5 * controller.frame_interval, self._clock)
+        image = self._scaled(shot)
+        encoder = self._encoder
+        if encoder is None or encoder.encoder.codec != codec:
+            if encoder is not None:
+                encoder.close()
+            encoder = self._encoder = ThreadedEncoder(
+                VideoEncoder(
+                    codec,
+                    fps=self.settings.max_fps,
+                    keyframe_interval=self.settings.keyframe_interval,
+                )
+            )
+        frame = await encoder.encode(
+            image, keyframe=self.pacer.next_is_key(now), bitrate=self.bitrate, now=now
+        )
+        self.pacer.sent(frame.keyframe, now)
+        if self._closed or self._ended:
+            return
+        self._frame_id += 1
+        datagrams = fragment(
+            self._frame_id,
+            shot.camera,
+            shot.capture_time,
+            frame.data,
+            self.settings.max_payload,
+            seq=self._seq,
+            interval=controller.frame_interval,
+            codec=codec,
+            keyframe=frame.keyframe,
+        )
+        for datagram in datagrams:
+            self.channel.send(datagram)
+            self._seq += 1
+            self.stats.fragments += 1
+            self.stats.bytes += len(datagram)
+        self.stats.frames += 1
+        self.stats.keyframes += frame.keyframe
+        self._meter.tick(now)
+
+    @property
+    def bitrate(self) -> int:
+        """Target bit rate of H.264 / VP8 now (bits/s): the controller's rate and fragment
+        budget, within the settings' bounds."""
+        settings, controller = self.settings, self.controller
+        frag_cap = controller.max_fragments * controller.data_per_fragment * controller.fps * 8
+        target = settings.max_bitrate if controller.rate is None else controller.rate * 8
+        return int(max(settings.min_bitrate, min(settings.max_bitrate, target, frag_cap)))
 
     def _scaled(self, shot: _Shot) -> npt.NDArray[np.uint8]:
         scale = self.controller.scale
@@ -462,9 +552,11 @@ class VideoFrame:
     capture_time: float
     #: This side's wall clock when the frame was decoded.
     received_time: float
-    #: Datagrams the frame came in, and the JPEG's size in bytes.
+    #: Datagrams the frame came in, and the encoded frame's size in bytes.
     fragments: int
     jpeg_bytes: int
+    #: The codec it came in (:data:`~telebot.services.proto.video.CODEC_JPEG`, H.264, VP8).
+    codec: int = CODEC_JPEG
 
     @property
     def width(self) -> int:
@@ -514,8 +606,11 @@ class VideoReceiver:
     Iterate with ``async for frame in receiver`` (inside ``async with``, or between
     :meth:`start` and :meth:`close`); iteration ends when the call ends. Latest frame
     wins: a consumer slower than the stream gets the newest frame and never an older
-    one after it (the skipped ones are counted). Frames are decoded on the event loop
-    when the consumer takes them (~0.4 ms for 640 × 480).
+    one after it (the skipped ones are counted). JPEG frames are decoded on the event
+    loop when the consumer takes them (~0.4 ms for 640 × 480); H.264 and VP8 frames as
+    they arrive (a delta frame needs the one before it), with PyAV. ``codecs`` are the
+    codecs asked for, best first (JPEG only: ``(CODEC_JPEG,)``). After a lost or corrupt
+    frame it waits for a keyframe and asks for one.
     """
 
     def __init__(
@@ -525,9 +620,11 @@ class VideoReceiver:
         report_interval: float = REPORT_INTERVAL,
         clock: Callable[[], float] = time.time,
         max_pixels: int = MAX_PIXELS,
+        codecs: tuple[int, ...] = DECODED_CODECS,
     ) -> None:
         if report_interval <= 0:
             raise ValueError("report_interval must be positive")
+        self.codecs = codecs
         #: On a feed (``robot.video()``) frames keep coming across reconnects; the feed's
         #: call service then reports to the robot, and iteration ends with the client.
         self.feed = channel if isinstance(channel, VideoFeed) else None
@@ -542,10 +639,13 @@ class VideoReceiver:
         self.max_pixels = max_pixels
         self._clock = clock
         self._loop = asyncio.get_running_loop()
-        self.reassembler = Reassembler()
+        self.reassembler = Reassembler(codec=VIDEO_CODECS)
         self.stats = VideoReceiverStats(self.reassembler.stats)
+        self.gate = KeyframeGate()
+        self.requests = KeyframeRequests()
+        self.decoder = VideoDecoder(max_pixels=max_pixels)
         self._first_id: int | None = None
-        self._pending: CompleteFrame | None = None
+        self._pending: CompleteFrame | VideoFrame | None = None
         self._ready = asyncio.Event()
         self._meter = _RateMeter()
         self._timer: asyncio.TimerHandle | None = None
@@ -576,7 +676,9 @@ class VideoReceiver:
         if self.feed is not None:
             if self.feed.ended:
                 self._ended = True
-            self._unsubscribe = self.feed.subscribe(self._on_complete, on_end=self._on_feed_end)
+            self._unsubscribe = self.feed.subscribe(
+                self._on_complete, on_end=self._on_feed_end, codecs=self.codecs
+            )
             return
         assert self.channel is not None
         self.channel.set_callback(self._on_datagram)
@@ -601,7 +703,9 @@ class VideoReceiver:
         elif self._started and self.channel is not None:
             self.channel.set_callback(None)
             if not self._ended:  # tell the robot to stop now rather than after its timeout
-                bye = self.reassembler.report(int(self._loop.time() * 1000), bye=True)
+                bye = self.reassembler.report(
+                    int(self._loop.time() * 1000), bye=True, codecs=self.codecs
+                )
                 with contextlib.suppress(TelebotError):
                     self.channel.send(bye.encode())
         if self._watch is not None:
@@ -631,6 +735,8 @@ class VideoReceiver:
             pending = self._pending
             if pending is not None:
                 self._pending = None
+                if isinstance(pending, VideoFrame):
+                    return pending
                 frame = self._decode(pending)
                 if frame is not None:
                     return frame
@@ -652,9 +758,11 @@ class VideoReceiver:
 
     def _decode(self, complete: CompleteFrame) -> VideoFrame | None:
         try:
-            image = decode_jpeg(complete.data, max_pixels=self.max_pixels)
+            image = self.decoder.decode(complete.data, complete.codec)
         except ProtocolError as exc:
             self.reassembler.corrupt()
+            self.gate.corrupt()
+            self._ask_keyframe()
             log.debug("video frame %d dropped: %s", complete.frame_id, exc)
             return None
         self.stats.delivered += 1
@@ -667,7 +775,21 @@ class VideoReceiver:
             received_time=self._clock(),
             fragments=complete.fragments,
             jpeg_bytes=len(complete.data),
+            codec=complete.codec,
         )
+
+    def _ask_keyframe(self) -> None:
+        """Ask the sender for a keyframe now, unless asked within max(RTT, 300 ms)."""
+        if not self.requests.due(self.gate.need_keyframe, self._loop.time()):
+            return
+        if self.feed is not None:
+            self.feed.request_keyframe()
+        elif self.channel is not None and not self.ended:
+            report = self.reassembler.report(
+                int(self._loop.time() * 1000), keyframe=True, codecs=self.codecs
+            )
+            with contextlib.suppress(TelebotError):
+                self.channel.send(report.encode())
 
     def _on_datagram(self, datagram: ReceivedDatagram) -> None:
         if self._closed:
@@ -690,9 +812,19 @@ class VideoReceiver:
         if self._first_id is None:
             self._first_id = complete.frame_id
         self.stats.expected = serial_diff(complete.frame_id, self._first_id) + 1
+        if not self.gate.admit(complete.frame_id, complete.codec, complete.keyframe):
+            self._ask_keyframe()  # a delta frame after a loss: wait for a keyframe
+            return
+        pending: CompleteFrame | VideoFrame = complete
+        if complete.codec != CODEC_JPEG:
+            # A delta codec's decoder must see every frame, so decode now, not when taken.
+            frame = self._decode(complete)
+            if frame is None:
+                return
+            pending = frame
         if self._pending is not None:
             self.stats.skipped += 1
-        self._pending = complete
+        self._pending = pending
         self._ready.set()
 
     def _on_call_end(self, task: asyncio.Task[None]) -> None:
@@ -706,7 +838,9 @@ class VideoReceiver:
             return
         now = self._loop.time()
         self.reassembler.poll(now)
-        report = self.reassembler.report(int(now * 1000))
+        report = self.reassembler.report(
+            int(now * 1000), keyframe=self.gate.need_keyframe, codecs=self.codecs
+        )
         try:
             self.channel.send(report.encode())
             self.stats.reports += 1
@@ -735,6 +869,7 @@ class VideoFeed:
             raise ValueError("report_interval must be positive")
         self.report_interval = report_interval
         self._subscribers: list[FrameCallback] = []
+        self._codecs: dict[int, tuple[int, ...]] = {}
         self._end_callbacks: list[Callable[[], None]] = []
         self._service: VideoFeedService | None = None
         self.ended = False
@@ -746,10 +881,35 @@ class VideoFeed:
         """Whether someone is subscribed (the robot is asked for video)."""
         return bool(self._subscribers) and not self.ended
 
+    @property
+    def codecs(self) -> tuple[int, ...]:
+        """The codecs asked for: those every subscriber decodes, in the first one's order."""
+        lists = list(self._codecs.values())
+        if not lists:
+            return (CODEC_JPEG,)
+        common = tuple(c for c in lists[0] if all(c in other for other in lists[1:]))
+        return common or lists[0]
+
+    def request_keyframe(self) -> None:
+        """A subscriber could not decode a frame: ask the robot for a keyframe (paced)."""
+        if self._service is not None:
+            self._service.request_keyframe()
+
     def subscribe(
-        self, on_frame: FrameCallback, *, on_end: Callable[[], None] | None = None
+        self,
+        on_frame: FrameCallback,
+        *,
+        on_end: Callable[[], None] | None = None,
+        codecs: tuple[int, ...] = (CODEC_JPEG,),
     ) -> Callable[[], None]:
-        """Hand every whole frame to ``on_frame`` until the returned function is called."""
+        """Hand every whole frame to ``on_frame`` until the returned function is called.
+
+        ``codecs``: what ``on_frame`` can decode, best first (the robot is asked for a
+        codec every subscriber takes). Frames of H.264 / VP8 come in decodable order:
+        after a loss the deltas up to the next keyframe are left out.
+        """
+        key = id(on_frame)
+        self._codecs[key] = tuple(codecs)
         self._subscribers.append(on_frame)
         if on_end is not None:
             self._end_callbacks.append(on_end)
@@ -757,6 +917,7 @@ class VideoFeed:
             self._service.update()
 
         def unsubscribe() -> None:
+            self._codecs.pop(key, None)
             with contextlib.suppress(ValueError):
                 self._subscribers.remove(on_frame)
             if on_end is not None:
@@ -800,7 +961,9 @@ class VideoFeedService:
         self.feed = feed
         self.call = call
         self.channel = video_channel(call)
-        self.reassembler = Reassembler()
+        self.reassembler = Reassembler(codec=VIDEO_CODECS)
+        self.gate = KeyframeGate()
+        self.requests = KeyframeRequests()
         self._loop = asyncio.get_running_loop()
         self._timer: asyncio.TimerHandle | None = None
         self._started_at = 0.0
@@ -839,6 +1002,19 @@ class VideoFeedService:
         if self.feed._service is self:
             self.feed._service = None
 
+    def request_keyframe(self) -> None:
+        """Wait for a keyframe and ask for one now (at most once per max(RTT, 300 ms))."""
+        self.gate.corrupt()
+        self._ask_keyframe()
+
+    def _ask_keyframe(self) -> None:
+        now = self._loop.time()
+        if not self._running or not self.requests.due(self.gate.need_keyframe, now):
+            return
+        report = self.reassembler.report(int(now * 1000), keyframe=True, codecs=self.feed.codecs)
+        with contextlib.suppress(TelebotError):
+            self.channel.send(report.encode())
+
     def _halt(self, *, bye: bool) -> None:
         self._running = False
         if self._timer is not None:
@@ -846,7 +1022,9 @@ class VideoFeedService:
             self._timer = None
         self.channel.set_callback(None)
         if bye:
-            report = self.reassembler.report(int(self._loop.time() * 1000), bye=True)
+            report = self.reassembler.report(
+                int(self._loop.time() * 1000), bye=True, codecs=self.feed.codecs
+            )
             with contextlib.suppress(TelebotError):
                 self.channel.send(report.encode())
 
@@ -854,8 +1032,12 @@ class VideoFeedService:
         if not self._running or datagram.received_at < self._started_at:
             return
         complete = self.reassembler.on_datagram(datagram.payload, self._loop.time())
-        if complete is not None:
-            self.feed._deliver(complete)
+        if complete is None:
+            return
+        if not self.gate.admit(complete.frame_id, complete.codec, complete.keyframe):
+            self._ask_keyframe()
+            return
+        self.feed._deliver(complete)
 
     def _on_timer(self) -> None:
         self._timer = None
@@ -863,8 +1045,11 @@ class VideoFeedService:
             return
         now = self._loop.time()
         self.reassembler.poll(now)
+        report = self.reassembler.report(
+            int(now * 1000), keyframe=self.gate.need_keyframe, codecs=self.feed.codecs
+        )
         try:
-            self.channel.send(self.reassembler.report(int(now * 1000)).encode())
+            self.channel.send(report.encode())
         except CallEnded:
             self._running = False
             return

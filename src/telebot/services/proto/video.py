@@ -736,6 +736,13 @@ class VideoSettings:
     #: Send only while receiver reports come; stop this long (s) after the last one.
     on_demand: bool = True
     idle_after: float = 2.0
+    #: Codecs the sender may use, its preference first (:func:`~telebot.services.proto.media.
+    #: choose_codec` picks among those the receiver lists; JPEG for an old receiver).
+    codecs: tuple[int, ...] = (CODEC_JPEG,)
+    #: H.264 / VP8: seconds between periodic keyframes, and the bit rate bounds (bits/s).
+    keyframe_interval: float = 3.0
+    min_bitrate: int = 150_000
+    max_bitrate: int = 2_000_000
 
     def __post_init__(self) -> None:
         checks = [
@@ -745,6 +752,9 @@ class VideoSettings:
             (0 < self.min_scale <= 1, "0 < min_scale <= 1"),
             (FRAGMENT_HEADER.size + MAX_CAMERA_NAME < self.max_payload <= MAX_DATAGRAM, ""),
             (self.idle_after > 0, "idle_after > 0"),
+            (bool(self.codecs), "at least one codec"),
+            (self.keyframe_interval > 0, "keyframe_interval > 0"),
+            (0 < self.min_bitrate <= self.max_bitrate, "0 < min_bitrate <= max_bitrate"),
         ]
         for ok, what in checks:
             if not ok:
