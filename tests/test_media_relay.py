@@ -8,7 +8,7 @@ import struct
 import pytest
 
 from telebot.apps.web.media_relay import MAX_VIDEO_FRAME, pack_media, parse_media
-from telebot.apps.web.screen import call_state, parse_screen_option
+from telebot.apps.web.screen import parse_screen_option
 from telebot.config import ScreenSettings
 
 
@@ -79,11 +79,3 @@ def test_screen_option() -> None:
     for bad in ("here", "host:port", "1:70000"):
         with pytest.raises(ValueError, match=r"HOST:PORT|port must be"):
             parse_screen_option(bad, default)
-
-
-def test_call_state_text() -> None:
-    assert call_state([], None) == ("", "waiting for a call")
-    assert call_state(["alice"], "alice") == ("alice", "alice is driving")
-    assert call_state(["alice"], None) == ("alice", "alice is watching")
-    assert call_state(["bob", "alice"], "alice") == ("alice", "alice is driving · bob watching")
-    assert call_state(["bob", "carol"], None) == ("bob", "bob, carol are watching")

@@ -33,17 +33,22 @@ from aiohttp import WSMsgType, web
 
 from telebot.apps.web.media_relay import pack_media
 from telebot.config import ScreenSettings
+from telebot.services.proto.media import CODEC_H264, CODEC_JPEG, CODEC_NAMES, CODEC_VP8
 
 if TYPE_CHECKING:
-    from telebot.services.robot import RobotServer
+    from telebot.services.media import CallState, RobotMedia
+    from telebot.services.proto.media import AudioPacket
+    from telebot.services.proto.video import CompleteFrame
 
-__all__ = ["RobotScreen", "parse_screen_option", "robot_screen"]
+__all__ = ["RobotScreen", "bind_screen", "parse_screen_option", "robot_screen"]
 
 log = logging.getLogger("telebot.screen")
 
 STATIC = resources.files("telebot.apps.web") / "static"
 #: Media messages a page may have in flight before audio is dropped (video: one at a time).
 MAX_AUDIO_IN_FLIGHT = 8
+#: What the screen page decodes (WebCodecs; JPEG as the browser's image decoder does).
+SCREEN_CODECS = (CODEC_H264, CODEC_VP8, CODEC_JPEG)
 
 
 class _Page:
@@ -236,9 +241,9 @@ def parse_screen_option(text: str, settings: ScreenSettings) -> ScreenSettings:
 
 @contextlib.asynccontextmanager
 async def robot_screen(
-    settings: ScreenSettings, server: RobotServer
+    settings: ScreenSettings, media: RobotMedia | None
 ) -> AsyncIterator[RobotScreen | None]:
-    """The robot's screen as ``[screen]`` says, fed from ``server``'s calls; None when off.
+    """The robot's screen as ``[screen]`` says, fed from ``media``; None when off.
 
     A taken port is logged as a warning and the robot runs on without a screen: a display
     is a comfort, never a reason for the robot not to answer calls.
@@ -254,7 +259,7 @@ async def robot_screen(
         yield None
         return
     try:
-        unbind = bind_screen(screen, server)
+        unbind = bind_screen(screen, media) if media is not None else (lambda: None)
         try:
             yield screen
         finally:
@@ -263,37 +268,21 @@ async def robot_screen(
         await screen.close()
 
 
-#: How often (s) the screen's call-state line is brought up to date.
-STATE_EVERY = 0.25
+def bind_screen(screen: RobotScreen, media: RobotMedia) -> Callable[[], None]:
+    """Feed ``screen`` from the robot's media: the user's encoded video and voice and the
+    call state; the screen's keyframe requests go to the user. Returns the unbinding."""
 
+    def on_video(frame: CompleteFrame) -> None:
+        codec = CODEC_NAMES.get(frame.codec, "")
+        screen.video(codec, frame.keyframe, frame.frame_id, frame.capture_time, frame.data)
 
-def call_state(peers: list[str], holder: str | None) -> tuple[str, str]:
-    """The screen's (user, text) for the users on the line and the drive's holder."""
-    if not peers:
-        return "", "waiting for a call"
-    if holder is not None and holder in peers:
-        others = [p for p in peers if p != holder]
-        text = f"{holder} is driving" + (f" · {', '.join(others)} watching" if others else "")
-        return holder, text
-    if len(peers) == 1:
-        return peers[0], f"{peers[0]} is watching"
-    return peers[0], f"{', '.join(peers)} are watching"
+    def on_audio(packet: AudioPacket) -> None:
+        screen.audio(packet.seq, packet.capture_time, packet.data)
 
+    def on_state(state: CallState) -> None:
+        screen.show_state(state.user or "", state.text, call=state.user is not None)
 
-def bind_screen(screen: RobotScreen, server: RobotServer) -> Callable[[], None]:
-    """Keep ``screen`` fed from ``server``: its calls' state; returns the unbinding."""
-
-    async def follow() -> None:
-        while True:
-            peers = list(dict.fromkeys(opened.call.peer for opened in server.open.values()))
-            holder = server.safety_status().holder
-            user, text = call_state(peers, holder)
-            screen.show_state(user, text, call=bool(peers))
-            await asyncio.sleep(STATE_EVERY)
-
-    task = asyncio.get_running_loop().create_task(follow(), name="robot-screen")
-
-    def unbind() -> None:
-        task.cancel()
-
-    return unbind
+    screen.on_keyframe = media.request_keyframe
+    return media.subscribe(
+        on_video=on_video, on_audio=on_audio, on_state=on_state, codecs=SCREEN_CODECS
+    )

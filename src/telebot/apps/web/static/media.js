@@ -20,7 +20,7 @@
     // Everything a test or benchmark reads (the page never branches on it).
     stats: {
       videoDecoded: 0, videoDropped: 0, videoErrors: 0, freezes: 0, keyRequests: 0,
-      recoveries: [], // ms from a freeze to the next decoded picture
+      recoveries: [], // ms the picture stood still because of a loss (last good -> next shown)
       frameNumbers: [], // numbers read from decoded pictures (when readStamps is on)
       glassMs: [], // capture -> decoded, ms (sender's clock vs ours: same machine in tests)
       codec: "", width: 0, height: 0, jpegFallback: false,
@@ -50,17 +50,21 @@
   M.pack = pack;
   M.unpack = unpack;
 
-  // The frame number a test camera stamps into its pictures: 16 cells across the top eighth
-  // of the picture, most significant bit first, a bright cell is a 1. Read back from the
-  // canvas the picture was just drawn on (one row of pixels: works for every decoder).
+  // The frame number a test camera stamps into its pictures (telebot.services.codecs
+  // stamp_number): cells of width/32 pixels along the top edge, a white-black start pair,
+  // then 24 bits, most significant first, white = 1. Read back from the canvas the picture
+  // was just drawn on (one row of pixels: works whatever decoded it); null without a stamp.
   function readStamp(ctx, w, h) {
-    const row = ctx.getImageData(0, Math.floor(h / 16), w, 1).data;
+    const cell = Math.max(2, Math.floor(w / 32));
+    if (h < cell || w < 26 * cell) return null;
+    const row = ctx.getImageData(0, Math.floor(cell / 2), 26 * cell, 1).data;
+    const bit = (i) => {
+      const x = Math.floor((i + 0.5) * cell);
+      return 0.299 * row[4 * x] + 0.587 * row[4 * x + 1] + 0.114 * row[4 * x + 2];
+    };
+    if (!(bit(0) > 160 && bit(1) < 96)) return null;
     let n = 0;
-    for (let i = 0; i < 16; i++) {
-      const x = Math.floor((i + 0.5) * w / 16);
-      const luma = 0.299 * row[4 * x] + 0.587 * row[4 * x + 1] + 0.114 * row[4 * x + 2];
-      n = (n << 1) | (luma > 128 ? 1 : 0);
-    }
+    for (let i = 0; i < 24; i++) n = n * 2 + (bit(i + 2) > 128 ? 1 : 0);
     return n;
   }
   M.readStamp = readStamp;
@@ -79,7 +83,8 @@
       this.codec = "";
       this.lastId = null;
       this.needKey = true;
-      this.frozenAt = null;
+      this.frozenAt = null; // when the picture last moved before a loss
+      this.shownAt = null; // when the last picture was shown
       this.askedAt = 0;
       this.pending = new Map(); // timestamp -> capture_time ms
       this.seq = 0;
@@ -101,7 +106,7 @@
     }
 
     _freeze(why) {
-      if (!this.needKey) { M.stats.freezes += 1; this.frozenAt = now(); }
+      if (!this.needKey && this.frozenAt === null) { M.stats.freezes += 1; this.frozenAt = this.shownAt !== null ? this.shownAt : now(); }
       this.needKey = true;
       this.why = why;
       this._ask();
@@ -125,9 +130,9 @@
       this.lastId = id;
       if (codec === "jpeg") { this._jpeg(header, data); return; }
       if (typeof VideoDecoder === "undefined") { M.stats.videoDropped += 1; return; }
-      if (gap || codec !== this.codec || !this.decoder) {
-        if (gap) this._freeze("frame " + id + " after a gap");
-        else if (!header.key) this._freeze("no keyframe yet");
+      if (gap && this.frozenAt === null && this.shownAt !== null) { M.stats.freezes += 1; this.frozenAt = this.shownAt; }
+      if (!header.key && (gap || codec !== this.codec || !this.decoder)) {
+        this._freeze(gap ? "frame " + id + " after a gap" : "no keyframe yet");
       }
       if (this.needKey && !header.key) { M.stats.videoDropped += 1; return; }
       let decoder;
@@ -150,8 +155,9 @@
       M.stats.videoDecoded += 1;
       keep(M.stats.glassMs, t - captureMs);
       if (this.frozenAt !== null) { keep(M.stats.recoveries, t - this.frozenAt); this.frozenAt = null; }
+      this.shownAt = t;
       M.stats.width = w; M.stats.height = h;
-      if (M.readStamps) keep(M.stats.frameNumbers, readStamp(this.ctx, w, h));
+      if (M.readStamps) { const n = readStamp(this.ctx, w, h); if (n !== null) keep(M.stats.frameNumbers, n); }
       if (this.onPicture) this.onPicture(w, h);
     }
 
