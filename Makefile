@@ -4,7 +4,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: install demo test lint bench clean
+.PHONY: install install-debian demo test lint bench clean
 
 install: $(VENV)/.installed
 
@@ -23,7 +23,7 @@ lint: install
 	$(BIN)/mypy
 
 test: lint
-	.ci/install-browser
+	.ci/install-debian
 	$(BIN)/pytest -n 2
 
 bench: install
@@ -33,8 +33,12 @@ bench: install
 	$(BIN)/python bench/video.py
 	$(BIN)/python bench/safety.py
 	$(BIN)/python bench/ros2.py
-	.ci/install-browser
+	.ci/install-debian
 	$(BIN)/python bench/ui.py
+	$(BIN)/python bench/media.py
+
+install-debian:
+	.ci/install-debian
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache .hypothesis

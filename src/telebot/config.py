@@ -12,7 +12,7 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from telebot.errors import ConfigError
 
@@ -336,6 +336,43 @@ class VideoConfig(StrictModel):
     adaptive: bool = True
 
 
+class MediaConfig(StrictModel):
+    """``[media]``: the call's video codec, the robot's microphone and speaker, its voice
+    (see :mod:`telebot.services.media`, ``docs/protocol.md`` §20)."""
+
+    #: Video codec the robot prefers; a user that cannot take it gets another it can
+    #: (JPEG for old clients).
+    codec: Literal["h264", "vp8", "jpeg"] = "h264"
+    #: Bit rate bounds of H.264 / VP8 (bits/s); the rate follows the link between them.
+    min_bitrate: int = Field(default=150_000, ge=50_000, le=20_000_000)
+    max_bitrate: int = Field(default=1_500_000, ge=50_000, le=20_000_000)
+    #: Seconds between periodic keyframes (more come when a user lost one).
+    keyframe_interval: float = Field(default=3.0, ge=0.5, le=60)
+    #: Microphone: "tone:440" (a test tone), "wav:PATH" (looped), "default" (sound card,
+    #: needs telebot[audio]) or "none".
+    mic: str = "tone:440"
+    #: Speaker for the user's voice: "wav:PATH", "default", "none".
+    speaker: str = "none"
+    #: Speak chat replies: "off", "user" (into the user's audio), "speaker", "both".
+    voice: Literal["off", "user", "speaker", "both"] = "user"
+    #: The speech command; the text is appended, it writes a WAV to stdout.
+    voice_command: list[str] = Field(default_factory=lambda: ["espeak-ng", "--stdout"])
+    #: Stamp frame numbers into the video (tests, bench); None: on the simulator only.
+    stamp: bool | None = None
+    #: Shared-memory ring of the user's decoded camera pictures ("" for none).
+    user_video_ring: str = ""
+
+    @model_validator(mode="after")
+    def _check(self) -> MediaConfig:
+        if self.min_bitrate > self.max_bitrate:
+            raise ValueError("media: min_bitrate is above max_bitrate")
+        for name, spec in (("mic", self.mic), ("speaker", self.speaker)):
+            kind = spec.partition(":")[0]
+            if kind not in ("tone", "wav", "default", "none", "memory"):
+                raise ValueError(f"media: {name} = {spec!r}; use tone:HZ, wav:PATH, default, none")
+        return self
+
+
 class ScreenSettings(StrictModel):
     """The robot's own screen (``[screen]``): a local page showing the remote user's video.
 
@@ -436,6 +473,7 @@ class RobotConfig(AppConfig):
     services: ServiceSettings = Field(default_factory=ServiceSettings)
     safety: SafetySettings = Field(default_factory=SafetySettings)
     video: VideoConfig = Field(default_factory=VideoConfig)
+    media: MediaConfig = Field(default_factory=MediaConfig)
     recording: RecordingSettings = Field(default_factory=RecordingSettings)
     relay: RelaySettings = Field(default_factory=RelaySettings)
     screen: ScreenSettings = Field(default_factory=ScreenSettings)

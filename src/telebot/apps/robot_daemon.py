@@ -21,6 +21,7 @@ from telebot.config import RobotConfig
 from telebot.errors import RobotError
 from telebot.identity import ContactBook, Identity
 from telebot.robot import create_robot
+from telebot.services.media import install_robot_media, media_settings, media_video_settings
 from telebot.services.recording import Recorder
 from telebot.services.robot import EventSink, RobotServer, default_robot_services
 from telebot.services.supervision import SafetyDriver
@@ -124,14 +125,16 @@ async def serve_robot(
                     quality=config.video.quality,
                     min_quality=min(30, config.video.quality),
                     adaptive=config.video.adaptive,
+                    **media_video_settings(config.media, simulated=simulated),
                 ),
                 services=services,
                 relay=config.relay,
             )
+            media = install_robot_media(server, media_settings(config.media, simulated=simulated))
             await server.prepare()
             with stop_on_signals(stop):
                 async with (
-                    robot_screen(config.screen, server),
+                    robot_screen(config.screen, media),
                     create_transport(config.transport) as transport,
                     RobotEndpoint(
                         transport,
@@ -178,6 +181,7 @@ async def serve_robot(
                         emit({"event": "stopping", "calls": len(endpoint.calls)})
                         await endpoint.close(SHUTDOWN_REASON)
                         await asyncio.gather(runner, stopped, return_exceptions=True)
+                        media.close()
     finally:
         if recorder is not None:  # after the calls ended: their ends are in the file
             await asyncio.to_thread(recorder.close)

@@ -190,6 +190,31 @@ def build_parser() -> Parser:
     add_home_option(video, "user")
     add_connection_options(video)
 
+    talk = commands.add_parser(
+        "talk",
+        help="a voice call: send a microphone (and a test camera) to the robot, hear its mic",
+    )
+    talk.add_argument("robot", type=name_arg, help="the robot's name")
+    talk.add_argument(
+        "--mic",
+        default="default",
+        metavar="FILE|default",
+        help="a WAV file (looped), 'default' (sound card: pip install 'telebot[audio]'), "
+        "tone:HZ or none (default: default)",
+    )
+    talk.add_argument(
+        "--speaker",
+        default="default",
+        metavar="FILE|default",
+        help="where the robot's audio goes: a WAV file, 'default' or none (default: default)",
+    )
+    talk.add_argument("--camera", action="store_true", help="also send a test camera pattern")
+    talk.add_argument(
+        "--duration", type=_positive_float, metavar="S", help="hang up after S seconds"
+    )
+    add_home_option(talk, "user")
+    add_connection_options(talk)
+
     video_log = commands.add_parser(
         "video-log", help="record the frames another telebot-user shares in memory (video --shm)"
     )
@@ -336,6 +361,18 @@ def main(argv: list[str] | None = None) -> int:
                 config=app_config(args),
                 record=args.record,
                 shm=args.shm,
+                duration=args.duration,
+            )
+        if args.command == "talk":
+            from telebot.apps.talk_cli import talk
+
+            return await talk(
+                args.robot,
+                home=home,
+                config=app_config(args),
+                mic=args.mic,
+                speaker=args.speaker,
+                camera=args.camera,
                 duration=args.duration,
             )
         if args.command == "ui":

@@ -53,6 +53,7 @@ from telebot.identity import Identity, KnownRobots
 from telebot.reasons import Reason
 from telebot.services.base import CLIENT_TICK, OpenServices, ServiceRegistry
 from telebot.services.mapxfer import MapDownload, fetch_map
+from telebot.services.media import AudioReceiver, UserMedia, open_user_media
 from telebot.services.plan import PlanReceiver
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
 from telebot.services.proto.chat import ChatReply, decode_reply, encode_request
@@ -232,6 +233,7 @@ def default_client_services() -> ServiceRegistry[RobotClient]:
     registry.register("video", _video)
     registry.register("plan", _plan)
     registry.register("relay", _relay)
+    registry.register("media", open_user_media)
     return registry
 
 
@@ -248,6 +250,8 @@ class RobotClient:
         self.registry = services if services is not None else default_client_services()
         #: The robot's video across calls (``robot.video()`` and the web UI read it).
         self.video_feed = VideoFeed()
+        #: The robot's audio and the user's microphone and camera across calls.
+        self.media = UserMedia()
         #: Called with every :class:`ConnectionEvent` (on the event loop).
         self.on_connection: list[Callable[[ConnectionEvent], None]] = []
         #: Called with ``(kind, fields)`` for each thing this user asks and each answer it
@@ -321,6 +325,7 @@ class RobotClient:
                 await self._supervisor
         self.services.close()
         self.video_feed.end()
+        self.media.end()
         # Relay stops still waiting for their acknowledgement: no call will answer them now.
         background = list(self._background)
         for task in background:
@@ -427,6 +432,7 @@ class RobotClient:
             return
         self._finished.set_result(end)
         self.video_feed.end()
+        self.media.end()
         self._emit(ConnectionEvent("ended", detail))
 
     def _note(self, kind: str, fields: Mapping[str, Any]) -> None:
@@ -753,6 +759,20 @@ class RobotClient:
         if self._supervisor is not None:
             return VideoReceiver(self.video_feed, **options)
         return VideoReceiver(video_channel(self.call), **options)
+
+    def audio(self, **options: Any) -> AudioReceiver:
+        """The robot's microphone: ``async with robot.audio() as audio: async for block in
+        audio`` (:class:`~telebot.services.media.AudioBlock`: 20 ms of 48 kHz mono int16).
+
+        The robot sends audio only while a receiver is open.
+        """
+        return AudioReceiver(self.media, **options)
+
+    def talk(self, mic: Any = None, camera: Any = None) -> None:
+        """Send a microphone (``"wav:PATH"``, ``"tone:1000"``, ``"default"`` or an
+        :class:`~telebot.services.audio.AudioSource`) and/or a camera (a function returning
+        BGR pictures) to the robot while it asks for them; ``talk()`` stops both."""
+        self.media.talk(mic=mic, camera=camera)
 
     # -- topic relay ------------------------------------------------------------------
 

@@ -196,6 +196,11 @@ class CallServices:
         if replies is not None:
             replies.append(text)
         self._send(self._chat_channel, text)
+        for listener in self.server.chat_listeners:  # e.g. the media service speaks it
+            try:
+                listener(self.call, reply)
+            except Exception:
+                log.exception("chat reply listener failed")
 
     # -- goals ----------------------------------------------------------------------
 
@@ -474,6 +479,8 @@ class RobotServer:
         #: What every call gets (:func:`default_robot_services` unless given); register
         #: more before calls come in.
         self.registry = services if services is not None else default_robot_services()
+        #: Called with (call, reply) for every chat reply sent (the media service speaks them).
+        self.chat_listeners: list[Callable[[Call, ChatReply], None]] = []
         # Decided once: a robot that runs by itself has no step() and is not stepped.
         self._step = nav.step if isinstance(nav, SteppedNavStack) else None
         self.video_settings = video if video is not None else VideoSettings()

@@ -57,7 +57,7 @@ from telebot.channels.channel import Channel, ReceivedDatagram
 from telebot.channels.transports.base import Lane
 from telebot.errors import CallEnded, ProtocolError, TelebotError
 from telebot.robot.nav import CameraFrame, NavStack
-from telebot.services.codecs import ThreadedEncoder, VideoDecoder, VideoEncoder
+from telebot.services.codecs import ThreadedEncoder, VideoDecoder, VideoEncoder, stamp_number
 from telebot.services.proto.media import (
     CODEC_H264,
     CODEC_VP8,
@@ -437,11 +437,19 @@ class VideoSender:
         controller = self.controller
         shot = self._camera.grab(self.nav, now, 0.5 * controller.frame_interval, self._clock)
         image = self._scaled(shot)
-        jpeg = self._encoded(shot, image, controller.quality)
+        if self.settings.stamp:  # a stamped picture is this sender's own: no shared cache
+            image = stamp_number(image, self._frame_id + 1)
+            jpeg = encode_jpeg(image, controller.quality)
+        else:
+            jpeg = self._encoded(shot, image, controller.quality)
         if controller.on_encoded(len(jpeg), now):
             self.stats.reencoded += 1
             image = self._scaled(shot)
-            jpeg = self._encoded(shot, image, controller.quality)
+            if self.settings.stamp:
+                image = stamp_number(image, self._frame_id + 1)
+                jpeg = encode_jpeg(image, controller.quality)
+            else:
+                jpeg = self._encoded(shot, image, controller.quality)
         self._frame_id += 1
         datagrams = fragment(
             self._frame_id,
@@ -465,6 +473,8 @@ class VideoSender:
         controller = self.controller
         shot = self._camera.grab(self.nav, now, 0.5 * controller.frame_interval, self._clock)
         image = self._scaled(shot)
+        if self.settings.stamp:
+            image = stamp_number(image, self._frame_id + 1)
         encoder = self._encoder
         if encoder is None or encoder.encoder.codec != codec:
             if encoder is not None:
@@ -957,10 +967,11 @@ class VideoFeedService:
     still up, it sends a *bye*.
     """
 
-    def __init__(self, feed: VideoFeed, call: Call) -> None:
+    def __init__(self, feed: VideoFeed, call: Call, *, channel: Channel | None = None) -> None:
         self.feed = feed
         self.call = call
-        self.channel = video_channel(call)
+        #: The call's ``video`` channel, or another stream's (the robot's ``video/user``).
+        self.channel = channel if channel is not None else video_channel(call)
         self.reassembler = Reassembler(codec=VIDEO_CODECS)
         self.gate = KeyframeGate()
         self.requests = KeyframeRequests()

@@ -41,6 +41,7 @@ if TYPE_CHECKING:
     from telebot.apps.web.server import WebUI, _Page
     from telebot.channels.call import Call
     from telebot.channels.channel import Channel, ReceivedDatagram
+    from telebot.services.media import UserMedia, UserMediaService
 
 __all__ = [
     "MAX_AUDIO_PACKET",
@@ -411,14 +412,13 @@ class MediaRelay:
 
     # -- media-core's user side
 
-    def _user_media(self) -> Any:
-        from telebot.services.media import user_media
+    def _user_media(self) -> UserMedia:
+        return self.ui.client.media
 
-        return user_media(self.ui.client)
-
-    def _audio_service(self) -> Any:
-        media = self._user_media()
-        return getattr(media, "_service", None)
+    def _audio_service(self) -> UserMediaService | None:
+        # The current call's media service owns audio/user (its sender's numbering and the
+        # robot's reports); the page's Opus packets go out through it as they are.
+        return self.ui.client.media._service
 
 
 def _names(value: Any, known: tuple[str, ...]) -> tuple[str, ...]:

@@ -743,6 +743,9 @@ class VideoSettings:
     keyframe_interval: float = 3.0
     min_bitrate: int = 150_000
     max_bitrate: int = 2_000_000
+    #: Draw each frame's ``frame_id`` into its top edge (a test pattern the simulator, the
+    #: tests and the bench read back; :func:`telebot.services.codecs.read_number`).
+    stamp: bool = False
 
     def __post_init__(self) -> None:
         checks = [

@@ -1,0 +1,959 @@
+"""Two-way media of a call: the robot's microphone to users, the user's camera and
+microphone to the robot, spoken replies (the robot's video is :mod:`telebot.services.video`).
+
+Wire format: :mod:`telebot.services.proto.media` (``docs/protocol.md`` §20). Codecs: PyAV
+(:mod:`telebot.services.codecs`); sound in and out: :mod:`telebot.services.audio`.
+
+**Robot.** One :class:`RobotMedia` per robot (created with the daemon's ``[media]``
+settings, :func:`install_robot_media` registers its per-call service ``media``):
+
+* streams its microphone (Opus, one packet per 20 ms of the event loop's clock, encoded
+  once for all calls) on ``audio`` to every user whose reports ask for it;
+* asks every caller for their camera (``video/user``) and microphone (``audio/user``):
+  it reports on both for the whole call, so the user's side sends them if it has them;
+* decodes the user's voice into its speaker sink (``[media] speaker``) and the user's
+  pictures for local consumers (:meth:`RobotMedia.on_user_picture`, and the
+  shared-memory ring ``[media] user_video_ring``);
+* speaks its chat replies (espeak-ng) into the user's audio and/or its own speaker.
+
+**The robot's screen** (the page media-web serves) codes against this API of
+:class:`RobotMedia`, all on the event loop, never blocking::
+
+    unsubscribe = media.subscribe(
+        on_video=lambda frame: ...,   # CompleteFrame of the user's camera, still encoded
+                                      #   (frame.codec: CODEC_H264 / CODEC_VP8 / CODEC_JPEG,
+                                      #   frame.keyframe, frame.data, frame.frame_id,
+                                      #   frame.capture_time); deltas only after their
+                                      #   keyframe (a page decoder can take them in order)
+        on_audio=lambda packet: ...,  # AudioPacket of the user's mic (packet.data: Opus,
+                                      #   48 kHz mono 20 ms; packet.seq, packet.capture_time)
+        on_state=lambda state: ...,   # CallState: state.text ("alice is driving",
+                                      #   "connecting…", "no call"), state.user, state.role,
+                                      #   state.driving, state.video, state.audio
+        codecs=(CODEC_H264, CODEC_VP8), # what the page decodes (asked of the user's side)
+    )
+    media.state                       # the current CallState
+    media.request_keyframe()          # the page's decoder failed: ask the user for one
+    unsubscribe()
+
+**User.** :class:`UserMedia` lives on the :class:`~telebot.services.client.RobotClient`
+across calls (``robot.media``); its service :class:`UserMediaService` moves the bytes of
+the current call: ``robot.audio()`` (an :class:`AudioReceiver`, decoded 20 ms blocks of
+the robot's microphone) and ``robot.talk(mic=..., camera=...)`` (send a microphone
+source and a picture source to the robot while it asks for them).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import shutil
+import subprocess
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import TYPE_CHECKING, Any, Self, cast
+
+import numpy as np
+import numpy.typing as npt
+
+from telebot.channels.channel import Channel, ReceivedDatagram
+from telebot.channels.transports.base import Lane
+from telebot.errors import CallEnded, ProtocolError, TelebotError
+from telebot.robot.nav import CameraFrame
+from telebot.services.audio import (
+    AudioSink,
+    AudioSource,
+    MixSource,
+    open_sink,
+    open_source,
+    resample,
+)
+from telebot.services.codecs import OpusDecoder, OpusEncoder, VideoDecoder
+from telebot.services.proto.media import (
+    AUDIO,
+    CODEC_H264,
+    CODEC_JPEG,
+    CODEC_VP8,
+    FRAME_MS,
+    USER_AUDIO,
+    USER_VIDEO,
+    AudioPacket,
+    AudioSequencer,
+    codec_id,
+    encode_audio,
+    parse_media_report,
+)
+from telebot.services.proto.video import CompleteFrame, VideoSettings
+from telebot.services.video import (
+    DECODED_CODECS,
+    REPORT_INTERVAL,
+    VideoFeed,
+    VideoFeedService,
+    VideoSender,
+)
+
+if TYPE_CHECKING:
+    from telebot.channels.call import Call
+    from telebot.config import MediaConfig
+    from telebot.services.client import RobotClient
+    from telebot.services.proto.chat import ChatReply
+    from telebot.services.robot import RobotServer
+
+__all__ = [
+    "AudioBlock",
+    "AudioReceiver",
+    "CallState",
+    "MediaSettings",
+    "PictureSource",
+    "RobotMedia",
+    "RobotMediaService",
+    "TestPattern",
+    "UserMedia",
+    "UserMediaService",
+    "Voice",
+    "install_robot_media",
+    "media_settings",
+    "media_video_settings",
+    "open_user_media",
+]
+
+log = logging.getLogger("telebot.services.media")
+
+#: Seconds of one audio block / packet.
+BLOCK = FRAME_MS / 1000
+#: A stream's sender stops this long after the receiver's last report.
+IDLE_AFTER = 2.0
+
+
+@dataclass(frozen=True, slots=True)
+class MediaSettings:
+    """The robot's ``[media]`` settings (see :class:`telebot.config.MediaConfig`)."""
+
+    #: The robot's video codec (``h264`` | ``vp8`` | ``jpeg``); JPEG stays the fallback.
+    codec: str = "h264"
+    min_bitrate: int = 150_000
+    max_bitrate: int = 1_500_000
+    keyframe_interval: float = 3.0
+    #: Microphone and speaker specs (:func:`~telebot.services.audio.open_source` / sink).
+    mic: str = "tone:440"
+    speaker: str = "none"
+    #: Speak chat replies: ``off``, ``user`` (into the user's audio), ``speaker``, ``both``.
+    voice: str = "user"
+    #: Command of the speech synthesiser (espeak-ng writes a WAV to stdout).
+    voice_command: tuple[str, ...] = ("espeak-ng", "--stdout")
+    #: Stamp frame numbers into the robot's video (the simulator's test pattern).
+    stamp: bool = False
+    #: Shared-memory ring for the user's decoded pictures ("" for none).
+    user_video_ring: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class CallState:
+    """What the robot's screen shows about the call."""
+
+    #: Short line for the screen: "alice is driving", "alice is watching",
+    #: "connecting…", "no call".
+    text: str
+    user: str | None = None
+    role: str | None = None
+    driving: bool = False
+    #: Whether the user's camera / microphone are coming.
+    video: bool = False
+    audio: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class AudioBlock:
+    """Decoded audio: 48 kHz mono int16 samples (20 ms per packet; silence for a lost one)."""
+
+    samples: npt.NDArray[np.int16]
+    seq: int
+    #: Sender's wall clock at the first sample (0 for a concealed block).
+    capture_time: float
+    #: This side's wall clock when decoded.
+    received_time: float
+
+
+# --------------------------------------------------------------------------- streams
+
+
+class _AudioOut:
+    """Sends AUDIO packets on one channel while its receiver's reports come."""
+
+    def __init__(self, channel: Channel, loop: asyncio.AbstractEventLoop) -> None:
+        self.channel = channel
+        self._loop = loop
+        self._last_report: float | None = None
+        self._bye = False
+        self._seq = 0
+        self.sent = 0
+        self.rejected = 0
+        channel.set_callback(self._on_datagram)
+
+    def watching(self, now: float) -> bool:
+        at = self._last_report
+        return at is not None and not self._bye and now - at <= IDLE_AFTER
+
+    def _on_datagram(self, datagram: ReceivedDatagram) -> None:
+        try:
+            report = parse_media_report(datagram.payload)
+        except ProtocolError:
+            self.rejected += 1
+            return
+        self._last_report = self._loop.time()
+        self._bye = report.bye
+
+    def send(self, packet: bytes, capture_time: float) -> None:
+        self.channel.send(encode_audio(self._seq, capture_time, packet))
+        self._seq += 1
+        self.sent += 1
+
+    def close(self) -> None:
+        self.channel.set_callback(None)
+
+
+class _AudioIn:
+    """Takes AUDIO packets on one channel and reports back every 200 ms while running."""
+
+    def __init__(
+        self,
+        channel: Channel,
+        on_packets: Callable[[list[AudioPacket | None]], None],
+        loop: asyncio.AbstractEventLoop,
+        report_interval: float = REPORT_INTERVAL,
+    ) -> None:
+        self.channel = channel
+        self.sequencer = AudioSequencer()
+        self._on_packets = on_packets
+        self._loop = loop
+        self.report_interval = report_interval
+        self._timer: asyncio.TimerHandle | None = None
+        self.running = False
+
+    def start(self) -> None:
+        if self.running:
+            return
+        self.running = True
+        self.channel.set_callback(self._on_datagram)
+        self._on_timer()
+
+    def stop(self, *, bye: bool) -> None:
+        if not self.running:
+            return
+        self.running = False
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        self.channel.set_callback(None)
+        if bye:
+            report = self.sequencer.report(int(self._loop.time() * 1000), bye=True)
+            with contextlib.suppress(TelebotError):
+                self.channel.send(report.encode())
+
+    def _on_datagram(self, datagram: ReceivedDatagram) -> None:
+        out = self.sequencer.on_datagram(datagram.payload, self._loop.time())
+        if out:
+            self._on_packets(out)
+
+    def _on_timer(self) -> None:
+        self._timer = None
+        if not self.running:
+            return
+        report = self.sequencer.report(int(self._loop.time() * 1000))
+        try:
+            self.channel.send(report.encode())
+        except CallEnded:
+            self.running = False
+            return
+        except TelebotError as exc:
+            log.debug("audio report not sent: %s", exc)
+        self._timer = self._loop.call_later(self.report_interval, self._on_timer)
+
+
+async def _pace(loop: asyncio.AbstractEventLoop, on_block: Callable[[float], None]) -> None:
+    """Call ``on_block(now)`` every 20 ms of the loop's clock (never in a burst after a stall:
+    a late loop skips blocks rather than sending them all at once)."""
+    due = loop.time()
+    while True:
+        now = loop.time()
+        if now < due:
+            await asyncio.sleep(due - now)
+            continue
+        try:
+            on_block(now)
+        except Exception:
+            log.exception("audio block failed")
+        due += BLOCK
+        if due < loop.time() - 5 * BLOCK:
+            due = loop.time()
+
+
+# --------------------------------------------------------------------------- voice
+
+
+class Voice:
+    """Speech for the robot's replies: ``command`` (espeak-ng) writes a WAV to stdout.
+
+    :meth:`synthesise` runs it (call it off the event loop) and returns 48 kHz samples;
+    :attr:`error` is a one-line reason when the synthesiser is missing.
+    """
+
+    def __init__(self, command: tuple[str, ...] = ("espeak-ng", "--stdout")) -> None:
+        self.command = command
+        self.error: str | None = None
+        if not command or shutil.which(command[0]) is None:
+            name = command[0] if command else "(none)"
+            self.error = (
+                f"voice: {name} is not installed (Debian: apt install espeak-ng, "
+                "or `make install-debian`); replies are not spoken"
+            )
+
+    def synthesise(self, text: str) -> npt.NDArray[np.int16]:
+        """``text`` spoken, as 48 kHz mono int16; RuntimeError with a one-line reason."""
+        if self.error is not None:
+            raise RuntimeError(self.error)
+        try:
+            done = subprocess.run(
+                [*self.command, text], capture_output=True, timeout=10, check=True
+            )
+        except (OSError, subprocess.SubprocessError) as exc:
+            raise RuntimeError(f"voice: {self.command[0]} failed ({exc})") from None
+        return _wav_bytes(done.stdout)
+
+
+def _wav_bytes(data: bytes) -> npt.NDArray[np.int16]:
+    import io
+    import wave
+
+    try:
+        with wave.open(io.BytesIO(data), "rb") as wav:
+            rate, channels = wav.getframerate(), wav.getnchannels()
+            raw = wav.readframes(wav.getnframes())
+    except (EOFError, wave.Error) as exc:
+        raise RuntimeError(f"voice: the synthesiser wrote no WAV ({exc})") from None
+    samples = np.frombuffer(raw, dtype="<i2").reshape(-1, channels).mean(axis=1)
+    return resample(samples, rate)
+
+
+# --------------------------------------------------------------------------- robot
+
+
+Unsubscribe = Callable[[], None]
+
+
+class RobotMedia:
+    """The robot's media across calls (see the module docstring for the screen's API)."""
+
+    def __init__(
+        self,
+        settings: MediaSettings | None = None,
+        *,
+        mic: AudioSource | None = None,
+        speaker: AudioSink | None = None,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        self.settings = settings if settings is not None else MediaSettings()
+        #: The microphone, with spoken replies mixed in.
+        self.mic = MixSource(mic if mic is not None else open_source(self.settings.mic))
+        self.speaker = speaker if speaker is not None else open_sink(self.settings.speaker)
+        self._clock = clock
+        self._opus: OpusEncoder | None = None
+        self._calls: dict[str, RobotMediaService] = {}
+        self._pump: asyncio.Task[None] | None = None
+        self._video_subs: list[Callable[[CompleteFrame], None]] = []
+        self._audio_subs: list[Callable[[AudioPacket], None]] = []
+        self._state_subs: list[Callable[[CallState], None]] = []
+        self._picture_subs: list[Callable[[npt.NDArray[np.uint8], CompleteFrame], None]] = []
+        #: The user's camera across calls; the robot always asks for it during a call.
+        self.user_video = VideoFeed()
+        self._decoder = VideoDecoder()
+        self.user_video.subscribe(self._on_user_frame, codecs=DECODED_CODECS)
+        #: The newest decoded picture of the user's camera (BGR), and its frame id.
+        self.user_picture: npt.NDArray[np.uint8] | None = None
+        self.user_frame_id: int | None = None
+        self.user_frames_decoded = 0
+        self.user_frames_corrupt = 0
+        self._ring: Any = None
+        self.voice: Voice | None = None
+        if self.settings.voice != "off":
+            self.voice = Voice(self.settings.voice_command)
+            if self.voice.error is not None:
+                log.warning("%s", self.voice.error)
+        self.spoken = 0
+        self._state = CallState("no call")
+        self._server: RobotServer | None = None
+
+    # -- the screen's API
+
+    @property
+    def state(self) -> CallState:
+        """The call as the robot's screen shows it."""
+        return self._state
+
+    def subscribe(
+        self,
+        *,
+        on_video: Callable[[CompleteFrame], None] | None = None,
+        on_audio: Callable[[AudioPacket], None] | None = None,
+        on_state: Callable[[CallState], None] | None = None,
+        codecs: tuple[int, ...] = DECODED_CODECS,
+    ) -> Unsubscribe:
+        """Encoded user media and call state for a consumer (the screen page).
+
+        ``on_state`` is called at once with the current state. Returns the function that
+        ends the subscription.
+        """
+        unsub_video: Unsubscribe | None = None
+        if on_video is not None:
+            unsub_video = self.user_video.subscribe(on_video, codecs=codecs)
+        if on_audio is not None:
+            self._audio_subs.append(on_audio)
+        if on_state is not None:
+            self._state_subs.append(on_state)
+            on_state(self._state)
+
+        def unsubscribe() -> None:
+            if unsub_video is not None:
+                unsub_video()
+            for subs, item in ((self._audio_subs, on_audio), (self._state_subs, on_state)):
+                with contextlib.suppress(ValueError):
+                    subs.remove(item)  # type: ignore[arg-type]
+
+        return unsubscribe
+
+    def on_user_picture(
+        self, callback: Callable[[npt.NDArray[np.uint8], CompleteFrame], None]
+    ) -> Unsubscribe:
+        """Call ``callback(image, frame)`` with each decoded picture of the user's camera."""
+        self._picture_subs.append(callback)
+        return lambda: self._picture_subs.remove(callback)
+
+    def request_keyframe(self) -> None:
+        """A consumer's decoder failed: ask the user's side for a keyframe (paced)."""
+        self.user_video.request_keyframe()
+
+    def speak(self, text: str) -> None:
+        """Say ``text`` (in a thread) into the user's audio and/or the speaker (``voice``)."""
+        voice = self.voice
+        if voice is None or voice.error is not None or not text.strip():
+            return
+        loop = asyncio.get_running_loop()
+        future = loop.run_in_executor(None, voice.synthesise, text)
+        future.add_done_callback(self._spoken)
+
+    # -- wiring
+
+    def attach(self, server: RobotServer) -> None:
+        """Register the per-call service on ``server`` and hear its chat replies."""
+        self._server = server
+        server.registry.register("media", self._open_call)
+        server.chat_listeners.append(self._on_chat_reply)
+
+    def close(self) -> None:
+        """Stop the microphone pump, close devices and the ring."""
+        if self._pump is not None:
+            self._pump.cancel()
+            self._pump = None
+        self.mic.close()
+        self.speaker.close()
+        if self._ring is not None:
+            self._ring.close()
+            self._ring = None
+
+    # -- internals
+
+    def _open_call(self, server: RobotServer, call: Call) -> RobotMediaService:
+        return RobotMediaService(self, server, call)
+
+    def _spoken(self, future: asyncio.Future[npt.NDArray[np.int16]]) -> None:
+        try:
+            samples = future.result()
+        except Exception as exc:
+            log.warning("%s", exc)
+            return
+        self.spoken += 1
+        if self.settings.voice in ("user", "both"):
+            self.mic.play(samples)
+        if self.settings.voice in ("speaker", "both"):
+            self.speaker.write(samples)
+
+    def _on_chat_reply(self, call: Call, reply: ChatReply) -> None:
+        if reply.text and call.id in self._calls:
+            self.speak(reply.text)
+
+    def _added(self, service: RobotMediaService) -> None:
+        self._calls[service.call.id] = service
+        if self._pump is None:
+            loop = asyncio.get_running_loop()
+            self._pump = loop.create_task(_pace(loop, self._mic_block), name="robot-mic")
+        self.update_state()
+
+    def _removed(self, service: RobotMediaService) -> None:
+        self._calls.pop(service.call.id, None)
+        if not self._calls and self._pump is not None:
+            self._pump.cancel()
+            self._pump = None
+        self.update_state()
+
+    def _mic_block(self, now: float) -> None:
+        block = self.mic.read()  # read whether or not anyone listens: the tone keeps time
+        senders = [s.audio_out for s in self._calls.values() if s.audio_out.watching(now)]
+        if not senders:
+            return
+        if self._opus is None:
+            self._opus = OpusEncoder()
+        packet = self._opus.encode(block)
+        capture = self._clock()
+        for sender in senders:
+            with contextlib.suppress(TelebotError):  # the call is ending; its service closes
+                sender.send(packet, capture)
+
+    def _on_user_frame(self, complete: CompleteFrame) -> None:
+        try:
+            image = self._decoder.decode(complete.data, complete.codec)
+        except ProtocolError as exc:
+            self.user_frames_corrupt += 1
+            log.debug("user frame %d dropped: %s", complete.frame_id, exc)
+            self.user_video.request_keyframe()
+            return
+        self.user_picture, self.user_frame_id = image, complete.frame_id
+        self.user_frames_decoded += 1
+        self._to_ring(image, complete)
+        for callback in list(self._picture_subs):
+            try:
+                callback(image, complete)
+            except Exception:
+                log.exception("user picture subscriber failed")
+
+    def _to_ring(self, image: npt.NDArray[np.uint8], complete: CompleteFrame) -> None:
+        name = self.settings.user_video_ring
+        if not name:
+            return
+        if self._ring is None:
+            from telebot.services.shm import FrameRingWriter
+
+            try:
+                self._ring = FrameRingWriter(name, 1280, 720)
+            except (OSError, ValueError) as exc:
+                log.warning("user video ring %r not opened: %s", name, exc)
+                self.settings = _replace_ring(self.settings)
+                return
+        self._ring.write(
+            image,
+            frame_id=complete.frame_id,
+            capture_time=complete.capture_time,
+            camera=complete.camera[:20],
+        )
+
+    def _on_user_audio(self, packet: AudioPacket) -> None:
+        for callback in list(self._audio_subs):
+            try:
+                callback(packet)
+            except Exception:
+                log.exception("user audio subscriber failed")
+
+    def update_state(self) -> None:
+        """Recompute the call state and tell the subscribers if it changed."""
+        state = CallState("no call")
+        holder = None
+        server = self._server
+        if server is not None and server.safety is not None:
+            holder = server.safety.state().holder_call
+        calls = list(self._calls.values())
+        # The screen shows the driver's call, else the newest.
+        chosen = next((s for s in calls if s.call.id == holder), calls[-1] if calls else None)
+        if chosen is not None:
+            call, driving = chosen.call, chosen.call.id == holder
+            heard = chosen.audio_in.sequencer.stats.packets > 0
+            seen = chosen.video_in.reassembler.stats.frames > 0
+            if not (heard or seen) and not driving:
+                text = f"connecting… ({call.peer})"
+            else:
+                text = f"{call.peer} is {'driving' if driving else 'watching'}"
+            state = CallState(text, call.peer, str(call.role), driving, seen, heard)
+        if state != self._state:
+            self._state = state
+            for callback in list(self._state_subs):
+                try:
+                    callback(state)
+                except Exception:
+                    log.exception("call state subscriber failed")
+
+
+def _replace_ring(settings: MediaSettings) -> MediaSettings:
+    from dataclasses import replace
+
+    return replace(settings, user_video_ring="")
+
+
+class RobotMediaService:
+    """The ``media`` service of one call on the robot (see :class:`RobotMedia`)."""
+
+    def __init__(self, media: RobotMedia, server: RobotServer, call: Call) -> None:
+        self.media = media
+        self.call = call
+        loop = asyncio.get_running_loop()
+        self.audio_out = _AudioOut(call.channel(AUDIO, lane=Lane.BULK), loop)
+        self.video_in = VideoFeedService(
+            media.user_video, call, channel=call.channel(USER_VIDEO, lane=Lane.BULK)
+        )
+        self._decoder = OpusDecoder()
+        self.audio_in = _AudioIn(
+            call.channel(USER_AUDIO, lane=Lane.BULK), self._on_user_audio, loop
+        )
+        self.audio_in.start()  # the robot always wants to hear its caller
+        media._added(self)
+
+    def tick(self, now: float) -> None:
+        """Keep the screen's call state current (who drives changes with the safety state)."""
+        self.media.update_state()
+
+    def close(self) -> None:
+        """The call ended: stop asking for the user's media."""
+        self.audio_in.stop(bye=self.call.active)
+        self.video_in.close()
+        self.audio_out.close()
+        self.media._removed(self)
+
+    def _on_user_audio(self, packets: list[AudioPacket | None]) -> None:
+        for packet in packets:
+            try:
+                samples = self._decoder.decode(packet.data if packet is not None else None)
+            except ProtocolError as exc:
+                self.audio_in.sequencer.corrupt()
+                log.debug("user audio packet dropped: %s", exc)
+                continue
+            self.media.speaker.write(samples)
+            if packet is not None:
+                self.media._on_user_audio(packet)
+
+
+def media_settings(config: MediaConfig, *, simulated: bool) -> MediaSettings:
+    """The :class:`MediaSettings` of a ``[media]`` config section."""
+    return MediaSettings(
+        codec=config.codec,
+        min_bitrate=config.min_bitrate,
+        max_bitrate=config.max_bitrate,
+        keyframe_interval=config.keyframe_interval,
+        mic=config.mic,
+        speaker=config.speaker,
+        voice=config.voice,
+        voice_command=tuple(config.voice_command),
+        stamp=simulated if config.stamp is None else config.stamp,
+        user_video_ring=config.user_video_ring,
+    )
+
+
+def media_video_settings(config: MediaConfig, *, simulated: bool) -> dict[str, Any]:
+    """The :class:`VideoSettings` fields ``[media]`` sets: codecs (the configured one first,
+    JPEG always last), bit rates, keyframe interval, stamping."""
+    preferred = codec_id(config.codec)
+    codecs = (preferred, *(c for c in (CODEC_H264, CODEC_VP8, CODEC_JPEG) if c != preferred))
+    return {
+        "codecs": codecs,
+        "min_bitrate": config.min_bitrate,
+        "max_bitrate": config.max_bitrate,
+        "keyframe_interval": config.keyframe_interval,
+        "stamp": simulated if config.stamp is None else config.stamp,
+    }
+
+
+def install_robot_media(server: RobotServer, settings: MediaSettings | None = None) -> RobotMedia:
+    """A :class:`RobotMedia` on ``server``: its ``media`` service opens on every call."""
+    media = RobotMedia(settings)
+    media.attach(server)
+    return media
+
+
+# --------------------------------------------------------------------------- user
+
+
+class PictureSource:
+    """Pictures for the user's camera stream: ``grab()`` returns a BGR picture."""
+
+    def __init__(self, grab: Callable[[], npt.NDArray[np.uint8]], name: str = "user") -> None:
+        self.grab = grab
+        self.name = name
+        self._n = 0
+
+    # The VideoSender takes its pictures from a NavStack; these two are all it uses.
+    @property
+    def active_camera(self) -> str:
+        """The camera name on the wire."""
+        return self.name
+
+    def get_frame(self) -> CameraFrame:
+        """The next picture."""
+        self._n += 1
+        return CameraFrame(self.name, self.grab(), time.time(), self._n)
+
+
+class TestPattern:
+    """A moving colour pattern (640 × 480 by default), for ``talk --camera test`` and tests."""
+
+    __test__ = False  # not a pytest class
+
+    def __init__(self, width: int = 640, height: int = 480) -> None:
+        y, x = np.mgrid[0:height, 0:width]
+        self._base = np.stack([x * 255 // width, y * 255 // height, (x + y) % 256], axis=-1)
+        self._n = 0
+
+    def __call__(self) -> npt.NDArray[np.uint8]:
+        """The next picture."""
+        self._n += 1
+        return cast(
+            "npt.NDArray[np.uint8]", np.roll(self._base, self._n * 4, axis=1).astype(np.uint8)
+        )
+
+
+@dataclass(slots=True)
+class _UserSources:
+    mic: AudioSource | None = None
+    camera: PictureSource | None = None
+    video: VideoSettings = field(
+        default_factory=lambda: VideoSettings(
+            codecs=(CODEC_VP8, CODEC_H264, CODEC_JPEG), max_fps=15.0, max_bitrate=800_000
+        )
+    )
+
+
+class UserMedia:
+    """The user's media across calls (``robot.media``): the robot's audio for
+    :meth:`audio` receivers, and the microphone and camera :meth:`talk` sends."""
+
+    def __init__(self) -> None:
+        self._audio_subs: list[Callable[[list[AudioPacket | None]], None]] = []
+        self._end_subs: list[Callable[[], None]] = []
+        self.sources = _UserSources()
+        self._service: UserMediaService | None = None
+        self.ended = False
+
+    @property
+    def audio_wanted(self) -> bool:
+        """Whether someone listens to the robot's microphone."""
+        return bool(self._audio_subs) and not self.ended
+
+    def subscribe_audio(
+        self,
+        on_packets: Callable[[list[AudioPacket | None]], None],
+        on_end: Callable[[], None] | None = None,
+    ) -> Unsubscribe:
+        """Hand the robot's audio packets (None for a lost one) to ``on_packets``."""
+        self._audio_subs.append(on_packets)
+        if on_end is not None:
+            self._end_subs.append(on_end)
+        self._update()
+
+        def unsubscribe() -> None:
+            with contextlib.suppress(ValueError):
+                self._audio_subs.remove(on_packets)
+            if on_end is not None:
+                with contextlib.suppress(ValueError):
+                    self._end_subs.remove(on_end)
+            self._update()
+
+        return unsubscribe
+
+    def talk(
+        self,
+        mic: AudioSource | str | None = None,
+        camera: PictureSource | Callable[[], npt.NDArray[np.uint8]] | None = None,
+    ) -> None:
+        """Send ``mic`` (a source or a spec such as ``wav:hello.wav``, ``default``) and
+        ``camera`` (pictures) to the robot while it asks for them; None stops either."""
+        old = self.sources.mic
+        self.sources.mic = open_source(mic) if isinstance(mic, str) else mic
+        if old is not None and old is not self.sources.mic:
+            old.close()
+        if camera is not None and not isinstance(camera, PictureSource):
+            camera = PictureSource(camera)
+        self.sources.camera = camera
+        if self._service is not None:
+            self._service.sources_changed()
+
+    def end(self) -> None:
+        """The client closes: receivers end."""
+        if self.ended:
+            return
+        self.ended = True
+        for callback in list(self._end_subs):
+            with contextlib.suppress(Exception):
+                callback()
+        if self.sources.mic is not None:
+            self.sources.mic.close()
+
+    def _update(self) -> None:
+        if self._service is not None:
+            self._service.update()
+
+    def _deliver(self, packets: list[AudioPacket | None]) -> None:
+        for callback in list(self._audio_subs):
+            try:
+                callback(packets)
+            except Exception:
+                log.exception("audio subscriber failed")
+
+
+class UserMediaService:
+    """The ``media`` call service of a user client: one call's part of :class:`UserMedia`."""
+
+    def __init__(self, media: UserMedia, call: Call) -> None:
+        self.media = media
+        self.call = call
+        self._loop = asyncio.get_running_loop()
+        self.audio_in = _AudioIn(call.channel(AUDIO, lane=Lane.BULK), media._deliver, self._loop)
+        self.audio_out = _AudioOut(call.channel(USER_AUDIO, lane=Lane.BULK), self._loop)
+        self._video_channel = call.channel(USER_VIDEO, lane=Lane.BULK)
+        self.video_out: VideoSender | None = None
+        self._opus: OpusEncoder | None = None
+        self._pump: asyncio.Task[None] | None = None
+        self._closed = False
+        media._service = self
+        self.update()
+        self.sources_changed()
+
+    def update(self) -> None:
+        """Listen to the robot's microphone while someone wants it."""
+        if self._closed:
+            return
+        if self.media.audio_wanted:
+            self.audio_in.start()
+        else:
+            self.audio_in.stop(bye=self.call.active)
+
+    def sources_changed(self) -> None:
+        """Start or stop sending the microphone and camera."""
+        if self._closed:
+            return
+        sources = self.media.sources
+        if sources.mic is not None and self._pump is None:
+            self._pump = self._loop.create_task(_pace(self._loop, self._mic_block), name="user-mic")
+        elif sources.mic is None and self._pump is not None:
+            self._pump.cancel()
+            self._pump = None
+        if sources.camera is not None and self.video_out is None:
+            self.video_out = VideoSender(
+                cast("Any", sources.camera),
+                self._video_channel,
+                sources.video,
+                call_stats=self.call.stats,
+            )
+            self.video_out.start()
+        elif sources.camera is None and self.video_out is not None:
+            self.video_out.stop()
+            self.video_out = None
+            self._video_channel.set_callback(None)
+
+    def tick(self, now: float) -> None:
+        """Nothing: the streams have their own timers."""
+
+    def close(self) -> None:
+        """The call ended or the client closes."""
+        if self._closed:
+            return
+        self._closed = True
+        self.audio_in.stop(bye=self.call.active)
+        self.audio_out.close()
+        if self._pump is not None:
+            self._pump.cancel()
+        if self.video_out is not None:
+            self.video_out.stop()
+        if self.media._service is self:
+            self.media._service = None
+
+    def _mic_block(self, now: float) -> None:
+        mic = self.media.sources.mic
+        if mic is None:
+            return
+        block = mic.read()
+        if not self.audio_out.watching(now):
+            return
+        if self._opus is None:
+            self._opus = OpusEncoder()
+        with contextlib.suppress(TelebotError):  # the call is ending
+            self.audio_out.send(self._opus.encode(block), time.time())
+
+
+class AudioReceiver:
+    """The robot's microphone, decoded: ``async for block in robot.audio()`` gives
+    :class:`AudioBlock` s of 20 ms (silence for a lost packet) until the client closes.
+
+    A consumer that falls more than ``max_queue`` blocks behind loses the oldest ones.
+    """
+
+    def __init__(self, media: UserMedia, *, max_queue: int = 50) -> None:
+        self.media = media
+        self.max_queue = max_queue
+        self._decoder = OpusDecoder()
+        self._queue: list[AudioBlock] = []
+        self._ready = asyncio.Event()
+        self._unsubscribe: Unsubscribe | None = None
+        self._ended = False
+        #: Blocks dropped because the consumer was behind; packets that did not decode.
+        self.overflow = 0
+        self.corrupt = 0
+
+    def start(self) -> None:
+        """Ask the robot for its audio (idempotent)."""
+        if self._unsubscribe is None and not self._ended:
+            self._unsubscribe = self.media.subscribe_audio(self._on_packets, self._on_end)
+
+    async def close(self) -> None:
+        """Stop listening."""
+        self._ended = True
+        self._ready.set()
+        if self._unsubscribe is not None:
+            self._unsubscribe()
+            self._unsubscribe = None
+
+    async def __aenter__(self) -> Self:
+        self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+    def __aiter__(self) -> AudioReceiver:
+        return self
+
+    async def __anext__(self) -> AudioBlock:
+        self.start()
+        while not self._queue:
+            if self._ended:
+                raise StopAsyncIteration
+            self._ready.clear()
+            await self._ready.wait()
+        return self._queue.pop(0)
+
+    def _on_end(self) -> None:
+        self._ended = True
+        self._ready.set()
+
+    def _on_packets(self, packets: list[AudioPacket | None]) -> None:
+        now = time.time()
+        for packet in packets:
+            try:
+                samples = self._decoder.decode(packet.data if packet is not None else None)
+            except ProtocolError:
+                self.corrupt += 1
+                continue
+            seq = packet.seq if packet is not None else -1
+            capture = packet.capture_time if packet is not None else 0.0
+            self._queue.append(AudioBlock(samples, seq, capture, now))
+        if len(self._queue) > self.max_queue:
+            self.overflow += len(self._queue) - self.max_queue
+            del self._queue[: len(self._queue) - self.max_queue]
+        self._ready.set()
+
+
+def open_user_media(client: RobotClient, call: Call) -> UserMediaService:
+    """The user's ``media`` call service factory (registered by the client)."""
+    return UserMediaService(client.media, call)

@@ -1,0 +1,315 @@
+"""Two-way media over real calls on the memory transport: the robot's H.264 video with
+stamped frame numbers, its 440 Hz microphone, the user's camera and ~1 kHz microphone, the
+robot's sink and screen API, loss and recovery at keyframes, and a stop under a 2 Mbit/s
+cap. Plus the PyAV codecs, the audio sources and sinks, and the voice."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import sys
+import time
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import ROBOT, Homes, memory_endpoints, wait_until
+from telebot.channels.transports.memory import MemoryHub
+from telebot.config import ServiceSettings, SimSettings
+from telebot.errors import ProtocolError
+from telebot.robot.sim.stack import SimNavStack
+from telebot.services import audio as audio_mod
+from telebot.services.audio import (
+    MemorySink,
+    ToneSource,
+    WavSink,
+    WavSource,
+    dominant_frequency,
+    open_sink,
+    open_source,
+)
+from telebot.services.client import RobotClient
+from telebot.services.codecs import (
+    OpusDecoder,
+    OpusEncoder,
+    VideoDecoder,
+    VideoEncoder,
+    read_number,
+    stamp_number,
+)
+from telebot.services.media import (
+    AudioBlock,
+    CallState,
+    MediaSettings,
+    RobotMedia,
+    TestPattern,
+    Voice,
+)
+from telebot.services.proto.media import CODEC_H264, CODEC_JPEG, CODEC_VP8, SAMPLE_RATE
+from telebot.services.proto.video import CompleteFrame, VideoSettings
+from telebot.services.robot import RobotServer
+from telebot.services.video import VideoFrame
+
+FAST = SimSettings(map="small", camera_width=320, camera_height=240, control_hz=50)
+
+
+def textured(width: int = 320, height: int = 240, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    small = rng.integers(0, 255, (height // 8, width // 8, 3), dtype=np.uint8)
+    return np.kron(small, np.ones((8, 8, 1), dtype=np.uint8))
+
+
+# --------------------------------------------------------------------------- codecs
+
+
+@pytest.mark.parametrize("codec", [CODEC_H264, CODEC_VP8, CODEC_JPEG])
+def test_encoded_frames_decode_with_their_stamped_numbers(codec: int) -> None:
+    encoder, decoder = VideoEncoder(codec), VideoDecoder()
+    base = textured()
+    for n in range(1, 8):
+        frame = encoder.encode(stamp_number(np.roll(base, n, axis=1), n), bitrate=600_000)
+        assert frame.keyframe == (n == 1 or codec == CODEC_JPEG)
+        image = decoder.decode(frame.data, frame.codec)
+        assert image.shape == (240, 320, 3) and read_number(image) == n
+    forced = encoder.encode(base, keyframe=True, bitrate=600_000)
+    assert forced.keyframe
+    if codec == CODEC_H264:  # Annex B, SPS and PPS ahead of the IDR slice
+        assert forced.data.startswith(b"\x00\x00\x00\x01") and forced.data[4] & 0x1F == 7
+
+
+def test_a_corrupt_frame_raises_protocol_error_and_the_next_keyframe_decodes() -> None:
+    encoder, decoder = VideoEncoder(CODEC_H264), VideoDecoder()
+    frame = encoder.encode(textured(), bitrate=600_000)
+    for garbage in (b"\x00\x00\x00\x01\x65" + bytes(range(256)) * 4, b"\xff" * 10, b""):
+        with pytest.raises(ProtocolError):
+            decoder.decode(garbage, CODEC_H264)
+    with pytest.raises(ProtocolError, match="codec 9"):
+        decoder.decode(frame.data, 9)
+    key = encoder.encode(textured(seed=1), keyframe=True, bitrate=600_000)
+    assert decoder.decode(key.data, CODEC_H264).shape == (240, 320, 3)
+    assert decoder.errors == 4
+
+
+def test_keyframes_are_capped_to_about_two_datagrams() -> None:
+    encoder = VideoEncoder(CODEC_H264)
+    noisy = np.random.default_rng(3).integers(0, 255, (480, 640, 3), dtype=np.uint8)
+    sizes = [
+        len(encoder.encode(noisy, keyframe=True, bitrate=1_000_000, now=i).data) for i in range(3)
+    ]
+    assert max(sizes[1:]) <= 2 * 32768, sizes
+
+
+def test_opus_carries_a_tone_and_conceals_a_lost_packet() -> None:
+    encoder, decoder = OpusEncoder(), OpusDecoder()
+    tone = ToneSource(440)
+    heard = [decoder.decode(encoder.encode(tone.read())) for _ in range(50)]
+    assert abs(dominant_frequency(np.concatenate(heard)[4800:]) - 440) < 10
+    assert decoder.decode(None).shape == (960,)
+    with pytest.raises(ProtocolError):
+        decoder.decode(b"\xff\xff\xff\xff\xff")
+    assert decoder.decode(encoder.encode(tone.read())).shape == (960,)  # still works
+
+
+def test_audio_sources_and_sinks(tmp_path: Path) -> None:
+    path = tmp_path / "tone.wav"
+    sink = open_sink(f"wav:{path}")
+    tone = open_source("tone:1000")
+    for _ in range(25):
+        sink.write(tone.read())
+    sink.close()
+    source = WavSource(path)
+    assert abs(dominant_frequency(np.concatenate([source.read() for _ in range(25)])) - 1000) < 10
+    memory = open_sink("memory")
+    assert isinstance(memory, MemorySink)
+    memory.write(np.ones(960, dtype=np.int16))
+    assert memory.total == 960
+    for bad in ("tone:0", "mp3:x", "wav:"):
+        with pytest.raises(ValueError, match="audio source"):
+            open_source(bad)
+    with pytest.raises(ValueError, match="cannot read WAV"):
+        WavSource(tmp_path / "missing.wav")
+    WavSink(tmp_path / "x.wav").close()
+
+
+def test_a_missing_sounddevice_is_a_clear_one_line_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "sounddevice", None)  # import fails
+    with pytest.raises(RuntimeError, match=r"telebot\[audio\]") as info:
+        audio_mod.open_source("default")
+    assert "\n" not in str(info.value)
+
+
+def test_a_missing_synthesiser_is_a_one_line_error() -> None:
+    voice = Voice(("no-such-espeak-binary",))
+    assert voice.error is not None and "not installed" in voice.error and "\n" not in voice.error
+    with pytest.raises(RuntimeError, match="not installed"):
+        voice.synthesise("hello")
+
+
+# A stand-in for espeak-ng: writes a 22,050 Hz WAV of a 700 Hz tone to stdout.
+FAKE_ESPEAK = (
+    sys.executable,
+    "-c",
+    "import io,sys,wave,math,struct;b=io.BytesIO();w=wave.open(b,'wb');w.setnchannels(1);"
+    "w.setsampwidth(2);w.setframerate(22050);"
+    "w.writeframes(b''.join(struct.pack('<h',int(9000*math.sin(2*math.pi*700*i/22050)))"
+    " for i in range(22050)));w.close();sys.stdout.buffer.write(b.getvalue())",
+)
+
+
+# --------------------------------------------------------------------------- calls
+
+
+@dataclass
+class Rig:
+    nav: SimNavStack
+    server: RobotServer
+    media: RobotMedia
+    speaker: MemorySink
+    client: RobotClient
+    hub: MemoryHub
+
+
+@contextlib.asynccontextmanager
+async def media_call(homes: Homes, *, voice: str = "off") -> AsyncIterator[Rig]:
+    """A simulated robot with H.264 video (stamped), a 440 Hz mic and a memory speaker, in a
+    call with a user who sends a test pattern and a 1 kHz tone."""
+    loop = asyncio.get_running_loop()
+    nav = SimNavStack.from_settings(FAST, now=loop.time())
+    video = VideoSettings(
+        width=320, height=240, codecs=(CODEC_H264, CODEC_JPEG), stamp=True, max_fps=20
+    )
+    server = RobotServer(nav, ServiceSettings(), control_hz=50, map_name="small", video=video)
+    speaker = MemorySink()
+    media = RobotMedia(
+        MediaSettings(voice=voice, voice_command=FAKE_ESPEAK), mic=ToneSource(440), speaker=speaker
+    )
+    media.attach(server)
+    await server.prepare()
+    hub = MemoryHub(seed=7)
+    async with memory_endpoints(homes, hub) as (robot_endpoint, user_endpoint):
+        server.attach(robot_endpoint)
+        runner = asyncio.create_task(server.run(), name="robot-loop")
+        client = RobotClient(await user_endpoint.call(ROBOT))
+        client.talk(mic="tone:1000", camera=TestPattern(320, 240))
+        try:
+            yield Rig(nav, server, media, speaker, client, hub)
+        finally:
+            client.talk()
+            with contextlib.suppress(Exception):
+                await client.call.hangup()
+            await client.aclose()
+            runner.cancel()
+            await asyncio.gather(runner, return_exceptions=True)
+            media.close()
+    await asyncio.sleep(0.05)
+
+
+async def collect_audio(client: RobotClient, seconds: float) -> list[AudioBlock]:
+    blocks: list[AudioBlock] = []
+    async with client.audio() as audio:
+        async for block in audio:
+            blocks.append(block)
+            if len(blocks) >= seconds * 50:
+                break
+    return blocks
+
+
+async def test_a_two_way_call_carries_video_and_voice_both_ways(homes: Homes) -> None:
+    states: list[CallState] = []
+    async with media_call(homes) as rig:
+        encoded: list[CompleteFrame] = []
+        unsubscribe = rig.media.subscribe(on_video=encoded.append, on_state=states.append)
+        async with rig.client.video() as video:
+            got: list[VideoFrame] = [await video.next_frame(10) for _ in range(15)]
+        blocks = await collect_audio(rig.client, 1.0)
+        await wait_until(lambda: rig.speaker.total >= SAMPLE_RATE and len(encoded) >= 5)
+        unsubscribe()
+        heard_by_robot = rig.speaker.samples(0.5)
+        decoded_by_robot = rig.media.user_frames_decoded
+        final_state = rig.media.state
+    # The user decodes H.264, the robot's stamped numbers are the frame ids, in order.
+    assert {f.codec for f in got} == {CODEC_H264}
+    assert [read_number(f.image) for f in got] == [f.frame_id for f in got]
+    assert [f.frame_id for f in got] == sorted({f.frame_id for f in got})
+    # The user hears 440 Hz; the robot's speaker hears the user's 1 kHz tone.
+    samples = np.concatenate([b.samples for b in blocks])[-SAMPLE_RATE // 2 :]
+    assert abs(dominant_frequency(samples) - 440) < 15
+    assert abs(dominant_frequency(heard_by_robot) - 1000) < 15
+    # The robot decodes the user's camera; the screen gets its frames still encoded.
+    assert decoded_by_robot >= 5 and rig.media.user_picture is not None
+    assert encoded[0].keyframe and {f.codec for f in encoded} <= {CODEC_VP8, CODEC_H264}
+    assert states[0].text.startswith("connecting") and final_state.user == "alice"
+    assert final_state.video and final_state.audio and "alice is" in final_state.text
+
+
+async def test_with_10_percent_loss_video_recovers_at_keyframes(homes: Homes) -> None:
+    async with media_call(homes) as rig:
+        for a, b in (("robot", "user"), ("user", "robot")):
+            rig.hub.link(a, b).loss = 0.1
+        sender = rig.server.video_of(rig.client.call.id)
+        assert sender is not None
+        async with rig.client.video() as video:
+            got = [await video.next_frame(10) for _ in range(40)]
+        await wait_until(lambda: rig.media.user_frames_decoded >= 10)
+    # Frames were lost: the user skipped deltas, asked for keyframes, and the robot forced
+    # them (paced); every picture decoded is the frame it claims to be (none was decoded
+    # off a broken reference) and the stream went on after each loss.
+    assert video.gate.waits >= 1 and video.gate.skipped >= 1
+    assert video.requests.sent >= 1 and sender.pacer.forced >= 1
+    assert all(read_number(f.image) == f.frame_id for f in got)
+    ids = [f.frame_id for f in got]
+    assert ids == sorted(set(ids))
+    assert rig.media.user_frames_corrupt == 0
+
+
+async def test_a_stop_is_not_held_up_by_media_on_a_2_mbit_link(homes: Homes) -> None:
+    async with media_call(homes) as rig:
+        for a, b in (("robot", "user"), ("user", "robot")):
+            rig.hub.link(a, b).bandwidth = 250_000  # 2 Mbit/s
+        async with rig.client.video() as video:
+            await video.next_frame(10)
+            blocks_task = asyncio.create_task(collect_audio(rig.client, 1.0))
+            await wait_until(lambda: rig.media.user_frames_decoded >= 5)
+            times = []
+            for _ in range(5):
+                started = time.perf_counter()
+                ack = await rig.client.stop(timeout=5.0)
+                times.append(time.perf_counter() - started)
+                assert ack.ok
+            await video.next_frame(10)  # video still flows
+            await blocks_task
+    assert max(times) < 1.0, times
+
+
+async def test_the_robot_speaks_its_chat_replies_into_the_users_audio(homes: Homes) -> None:
+    async with media_call(homes, voice="user") as rig, rig.client.audio() as audio:
+        reply = await rig.client.chat("where are you")
+        assert reply.final_text
+        await wait_until(lambda: rig.media.spoken >= 1)
+        heard = []
+        async for block in audio:
+            heard.append(block.samples)
+            if len(heard) >= 40:
+                break
+    # The fake synthesiser's 700 Hz is mixed over the 440 Hz microphone.
+    spectrum = np.abs(np.fft.rfft(np.concatenate(heard).astype(float)))
+    freqs = np.fft.rfftfreq(len(np.concatenate(heard)), 1 / SAMPLE_RATE)
+    near_700 = spectrum[(freqs > 680) & (freqs < 720)].max()
+    assert near_700 > 0.1 * spectrum.max()
+
+
+async def test_talk_with_a_missing_wav_file_is_a_usage_error(tmp_path: Path) -> None:
+    import io
+
+    from telebot.apps.talk_cli import talk
+    from telebot.config import AppConfig
+
+    err = io.StringIO()
+    code = await talk(
+        "guiabot", home=tmp_path, config=AppConfig(), mic=str(tmp_path / "nope.wav"), stream=err
+    )
+    assert code == 2 and "cannot read WAV file" in err.getvalue()
+    assert err.getvalue().count("\n") == 1
