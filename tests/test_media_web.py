@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import json
 import os
 import statistics
@@ -75,9 +76,8 @@ class MediaRig:
 
 
 @pytest.fixture(autouse=True)
-def _no_leaked_tasks() -> Iterator[None]:
+def _no_leaked_tasks() -> None:
     """The module shares one rig: its tasks outlive each test by design (ended at teardown)."""
-    yield
 
 
 @contextlib.asynccontextmanager
@@ -186,7 +186,7 @@ async def wait_stats(page: Any, condition: str, timeout: float = 15.0) -> dict[s
 
 def rising(numbers: list[int], modulo: int | None = None) -> bool:
     """Each number after the one before (modulo: a looping source may wrap)."""
-    steps = [b - a if modulo is None else (b - a) % modulo for a, b in zip(numbers, numbers[1:])]
+    steps = [b - a if modulo is None else (b - a) % modulo for a, b in itertools.pairwise(numbers)]
     return bool(steps) and all(0 < s < (modulo or 1 << 30) // 2 for s in steps)
 
 
