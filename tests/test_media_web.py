@@ -81,8 +81,11 @@ def _no_leaked_tasks() -> None:
 
 
 @contextlib.asynccontextmanager
-async def media_rig(base: Path) -> AsyncIterator[MediaRig]:
-    """Everything of the module docstring, started and connected."""
+async def media_rig(
+    base: Path, *, width: int = 320, height: int = 240, fps: float = 20
+) -> AsyncIterator[MediaRig]:
+    """Everything of the module docstring, started and connected (the robot's video
+    ``width`` × ``height`` at up to ``fps``; bench/_media_browser.py uses it too)."""
     create_paired_homes(base, ROBOT, USER)
     homes = Homes(
         base / "robot",
@@ -91,13 +94,14 @@ async def media_rig(base: Path) -> AsyncIterator[MediaRig]:
         Identity.load(base / "user"),
     )
     loop = asyncio.get_running_loop()
-    nav = SimNavStack.from_settings(FAST, now=loop.time())
+    sim = FAST.model_copy(update={"camera_width": width, "camera_height": height})
+    nav = SimNavStack.from_settings(sim, now=loop.time())
     video = VideoSettings(
-        width=320,
-        height=240,
+        width=width,
+        height=height,
         codecs=(CODEC_H264, CODEC_VP8, CODEC_JPEG),
         stamp=True,
-        max_fps=20,
+        max_fps=fps,
         keyframe_interval=KEYFRAME_INTERVAL,
     )
     server = RobotServer(nav, ServiceSettings(), control_hz=50, map_name="small", video=video)

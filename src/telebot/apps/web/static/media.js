@@ -21,10 +21,11 @@
     stats: {
       videoDecoded: 0, videoDropped: 0, videoErrors: 0, freezes: 0, keyRequests: 0,
       recoveries: [], // ms the picture stood still because of a loss (last good -> next shown)
+      recoveredAt: [], // wall ms at which each of those ended
       frameNumbers: [], // numbers read from decoded pictures (when readStamps is on)
       glassMs: [], // capture -> decoded, ms (sender's clock vs ours: same machine in tests)
       codec: "", width: 0, height: 0, jpegFallback: false,
-      audioPackets: 0, audioLost: 0, audioErrors: 0, audioFreq: 0, audioMs: [], audioUnderruns: 0,
+      audioPackets: 0, audioLost: 0, audioErrors: 0, audioFreq: 0, audioMs: [], audioUnderruns: 0, audioLevel: 0, audioTarget: 0, audioSkippedMs: 0,
       sentVideo: 0, sentVideoKeys: 0, sentAudio: 0, sentBytes: 0, keyframesAsked: 0,
       captureNote: "",
     },
@@ -154,7 +155,11 @@
       const t = now();
       M.stats.videoDecoded += 1;
       keep(M.stats.glassMs, t - captureMs);
-      if (this.frozenAt !== null) { keep(M.stats.recoveries, t - this.frozenAt); this.frozenAt = null; }
+      if (this.frozenAt !== null) {
+        keep(M.stats.recoveries, t - this.frozenAt);
+        keep(M.stats.recoveredAt, t);
+        this.frozenAt = null;
+      }
       this.shownAt = t;
       M.stats.width = w; M.stats.height = h;
       if (M.readStamps) { const n = readStamp(this.ctx, w, h); if (n !== null) keep(M.stats.frameNumbers, n); }
@@ -283,6 +288,11 @@
     }
 
     _played(m) {
+      if (m.level !== undefined) {
+        M.stats.audioLevel = m.level; M.stats.audioTarget = m.target;
+        M.stats.audioUnderruns = m.underruns; M.stats.audioSkippedMs = m.skipped / 48;
+        return;
+      }
       if (m.played === undefined) return;
       const capture = this.captures.get(m.played);
       if (capture === undefined) return;
