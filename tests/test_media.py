@@ -313,3 +313,40 @@ async def test_talk_with_a_missing_wav_file_is_a_usage_error(tmp_path: Path) -> 
     )
     assert code == 2 and "cannot read WAV file" in err.getvalue()
     assert err.getvalue().count("\n") == 1
+
+
+async def test_garbage_on_the_media_channels_is_dropped_and_counted(homes: Homes) -> None:
+    from telebot.channels.transports.base import Lane
+    from telebot.services.proto.media import USER_AUDIO, USER_VIDEO
+    from telebot.services.proto.video import fragment
+
+    async with media_call(homes) as rig:
+        await wait_until(lambda: rig.media.user_frames_decoded >= 2 and rig.speaker.total > 0)
+        call = rig.client.call
+        junk_video = [
+            b"\x01",
+            "text",
+            b"\x01\x83" + bytes(40),
+            *fragment(10**6, "user", 1.0, b"\x00\x00\x00\x01\x65" + bytes(500), codec=CODEC_H264),
+            *fragment(2, "user", 1.0, b"not a vp8 frame", codec=CODEC_VP8, keyframe=True),
+            *fragment(3, "user", 1.0, b"x", codec=0x55),
+        ]
+        for payload in junk_video:
+            call.channel(USER_VIDEO, lane=Lane.BULK).send(payload)
+        for payload in (b"\x03\x10", b"\x03\x10" + bytes(12) + b"\xff\xff\xff", "x", b"\x02" * 5):
+            call.channel(USER_AUDIO, lane=Lane.BULK).send(payload)
+        decoded = rig.media.user_frames_decoded
+        heard = rig.speaker.total
+        # The call goes on: more user frames decoded and more voice heard after the junk.
+        await wait_until(
+            lambda: rig.media.user_frames_decoded >= decoded + 5 and rig.speaker.total > heard
+        )
+        service = rig.media.user_video._service
+        assert service is not None
+        stats = service.reassembler.stats
+        assert stats.malformed >= 3  # short, text, unknown codec
+        assert stats.absurd + stats.late + stats.malformed >= 4
+        [robot_side] = rig.media._calls.values()
+        audio_stats = robot_side.audio_in.sequencer.stats
+        assert audio_stats.malformed + audio_stats.late >= 3
+        assert rig.client.call.active

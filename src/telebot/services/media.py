@@ -46,6 +46,7 @@ source and a picture source to the robot while it asks for them).
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import logging
 import shutil
@@ -126,6 +127,8 @@ log = logging.getLogger("telebot.services.media")
 BLOCK = FRAME_MS / 1000
 #: A stream's sender stops this long after the receiver's last report.
 IDLE_AFTER = 2.0
+#: User frames waiting for the robot's decoder thread before new ones are dropped.
+MAX_DECODE_QUEUE = 8
 
 
 @dataclass(frozen=True, slots=True)
@@ -370,6 +373,8 @@ class RobotMedia:
         #: The user's camera across calls; the robot always asks for it during a call.
         self.user_video = VideoFeed()
         self._decoder = VideoDecoder()
+        self._decode_pool: concurrent.futures.ThreadPoolExecutor | None = None
+        self._decoding = 0
         self.user_video.subscribe(self._on_user_frame, codecs=DECODED_CODECS)
         #: The newest decoded picture of the user's camera (BGR), and its frame id.
         self.user_picture: npt.NDArray[np.uint8] | None = None
@@ -457,6 +462,9 @@ class RobotMedia:
         if self._pump is not None:
             self._pump.cancel()
             self._pump = None
+        if self._decode_pool is not None:
+            self._decode_pool.shutdown(wait=False, cancel_futures=True)
+            self._decode_pool = None
         self.mic.close()
         self.speaker.close()
         if self._ring is not None:
@@ -512,13 +520,36 @@ class RobotMedia:
                 sender.send(packet, capture)
 
     def _on_user_frame(self, complete: CompleteFrame) -> None:
-        try:
-            image = self._decoder.decode(complete.data, complete.codec)
-        except ProtocolError as exc:
+        # Decoded on a worker thread, in order: the robot's loop (its control) never waits
+        # for a decoder. A worker far behind drops the frame and waits for a keyframe.
+        if self._decoding >= MAX_DECODE_QUEUE:
+            self.user_frames_corrupt += 1
+            self.user_video.request_keyframe()
+            return
+        if self._decode_pool is None:
+            self._decode_pool = concurrent.futures.ThreadPoolExecutor(
+                1, thread_name_prefix="user-video-decode"
+            )
+        loop = asyncio.get_running_loop()
+        self._decoding += 1
+        future = loop.run_in_executor(
+            self._decode_pool, self._decoder.decode, complete.data, complete.codec
+        )
+        future.add_done_callback(lambda done: self._user_decoded(complete, done))
+
+    def _user_decoded(
+        self, complete: CompleteFrame, done: asyncio.Future[npt.NDArray[np.uint8]]
+    ) -> None:
+        self._decoding -= 1
+        if done.cancelled():
+            return
+        exc = done.exception()
+        if exc is not None:
             self.user_frames_corrupt += 1
             log.debug("user frame %d dropped: %s", complete.frame_id, exc)
             self.user_video.request_keyframe()
             return
+        image = done.result()
         self.user_picture, self.user_frame_id = image, complete.frame_id
         self.user_frames_decoded += 1
         self._to_ring(image, complete)
