@@ -295,7 +295,7 @@ def lose_first_keyframe_requests(channel: Channel) -> Iterator[list[int]]:
 async def test_a_lost_keyframe_request_is_repeated_and_video_recovers(rig: MediaRig) -> None:
     with lose_first_keyframe_requests(video_channel(rig.client.call)) as dropped:
         times = await recoveries(rig, 2)
-    assert len(dropped) >= 2
+    assert dropped  # at least one request was lost on the way (more when losses overlap)
     # Repeated after max(RTT, 300 ms): still far sooner than the 30 s periodic keyframe.
     assert max(times) < 5000, times
 
@@ -350,3 +350,71 @@ async def test_fake_media_files_are_what_chromium_reads(tmp_path: Path) -> None:
     first = np.frombuffer(y4m[y4m.index(b"FRAME\n") + 6 :][: 320 * 240], np.uint8)
     assert read_number(first.reshape(240, 320)) == 0
     assert any(a.startswith("--use-file-for-fake-audio-capture=") for a in args)
+
+
+async def sent(page: Any, key: str, wait: float = 0.6) -> int:
+    """How many more of ``key`` (sentAudio, sentVideo) the page sends in ``wait`` seconds."""
+    before = (await stats(page))[key]
+    await asyncio.sleep(wait)  # a window to count in, not a synchronisation
+    after: int = (await stats(page))[key]
+    return after - before
+
+
+async def goes_quiet(page: Any, key: str, within: float = 5.0) -> bool:
+    """Whether the page stops sending ``key`` (no more for 0.6 s) within ``within`` s;
+    what was being encoded when it was told may still go out first."""
+    deadline = asyncio.get_running_loop().time() + within
+    while asyncio.get_running_loop().time() < deadline:
+        if await sent(page, key) == 0:
+            return True
+    return False
+
+
+async def test_mute_camera_off_and_push_to_talk(rig: MediaRig) -> None:
+    page = rig.page
+    assert await sent(page, "sentAudio") > 5 and await sent(page, "sentVideo") > 2
+    await page.click("#mute")
+    await page.click("#camera-off")
+    try:
+        assert await goes_quiet(page, "sentAudio") and await goes_quiet(page, "sentVideo")
+        assert await page.inner_text("#mute") == "unmute"
+    finally:
+        await page.click("#mute")
+        await page.click("#camera-off")
+    # Push to talk: nothing until the button is held, then the microphone goes out.
+    await page.check("#ptt-mode")
+    try:
+        assert await goes_quiet(page, "sentAudio")
+        box = await page.locator("#ptt").bounding_box()
+        await page.mouse.move(box["x"] + 5, box["y"] + 5)
+        await page.mouse.down()
+        try:
+            assert await sent(page, "sentAudio") > 5
+        finally:
+            await page.mouse.up()
+    finally:
+        await page.uncheck("#ptt-mode")
+    assert await sent(page, "sentVideo") > 2  # the camera came back
+
+
+async def test_a_browser_without_webcodecs_gets_jpeg(rig: MediaRig) -> None:
+    context = await rig.browser.new_context()
+    try:
+        page = await context.new_page()
+        await page.add_init_script(
+            "delete window.VideoDecoder; delete window.VideoEncoder;"
+            " delete window.AudioDecoder; delete window.AudioEncoder;"
+        )
+        await page.goto(rig.ui.url)
+        # The robot switches the call's video to JPEG, which this page shows as images.
+        await page.wait_for_function(
+            "() => document.getElementById('video').naturalWidth === 320", timeout=15000
+        )
+        assert await page.is_visible("#video") and not await page.is_visible("#video-canvas")
+        note = await page.inner_text("#media-note")
+    finally:
+        await context.close()
+    assert "cannot send your camera" in note
+    # With that page gone, the other pages get H.264 again.
+    n = (await stats(rig.page))["videoDecoded"]
+    await wait_stats(rig.page, f"s.videoDecoded > {n + 5} && s.codec === 'h264'")

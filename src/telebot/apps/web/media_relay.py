@@ -383,7 +383,8 @@ class MediaRelay:
             note = (
                 "another page of this call sends your camera and microphone"
                 if self.encode.get(page)
-                else ""
+                else "this browser cannot send your camera or microphone (it has no "
+                "WebCodecs): the call goes on without them"
             )
             return {"type": "media", "send": False, "codec": "", "note": note}
         robot = self.uplink.codecs

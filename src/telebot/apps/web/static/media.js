@@ -14,6 +14,7 @@
   const now = () => performance.timeOrigin + performance.now(); // wall ms
   const CODEC_STRINGS = { h264: "avc1.42E01F", vp8: "vp8" };
   const KEY_RETRY_MS = 500; // a keyframe request unanswered this long is sent again
+  const MAX_BACK = 64; // frame ids this far behind the last are late; further, a new stream
   const KEEP = 2000; // samples kept in the stats arrays
 
   const M = {
@@ -58,10 +59,18 @@
   function readStamp(ctx, w, h) {
     const cell = Math.max(2, Math.floor(w / 32));
     if (h < cell || w < 26 * cell) return null;
-    const row = ctx.getImageData(0, Math.floor(cell / 2), 26 * cell, 1).data;
+    const margin = Math.max(1, Math.floor(cell / 4)), side = cell - 2 * margin;
+    const px = ctx.getImageData(0, margin, 26 * cell, side).data;
+    // The mean luma of cell i's inside (as read_number reads it: codecs blur the edges).
     const bit = (i) => {
-      const x = Math.floor((i + 0.5) * cell);
-      return 0.299 * row[4 * x] + 0.587 * row[4 * x + 1] + 0.114 * row[4 * x + 2];
+      let sum = 0;
+      for (let y = 0; y < side; y++) {
+        for (let x = i * cell + margin; x < (i + 1) * cell - margin; x++) {
+          const o = 4 * (y * 26 * cell + x);
+          sum += 0.299 * px[o] + 0.587 * px[o + 1] + 0.114 * px[o + 2];
+        }
+      }
+      return sum / (side * side);
     };
     if (!(bit(0) > 160 && bit(1) < 96)) return null;
     let n = 0;
@@ -126,8 +135,11 @@
     push(header, data) {
       const codec = header.codec || "jpeg";
       const id = header.frame_id;
+      const back = this.lastId === null ? 0 : (this.lastId - id) | 0;
+      // Late: older than the last picture shown (never shown after it). Much older is a new
+      // stream (a new call or sender counts from 0 again): followed from its keyframe.
+      if (this.lastId !== null && back >= 0 && back <= MAX_BACK) { M.stats.videoDropped += 1; return; }
       const gap = this.lastId !== null && id !== ((this.lastId + 1) >>> 0);
-      if (this.lastId !== null && ((id - this.lastId) | 0) <= 0) { M.stats.videoDropped += 1; return; } // late
       this.lastId = id;
       if (codec === "jpeg") { this._jpeg(header, data); return; }
       if (typeof VideoDecoder === "undefined") { M.stats.videoDropped += 1; return; }
@@ -247,7 +259,7 @@
       const seq = header.seq;
       if (this.lastSeq !== null) {
         const d = (seq - this.lastSeq) | 0;
-        if (d <= 0) return; // late: its time has passed
+        if (d <= 0 && d >= -50) return; // late: its time has passed (further back: a new call)
         if (d > 1) M.stats.audioLost += d - 1;
       }
       this.lastSeq = seq;
@@ -478,7 +490,10 @@
       return true;
     }, opts.capture);
     M.capture = capture;
-    capture.onNote = opts.onNote || (() => {});
+    // Two sources of notes, both shown: the devices (capture) and the call (the client).
+    const notes = { devices: "", call: "" };
+    const showNote = () => (opts.onNote || (() => {}))([notes.call, notes.devices].filter(Boolean).join(" · "));
+    capture.onNote = (text) => { notes.devices = text; showNote(); };
     const controls = opts.controls || {};
     if (controls.mute) controls.mute.onclick = () => {
       capture.muted = !capture.muted;
@@ -523,7 +538,7 @@
         if (m.type === "keyframe_request") { capture.keyframe(); return true; }
         if (m.type === "media") {
           if (m.codec) capture.opts.codec = m.codec;
-          if (m.note) capture._note(m.note);
+          notes.call = m.note || ""; showNote();
           if (m.send && !started) { started = true; capture.start(); }
           return true;
         }
