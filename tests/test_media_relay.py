@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 import json
+import logging
 import struct
+import subprocess
+import sys
 
+import aiohttp
 import pytest
 
+from conftest import Homes
 from telebot.apps.web.media_relay import MAX_VIDEO_FRAME, pack_media, parse_media
-from telebot.apps.web.screen import parse_screen_option
+from telebot.apps.web.screen import parse_screen_option, robot_screen
 from telebot.config import ScreenSettings
 
 
@@ -79,3 +84,44 @@ def test_screen_option() -> None:
     for bad in ("here", "host:port", "1:70000"):
         with pytest.raises(ValueError, match=r"HOST:PORT|port must be"):
             parse_screen_option(bad, default)
+
+
+async def test_the_screen_is_served_and_a_taken_port_is_only_a_warning(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    async with robot_screen(ScreenSettings(port=0), None) as screen:
+        assert screen is not None
+        async with aiohttp.ClientSession() as http:
+            async with http.get(screen.url) as response:
+                assert response.status == 200 and "screen.js" in await response.text()
+            async with http.get(screen.url + "static/media.js") as response:
+                assert response.status == 200
+        # A second robot on the same port: no screen, a warning, no exception.
+        with caplog.at_level(logging.WARNING, logger="telebot.screen"):
+            async with robot_screen(ScreenSettings(port=screen.port), None) as other:
+                assert other is None
+        assert "robot screen not served" in caplog.text
+    async with robot_screen(ScreenSettings(enabled=False), None) as off:
+        assert off is None
+
+
+def test_a_bad_screen_option_is_a_usage_error(homes: Homes) -> None:
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "telebot.apps.robot_cli",
+            "run",
+            "--home",
+            str(homes.robot_home),
+            "--screen",
+            "somewhere",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip() == (
+        "telebot-robot: error: --screen: expected HOST:PORT or off, got 'somewhere'"
+    )
