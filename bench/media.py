@@ -11,9 +11,10 @@ A. Bytes per frame and PSNR, H.264 (libx264 Constrained Baseline, ultrafast/zero
    PSNR is of the luma (see :func:`psnr`). H.264 runs at the lowest rate of a ladder (0.25 … 6 Mbit/s) whose mean PSNR is at least
    JPEG's, so the byte ratio is at equal or better quality. Target: JPEG bytes ÷ H.264
    bytes >= 5 on both; ``bytes_ratio`` is the smaller of the two.
-B. Stop round trip p50/p99 (``client.stop()`` until the robot's acknowledgement) over the
-   memory transport while media streams both ways: the robot's H.264 video and 440 Hz
-   microphone to the user, the user's camera (VP8) and 1 kHz microphone to the robot.
+B. Stop round trip p50/p99 (``client.stop()`` until the robot's acknowledgement) while
+   media streams both ways: a robot daemon (``telebot-robot run``, its default ``[media]``:
+   H.264 and a 440 Hz microphone) in its own process, this process its user over zenoh
+   loopback, sending its camera (VP8) and a 1 kHz tone.
    Target: p99 <= 20 ms.
 C. Browser parts (media-web, ``bench/_media_browser.py``): capture → decoded in Chromium
    p50/p99 (``glass_p50_ms``/``glass_p99_ms``, targets 30/60 ms), audio mouth → ear
@@ -212,7 +213,7 @@ async def main(quick: bool) -> None:
     print(f"A. H.264 against JPEG q80, 640 x 480, {n} frames at {FPS} fps")
     sim_ratio = compare("A1 simulator camera", sim_frames(n))
     tex_ratio = compare("A2 textured scene", textured_frames(n))
-    print("B. stop round trip while media streams both ways (memory transport)")
+    print("B. stop round trip while media streams both ways (robot daemon, zenoh loopback)")
     times = await stop_while_streaming(3.0 if quick else 10.0)
     stop_p50, stop_p99 = pct(times, 0.5) * 1000, pct(times, 0.99) * 1000
     print(f"  {len(times)} stops: p50 {stop_p50:.2f} ms, p99 {stop_p99:.2f} ms")
