@@ -288,8 +288,14 @@ class MediaRelay:
     # -- what the pages can do
 
     def codecs(self) -> tuple[int, ...]:
-        """Video codecs every open page decodes, best first (JPEG when one says nothing)."""
-        lists = [self.decode.get(page, JPEG_ONLY) for page in self.ui.pages] or [JPEG_ONLY]
+        """Video codecs every open page decodes, best first.
+
+        A page that has not said yet (it says so right after it connects) does not count,
+        so a page opening does not switch the others to JPEG for a moment; JPEG while no
+        page has said anything.
+        """
+        lists = [self.decode[page] for page in self.ui.pages if page in self.decode]
+        lists = lists or [JPEG_ONLY]
         common = [c for c in lists[0] if all(c in other for other in lists[1:])]
         ids = [codec_id(c) for c in common if c in ("h264", "vp8", "jpeg")]
         return tuple(ids) or (codec_id("jpeg"),)
@@ -409,7 +415,7 @@ class MediaRelay:
             if packet is None:
                 continue  # lost: the page's jitter buffer conceals it
             header = {"kind": "audio", "seq": packet.seq, "capture_time": packet.capture_time}
-            self.ui._broadcast_media(pack_media(header, packet.data), video=False)
+            self.ui._broadcast_audio(pack_media(header, packet.data))
 
     # -- media-core's user side
 

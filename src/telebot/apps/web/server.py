@@ -499,11 +499,8 @@ class WebUI:
             if not page.ws.closed:
                 self._spawn(page.ws.send_str(text))
 
-    def _broadcast_media(self, data: bytes, *, video: bool = True) -> None:
-        """Audio goes to every page (small, in order); video as :meth:`_broadcast_bytes`."""
-        if video:
-            self._broadcast_bytes(data)
-            return
+    def _broadcast_audio(self, data: bytes) -> None:
+        """An audio packet to every page: small and in order (video skips a busy page)."""
         for page in list(self.pages):
             if not page.ws.closed and len(page.sends) < 32:
                 task = self._spawn(page.ws.send_bytes(data))

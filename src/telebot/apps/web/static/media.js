@@ -150,7 +150,12 @@
       if (this.needKey && !header.key) { M.stats.videoDropped += 1; return; }
       let decoder;
       try { decoder = this._decoder(codec); } catch (e) { M.stats.videoErrors += 1; return; }
-      if (decoder.decodeQueueSize > 3 && !header.key) { M.stats.videoDropped += 1; return; }
+      if (decoder.decodeQueueSize > 3 && !header.key) {
+        // The decoder is behind: skip, and since the next delta needs this one, wait for a key.
+        M.stats.videoDropped += 1;
+        this._freeze("decoder behind");
+        return;
+      }
       const ts = (this.seq += 1) * 1000;
       this.pending.set(ts, header.capture_time * 1000);
       if (this.pending.size > 64) this.pending.delete(this.pending.keys().next().value);
