@@ -34,6 +34,7 @@ __all__ = [
     "RobotSettings",
     "Ros2Settings",
     "SafetySettings",
+    "ScreenSettings",
     "ServiceSettings",
     "SimSettings",
     "StrictModel",
@@ -416,6 +417,19 @@ class MediaConfig(StrictModel):
         return self
 
 
+class ScreenSettings(StrictModel):
+    """The robot's own screen (``[screen]``): a local page showing the remote user's video.
+
+    ``telebot-robot run`` serves it at ``http://HOST:PORT/`` for a browser on the robot's
+    display (kiosk mode); a port already taken is a warning, the robot runs on without it.
+    """
+
+    enabled: bool = True
+    #: Loopback by default: the page shows the user's face and plays their voice.
+    host: str = "127.0.0.1"
+    port: int = Field(default=8090, ge=0, le=65535)
+
+
 class RobotSettings(StrictModel):
     """Which robot adapter ``telebot-robot run`` drives (``kind``), python-can style.
 
@@ -568,3 +582,4 @@ class RobotConfig(AppConfig):
     relay: RelaySettings = Field(default_factory=RelaySettings)
     follow: FollowSettings = Field(default_factory=FollowSettings)
     people: PeopleSettings = Field(default_factory=PeopleSettings)
+    screen: ScreenSettings = Field(default_factory=ScreenSettings)

@@ -91,6 +91,14 @@ def build_parser() -> Parser:
     daemon.add_argument(
         "--events", action="store_true", help="print robot events as JSON lines on stdout"
     )
+    daemon.add_argument(
+        "--screen",
+        default=None,
+        metavar="HOST:PORT|off",
+        help="serve the robot's own screen (the remote user's video, name, call state and "
+        "voice, for a browser on the robot's display) at http://HOST:PORT/ (default "
+        "127.0.0.1:8090, [screen] of the config); 'off' serves none",
+    )
 
     make_map = commands.add_parser(
         "make-map",
@@ -167,6 +175,14 @@ async def _run_daemon(args: argparse.Namespace, home: Path) -> int:
     if args.map is not None:
         config.sim.map = args.map
         base_dir = None  # a --map path is relative to where the command runs
+    if args.screen is not None:
+        from telebot.apps.web.screen import parse_screen_option
+
+        try:
+            config.screen = parse_screen_option(args.screen, config.screen)
+        except ValueError as exc:
+            print(f"{PROG}: error: --screen: {exc}", file=sys.stderr)
+            return EXIT_USAGE
     identity = Identity.load(home)
     contacts = ContactBook.load(home)
     if not len(contacts):

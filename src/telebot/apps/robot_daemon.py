@@ -14,6 +14,7 @@ import math
 from pathlib import Path
 
 from telebot.apps.common import stop_on_signals
+from telebot.apps.web.screen import robot_screen
 from telebot.channels.call import RobotEndpoint
 from telebot.channels.transports import create_transport
 from telebot.config import RobotConfig
@@ -135,6 +136,7 @@ async def serve_robot(
             await server.prepare()
             with stop_on_signals(stop):
                 async with (
+                    robot_screen(config.screen, media),
                     create_transport(config.transport) as transport,
                     RobotEndpoint(
                         transport,

@@ -240,10 +240,13 @@ def build_parser() -> Parser:
 
     ui = commands.add_parser(
         "ui",
-        help="serve a local web page to drive a robot (map, click-to-goal, stop, video, chat), "
-        "or without a robot name the fleet page",
+        help="serve a local web page to drive a robot (map, click-to-goal, stop, video, voice, "
+        "chat), or without a robot name the fleet page",
         description="Call the robot and serve its web UI at http://HOST:PORT/ (open it in a "
-        "browser). Any key on the page stops the robot; closing the page while it moves "
+        "browser). The page shows and plays the robot's camera and microphone and sends yours "
+        "(the browser asks for them; mute, camera off and push to talk on the page; this "
+        "process relays the encoded media, it never re-encodes). "
+        "Any key on the page stops the robot; closing the page while it moves "
         "stops it too. The robot starts stopped: re-arm it on the page. If the call drops, the "
         "client calls the robot again by itself ([reconnect] in the config) and the page "
         "carries on; the robot stays stopped until re-armed. 'say TEXT' in the chat box speaks "

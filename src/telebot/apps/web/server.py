@@ -47,8 +47,16 @@ Websocket protocol (JSON text messages unless stated)::
                                                          messages (the last 50 on opening)
       {"type": "said", "id", "ok", "reason", "code"}     the answer to this page's say
       binary: video frame = 4-byte big-endian header length, UTF-8 JSON header
-              {"camera", "frame_id", "capture_time"}, then the JPEG bytes as the robot
-              sent them (never decoded or re-encoded here)
+              {"kind": "video", "codec", "key", "camera", "frame_id", "capture_time"},
+              then the picture as the robot sent it (JPEG, H.264, VP8: never decoded or
+              re-encoded here); the robot's voice the same way with {"kind": "audio",
+              "seq", "capture_time"} and an Opus packet
+
+    Media (both ways; :mod:`telebot.apps.web.media_relay`, docs/protocol.md §19.1)::
+
+      page → client {"type": "media", "decode": [...], "encode": [...]} | {"type": "keyframe"}
+                    binary: the user's camera / microphone, as above
+      client → page {"type": "media", "send", "codec", "note"} | {"type": "keyframe_request"}
 
 Video comes from the client's video feed (:class:`~telebot.services.video.VideoFeed`,
 subscribed while a page is open), so after a reconnection the map, pose and video resume
@@ -74,7 +82,6 @@ import functools
 import json
 import logging
 import math
-import struct
 import sys
 import time
 from collections.abc import Callable, Coroutine, Mapping
@@ -86,6 +93,13 @@ from typing import Any, Self
 
 from aiohttp import WSMsgType, web
 
+from telebot.apps.web.media_relay import (
+    MAX_PAGE_MESSAGE,
+    MEDIA_TYPES,
+    MediaRelay,
+    pack_media,
+    video_header,
+)
 from telebot.config import AppConfig
 from telebot.errors import CallEnded, TelebotError
 from telebot.reasons import Reason
@@ -109,7 +123,6 @@ STATIC = resources.files("telebot.apps.web") / "static"
 WS_HEARTBEAT = 1.0
 #: Seconds between link-quality messages to the pages.
 LINK_EVERY = 0.5
-_HEADER = struct.Struct(">I")
 
 
 def _now_ms() -> float:
@@ -163,6 +176,10 @@ class WebUI:
         self._video: Callable[[], None] | None = None
         self._closing = False
         self._last_roster: dict[str, Any] | None = None
+        #: The codecs the video feed was subscribed with (re-subscribed when they change).
+        self._video_codecs: tuple[int, ...] = ()
+        #: Camera, microphone and the robot's voice (media_relay.py).
+        self.media = MediaRelay(self)
         #: The newest connection state as the pages get it.
         self.connection: dict[str, Any] = {
             "type": "connection",
@@ -237,6 +254,7 @@ class WebUI:
         if self._closing:
             return
         self._closing = True
+        self.media.close()
         with contextlib.suppress(ValueError):
             self.client.on_connection.remove(self._on_connection)
         with contextlib.suppress(ValueError):
@@ -314,20 +332,24 @@ class WebUI:
     # -- websocket --------------------------------------------------------------------
 
     async def _websocket(self, request: web.Request) -> web.StreamResponse:
-        ws = web.WebSocketResponse(heartbeat=WS_HEARTBEAT, max_msg_size=1 << 16)
+        ws = web.WebSocketResponse(heartbeat=WS_HEARTBEAT, max_msg_size=MAX_PAGE_MESSAGE)
         await ws.prepare(request)
         page = _Page(ws)
         self.pages.add(page)
         self._video_wanted()
+        self.media.page_opened(page)
         try:
             await self._greet(page)
             async for msg in ws:
                 if msg.type == WSMsgType.TEXT:
                     self._on_message(page, msg.data)
+                elif msg.type == WSMsgType.BINARY:
+                    self.media.on_binary(page, msg.data)
                 elif msg.type == WSMsgType.ERROR:
                     break
         finally:
             self.pages.discard(page)
+            self.media.page_closed(page)
             self._video_wanted()
             self._page_closed()
         return ws
@@ -442,6 +464,8 @@ class WebUI:
                 self._spawn(self._chat(page, msg.get("id"), name))
         elif kind == "ping":
             self._send(page, {"type": "pong", "t": msg.get("t")})
+        elif kind in MEDIA_TYPES:
+            self.media.on_message(page, msg)
         else:
             self._send(page, {"type": "error", "text": f"unknown message type {kind!r}"})
 
@@ -562,6 +586,14 @@ class WebUI:
         for page in list(self.pages):
             if not page.ws.closed:
                 self._spawn(page.ws.send_str(text))
+
+    def _broadcast_audio(self, data: bytes) -> None:
+        """An audio packet to every page: small and in order (video skips a busy page)."""
+        for page in list(self.pages):
+            if not page.ws.closed and len(page.sends) < 32:
+                task = self._spawn(page.ws.send_bytes(data))
+                page.sends.add(task)
+                task.add_done_callback(page.sends.discard)
 
     def _broadcast_bytes(self, data: bytes) -> None:
         for page in list(self.pages):
@@ -684,20 +716,23 @@ class WebUI:
     def _video_wanted(self) -> None:
         """Receive video while at least one page is open."""
         if self.pages and self._video is None and not self._closing:
-            self._video = self.client.video_feed.subscribe(self._on_frame)
+            self._video_codecs = self.media.codecs()
+            self._video = self.client.video_feed.subscribe(
+                self._on_frame, codecs=self._video_codecs
+            )
         elif not self.pages and self._video is not None:
             self._video()
             self._video = None
 
+    def _video_resubscribe(self) -> None:
+        """The pages decode other codecs now: ask the robot again with the new list."""
+        if self._video is not None and self.media.codecs() != self._video_codecs:
+            self._video()
+            self._video = None
+        self._video_wanted()
+
     def _on_frame(self, frame: CompleteFrame) -> None:
-        header = json.dumps(
-            {
-                "camera": frame.camera,
-                "frame_id": frame.frame_id,
-                "capture_time": frame.capture_time,
-            }
-        ).encode()
-        self._broadcast_bytes(_HEADER.pack(len(header)) + header + frame.data)
+        self._broadcast_bytes(pack_media(video_header(frame), frame.data))
 
 
 async def serve_ui(

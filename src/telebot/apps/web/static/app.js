@@ -34,7 +34,7 @@
     url.protocol = location.protocol === "https:" ? "wss:" : "ws:";
     ws = new WebSocket(url.href);
     ws.binaryType = "arraybuffer";
-    ws.onopen = () => { ui.state.connected = true; showConn(); };
+    ws.onopen = () => { ui.state.connected = true; showConn(); if (media) media.open(); };
     ws.onclose = () => { ui.state.connected = false; showConn(); setTimeout(connect, 1000); };
     ws.onmessage = (ev) => {
       if (typeof ev.data === "string") onMessage(JSON.parse(ev.data));
@@ -111,9 +111,11 @@
         break;
       case "error": addChat("error: " + m.text, "fail"); break;
       default: {
-        // Messages other page scripts handle (conference.js): ui.handlers[type] = fn.
+        // Messages other page scripts handle (conference.js, people.js): ui.handlers[type]
+        // = fn; the rest are media.js's.
         const handler = ui.handlers[m.type];
         if (handler) handler(m);
+        else if (media) media.text(m);
         break;
       }
     }
@@ -391,16 +393,28 @@
   // ------------------------------------------------------------------ video
   const video = $("video");
   let videoUrl = null;
+  // Codec video and audio go to media.js (static/media.js); JPEG is shown here.
+  const media = window.telebotMedia ? window.telebotMedia.attachPage({
+    ws: () => ws, sendText: send, canvas: $("video-canvas"),
+    onNote: (text) => { $("media-note").textContent = text; },
+    controls: { mute: $("mute"), camera: $("camera-off"), ptt: $("ptt"), pttMode: $("ptt-mode") },
+  }) : null;
   function onFrame(buf) {
-    const view8 = new DataView(buf);
-    const hlen = view8.getUint32(0);
-    const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buf, 4, hlen)));
-    const blob = new Blob([new Uint8Array(buf, 4 + hlen)], { type: "image/jpeg" });
-    const url = URL.createObjectURL(blob);
-    const old = videoUrl;
-    videoUrl = url;
-    video.src = url;
-    if (old) setTimeout(() => URL.revokeObjectURL(old), 1000);
+    let header = media ? media.binary(buf) : null;
+    if (header && header.kind === "audio") return;
+    video.hidden = !!header;
+    $("video-canvas").hidden = !header;
+    if (!header) {
+      const view8 = new DataView(buf);
+      const hlen = view8.getUint32(0);
+      header = JSON.parse(new TextDecoder().decode(new Uint8Array(buf, 4, hlen)));
+      const blob = new Blob([new Uint8Array(buf, 4 + hlen)], { type: "image/jpeg" });
+      const url = URL.createObjectURL(blob);
+      const old = videoUrl;
+      videoUrl = url;
+      video.src = url;
+      if (old) setTimeout(() => URL.revokeObjectURL(old), 1000);
+    }
     const t = now();
     ui.stats.frameTimes.push(t);
     while (ui.stats.frameTimes.length && ui.stats.frameTimes[0] < t - 1000) ui.stats.frameTimes.shift();

@@ -1,0 +1,435 @@
+"""Browser media over the web UI's websocket: message format and the relay (never transcodes).
+
+The page (``static/media.js``) decodes the robot's H.264 / VP8 / Opus with WebCodecs and
+encodes the user's camera and microphone the same way; this process only moves the encoded
+bytes between the page's websocket and the call (docs/protocol.md §19).
+
+Binary websocket message, both ways: a 4-byte big-endian header length, a UTF-8 JSON
+object, then the encoded bytes::
+
+    {"kind": "video", "codec": "h264"|"vp8"|"jpeg", "key": bool, "frame_id": u32,
+     "capture_time": unix_s, "camera": str}    one encoded picture (H.264 in Annex B)
+    {"kind": "audio", "seq": u32, "capture_time": unix_s}    one Opus packet, 20 ms
+
+A header without ``kind`` is JPEG video (the web UI's first format, still sent for JPEG).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+import struct
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Final, Literal
+
+from telebot.channels.transports.base import Lane
+from telebot.errors import CallEnded, ProtocolError, TelebotError
+from telebot.services.proto.media import (
+    CODEC_NAMES,
+    USER_VIDEO,
+    AudioPacket,
+    choose_codec,
+    codec_id,
+    parse_media_report,
+)
+from telebot.services.proto.video import CompleteFrame, fragment, serial_diff
+
+if TYPE_CHECKING:
+    from telebot.apps.web.server import WebUI, _Page
+    from telebot.channels.call import Call
+    from telebot.channels.channel import Channel, ReceivedDatagram
+    from telebot.services.media import UserMedia, UserMediaService
+
+__all__ = [
+    "MAX_AUDIO_PACKET",
+    "MAX_HEADER",
+    "MAX_PAGE_MESSAGE",
+    "MAX_VIDEO_FRAME",
+    "MEDIA_TYPES",
+    "PAGE_CODECS",
+    "MediaMessage",
+    "MediaRelay",
+    "pack_media",
+    "parse_media",
+]
+
+_LEN: Final = struct.Struct(">I")
+#: Longest JSON header a page may send (bytes).
+MAX_HEADER: Final = 1024
+#: Largest encoded picture a page may send: 2 MB (the call's largest frame).
+MAX_VIDEO_FRAME: Final = 2_000_000
+#: Largest Opus packet (RFC 6716: 1275 bytes per frame; a little room for framing).
+MAX_AUDIO_PACKET: Final = 1500
+#: Codecs a page may send its camera in (what WebCodecs encodes; never JPEG).
+PAGE_CODECS: Final = ("vp8", "h264")
+_U32: Final = 1 << 32
+#: Largest websocket message a page may send (a picture and its header).
+MAX_PAGE_MESSAGE: Final = MAX_VIDEO_FRAME + 4 + MAX_HEADER
+#: Text message types of the page the relay handles.
+MEDIA_TYPES: Final = frozenset({"media", "keyframe"})
+#: Video codecs a page decodes when it says nothing (the web UI's first format).
+JPEG_ONLY: Final = ("jpeg",)
+
+log = logging.getLogger("telebot.web.media")
+
+
+@dataclass(frozen=True, slots=True)
+class MediaMessage:
+    """One parsed binary message: a video frame or an audio packet."""
+
+    kind: Literal["video", "audio"]
+    #: Video: frame_id; audio: seq (both u32, wrapping).
+    number: int
+    #: Unix seconds at capture, as the sender's clock says.
+    capture_time: float
+    data: bytes
+    codec: str = ""
+    key: bool = False
+
+
+def pack_media(header: dict[str, Any], data: bytes) -> bytes:
+    """The binary websocket message for ``header`` (a JSON object) and ``data``."""
+    raw = json.dumps(header, separators=(",", ":")).encode()
+    return _LEN.pack(len(raw)) + raw + data
+
+
+def _u32(header: dict[str, Any], name: str) -> int:
+    value = header.get(name)
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < _U32:
+        raise ValueError(f"{name} must be an integer 0..2^32-1, got {value!r}")
+    return value
+
+
+def parse_media(message: bytes, codecs: tuple[str, ...] = PAGE_CODECS) -> MediaMessage:
+    """Parse a page's binary message; ValueError (one line naming the fault) if malformed.
+
+    ``codecs`` are the video codecs accepted (those the robot offered).
+    """
+    if len(message) < _LEN.size:
+        raise ValueError("a media message needs a 4-byte header length")
+    (length,) = _LEN.unpack_from(message)
+    if not 2 <= length <= MAX_HEADER or len(message) < _LEN.size + length:
+        raise ValueError(f"bad media header length {length}")
+    try:
+        header = json.loads(message[_LEN.size : _LEN.size + length])
+    except (UnicodeDecodeError, ValueError):
+        raise ValueError("the media header is not JSON") from None
+    if not isinstance(header, dict):
+        raise ValueError("the media header is not a JSON object")
+    data = bytes(message[_LEN.size + length :])
+    capture = header.get("capture_time")
+    if isinstance(capture, bool) or not isinstance(capture, int | float):
+        raise ValueError(f"capture_time must be a number, got {capture!r}")
+    if not math.isfinite(capture) or capture < 0:
+        raise ValueError(f"capture_time must be finite and >= 0, got {capture!r}")
+    kind = header.get("kind")
+    if kind == "video":
+        codec = header.get("codec")
+        if codec not in codecs:
+            raise ValueError(f"video codec {codec!r} not offered (offered: {', '.join(codecs)})")
+        key = header.get("key")
+        if not isinstance(key, bool):
+            raise ValueError(f"key must be true or false, got {key!r}")
+        if not 0 < len(data) <= MAX_VIDEO_FRAME:
+            raise ValueError(f"a video frame must be 1..{MAX_VIDEO_FRAME} bytes, got {len(data)}")
+        return MediaMessage("video", _u32(header, "frame_id"), float(capture), data, codec, key)
+    if kind == "audio":
+        if not 0 < len(data) <= MAX_AUDIO_PACKET:
+            raise ValueError(f"an Opus packet must be 1..{MAX_AUDIO_PACKET} bytes, got {len(data)}")
+        return MediaMessage("audio", _u32(header, "seq"), float(capture), data, "opus")
+    raise ValueError(f"unknown media kind {kind!r} (video or audio)")
+
+
+# --------------------------------------------------------------------------- the relay
+
+
+def video_header(frame: CompleteFrame) -> dict[str, Any]:
+    """The websocket header of one of the robot's pictures."""
+    return {
+        "kind": "video",
+        "codec": CODEC_NAMES.get(frame.codec, "jpeg"),
+        "key": frame.keyframe,
+        "camera": frame.camera,
+        "frame_id": frame.frame_id,
+        "capture_time": frame.capture_time,
+    }
+
+
+#: The robot stops asking for the user's camera this long after its last report (s).
+IDLE_AFTER: Final = 2.0
+#: A keyframe request of the robot is passed on to the page at most this often (s).
+KEY_GAP: Final = 0.3
+
+
+class _Uplink:
+    """The user's camera to the robot: the page's encoded pictures, fragmented on
+    ``video/user`` while the robot's reports ask for them (never decoded here)."""
+
+    def __init__(self, relay: MediaRelay) -> None:
+        self.relay = relay
+        self.call: Call | None = None
+        self.channel: Channel | None = None
+        self.seq = 0
+        #: The next frame id on the wire: +1 per page picture taken while the robot asks,
+        #: sent or not, so a picture that did not go out is a gap the robot sees.
+        self.frame_id = 0
+        self.last_report: float | None = None
+        self.last_report_ms: int | None = None
+        self.bye = False
+        #: The robot's codec list, best first (empty: none yet).
+        self.codecs: tuple[int, ...] = ()
+        self.keys_asked_at: float | None = None
+        self.sent = 0
+        self.dropped = 0
+
+    def bind(self, call: Call) -> None:
+        """Follow the client's current call (a reconnection brings a new one)."""
+        if call is self.call:
+            return
+        if self.channel is not None:
+            self.channel.set_callback(None)
+        self.call = call
+        self.channel = call.channel(USER_VIDEO, lane=Lane.BULK)
+        self.channel.set_callback(self._on_report)
+        self.last_report = self.last_report_ms = None
+        self.codecs = ()
+
+    def wanted(self, now: float) -> bool:
+        """Whether the robot asks for the user's camera now."""
+        at = self.last_report
+        return at is not None and not self.bye and now - at <= IDLE_AFTER
+
+    def _on_report(self, datagram: ReceivedDatagram) -> None:
+        try:
+            report = parse_media_report(datagram.payload)
+        except ProtocolError:
+            return
+        if (
+            self.last_report_ms is not None
+            and serial_diff(report.receiver_ms, self.last_report_ms) < 0
+        ):
+            return  # reordered: an older report must not undo a bye
+        loop = asyncio.get_running_loop()
+        was = self.wanted(loop.time())
+        self.last_report, self.last_report_ms = loop.time(), report.receiver_ms
+        self.bye = report.bye
+        codecs_changed = report.codecs != self.codecs
+        self.codecs = report.codecs
+        if was != self.wanted(loop.time()) or codecs_changed:
+            self.relay.tell_pages()
+        if report.keyframe:
+            now = loop.time()
+            rtt = self.call.stats.rtt if self.call is not None else None
+            if self.keys_asked_at is None or now - self.keys_asked_at >= max(KEY_GAP, rtt or 0):
+                self.keys_asked_at = now
+                self.relay.ask_page_keyframe()
+
+    def send(self, codec: str, key: bool, capture_time: float, data: bytes) -> bool:
+        """Fragment one page picture onto the call; False when not sent (not wanted, no room)."""
+        channel = self.channel
+        if channel is None or not self.wanted(asyncio.get_running_loop().time()):
+            return False
+        frame_id = self.frame_id
+        self.frame_id = (frame_id + 1) % _U32
+        try:
+            datagrams = fragment(
+                frame_id,
+                "user",
+                capture_time,
+                data,
+                seq=self.seq,
+                codec=codec_id(codec),
+                keyframe=key,
+            )
+        except ValueError as exc:
+            self.dropped += 1
+            log.debug("page picture not sent: %s", exc)
+            return False
+        try:
+            for datagram in datagrams:
+                channel.send(datagram)
+        except CallEnded:
+            return False
+        except TelebotError as exc:
+            log.debug("page picture not sent: %s", exc)
+            self.dropped += 1
+            return False
+        finally:
+            self.seq = (self.seq + len(datagrams)) % _U32
+        self.sent += 1
+        return True
+
+
+class MediaRelay:
+    """The web UI's media: the robot's video and voice to the pages, the page's camera and
+    microphone to the robot, as encoded bytes (never decoded or re-encoded here).
+
+    One page at a time sends the user's camera and microphone (the first that can; the
+    next when it closes): a user with two tabs open is one user to the robot.
+    """
+
+    def __init__(self, ui: WebUI) -> None:
+        self.ui = ui
+        #: What each open page decodes and encodes (from its ``media`` message).
+        self.decode: dict[_Page, tuple[str, ...]] = {}
+        self.encode: dict[_Page, tuple[str, ...]] = {}
+        #: The page whose camera and microphone go to the robot.
+        self.sender: _Page | None = None
+        self.uplink = _Uplink(self)
+        #: Page messages dropped as malformed (each page is told once per kind of fault).
+        self.malformed = 0
+        self.audio_sent = 0
+        self._audio_unsub: Callable[[], None] | None = None
+        self._told: dict[_Page, dict[str, Any]] = {}
+
+    # -- what the pages can do
+
+    def codecs(self) -> tuple[int, ...]:
+        """Video codecs every open page decodes, best first.
+
+        A page that has not said yet (it says so right after it connects) does not count,
+        so a page opening does not switch the others to JPEG for a moment; JPEG while no
+        page has said anything.
+        """
+        lists = [self.decode[page] for page in self.ui.pages if page in self.decode]
+        lists = lists or [JPEG_ONLY]
+        common = [c for c in lists[0] if all(c in other for other in lists[1:])]
+        ids = [codec_id(c) for c in common if c in ("h264", "vp8", "jpeg")]
+        return tuple(ids) or (codec_id("jpeg"),)
+
+    def page_opened(self, page: _Page) -> None:
+        """A page connected: start hearing the robot (its voice goes to every page)."""
+        if self._audio_unsub is None:
+            media = self._user_media()
+            if media is not None:
+                self._audio_unsub = media.subscribe_audio(self._on_robot_audio)
+
+    def page_closed(self, page: _Page) -> None:
+        """A page went away: forget it; another page may take over the camera."""
+        self.decode.pop(page, None)
+        self.encode.pop(page, None)
+        self._told.pop(page, None)
+        if self.sender is page:
+            self.sender = None
+            self.tell_pages()
+        if not self.ui.pages and self._audio_unsub is not None:
+            self._audio_unsub()
+            self._audio_unsub = None
+        self.ui._video_resubscribe()
+
+    def close(self) -> None:
+        """The web UI closes."""
+        if self._audio_unsub is not None:
+            self._audio_unsub()
+            self._audio_unsub = None
+        if self.uplink.channel is not None:
+            self.uplink.channel.set_callback(None)
+
+    # -- page -> relay
+
+    def on_message(self, page: _Page, msg: dict[str, Any]) -> None:
+        """A text message of :data:`MEDIA_TYPES` from ``page``."""
+        if msg["type"] == "keyframe":
+            self.ui.client.video_feed.request_keyframe()
+            return
+        decode = msg.get("decode")
+        encode = msg.get("encode")
+        self.decode[page] = _names(decode, ("h264", "vp8", "jpeg")) or JPEG_ONLY
+        self.encode[page] = _names(encode, PAGE_CODECS)
+        self.ui._video_resubscribe()
+        self.tell_pages()
+
+    def on_binary(self, page: _Page, data: bytes) -> None:
+        """A binary message (the user's camera or microphone) from ``page``."""
+        codecs = self.encode.get(page, PAGE_CODECS)
+        try:
+            msg = parse_media(data, codecs)
+        except ValueError as exc:
+            self.malformed += 1
+            self.ui._send(page, {"type": "error", "text": f"media dropped: {exc}"})
+            return
+        if page is not self.sender:
+            return  # another tab sends the camera; this one's is not wanted
+        self.uplink.bind(self.ui.client.call)
+        if msg.kind == "video":
+            self.uplink.send(msg.codec, msg.key, msg.capture_time, msg.data)
+            return
+        service = self._audio_service()
+        if service is None:
+            return
+        out = service.audio_out
+        try:
+            if out.watching(asyncio.get_running_loop().time()):
+                out.send(msg.data, msg.capture_time)
+                self.audio_sent += 1
+        except TelebotError as exc:
+            log.debug("page audio not sent: %s", exc)
+
+    # -- relay -> pages
+
+    def tell_pages(self) -> None:
+        """Tell each page whether to send its camera and microphone, and in which codec."""
+        if self.sender is not None and self.sender not in self.ui.pages:
+            self.sender = None
+        if self.sender is None:
+            self.sender = next((p for p in self.ui.pages if self.encode.get(p)), None)
+        for page in list(self.ui.pages):
+            if page not in self.encode:
+                continue  # it has not said what it can do yet
+            message = self._media_message(page)
+            if self._told.get(page) != message:
+                self._told[page] = message
+                self.ui._send(page, message)
+
+    def _media_message(self, page: _Page) -> dict[str, Any]:
+        if page is not self.sender:
+            note = (
+                "another page of this call sends your camera and microphone"
+                if self.encode.get(page)
+                else "this browser cannot send your camera or microphone (it has no "
+                "WebCodecs): the call goes on without them"
+            )
+            return {"type": "media", "send": False, "codec": "", "note": note}
+        robot = self.uplink.codecs
+        mine = tuple(codec_id(c) for c in self.encode[page])
+        chosen = choose_codec(robot, mine) if robot else mine[0]
+        if chosen is None:
+            return {
+                "type": "media",
+                "send": False,
+                "codec": "",
+                "note": "the robot decodes none of the video codecs this browser encodes",
+            }
+        return {"type": "media", "send": True, "codec": CODEC_NAMES[chosen], "note": ""}
+
+    def ask_page_keyframe(self) -> None:
+        """The robot lost a picture of the user's camera: the sending page makes a keyframe."""
+        if self.sender is not None:
+            self.ui._send(self.sender, {"type": "keyframe_request"})
+
+    def _on_robot_audio(self, packets: list[AudioPacket | None]) -> None:
+        for packet in packets:
+            if packet is None:
+                continue  # lost: the page's jitter buffer conceals it
+            header = {"kind": "audio", "seq": packet.seq, "capture_time": packet.capture_time}
+            self.ui._broadcast_audio(pack_media(header, packet.data))
+
+    # -- media-core's user side
+
+    def _user_media(self) -> UserMedia:
+        return self.ui.client.media
+
+    def _audio_service(self) -> UserMediaService | None:
+        # The current call's media service owns audio/user (its sender's numbering and the
+        # robot's reports); the page's Opus packets go out through it as they are.
+        return self.ui.client.media._service
+
+
+def _names(value: Any, known: tuple[str, ...]) -> tuple[str, ...]:
+    """The known codec names of a page's list, in its order, once each."""
+    if not isinstance(value, list):
+        return ()
+    return tuple(dict.fromkeys(v for v in value if isinstance(v, str) and v in known))

@@ -1,0 +1,288 @@
+"""The robot's own screen: a local page with the remote user's face, name, call state, voice.
+
+As the Guiabot's top screen showed Skype, ``telebot-robot run`` serves
+``http://127.0.0.1:8090/`` (``[screen]`` in the config, ``--screen HOST:PORT|off``) for a
+browser in kiosk mode on the robot's display. The page (``static/screen.html``) shows the
+video of the user who is sending theirs full screen, their name, the call state ("alice is
+driving", "connecting…") and plays their voice. This process never decodes: it passes the
+encoded frames and Opus packets on to the page, whose ``media.js`` decodes them with
+WebCodecs (the code the user's page uses).
+
+Websocket ``/ws`` (server → page; docs/protocol.md §19)::
+
+    {"type": "state", "user": "alice", "text": "alice is driving", "call": true}
+    binary: media messages (:func:`~telebot.apps.web.media_relay.pack_media`)
+
+and page → server ``{"type": "keyframe"}`` when the page lost a frame (or just opened)
+and needs a keyframe; :attr:`RobotScreen.on_keyframe` passes it on to the user's sender.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+from collections.abc import AsyncIterator, Callable
+from importlib import resources
+from pathlib import Path
+from types import TracebackType
+from typing import TYPE_CHECKING, Any, Self
+
+from aiohttp import WSMsgType, web
+
+from telebot.apps.web.media_relay import pack_media
+from telebot.config import ScreenSettings
+from telebot.services.proto.media import CODEC_H264, CODEC_JPEG, CODEC_NAMES, CODEC_VP8
+
+if TYPE_CHECKING:
+    from telebot.services.media import CallState, RobotMedia
+    from telebot.services.proto.media import AudioPacket
+    from telebot.services.proto.video import CompleteFrame
+
+__all__ = ["RobotScreen", "bind_screen", "parse_screen_option", "robot_screen"]
+
+log = logging.getLogger("telebot.screen")
+
+STATIC = resources.files("telebot.apps.web") / "static"
+#: Media messages a page may have in flight before audio is dropped (video: one at a time).
+MAX_AUDIO_IN_FLIGHT = 8
+#: What the screen page decodes (WebCodecs; JPEG as the browser's image decoder does).
+SCREEN_CODECS = (CODEC_H264, CODEC_VP8, CODEC_JPEG)
+
+
+class _Page:
+    def __init__(self, ws: web.WebSocketResponse) -> None:
+        self.ws = ws
+        self.frame: asyncio.Task[None] | None = None
+        self.audio: set[asyncio.Task[None]] = set()
+        self.frames_skipped = 0
+
+
+class RobotScreen:
+    """Serves the robot's screen page: ``async with RobotScreen(port=8090) as screen: ...``.
+
+    Feed it with :meth:`show_state`, :meth:`video` and :meth:`audio` (encoded, as they came
+    from the user); ``on_keyframe`` is called when a page needs a keyframe. ``port`` 0 picks
+    a free port (see :attr:`url`).
+    """
+
+    def __init__(self, *, host: str = "127.0.0.1", port: int = 8090) -> None:
+        self.host = host
+        self.port = port
+        self.pages: set[_Page] = set()
+        #: Called when a page asks for a keyframe of the user's video.
+        self.on_keyframe: Callable[[], None] = lambda: None
+        self.state: dict[str, Any] = {"type": "state", "user": "", "text": "", "call": False}
+        self.frames_sent = 0
+        self._runner: web.AppRunner | None = None
+        self._tasks: set[asyncio.Task[Any]] = set()
+
+    @property
+    def url(self) -> str:
+        """The page's address."""
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"http://{host}:{self.port}/"
+
+    async def start(self) -> None:
+        """Serve the page (OSError if the address is taken)."""
+        app = web.Application()
+        app.router.add_get("/", self._index)
+        app.router.add_get("/ws", self._websocket)
+        app.router.add_static("/static/", Path(str(STATIC)), show_index=False)
+        self._runner = web.AppRunner(app, handle_signals=False, access_log=None)
+        await self._runner.setup()
+        site = web.TCPSite(self._runner, self.host, self.port)
+        try:
+            await site.start()
+        except OSError:
+            await self._runner.cleanup()
+            self._runner = None
+            raise
+        if self.port == 0:
+            sockets = getattr(site._server, "sockets", None) or []
+            self.port = int(sockets[0].getsockname()[1])
+        log.info("robot screen at %s", self.url)
+
+    async def close(self) -> None:
+        """Close the pages and the server; idempotent."""
+        for page in list(self.pages):
+            with contextlib.suppress(Exception):
+                await page.ws.close()
+        if self._runner is not None:
+            await self._runner.cleanup()
+            self._runner = None
+        tasks = list(self._tasks)
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+
+    async def __aenter__(self) -> Self:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+    # -- what the page shows ----------------------------------------------------------
+
+    def show_state(self, user: str, text: str, *, call: bool) -> None:
+        """The call state line: ``user`` on the line (or ""), ``text`` for people."""
+        state = {"type": "state", "user": user, "text": text, "call": call}
+        if state == self.state:
+            return
+        self.state = state
+        raw = json.dumps(state)
+        for page in list(self.pages):
+            if not page.ws.closed:
+                self._spawn(page.ws.send_str(raw))
+
+    def video(self, codec: str, key: bool, frame_id: int, capture_time: float, data: bytes) -> None:
+        """One encoded picture of the user's camera (H.264 Annex B, VP8 or JPEG)."""
+        header = {
+            "kind": "video",
+            "codec": codec,
+            "key": key,
+            "frame_id": frame_id,
+            "capture_time": capture_time,
+        }
+        message = pack_media(header, data)
+        for page in list(self.pages):
+            if page.ws.closed:
+                continue
+            if page.frame is not None and not page.frame.done():
+                # A slow page skips a frame, never queues: it sees the gap and asks for a
+                # keyframe (a delta after a skipped frame would not decode right).
+                page.frames_skipped += 1
+                continue
+            page.frame = self._spawn(page.ws.send_bytes(message))
+            self.frames_sent += 1
+
+    def audio(self, seq: int, capture_time: float, data: bytes) -> None:
+        """One Opus packet of the user's microphone."""
+        message = pack_media({"kind": "audio", "seq": seq, "capture_time": capture_time}, data)
+        for page in list(self.pages):
+            if page.ws.closed or len(page.audio) >= MAX_AUDIO_IN_FLIGHT:
+                continue
+            task = self._spawn(page.ws.send_bytes(message))
+            page.audio.add(task)
+            task.add_done_callback(page.audio.discard)
+
+    # -- HTTP -------------------------------------------------------------------------
+
+    async def _index(self, request: web.Request) -> web.StreamResponse:
+        html = (STATIC / "screen.html").read_text(encoding="utf-8")
+        return web.Response(
+            text=html, content_type="text/html", headers={"Cache-Control": "no-store"}
+        )
+
+    async def _websocket(self, request: web.Request) -> web.StreamResponse:
+        ws = web.WebSocketResponse(heartbeat=2.0, max_msg_size=1 << 12)
+        await ws.prepare(request)
+        page = _Page(ws)
+        self.pages.add(page)
+        try:
+            await ws.send_str(json.dumps(self.state))
+            async for msg in ws:
+                if msg.type == WSMsgType.TEXT:
+                    self._on_message(msg.data)
+                elif msg.type == WSMsgType.ERROR:
+                    break
+        finally:
+            self.pages.discard(page)
+        return ws
+
+    def _on_message(self, text: str) -> None:
+        try:
+            kind = json.loads(text).get("type")
+        except (ValueError, AttributeError):
+            return  # the page is ours; anything else is ignored
+        if kind == "keyframe":
+            try:
+                self.on_keyframe()
+            except Exception:
+                log.exception("keyframe request failed")
+
+    def _spawn(self, coro: Any) -> asyncio.Task[Any]:
+        task: asyncio.Task[Any] = asyncio.get_running_loop().create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._done)
+        return task
+
+    def _done(self, task: asyncio.Task[Any]) -> None:
+        self._tasks.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            exc = task.exception()
+            if not isinstance(exc, ConnectionError | RuntimeError):
+                log.warning("screen page send failed: %s", exc)
+
+
+def parse_screen_option(text: str, settings: ScreenSettings) -> ScreenSettings:
+    """``--screen``: ``off``, ``HOST:PORT``, ``:PORT`` or ``PORT`` (ValueError if neither)."""
+    if text.strip().lower() == "off":
+        return settings.model_copy(update={"enabled": False})
+    host, sep, port_text = text.strip().rpartition(":")
+    if not sep:
+        host = settings.host
+    host = host.strip("[]") or settings.host
+    try:
+        port = int(port_text)
+    except ValueError:
+        raise ValueError(f"expected HOST:PORT or off, got {text!r}") from None
+    if not 0 <= port <= 65535:
+        raise ValueError(f"port must be 0..65535, got {port}")
+    return ScreenSettings(enabled=True, host=host, port=port)
+
+
+@contextlib.asynccontextmanager
+async def robot_screen(
+    settings: ScreenSettings, media: RobotMedia | None
+) -> AsyncIterator[RobotScreen | None]:
+    """The robot's screen as ``[screen]`` says, fed from ``media``; None when off.
+
+    A taken port is logged as a warning and the robot runs on without a screen: a display
+    is a comfort, never a reason for the robot not to answer calls.
+    """
+    if not settings.enabled:
+        yield None
+        return
+    screen = RobotScreen(host=settings.host, port=settings.port)
+    try:
+        await screen.start()
+    except OSError as exc:
+        log.warning("robot screen not served at %s: %s", screen.url, exc.strerror or exc)
+        yield None
+        return
+    try:
+        unbind = bind_screen(screen, media) if media is not None else (lambda: None)
+        try:
+            yield screen
+        finally:
+            unbind()
+    finally:
+        await screen.close()
+
+
+def bind_screen(screen: RobotScreen, media: RobotMedia) -> Callable[[], None]:
+    """Feed ``screen`` from the robot's media: the user's encoded video and voice and the
+    call state; the screen's keyframe requests go to the user. Returns the unbinding."""
+
+    def on_video(frame: CompleteFrame) -> None:
+        codec = CODEC_NAMES.get(frame.codec, "")
+        screen.video(codec, frame.keyframe, frame.frame_id, frame.capture_time, frame.data)
+
+    def on_audio(packet: AudioPacket) -> None:
+        screen.audio(packet.seq, packet.capture_time, packet.data)
+
+    def on_state(state: CallState) -> None:
+        screen.show_state(state.user or "", state.text, call=state.user is not None)
+
+    screen.on_keyframe = media.request_keyframe
+    return media.subscribe(
+        on_video=on_video, on_audio=on_audio, on_state=on_state, codecs=SCREEN_CODECS
+    )
