@@ -196,6 +196,23 @@ def test_the_sender_forces_keyframes_periodically_and_on_request_at_most_once_pe
     assert (pacer.forced, pacer.ignored) == (2, 3)
 
 
+def test_a_request_too_soon_after_a_keyframe_is_honoured_when_the_gap_ends() -> None:
+    # The keyframe a request forced was lost: the receiver asks again before the gap is
+    # over. The sender must not drop that request (the receiver would wait a whole repeat
+    # interval more) but send a keyframe as soon as the gap allows.
+    pacer = KeyframePacer(interval=3.0)
+    pacer.sent(True, 0.0)
+    assert pacer.request(1.0)
+    assert pacer.next_is_key(1.0)
+    pacer.sent(True, 1.0)  # lost on the way
+    assert not pacer.request(1.1, rtt=0.05)  # 100 ms after it: too soon
+    assert not pacer.next_is_key(1.2)
+    assert pacer.next_is_key(1.3)  # min_gap (0.3 s) after the last keyframe
+    pacer.sent(True, 1.3)
+    assert not pacer.next_is_key(1.4)  # answered once, not again
+    assert (pacer.forced, pacer.ignored) == (2, 1)
+
+
 # --------------------------------------------------------------------------- audio
 
 

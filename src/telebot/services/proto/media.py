@@ -231,30 +231,42 @@ class KeyframePacer:
 
     Periodic (every ``interval`` seconds) and on a receiver's request, but a request
     forces one at most once per max(RTT, ``min_gap``) after the last keyframe: requests
-    repeat while the receiver waits, and one keyframe answers them all.
+    repeat while the receiver waits, and one keyframe answers them all. A request that
+    comes sooner is not forgotten but *deferred* to the end of that gap: it means the
+    last keyframe was lost (or is still on its way), and waiting for the receiver's next
+    repeat instead would add up to a whole repeat interval to the recovery.
     """
 
     interval: float = 3.0
     min_gap: float = MIN_KEYFRAME_GAP
-    #: Keyframes forced by requests; requests ignored because one was sent too recently.
+    #: Keyframes forced by requests; requests that came too soon after the last keyframe.
     forced: int = 0
     ignored: int = 0
     _last: float | None = None
     _pending: bool = field(default=True)
+    _deferred_until: float | None = None
 
     def request(self, now: float, rtt: float | None = None) -> bool:
         """A receiver asks for a keyframe; True if the next frame will be one."""
         if self._pending:
             return True
-        if self._last is not None and now - self._last < max(self.min_gap, rtt or 0.0):
+        gap = max(self.min_gap, rtt or 0.0)
+        if self._last is not None and now - self._last < gap:
             self.ignored += 1
+            self._deferred_until = self._last + gap
             return False
         self._pending = True
+        self._deferred_until = None
         self.forced += 1
         return True
 
     def next_is_key(self, now: float) -> bool:
         """Whether the frame about to be encoded must be a keyframe."""
+        if self._deferred_until is not None and now >= self._deferred_until:
+            self._deferred_until = None
+            if not self._pending:
+                self._pending = True
+                self.forced += 1
         return self._pending or self._last is None or now - self._last >= self.interval
 
     def sent(self, keyframe: bool, now: float) -> None:
@@ -262,6 +274,7 @@ class KeyframePacer:
         if keyframe:
             self._last = now
             self._pending = False
+            self._deferred_until = None
 
 
 # --------------------------------------------------------------------------- audio
