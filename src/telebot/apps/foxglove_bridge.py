@@ -44,7 +44,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import AsyncIterator, Callable, Coroutine, Mapping, Sequence
+from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from dataclasses import asdict
 from pathlib import Path
 from types import TracebackType
@@ -84,6 +84,7 @@ from foxglove.websocket import (
     WebSocketServer,
 )
 
+from telebot.apps.tasks import BackgroundTasks
 from telebot.channels.transports.base import Transport
 from telebot.config import AppConfig
 from telebot.errors import CallEnded, RelayRefused, TelebotError, UnknownTopic
@@ -234,7 +235,7 @@ class FoxgloveBridge:
         self.map: MapDownload | None = None
         self._server: WebSocketServer | None = None
         self._writer: foxglove.MCAPWriter | None = None
-        self._tasks: set[asyncio.Task[Any]] = set()
+        self._tasks = BackgroundTasks("Foxglove bridge", expected=(CallEnded,))
         self._video: Callable[[], None] | None = None
         self._relayed: dict[str, foxglove.Channel] = {}
         self._lasers: dict[str, LaserScanChannel] = {}
@@ -293,9 +294,9 @@ class FoxgloveBridge:
             self._pump_telemetry,
             self._fetch_map,
         ):
-            self._spawn(pump())
+            self._tasks.spawn(pump())
         for topic in self.topics:
-            self._spawn(self._relay(topic))
+            self._tasks.spawn(self._relay(topic))
         # What is already known: a new recording starts with it.
         if (safety := client.latest_safety.value) is not None:
             self._log_json("safety", {"event": "state", **asdict(safety)})
@@ -322,10 +323,7 @@ class FoxgloveBridge:
         if self._video is not None:
             self._video()
             self._video = None
-        tasks = list(self._tasks)
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        await self._tasks.cancel_all()
         if self._server is not None:
             self._server.stop()
             self._server = None
@@ -351,20 +349,6 @@ class FoxgloveBridge:
         tb: TracebackType | None,
     ) -> None:
         await self.close()
-
-    def _spawn(self, coro: Coroutine[Any, Any, Any]) -> asyncio.Task[Any]:
-        task = asyncio.get_running_loop().create_task(coro)
-        self._tasks.add(task)
-        task.add_done_callback(self._task_done)
-        return task
-
-    def _task_done(self, task: asyncio.Task[Any]) -> None:
-        self._tasks.discard(task)
-        if task.cancelled():
-            return
-        exc = task.exception()
-        if exc is not None and not isinstance(exc, CallEnded):
-            log.error("Foxglove bridge task failed", exc_info=exc)
 
     def _count(self, topic: str) -> None:
         self.counts[topic] = self.counts.get(topic, 0) + 1
@@ -433,7 +417,7 @@ class FoxgloveBridge:
             if self.map is not None and self.map.version != telemetry.map_version:
                 log.info("the robot's map changed: fetching it again")
                 self.map = None
-                self._spawn(self._fetch_map())
+                self._tasks.spawn(self._fetch_map())
 
     async def _fetch_map(self) -> None:
         while True:
@@ -617,7 +601,7 @@ class FoxgloveBridge:
             self._log_json("goal", {"kind": "refused", "text": "observers may not send goals"})
             return
         log.info("goal from Foxglove: (%.2f, %.2f)", x, y)
-        self._spawn(self.client.goto(x, y, yaw))
+        self._tasks.spawn(self.client.goto(x, y, yaw))
 
 
 # -- the commands -----------------------------------------------------------------------

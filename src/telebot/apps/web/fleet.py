@@ -40,19 +40,20 @@ import contextlib
 import json
 import logging
 import sys
-from collections.abc import Callable, Coroutine
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Self
 
 from aiohttp import WSMsgType, web
 
+from telebot.apps.tasks import BackgroundTasks
 from telebot.apps.web.server import STATIC, WS_HEARTBEAT, WebUI
 from telebot.channels.call import UserEndpoint
 from telebot.channels.proto.frames import validate_name
 from telebot.channels.transports.base import Subscription
 from telebot.config import AppConfig, ReconnectSettings
-from telebot.errors import CallEnded, CallRejected, TelebotError
+from telebot.errors import CallRejected, TelebotError
 from telebot.identity import decode_key
 from telebot.rights import Right, may
 from telebot.services.client import ConnectionEvent, RobotClient
@@ -170,7 +171,7 @@ class FleetUI:
         self.pages: set[web.WebSocketResponse] = set()
         self._watch: Subscription | None = None
         self._runner: web.AppRunner | None = None
-        self._tasks: set[asyncio.Task[Any]] = set()
+        self._tasks = BackgroundTasks("fleet")
         self._closing = False
         self._prefix = f"{endpoint.namespace}/presence/robot/"
 
@@ -200,7 +201,7 @@ class FleetUI:
         self._watch = self.endpoint.transport.watch_presence(
             f"{self._prefix}*/*", self._on_presence
         )
-        self._spawn(self._pump_list())
+        self._tasks.spawn(self._pump_list())
         log.info("fleet page at %s", self.url)
 
     async def close(self) -> None:
@@ -224,10 +225,7 @@ class FleetUI:
                 robot.client = None
         if self._runner is not None:
             await self._runner.cleanup()
-        tasks = list(self._tasks)
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        await self._tasks.cancel_all()
 
     async def __aenter__(self) -> Self:
         await self.start()
@@ -235,20 +233,6 @@ class FleetUI:
 
     async def __aexit__(self, *exc: object) -> None:
         await self.close()
-
-    def _spawn(self, coro: Coroutine[Any, Any, Any]) -> asyncio.Task[Any]:
-        task = asyncio.get_running_loop().create_task(coro)
-        self._tasks.add(task)
-        task.add_done_callback(self._task_done)
-        return task
-
-    def _task_done(self, task: asyncio.Task[Any]) -> None:
-        self._tasks.discard(task)
-        if task.cancelled():
-            return
-        exc = task.exception()
-        if exc is not None and not isinstance(exc, CallEnded | TimeoutError | ConnectionError):
-            log.error("fleet task failed", exc_info=exc)
 
     # -- presence and calls -----------------------------------------------------------
 
@@ -277,7 +261,7 @@ class FleetUI:
             if sum(r.client is not None for r in self.robots.values()) >= self.max_calls:
                 robot.problem = f"not called: the fleet page calls at most {self.max_calls}"
                 return
-            robot.calling = self._spawn(self._call(robot))
+            robot.calling = self._tasks.spawn(self._call(robot))
 
     async def _call(self, robot: FleetRobot) -> None:
         try:
@@ -312,7 +296,7 @@ class FleetUI:
         self, robot: FleetRobot, client: RobotClient, event: ConnectionEvent
     ) -> None:
         if event.state == "reconnected" and robot.ui is None:
-            self._spawn(self._watch_only(robot, client))
+            self._tasks.spawn(self._watch_only(robot, client))
         if event.state != "ended" or robot.client is not client or self._closing:
             return
         # No more calls on this client: the robot left, refused or we gave up. A new call
@@ -320,14 +304,14 @@ class FleetUI:
         robot.problem = event.detail or "the call ended"
         robot.client = None
         ui, robot.ui = robot.ui, None
-        self._spawn(self._retire(ui, client))
+        self._tasks.spawn(self._retire(ui, client))
         if (
             robot.online
             and robot.trusted
             and robot.calling is None
             and (self.watch or robot.wanted)
         ):
-            robot.calling = self._spawn(self._call(robot))
+            robot.calling = self._tasks.spawn(self._call(robot))
 
     async def _retire(self, ui: WebUI | None, client: RobotClient) -> None:
         if ui is not None:
@@ -368,7 +352,7 @@ class FleetUI:
         robot.wanted = True
         if robot.client is None:  # not watched: call it now (it opens when the call is up)
             robot.problem = ""
-            robot.calling = self._spawn(self._call(robot))
+            robot.calling = self._tasks.spawn(self._call(robot))
             await asyncio.shield(robot.calling)
             return None if robot.client is not None else f"{name}: {robot.problem}"
         client = robot.client
@@ -488,15 +472,15 @@ class FleetUI:
             self._send(ws, {"type": "error", "text": "not a JSON message with a type"})
             return
         if kind == "stop_all":
-            self._spawn(self.stop_all())  # first, without waiting for anything else
+            self._tasks.spawn(self.stop_all())  # first, without waiting for anything else
         elif kind in ("open", "close"):
             name = msg.get("robot")
             if not isinstance(name, str):
                 self._send(ws, {"type": "error", "text": f"{kind}: 'robot' must be a name"})
             elif kind == "open":
-                self._spawn(self._open_for(ws, name))
+                self._tasks.spawn(self._open_for(ws, name))
             else:
-                self._spawn(self.close_robot(name))
+                self._tasks.spawn(self.close_robot(name))
         else:
             self._send(ws, {"type": "error", "text": f"unknown message type {kind!r}"})
 
@@ -518,13 +502,13 @@ class FleetUI:
 
     def _send(self, ws: web.WebSocketResponse, message: dict[str, Any]) -> None:
         if not ws.closed:
-            self._spawn(ws.send_str(json.dumps(message)))
+            self._tasks.spawn(ws.send_str(json.dumps(message)))
 
     def _broadcast(self, message: dict[str, Any]) -> None:
         text = json.dumps(message)
         for ws in list(self.pages):
             if not ws.closed:
-                self._spawn(ws.send_str(text))
+                self._tasks.spawn(ws.send_str(text))
 
     async def _pump_list(self) -> None:
         while True:

@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Any, Self
 
 from aiohttp import WSMsgType, web
 
+from telebot.apps.tasks import BackgroundTasks
 from telebot.apps.web.media_relay import pack_media
 from telebot.config import ScreenSettings
 from telebot.services.proto.media import CODEC_H264, CODEC_JPEG, CODEC_NAMES, CODEC_VP8
@@ -76,7 +77,7 @@ class RobotScreen:
         self.state: dict[str, Any] = {"type": "state", "user": "", "text": "", "call": False}
         self.frames_sent = 0
         self._runner: web.AppRunner | None = None
-        self._tasks: set[asyncio.Task[Any]] = set()
+        self._tasks = BackgroundTasks("screen page", expected=(ConnectionError, RuntimeError))
 
     @property
     def url(self) -> str:
@@ -112,10 +113,7 @@ class RobotScreen:
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
-        tasks = list(self._tasks)
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        await self._tasks.cancel_all()
 
     async def __aenter__(self) -> Self:
         await self.start()
@@ -140,7 +138,7 @@ class RobotScreen:
         raw = json.dumps(state)
         for page in list(self.pages):
             if not page.ws.closed:
-                self._spawn(page.ws.send_str(raw))
+                self._tasks.spawn(page.ws.send_str(raw))
 
     def video(self, codec: str, key: bool, frame_id: int, capture_time: float, data: bytes) -> None:
         """One encoded picture of the user's camera (H.264 Annex B, VP8 or JPEG)."""
@@ -160,7 +158,7 @@ class RobotScreen:
                 # keyframe (a delta after a skipped frame would not decode right).
                 page.frames_skipped += 1
                 continue
-            page.frame = self._spawn(page.ws.send_bytes(message))
+            page.frame = self._tasks.spawn(page.ws.send_bytes(message))
             self.frames_sent += 1
 
     def audio(self, seq: int, capture_time: float, data: bytes) -> None:
@@ -169,7 +167,7 @@ class RobotScreen:
         for page in list(self.pages):
             if page.ws.closed or len(page.audio) >= MAX_AUDIO_IN_FLIGHT:
                 continue
-            task = self._spawn(page.ws.send_bytes(message))
+            task = self._tasks.spawn(page.ws.send_bytes(message))
             page.audio.add(task)
             task.add_done_callback(page.audio.discard)
 
@@ -207,19 +205,6 @@ class RobotScreen:
                 self.on_keyframe()
             except Exception:
                 log.exception("keyframe request failed")
-
-    def _spawn(self, coro: Any) -> asyncio.Task[Any]:
-        task: asyncio.Task[Any] = asyncio.get_running_loop().create_task(coro)
-        self._tasks.add(task)
-        task.add_done_callback(self._done)
-        return task
-
-    def _done(self, task: asyncio.Task[Any]) -> None:
-        self._tasks.discard(task)
-        if not task.cancelled() and task.exception() is not None:
-            exc = task.exception()
-            if not isinstance(exc, ConnectionError | RuntimeError):
-                log.warning("screen page send failed: %s", exc)
 
 
 def parse_screen_option(text: str, settings: ScreenSettings) -> ScreenSettings:

@@ -93,6 +93,7 @@ from typing import Any, Self
 
 from aiohttp import WSMsgType, web
 
+from telebot.apps.tasks import BackgroundTasks
 from telebot.apps.web.media_relay import (
     MAX_PAGE_MESSAGE,
     MEDIA_TYPES,
@@ -170,7 +171,7 @@ class WebUI:
         #: Stops sent because a page closed while the robot moved (for tests and logs).
         self.close_stops = 0
         self._goal: dict[str, Any] | None = None
-        self._tasks: set[asyncio.Task[Any]] = set()
+        self._tasks = BackgroundTasks("web UI")
         self._runner: web.AppRunner | None = None
         #: Unsubscribes from the client's video feed (set while a page is open).
         self._video: Callable[[], None] | None = None
@@ -236,7 +237,7 @@ class WebUI:
         self.client.conference.on_message.append(self._on_conference_message)
         self.client.conference.on_roster.append(self._on_roster)
         self.client.on_people_alert.append(self._on_people_alert)
-        self._map_fetch = self._spawn(self._fetch_map())
+        self._map_fetch = self._tasks.spawn(self._fetch_map())
         pumps = (
             self._pump_pose,
             self._pump_telemetry,
@@ -246,8 +247,8 @@ class WebUI:
             self._pump_people,
         )
         for pump in pumps:
-            self._spawn(pump())
-        self._spawn(self._pump_link())
+            self._tasks.spawn(pump())
+        self._tasks.spawn(self._pump_link())
 
     async def close(self) -> None:
         """Close the pages and the server, end every task; idempotent."""
@@ -270,10 +271,7 @@ class WebUI:
                 await page.ws.close()
         if self._runner is not None:
             await self._runner.cleanup()
-        tasks = list(self._tasks)
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        await self._tasks.cancel_all()
 
     async def __aenter__(self) -> Self:
         await self.start()
@@ -286,21 +284,6 @@ class WebUI:
         tb: TracebackType | None,
     ) -> None:
         await self.close()
-
-    def _spawn(self, coro: Coroutine[Any, Any, Any]) -> asyncio.Task[Any]:
-        task = asyncio.get_running_loop().create_task(coro)
-        self._tasks.add(task)
-        task.add_done_callback(self._task_done)
-        return task
-
-    def _task_done(self, task: asyncio.Task[Any]) -> None:
-        self._tasks.discard(task)
-        if task.cancelled():
-            return
-        exc = task.exception()
-        # A page that went away mid-send is no error (its close is handled elsewhere).
-        if exc is not None and not isinstance(exc, CallEnded | TimeoutError | ConnectionError):
-            log.error("web UI task failed", exc_info=exc)
 
     # -- HTTP -------------------------------------------------------------------------
 
@@ -445,23 +428,23 @@ class WebUI:
         if kind == "stop":
             # First and without waiting: the stop's datagram leaves in this loop turn.
             how = msg.get("how")
-            self._spawn(self._safety(page, "stop", how if how in STOP_HOWS else "button"))
+            self._tasks.spawn(self._safety(page, "stop", how if how in STOP_HOWS else "button"))
         elif kind in ("arm", "take", "release"):
-            self._spawn(self._safety(page, kind))
+            self._tasks.spawn(self._safety(page, kind))
         elif kind == "goal":
             self._on_goal(page, msg)
         elif kind == "chat":
             text = str(msg.get("text", ""))
             if (said := say_text(text)) is not None:  # "say …": to everyone in the call
-                self._spawn(self._say(page, msg.get("id"), said))
+                self._tasks.spawn(self._say(page, msg.get("id"), said))
             else:
-                self._spawn(self._chat(page, msg.get("id"), text))
+                self._tasks.spawn(self._chat(page, msg.get("id"), text))
         elif kind == "say":
-            self._spawn(self._say(page, msg.get("id"), str(msg.get("text", ""))))
+            self._tasks.spawn(self._say(page, msg.get("id"), str(msg.get("text", ""))))
         elif kind == "camera":
             name = msg.get("name")
             if name in ("navcam", "usercam"):
-                self._spawn(self._chat(page, msg.get("id"), name))
+                self._tasks.spawn(self._chat(page, msg.get("id"), name))
         elif kind == "ping":
             self._send(page, {"type": "pong", "t": msg.get("t")})
         elif kind in MEDIA_TYPES:
@@ -482,7 +465,7 @@ class WebUI:
         if not self.may_drive:
             self._send(page, {"type": "error", "text": "observers may not send goals"})
             return
-        self._spawn(self._run_goal(x, y, yaw))
+        self._tasks.spawn(self._run_goal(x, y, yaw))
 
     async def _run_goal(self, x: float, y: float, yaw: float | None) -> None:
         def update(status: GoalUpdate) -> None:
@@ -570,14 +553,14 @@ class WebUI:
         if self.moving() or goal_active or armed or blocked:
             log.warning("a page closed while the robot moved: stopping it")
             self.close_stops += 1
-            self._spawn(self.client.stop(how="tab_closed"))
+            self._tasks.spawn(self.client.stop(how="tab_closed"))
 
     # -- sending ----------------------------------------------------------------------
 
     def _send(self, page: _Page, message: dict[str, Any]) -> None:
         if page.ws.closed:
             return
-        task = self._spawn(page.ws.send_str(json.dumps(message)))
+        task = self._tasks.spawn(page.ws.send_str(json.dumps(message)))
         page.sends.add(task)
         task.add_done_callback(page.sends.discard)
 
@@ -585,13 +568,13 @@ class WebUI:
         text = json.dumps(message)
         for page in list(self.pages):
             if not page.ws.closed:
-                self._spawn(page.ws.send_str(text))
+                self._tasks.spawn(page.ws.send_str(text))
 
     def _broadcast_audio(self, data: bytes) -> None:
         """An audio packet to every page: small and in order (video skips a busy page)."""
         for page in list(self.pages):
             if not page.ws.closed and len(page.sends) < 32:
-                task = self._spawn(page.ws.send_bytes(data))
+                task = self._tasks.spawn(page.ws.send_bytes(data))
                 page.sends.add(task)
                 task.add_done_callback(page.sends.discard)
 
@@ -602,7 +585,7 @@ class WebUI:
             if page.frame is not None and not page.frame.done():
                 page.frames_skipped += 1  # a slow page gets fewer frames, never a queue
                 continue
-            page.frame = self._spawn(page.ws.send_bytes(data))
+            page.frame = self._tasks.spawn(page.ws.send_bytes(data))
 
     # -- streams ----------------------------------------------------------------------
 
@@ -641,7 +624,7 @@ class WebUI:
             return
         log.info("the robot's map changed (version %s): fetching it again", version)
         self.map_refreshes += 1
-        self._map_fetch = self._spawn(self._fetch_map())
+        self._map_fetch = self._tasks.spawn(self._fetch_map())
 
     @staticmethod
     def _plan_message(plan: PlanUpdate) -> dict[str, Any]:
