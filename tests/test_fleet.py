@@ -58,7 +58,7 @@ async def _drive(fleet: FleetUI, robot: FleetRobot) -> None:
     ack = await client.arm()
     assert ack.ok, ack.text
     pose = robot.nav.pose().pose
-    fleet._spawn(client.goto(pose.x + 8.0, pose.y))  # along the bottom corridor
+    fleet._tasks.spawn(client.goto(pose.x + 8.0, pose.y))  # along the bottom corridor
 
 
 async def test_the_fleet_page_lists_opens_two_and_stops_all(tmp_path: Path) -> None:

@@ -195,7 +195,7 @@ async def drive_forward(rig: Rig) -> None:
     """Start a long straight move and wait until the base is moving."""
     await arm(rig)
     pose = rig.nav.pose().pose
-    rig.ui._spawn(rig.client.goto(pose.x + 8.0, pose.y))  # along the bottom corridor
+    rig.ui._tasks.spawn(rig.client.goto(pose.x + 8.0, pose.y))  # along the bottom corridor
     await wait_for(lambda: rig.nav.velocity().linear > 0.3, what="the robot moving")
 
 
