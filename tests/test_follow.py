@@ -462,6 +462,26 @@ def test_unfollow_ends_the_follow_and_stops_the_robot() -> None:
     assert w.nav.velocity().linear == 0.0
 
 
+@pytest.mark.parametrize("command", ["cancel", "stop"])
+def test_cancel_and_stop_without_a_supervisor_end_the_follow(command: str) -> None:
+    # The chat session here has no safety gate (a library user's RobotServer(safety=None)):
+    # nothing latches, so the command itself must end the follow or it drives on.
+    w = Walk()
+    session, replies = chat(w.service)
+    session.handle_text(1, "follow 1")
+    for _ in range(60):
+        w.step()
+    assert w.nav.velocity().linear > 0.0
+    session.handle_text(2, command)
+    assert replies[-1].id == 2 and replies[-1].text == (
+        "cancelled" if command == "cancel" else "stopped"
+    )
+    assert any(r.id == 1 and r.final for r in replies)
+    for _ in range(5):
+        w.step()
+    assert w.nav.velocity().linear == 0.0
+
+
 def test_another_motion_replaces_the_follow() -> None:
     w = Walk()
     session, replies = chat(w.service)

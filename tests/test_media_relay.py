@@ -55,6 +55,7 @@ VIDEO = {"kind": "video", "codec": "h264", "key": False, "frame_id": 1, "capture
         (_raw(json.dumps({**VIDEO, "frame_id": True}).encode()), "frame_id"),
         (_raw(json.dumps({**VIDEO, "capture_time": "now"}).encode()), "capture_time"),
         (_raw(json.dumps({**VIDEO, "capture_time": -1}).encode()), "capture_time"),
+        (_raw(json.dumps({**VIDEO, "capture_time": 10**400}).encode()), "capture_time"),
         (_raw(json.dumps(VIDEO).encode(), b""), "video frame must be"),
         (_raw(json.dumps(VIDEO).encode(), b"x" * (MAX_VIDEO_FRAME + 1)), "video frame must be"),
         (_raw(b'{"kind": "audio", "seq": 1, "capture_time": 1}', b"x" * 2000), "Opus packet"),

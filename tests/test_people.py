@@ -179,6 +179,7 @@ def test_people_messages_round_trip_and_garbage_is_a_clear_error() -> None:
         ("not json", "people"),
         ({"type": "nope"}, "unknown type"),
         ({**good, "tracks": [{**good["tracks"][0], "x": "far"}]}, "'x'"),
+        ({**good, "tracks": [{**good["tracks"][0], "x": 10**400}]}, "'x'"),  # no float
         ({**good, "tracks": [{**good["tracks"][0], "c": 7}]}, "0..1"),
         ({**good, "tracks": [{**good["tracks"][0], "src": ["radar"]}]}, "src"),
         ({**good, "cams": {"navcam": 500}}, "field of view"),

@@ -824,3 +824,23 @@ async def test_follow_me_drives_a_ros2_robot_on_cmd_vel_once_its_laser_sees_the_
     assert max(linear()) <= stack.speed_limit + 1e-9
     follow.unfollow()  # the robot stops: zero velocity streams
     assert stack._zero.streaming
+
+
+async def test_a_scan_that_stopped_coming_is_no_scan(
+    stack: Ros2NavStack, nav2: FakeNav2, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Follow-me and people detection must not plan on a frozen picture of free space.
+    assert stack.laser_scan() is None
+    scan = nav2.node.publisher("scan", nav2.m("sensor_msgs/msg/LaserScan"))
+    scan.publish(
+        nav2.m("sensor_msgs/msg/LaserScan").make(
+            angle_min=-math.pi,
+            angle_increment=math.pi / 180,
+            range_min=0.1,
+            range_max=10.0,
+            ranges=np.full(360, 5.0, dtype=np.float32),
+        )
+    )
+    await wait_until(lambda: stack.laser_scan() is not None)
+    monkeypatch.setattr(stack_module, "SCAN_STALE", 0.0)  # as if SCAN_STALE seconds passed
+    assert stack.laser_scan() is None

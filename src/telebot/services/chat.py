@@ -341,6 +341,9 @@ class ChatSession:
                 if gate is not None:
                     gate.stop(how="chat")  # latches: the robot stays stopped until re-armed
                 else:
+                    # No supervisor to end a follow-me: end it here, or it drives on.
+                    if self._follow is not None:
+                        self._follow.unfollow()
                     nav.stop()
                 self._finish_done_motions()  # the stopped request hears "stopped" first
                 self._reply(request_id, "stopped")
@@ -349,6 +352,11 @@ class ChatSession:
             case Cancel():
                 goal = nav.current_goal()
                 if goal is None or goal.status.done:
+                    # A follow-me is not the navigation stack's goal: cancel ends it too.
+                    if self._follow is not None and self._follow.unfollow():
+                        self._finish_done_motions()
+                        self._reply(request_id, "cancelled")
+                        return
                     self._reply(request_id, "nothing to cancel")
                     return
                 goal.cancel()

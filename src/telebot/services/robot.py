@@ -175,6 +175,8 @@ class CallServices:
         if self.gate is not None:
             self.gate.stop(how=how or "unspecified")
         else:
+            with contextlib.suppress(Exception):
+                self.server.follow.unfollow()  # no supervisor to end a follow-me
             self.server.nav.stop()
 
     def send_safety_state(self, state: SafetyStatus) -> None:
@@ -664,6 +666,8 @@ class RobotServer:
 
     def _emergency(self, reason: str) -> None:
         with contextlib.suppress(Exception):
+            self.follow.unfollow()  # first: a follow must not drive again after the stop
+        with contextlib.suppress(Exception):
             self.nav.stop()
         if self.safety is not None:
             with contextlib.suppress(Exception):
@@ -688,39 +692,42 @@ class RobotServer:
         """Step the robot and run the services until cancelled."""
         period = 1.0 / self.control_hz
         next_step = self.now()
-        while True:
-            now = self.now()
-            try:
-                if self._step is not None:
-                    self._step(now)
-            except Exception:
-                # Fail safe: a broken step must not leave the base driving, and the stop
-                # latches like any other (a new motion needs a re-arm).
-                log.exception("robot step failed: stopping the robot")
-                self._emergency("robot step failed")
-            if self.safety is not None:
+        try:
+            while True:
+                now = self.now()
                 try:
-                    self.safety.tick()
+                    if self._step is not None:
+                        self._step(now)
                 except Exception:
-                    log.exception("safety tick failed: stopping the robot")
-                    self._emergency("safety tick failed")
-            self._guarded(self._reencode_changed_map)
-            self._guarded(self.perception.step, now)
-            try:
-                # After the supervisor's tick (a stop latched there ends the follow first)
-                # and the people tracker's step (the freshest tracks).
-                self.follow.tick(now)
-            except Exception:
-                log.exception("follow-me failed: stopping the robot")
-                self._emergency("follow-me failed")
-            for opened in list(self.open.values()):
-                opened.tick(now)  # each service guarded
-            next_step += period
-            delay = next_step - self.now()
-            if delay < -period:  # we fell behind: do not try to catch up in a burst
-                next_step = self.now()
-                delay = 0.0
-            await asyncio.sleep(max(delay, 0.0))
+                    # Fail safe: a broken step must not leave the base driving, and the stop
+                    # latches like any other (a new motion needs a re-arm).
+                    log.exception("robot step failed: stopping the robot")
+                    self._emergency("robot step failed")
+                if self.safety is not None:
+                    try:
+                        self.safety.tick()
+                    except Exception:
+                        log.exception("safety tick failed: stopping the robot")
+                        self._emergency("safety tick failed")
+                self._guarded(self._reencode_changed_map)
+                self._guarded(self.perception.step, now)
+                try:
+                    # After the supervisor's tick (a stop latched there ends the follow first)
+                    # and the people tracker's step (the freshest tracks).
+                    self.follow.tick(now)
+                except Exception:
+                    log.exception("follow-me failed: stopping the robot")
+                    self._emergency("follow-me failed")
+                for opened in list(self.open.values()):
+                    opened.tick(now)  # each service guarded
+                next_step += period
+                delay = next_step - self.now()
+                if delay < -period:  # we fell behind: do not try to catch up in a burst
+                    next_step = self.now()
+                    delay = 0.0
+                await asyncio.sleep(max(delay, 0.0))
+        finally:
+            self.perception.close()  # its detector thread
 
     @staticmethod
     def _guarded(action: Callable[..., None], *args: Any) -> None:

@@ -411,6 +411,9 @@ class FleetUI:
                 result = {"robot": name, "ok": False, "reason": reason}
             except TelebotError as exc:  # the call dropped under the stop, or has ended
                 result = {"robot": name, "ok": False, "reason": f"did not answer: {exc}"}
+            except Exception as exc:  # anything else: still report it, never lose the others
+                log.exception("stop all: %s", name)
+                result = {"robot": name, "ok": False, "reason": f"stop failed: {exc}"}
             else:
                 result = {"robot": name, "ok": ack.ok, "reason": ack.text or "stopped"}
             self._broadcast({"type": "stopped", **result})

@@ -19,7 +19,6 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-import math
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -35,6 +34,7 @@ from telebot.services.proto.media import (
     codec_id,
     parse_media_report,
 )
+from telebot.services.proto.messages import is_finite_number
 from telebot.services.proto.video import CompleteFrame, fragment, serial_diff
 
 if TYPE_CHECKING:
@@ -123,7 +123,7 @@ def parse_media(message: bytes, codecs: tuple[str, ...] = PAGE_CODECS) -> MediaM
     capture = header.get("capture_time")
     if isinstance(capture, bool) or not isinstance(capture, int | float):
         raise ValueError(f"capture_time must be a number, got {capture!r}")
-    if not math.isfinite(capture) or capture < 0:
+    if not is_finite_number(capture) or capture < 0:
         raise ValueError(f"capture_time must be finite and >= 0, got {capture!r}")
     kind = header.get("kind")
     if kind == "video":

@@ -262,6 +262,7 @@ class WebUI:
             self.client.conference.on_message.remove(self._on_conference_message)
         with contextlib.suppress(ValueError):
             self.client.conference.on_roster.remove(self._on_roster)
+        with contextlib.suppress(ValueError):
             self.client.on_people_alert.remove(self._on_people_alert)
         if self._video is not None:
             self._video()

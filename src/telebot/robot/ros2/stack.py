@@ -117,6 +117,9 @@ CLIENT_LEASE_MS = 500
 #: The lowest speed limit sent to Nav2 (m/s): its 0 means "no limit".
 NAV2_SLOWEST_LIMIT = 0.01
 CLIENT_KEEP_ALIVE = 4
+#: A laser scan older than this (s) is no scan: people detection and follow-me's clearance
+#: see nothing rather than a frozen picture (a laser publishes at 10–40 Hz).
+SCAN_STALE = 1.0
 #: Field of view reported for a camera (CompressedImage does not say; degrees).
 DEFAULT_FOV_DEG = 60.0
 #: The camera the safety supervisor selects while the robot moves (``telebot.safety.NAVCAM``;
@@ -339,6 +342,7 @@ class Ros2NavStack:
         self._scan_at = 0.0
         self._scan_beams = 0
         self._scan: ScanData | None = None
+        self._scan_good_at = -math.inf
         self._battery: Battery | None = None
         self._battery_at = 0.0
         self._path: tuple[Pose2D, ...] = ()
@@ -718,10 +722,15 @@ class Ros2NavStack:
             self._scan_at = time.monotonic()
             if scan is not None:
                 self._scan = scan
+                self._scan_good_at = self._scan_at
 
     def laser_scan(self) -> ScanData | None:
-        """The latest ``scan`` message (for person detection), None before the first."""
+        """The latest good ``scan`` message (person detection, follow-me's clearance);
+        None before the first and when none came for :data:`SCAN_STALE` seconds (a laser
+        that stopped, or sends garbage, must not leave a frozen picture of free space)."""
         with self._lock:
+            if time.monotonic() - self._scan_good_at > SCAN_STALE:
+                return None
             return self._scan
 
     def _on_battery(self, msg: Any, _attachment: Any) -> None:

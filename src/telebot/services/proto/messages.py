@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import json
 import math
-from typing import Any
+from typing import Any, TypeGuard
 
 from telebot.errors import ProtocolError
 
-__all__ = ["decode_object", "encode_object", "finite_number", "require_int"]
+__all__ = ["decode_object", "encode_object", "finite_number", "is_finite_number", "require_int"]
 
 #: Longest JSON message a service accepts (a datagram's limit is 32 KB anyway).
 MAX_MESSAGE = 32768
@@ -38,10 +38,21 @@ def _refuse_constant(name: str) -> float:
     raise ValueError(f"{name} is not allowed")
 
 
+def is_finite_number(value: object) -> TypeGuard[int | float]:
+    """True for an int or a float (not a bool) that is finite as a float: a JSON integer
+    too large for a float (``1e400`` written out) is not, and raises nothing."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
 def finite_number(message: dict[str, Any], key: str, *, what: str) -> float:
     """``message[key]`` as a finite float; ProtocolError if missing or not a finite number."""
     value = message.get(key)
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+    if not is_finite_number(value):
         raise ProtocolError(f"{what}: {key!r} must be a finite number")
     return float(value)
 

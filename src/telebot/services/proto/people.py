@@ -22,12 +22,16 @@ anything malformed).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 from telebot.errors import ProtocolError
-from telebot.services.proto.messages import decode_object, encode_object, require_int
+from telebot.services.proto.messages import (
+    decode_object,
+    encode_object,
+    is_finite_number,
+    require_int,
+)
 
 __all__ = [
     "ALERT_KINDS",
@@ -130,7 +134,7 @@ class PeopleAlertMessage:
 
 def _number(message: Mapping[str, object], key: str, what: str) -> float:
     value = message.get(key)
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+    if not is_finite_number(value):
         raise ProtocolError(f"{what}: {key!r} must be a finite number")
     return float(value)
 

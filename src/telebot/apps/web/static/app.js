@@ -434,7 +434,6 @@
   $("usercam").onclick = () => send({ type: "camera", id: ++chatId, name: "usercam" });
 
   // ------------------------------------------------------------------ chat
-  ui.addChat = (text, cls) => addChat(text, cls);
   function addChat(text, cls) {
     const log = $("chat-log");
     const div = document.createElement("div");
