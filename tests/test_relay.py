@@ -247,7 +247,9 @@ async def test_a_relayed_scan_arrives_as_cdr_at_the_rate_asked_for(tmp_path: Pat
             # The simulator publishes odometry each step (50 Hz): the rest were dropped.
             await wait_until(lambda: relay.dropped > 10)
         gaps = [b - a for a, b in itertools.pairwise(stamps)]
-        assert min(gaps) > 0.3, gaps  # 2/s, not the 50/s the robot has
+        # 2/s, not the 50/s the robot has: on average (one gap may be short when a loaded
+        # machine delays a message and the next one is due soon after).
+        assert sum(gaps) / len(gaps) > 0.3, gaps
         await wait_until(lambda: not service.relays)  # leaving the block stopped it
         async with rig.client.relay("scan") as scans:  # a relative name is the root's
             message = await anext(aiter(scans))
