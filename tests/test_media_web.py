@@ -311,9 +311,11 @@ async def test_a_browser_that_refuses_the_camera_stays_in_the_call(rig: MediaRig
         )
         await page.goto(rig.ui.url)
         # Another page sends the camera; make this one try, as a lone page would.
-        await page.evaluate("() => window.telebotMedia.capture.start()")
+        # (Not awaited in the page: the note below is what the test waits for, with a timeout.)
+        await page.evaluate("() => { window.telebotMedia.capture.start(); }")
         await page.wait_for_function(
-            "() => document.getElementById('media-note').textContent.includes('permission denied')"
+            "() => document.getElementById('media-note').textContent.includes('permission denied')",
+            timeout=30000,
         )
         # It still sees the robot.
         await wait_stats(page, "s.videoDecoded >= 5")

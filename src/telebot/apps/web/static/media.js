@@ -141,7 +141,16 @@
       if (this.lastId !== null && back >= 0 && back <= MAX_BACK) { M.stats.videoDropped += 1; return; }
       const gap = this.lastId !== null && id !== ((this.lastId + 1) >>> 0);
       this.lastId = id;
-      if (codec === "jpeg") { this._jpeg(header, data); return; }
+      if (codec === "jpeg") {
+        // A JPEG interlude (a page without WebCodecs joined): the H.264 / VP8 decoder's
+        // state is stale after it, so drop it; the stream that comes back starts at a
+        // keyframe on a new decoder.
+        if (this.decoder) { try { this.decoder.close(); } catch (e) { /* already closed */ } }
+        this.decoder = null;
+        this.codec = "jpeg";
+        this._jpeg(header, data);
+        return;
+      }
       if (typeof VideoDecoder === "undefined") { M.stats.videoDropped += 1; return; }
       if (gap && this.frozenAt === null && this.shownAt !== null) { M.stats.freezes += 1; this.frozenAt = this.shownAt; }
       if (!header.key && (gap || codec !== this.codec || !this.decoder)) {
