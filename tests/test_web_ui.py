@@ -416,7 +416,8 @@ async def test_video_frames_arrive_and_the_camera_switches(rig: Rig) -> None:
             "() => [document.getElementById('video').naturalWidth,"
             " document.getElementById('video').naturalHeight]"
         )
-        assert size == [320, 240]
+        # The camera's 320 × 240, or scaled down by the rate control on a loaded machine.
+        assert 0 < size[0] <= 320 and size[0] * 3 == size[1] * 4, size
         first = await page.evaluate("() => window.telebotUI.state.camera")
         other = "usercam" if first == "navcam" else "navcam"
         await page.click(f"#{other}")
