@@ -180,11 +180,16 @@ async def stats(page: Any) -> dict[str, Any]:
 
 
 async def wait_stats(page: Any, condition: str, timeout: float = 30.0) -> dict[str, Any]:
-    """Wait until ``condition`` (JS over ``s``, the stats) holds; return the stats."""
-    await page.wait_for_function(
-        f"() => {{ const s = window.telebotMedia.stats; return {condition}; }}",
-        timeout=timeout * 1000,
-    )
+    """Wait until ``condition`` (JS over ``s``, the stats) holds; return the stats (and
+    show them when it times out: what the page decoded, dropped and asked for)."""
+    try:
+        await page.wait_for_function(
+            f"() => {{ const s = window.telebotMedia.stats; return {condition}; }}",
+            timeout=timeout * 1000,
+        )
+    except playwright_api.TimeoutError:
+        shown = {k: v for k, v in (await stats(page)).items() if not isinstance(v, list)}
+        raise AssertionError(f"timed out waiting for {condition}; page stats: {shown}") from None
     return await stats(page)
 
 
