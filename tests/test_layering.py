@@ -187,3 +187,23 @@ def test_the_robot_adapter_knows_nothing_of_calls_or_transports(path: Path) -> N
     module = module_name(path)
     bad = [name for name in imports_of(path) if name.startswith(forbidden_in_robot(module))]
     assert bad == [], f"{module} imports {bad}"
+
+
+def test_no_project_file_reads_beside_the_checkout() -> None:
+    """Tests, benchmarks, sources and scripts carry their own data: a user's clone has no
+    shared folder beside it, so nothing of the project may look there."""
+    root = SRC.parent.parent
+    # Spelled in pieces so that this file does not name what it looks for.
+    needles = ("../" + "shared", "shared" + "/data")
+    offenders = []
+    for folder in ("src", "tests", "bench", ".ci"):
+        for path in (root / folder).rglob("*"):
+            if not path.is_file() or path.suffix in {".pgm", ".mcap", ".zstd", ".pyc"}:
+                continue
+            text = path.read_text(errors="replace")
+            if any(needle in text for needle in needles):
+                offenders.append(str(path.relative_to(root)))
+    makefile = (root / "Makefile").read_text()
+    if any(needle in makefile for needle in needles):
+        offenders.append("Makefile")
+    assert offenders == [], f"these files read beside the checkout, which users do not have: {offenders}"

@@ -30,11 +30,8 @@ from telebot.robot.ros2.types import TypeLibrary
 
 
 def ros2_data() -> Path:
-    """``shared/data/ros2`` beside the checkout (or beside the worktree directory)."""
-    for parent in Path(__file__).resolve().parents[1:4]:
-        if (parent / "shared/data/ros2").is_dir():
-            return parent / "shared/data/ros2"
-    raise AssertionError("ROS 2 test data missing: expected shared/data/ros2 beside the checkout")
+    """The ROS 2 fixtures the tests carry (``tests/data/ros2``; SOURCES.md names their origin)."""
+    return Path(__file__).resolve().parent / "data" / "ros2"
 
 
 LIB = TypeLibrary("jazzy")

@@ -25,15 +25,8 @@ from telebot.robot.ros2.types import (
 
 
 def _ros2_data() -> Path:
-    """``shared/data/ros2`` beside the checkout (or beside the worktree directory)."""
-    for parent in Path(__file__).resolve().parents[1:4]:
-        candidate = parent / "shared/data/ros2"
-        if candidate.is_dir():
-            return candidate
-    raise AssertionError(
-        f"ROS 2 test data missing: expected shared/data/ros2 beside the checkout "
-        f"({Path(__file__).resolve().parents[2]}/shared/data/ros2)"
-    )
+    """The ROS 2 fixtures the tests carry (``tests/data/ros2``; SOURCES.md names their origin)."""
+    return Path(__file__).resolve().parent / "data" / "ros2"
 
 
 BAGS = ["bag_with_topics_and_service_events", "cm_moving_obstacle"]
