@@ -1,9 +1,11 @@
-"""The robot's call recorder (``[recording]``): every call into rotating MCAP files.
+"""The robot's call recorder (``[recording]``): every call into MCAP files.
 
 A simulated robot with its safety supervisor on the memory transport records a call in
 which the user chats, sends a goal and stops the robot; the files read back with the
-``mcap`` package's reader (the same JSON-schema / JSON channels Foxglove reads). Rotation,
-a failing disk and the daemon's ``[recording]`` table are tested on their own.
+``mcap`` package's reader (the same JSON-schema / JSON channels Foxglove reads). Files
+finished at a call's end and by age (readable while the robot runs), one channel per topic
+over several calls, rotation, a failing disk and the daemon's ``[recording]`` table are
+tested on their own.
 """
 
 from __future__ import annotations
@@ -12,11 +14,13 @@ import asyncio
 import contextlib
 import json
 import logging
+from collections import Counter
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any, cast
 
 import pytest
+from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
 from conftest import wait_until
@@ -34,8 +38,9 @@ from telebot.services.supervision import SafetyDriver
 @contextlib.asynccontextmanager
 async def recorded_robot(
     base: Path, recorder: Recorder, *, pose_hz: float = 10.0
-) -> AsyncIterator[tuple[SafetyDriver, RobotClient]]:
-    """A simulated robot whose calls ``recorder`` records, and a driver's client in a call."""
+) -> AsyncIterator[tuple[SafetyDriver, RobotClient, UserEndpoint]]:
+    """A simulated robot whose calls ``recorder`` records, and a driver's client in a call
+    (and the driver's endpoint, for more calls)."""
     services = default_robot_services()
     services.register("recording", recorder.service)
     hub = MemoryHub(seed=3)
@@ -60,11 +65,11 @@ async def recorded_robot(
         call = await user_endpoint.call(ROBOT)
         client = RobotClient(call)
         try:
-            yield safety, client
+            yield safety, client, user_endpoint
         finally:
             await call.hangup()
             # The robot's end of the call closes its services: the recorder hears the end.
-            await wait_until(lambda: recorder._topics.keys() <= {"audit", "calls"})
+            await wait_until(lambda: recorder.calls == 0)
 
 
 def read(path: Path) -> tuple[Any, list[tuple[str, dict[str, Any], dict[str, str], int]]]:
@@ -83,10 +88,24 @@ def files(directory: Path) -> list[Path]:
     return sorted(directory.glob("calls-*.mcap"))
 
 
+def finished(directory: Path) -> dict[Path, list[tuple[str, dict[str, Any]]]]:
+    """The files an ``mcap`` reader accepts now (finished), with their (topic, JSON) messages."""
+    found = {}
+    for path in files(directory):
+        try:
+            summary, messages = read(path)
+        except McapError:  # being written: no summary and footer yet
+            continue
+        assert summary is not None and summary.statistics is not None
+        assert summary.statistics.message_count == len(messages)
+        found[path] = [(topic, data) for topic, data, *_ in messages]
+    return found
+
+
 async def test_a_call_reads_back_with_chat_goal_stop_and_who_stopped(tmp_path: Path) -> None:
     recorder = Recorder(tmp_path / "rec")
     recorder.start()
-    async with recorded_robot(tmp_path, recorder) as (_, client):
+    async with recorded_robot(tmp_path, recorder) as (_, client, _):
         assert (await client.arm()).ok
         replies = [reply.text async for reply in client.chat_replies("where")]
         assert replies
@@ -96,10 +115,11 @@ async def test_a_call_reads_back_with_chat_goal_stop_and_who_stopped(tmp_path: P
         assert (await client.stop(how="button")).ok
     await asyncio.to_thread(recorder.close)
 
-    [path] = files(tmp_path / "rec")
+    # The call's file, finished at its end (a stop's audit record after it may begin another).
+    path = files(tmp_path / "rec")[0]
     summary, messages = read(path)
     assert summary is not None and summary.statistics is not None
-    assert summary.statistics.message_count == len(messages) == recorder.written
+    assert summary.statistics.message_count == len(messages)
     assert {s.encoding for s in summary.schemas.values()} == {"jsonschema"}
     assert {c.message_encoding for c in summary.channels.values()} == {"json"}
     for schema in summary.schemas.values():
@@ -111,10 +131,15 @@ async def test_a_call_reads_back_with_chat_goal_stop_and_who_stopped(tmp_path: P
     by_topic: dict[str, list[dict[str, Any]]] = {}
     for topic, data, metadata, _ in messages:
         by_topic.setdefault(topic, []).append(data)
-        if topic.startswith(f"/{USER}/"):  # each call's channels say whose call it is
-            assert metadata["peer"] == USER and metadata["role"] == "driver", metadata
+        if topic.startswith(f"/{USER}/"):  # each user's channels say whose they are
+            direction = "in" if topic.endswith("/in") else "out"
+            assert metadata == {
+                "peer": USER,
+                "stream": topic.split("/")[2],
+                "direction": direction,
+            }, metadata
     assert [e["event"] for e in by_topic["/calls"]] == ["start", "end"]
-    assert by_topic["/calls"][0]["peer"] == USER
+    assert by_topic["/calls"][0]["peer"] == USER and by_topic["/calls"][0]["role"] == "driver"
     assert len(by_topic[f"/{USER}/pose"]) >= 3
     assert by_topic[f"/{USER}/telemetry"]
     assert {"id", "text"} <= by_topic[f"/{USER}/chat/in"][0].keys()
@@ -132,6 +157,59 @@ async def test_a_call_reads_back_with_chat_goal_stop_and_who_stopped(tmp_path: P
     stops = [r for r in by_topic["/safety/audit"] if r["what"] == "stop"]
     assert stops and stops[-1]["who"] == USER and stops[-1]["how"] == "button"
     assert "rearm" in [r["what"] for r in by_topic["/safety/audit"]], by_topic["/safety/audit"]
+
+
+async def test_each_call_end_finishes_the_file_with_one_channel_per_topic(tmp_path: Path) -> None:
+    directory = tmp_path / "rec"
+    recorder = Recorder(directory)
+    recorder.start()
+    async with recorded_robot(tmp_path, recorder) as (_, first, endpoint):
+        # The same user's second call while the first is still up (as after a reconnect).
+        second = RobotClient(await endpoint.call(ROBOT))
+        assert [reply.text async for reply in first.chat_replies("where")]
+        assert [reply.text async for reply in second.chat_replies("status")]
+        await first.pose()
+        await second.pose()
+        await first.call.hangup()
+        await wait_until(lambda: recorder.calls == 1 and recorder.files_done >= 1)
+        # The robot records on (the second call): the first file is complete and readable.
+        path = files(directory)[0]
+        summary, messages = read(path)
+        assert summary is not None and summary.statistics is not None
+        assert summary.statistics.message_count == len(messages) > 0
+        topics = Counter(channel.topic for channel in summary.channels.values())
+        assert topics[f"/{USER}/pose"] == 1 and set(topics.values()) == {1}, topics
+        assert {f"/{USER}/chat/in", f"/{USER}/chat", "/calls"} <= topics.keys()
+        calls = [data for topic, data, *_ in messages if topic == "/calls"]
+        assert [c["event"] for c in calls] == ["start", "start", "end"]
+        assert calls[2]["call"] == first.call.id
+        assert {c["call"] for c in calls} == {first.call.id, second.call.id}
+        asked = {data["text"] for topic, data, *_ in messages if topic == f"/{USER}/chat/in"}
+        assert asked == {"where", "status"}  # both calls' commands on the one channel
+        await second.call.hangup()
+        await wait_until(lambda: recorder.calls == 0 and recorder.files_done >= 2)
+        ends = [
+            data["call"]
+            for messages in finished(directory).values()
+            for topic, data in messages
+            if topic == "/calls" and data["event"] == "end"
+        ]
+        assert ends == [first.call.id, second.call.id]
+    await asyncio.to_thread(recorder.close)
+
+
+async def test_a_long_call_is_finished_every_max_seconds(tmp_path: Path) -> None:
+    directory = tmp_path / "rec"
+    recorder = Recorder(directory, max_seconds=0.5)
+    recorder.start()
+    async with recorded_robot(tmp_path, recorder) as _:
+        await wait_until(lambda: recorder.files_done >= 3)
+        assert recorder.calls == 1  # the call goes on
+        done = finished(directory)
+        assert len(done) >= 3
+        for messages in done.values():  # each with the call's poses
+            assert f"/{USER}/pose" in {topic for topic, _ in messages}
+    await asyncio.to_thread(recorder.close)
 
 
 async def test_files_rotate_by_size_and_only_the_newest_are_kept(tmp_path: Path) -> None:
@@ -166,7 +244,7 @@ async def test_an_unwritable_directory_logs_one_line_and_the_call_goes_on(
     recorder = Recorder(blocker / "rec")
     recorder.start()
     with caplog.at_level(logging.ERROR, logger="telebot.recording"):
-        async with recorded_robot(tmp_path, recorder) as (_, client):
+        async with recorded_robot(tmp_path, recorder) as (_, client, _):
             await wait_until(lambda: not recorder.enabled)
             assert (await client.arm()).ok
             replies = [reply.text async for reply in client.chat_replies("where")]
@@ -178,24 +256,35 @@ async def test_an_unwritable_directory_logs_one_line_and_the_call_goes_on(
     assert "recording off" in lines[0].getMessage() and "not-a-dir" in lines[0].getMessage()
 
 
-async def test_the_daemon_records_beside_the_audit_log(tmp_path: Path) -> None:
+async def test_the_daemon_records_beside_the_audit_log_readable_after_each_call(
+    tmp_path: Path,
+) -> None:
     daemon = Daemon(tmp_path, observer=None)
     with daemon.robot_config.open("a") as config:
         config.write("[recording]\nenabled = true\n")
     daemon.start()
     try:
-        async with daemon.connect() as client:
-            replies = [reply.text async for reply in client.chat_replies("where")]
-            assert replies
-            await client.pose()
+        for text in ("where", "status"):  # two calls, one after the other
+            async with daemon.connect() as client:
+                replies = [reply.text async for reply in client.chat_replies(text)]
+                assert replies
+                await client.pose()
+
+        def messages() -> list[tuple[str, dict[str, Any]]]:
+            return [m for found in finished(daemon.robot_home).values() for m in found]
+
+        # The robot runs on, and what it recorded of both calls is readable.
+        await wait_until(
+            lambda: [m["event"] for t, m in messages() if t == "/calls"].count("end") == 2
+        )
+        assert daemon.events.popen.poll() is None
+        topics = {topic for topic, _ in messages()}
+        assert {"/calls", f"/{USER}/chat/in", f"/{USER}/chat", f"/{USER}/pose"} <= topics
+        asked = [m["text"] for t, m in messages() if t == f"/{USER}/chat/in"]
+        assert asked == ["where", "status"]
     finally:
-        daemon.stop(graceful=True)  # SIGTERM: the recorder finishes its file
-    [path] = files(daemon.robot_home)
+        daemon.stop(graceful=True)
     assert (daemon.robot_home / "audit.jsonl").exists()
-    _, messages = read(path)
-    topics = {topic for topic, *_ in messages}
-    assert {"/calls", f"/{USER}/chat/in", f"/{USER}/chat", f"/{USER}/pose"} <= topics, topics
-    assert [m["event"] for topic, m, *_ in messages if topic == "/calls"] == ["start", "end"]
 
 
 class _FakeCall:
@@ -206,6 +295,21 @@ class _FakeCall:
     role = None
     end = None
     tap: Any = None
+
+
+def test_the_oldest_files_go_past_keep_bytes(tmp_path: Path) -> None:
+    for number in range(1, 5):
+        (tmp_path / f"calls-{number:06d}.mcap").write_bytes(bytes(3000))
+    with Recorder(tmp_path, keep_bytes=7000, streams=["chat"]) as recorder:
+        call = _FakeCall()
+        service = recorder.service(None, cast(Call, call))
+        call.tap("chat", False, '{"id": 1, "text": "where"}')
+        service.close()
+    assert [path.name for path in files(tmp_path)] == [
+        "calls-000003.mcap",
+        "calls-000004.mcap",
+        "calls-000005.mcap",
+    ]
 
 
 def test_only_the_configured_streams_are_kept_and_user_garbage_is_not(tmp_path: Path) -> None:

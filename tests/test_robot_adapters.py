@@ -55,6 +55,8 @@ def test_set_map_bumps_the_version_and_the_robot_plans_on_the_new_map() -> None:
     nav.set_map(with_wall(nav.map(), 9.5, 4.0))  # SLAM found a wall where room-b is
     assert nav.map_version() == 1
     assert nav.map().value_at(9.5, 4.0) == OCCUPIED
+    nav.set_map(with_wall(nav.map(), 9.5, 4.0))  # the same map again (SLAM republishes)
+    assert nav.map_version() == 1
     goal = nav.navigate_to_place("room-b")
     assert goal.status is GoalStatus.FAILED and "no path to room-b" in goal.reason
 

@@ -132,13 +132,16 @@ class FakeNav2:
             orientation=self.m("geometry_msgs/msg/Quaternion").make(**quaternion_fields(yaw)),
         )
 
-    def publish_map(self, data: np.ndarray[Any, Any], width: int, height: int) -> None:
+    def publish_map(
+        self, data: np.ndarray[Any, Any], width: int, height: int, *, stamp: int = 0
+    ) -> None:
         info = self.m("nav_msgs/msg/MapMetaData").make(
             resolution=RES, width=width, height=height, origin=self.pose(*ORIGIN, 0.0)
         )
+        time_msg = self.m("builtin_interfaces/msg/Time").make(sec=stamp)
         self.map_pub.publish(
             self.m("nav_msgs/msg/OccupancyGrid").make(
-                header=self.m("std_msgs/msg/Header").make(frame_id="map"),
+                header=self.m("std_msgs/msg/Header").make(frame_id="map", stamp=time_msg),
                 info=info,
                 data=np.asarray(data, dtype=np.int8).reshape(-1),
             )
@@ -229,6 +232,31 @@ async def test_the_map_arrives_converted_and_each_new_one_bumps_the_version(
     nav2.publish_map(np.zeros((10, 20), np.int8), 20, 10)
     await wait_until(lambda: stack.map_version() > version)
     assert (stack.map().width, stack.map().height) == (20, 10)
+
+
+async def test_a_map_republished_unchanged_keeps_its_version_a_changed_cell_bumps_it_once(
+    stack: Ros2NavStack, nav2: FakeNav2
+) -> None:
+    # A SLAM node or map server republishing on a timer: same cells, a new header stamp.
+    def received() -> int:
+        text = stack.diagnostics()["map"]
+        return int(text.split("(")[1].split(" received")[0])
+
+    await wait_until(lambda: received() >= 1)
+    version, first, start = stack.map_version(), stack.map(), received()
+    for stamp in range(1, 6):
+        nav2.publish_map(fake_map(), MAP_W, MAP_H, stamp=stamp)
+    await wait_until(lambda: received() >= start + 5)
+    assert stack.map_version() == version
+    assert stack.map() is first  # the same snapshot: nothing downstream re-encodes it
+
+    changed = fake_map()
+    changed[10, 10] = 100
+    for stamp in range(6, 11):
+        nav2.publish_map(changed, MAP_W, MAP_H, stamp=stamp)
+    await wait_until(lambda: received() >= start + 10)
+    assert stack.map_version() == version + 1
+    assert stack.map().value_at(-3.0 + 10.5 * RES, -2.0 + 10.5 * RES) == 100
 
 
 async def test_a_huge_or_malformed_map_is_dropped_and_logged_with_its_topic(

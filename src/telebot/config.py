@@ -494,8 +494,9 @@ ALL_RECORDED: tuple[RecordedStream, ...] = ("pose", "telemetry", "plan", "goals"
 
 
 class RecordingSettings(StrictModel):
-    """``[recording]``: an MCAP file of every call on the robot (see
-    :mod:`telebot.services.recording`), rotated by size."""
+    """``[recording]``: MCAP files of every call on the robot (see
+    :mod:`telebot.services.recording`), each finished (readable) at a call's end, after
+    ``max_seconds`` or past ``max_bytes``."""
 
     #: Off by default: recordings hold what users typed and where the robot went.
     enabled: bool = False
@@ -503,8 +504,13 @@ class RecordingSettings(StrictModel):
     dir: Path | None = None
     #: A file that grows past this many bytes is finished and the next one begun.
     max_bytes: int = Field(default=64 * 1024 * 1024, ge=4096)
+    #: A file is finished at the latest this many seconds after it was begun (and at each
+    #: call's end), so that a long call is readable without stopping the robot.
+    max_seconds: float = Field(default=300.0, gt=0, le=86400)
     #: How many files are kept (the oldest are deleted), the one being written included.
-    keep: int = Field(default=20, ge=1, le=100000)
+    keep: int = Field(default=1000, ge=1, le=100000)
+    #: How many bytes of files are kept at most (the oldest are deleted).
+    keep_bytes: int = Field(default=1024 * 1024 * 1024, ge=4096)
     #: Which channels of each call are recorded (both ways); call starts and ends and
     #: safety events (the audit records) always are.
     streams: list[RecordedStream] = Field(default_factory=lambda: list(ALL_RECORDED))

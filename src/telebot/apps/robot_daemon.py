@@ -56,7 +56,12 @@ def _recorder(config: RobotConfig, audit: Path, home: Path | None) -> Recorder |
         directory = home / directory
     log.info("recording every call into %s", directory)
     return Recorder(
-        directory, max_bytes=settings.max_bytes, keep=settings.keep, streams=settings.streams
+        directory,
+        max_bytes=settings.max_bytes,
+        max_seconds=settings.max_seconds,
+        keep=settings.keep,
+        keep_bytes=settings.keep_bytes,
+        streams=settings.streams,
     )
 
 

@@ -41,6 +41,20 @@ class OccupancyGrid:
         # Frozen in fact, not only in name: planners and renderers share this array.
         self.data.flags.writeable = False
 
+    def same_content(self, other: OccupancyGrid) -> bool:
+        """Whether ``other`` is the same map: cells, resolution and origin (size included).
+
+        What a map's version stands for: a map republished unchanged (a SLAM node or a
+        map server publishing on a timer, with a new header stamp) is the same content.
+        """
+        return (
+            self.resolution == other.resolution
+            and self.origin_x == other.origin_x
+            and self.origin_y == other.origin_y
+            and self.data.shape == other.data.shape
+            and bool(np.array_equal(self.data, other.data))
+        )
+
     @property
     def height(self) -> int:
         """Number of rows (cells along y)."""

@@ -15,7 +15,8 @@ Numbers that are not finite raise :class:`~telebot.errors.InvalidCommand`.
 
 The map may change while the robot runs (a SLAM robot's map grows): :meth:`NavStack.map`
 returns an immutable snapshot, and :meth:`NavStack.map_version` changes whenever a new one
-is in place, so whoever keeps the map encoded or downloaded knows when to refresh it.
+is in place, so whoever keeps the map encoded or downloaded knows when to refresh it. A map
+republished unchanged (same cells, resolution and origin) is not a new one.
 
 Two more abilities, each its own protocol, say how the daemon runs an adapter:
 
@@ -309,7 +310,9 @@ class NavStack(Protocol):
     def map_version(self) -> int:
         """A number that changes whenever :meth:`map` returns a new map (a counter, a stamp).
 
-        A map that never changes may keep any one number. Read it *before* :meth:`map`: a
+        A map that never changes may keep any one number, and a map republished with the
+        same content (cells, resolution, origin) should keep it: each new number makes every
+        user re-download the map. Read it *before* :meth:`map`: a
         map fetched after the version is at least that new, so a cache keyed by the version
         may refresh once too often but never keeps an old map under a new version.
         """

@@ -9,21 +9,29 @@ requests and safety requests coming in) without any service knowing about it. Sa
 events come from the supervisor's audit records (:attr:`SafetyDriver.on_audit`: stops,
 re-arms, latches, deadman stops, who asked and what came of it).
 
-One file holds all calls, with a topic per user and stream: ``/NAME/pose`` (what the robot
-sent), ``/NAME/chat/in`` (what NAME sent), plus ``/calls`` (call start and end) and
+The calls go on one timeline, with a topic per user and stream: ``/NAME/pose`` (what the
+robot sent), ``/NAME/chat/in`` (what NAME sent), plus ``/calls`` (call start and end) and
 ``/safety/audit``. One timeline because that is what someone replaying a session in
 Foxglove wants: two users in a call at once, the stop one of them gave and what the other
 saw, side by side on one time axis; topics named after the user, not the call id, so that
-a Foxglove layout made once works on every recording. Each MCAP channel's metadata still
-names its call (``call``, ``peer``, ``role``). Messages are the protocol's own JSON
-(``docs/protocol.md``), with ``json`` message encoding and ``jsonschema`` schemas.
+a Foxglove layout made once works on every recording. A topic is one MCAP channel in a
+file, whatever the number of calls: its metadata names the user and the direction
+(``peer``, ``stream``, ``direction``); which call a message belongs to, and the call's
+role, the ``/calls`` events around it say (a user's calls rarely overlap: a reconnect).
+Messages are the protocol's own JSON (``docs/protocol.md``), with ``json`` message
+encoding and ``jsonschema`` schemas.
+
+An MCAP file is readable once finished (its summary and footer written), so the writer
+finishes the file at each call's end, at the latest ``max_seconds`` after it was begun, and
+when it grows past ``max_bytes``; the next message begins the next one:
+``calls-000001.mcap``, ``calls-000002.mcap`` … What was recorded is thus readable while the
+robot runs, after the call or a few minutes. The oldest files are deleted as a new one
+begins, keeping at most ``keep`` files and ``keep_bytes`` bytes.
 
 The event loop only appends to a queue (:meth:`Recorder.tap`); a writer thread encodes,
-writes, flushes idle chunks and rotates: a file past ``max_bytes`` is finished (a valid
-MCAP with its summary) and the next one begun, ``calls-000001.mcap``, ``calls-000002.mcap``
-…, at most ``keep`` of them kept. A disk that fails logs one line and turns recording off;
-the robot and its calls go on. A queue that backs up past :data:`MAX_PENDING` drops
-messages (counted) rather than grow.
+writes, flushes idle chunks and finishes files. A disk that fails logs one line and turns
+recording off; the robot and its calls go on. A queue that backs up past
+:data:`MAX_PENDING` drops messages (counted) rather than grow.
 """
 
 from __future__ import annotations
@@ -38,7 +46,7 @@ import time
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import IO, TYPE_CHECKING, Any
+from typing import IO, TYPE_CHECKING, Any, Final
 
 from mcap.writer import CompressionType, Writer
 
@@ -205,23 +213,22 @@ class _Topic:
     untrusted: bool = False
 
 
-@dataclass(frozen=True, slots=True)
-class _Forget:
-    """A queue item's key: the call is over, forget these topics."""
+#: A queue item's key: a call ended, finish the file (so that its call is readable).
+_CALL_ENDED: Final = object()
 
-    keys: tuple[object, ...]
-
-
-# The queue's items: (topic key, payload, log time ns), or None to finish.
+# The queue's items: (topic key, payload, log time ns), or None to finish and stop.
 _Item = tuple[object, "str | bytes", int] | None
 
 
 class Recorder:
-    """Writes calls into rotating MCAP files in ``directory`` from a writer thread.
+    """Writes calls into MCAP files in ``directory`` from a writer thread.
+
+    A file is finished (a valid MCAP with its summary) at each call's end, ``max_seconds``
+    after it was begun, past ``max_bytes``, and at :meth:`close`. As a file begins, the
+    oldest are deleted down to ``keep`` files and ``keep_bytes`` bytes.
 
     Thread-safe: :meth:`tap`, :meth:`audit` and the call events may come from any thread.
-    Call :meth:`start` before the first call and :meth:`close` at the end (it finishes the
-    file: a valid MCAP with its summary).
+    Call :meth:`start` before the first call and :meth:`close` at the end.
     """
 
     def __init__(
@@ -229,14 +236,18 @@ class Recorder:
         directory: Path,
         *,
         max_bytes: int = 64 * 1024 * 1024,
-        keep: int = 20,
+        max_seconds: float = 300.0,
+        keep: int = 1000,
+        keep_bytes: int = 1024 * 1024 * 1024,
         streams: Iterable[str] = ("pose", "telemetry", "plan", "goals", "chat", "safety"),
     ) -> None:
-        if max_bytes < 1 or keep < 1:
-            raise ValueError("max_bytes and keep must be positive")
+        if max_bytes < 1 or keep < 1 or keep_bytes < 1 or not max_seconds > 0:
+            raise ValueError("max_bytes, max_seconds, keep and keep_bytes must be positive")
         self.directory = directory
         self.max_bytes = max_bytes
+        self.max_seconds = max_seconds
         self.keep = keep
+        self.keep_bytes = keep_bytes
         self.streams = frozenset(streams)
         #: False once the disk failed (or after close): nothing more is queued.
         self.enabled = True
@@ -245,6 +256,8 @@ class Recorder:
         #: Messages written, and files finished.
         self.written = 0
         self.files_done = 0
+        #: Calls being recorded now.
+        self.calls = 0
         #: The file being written (None before the first message and after a failure).
         self.path: Path | None = None
         self._queue: queue.SimpleQueue[_Item] = queue.SimpleQueue()
@@ -257,6 +270,7 @@ class Recorder:
         self._channel_ids: dict[object, int] = {}
         self._number = 0
         self._dirty = False
+        self._opened_at = 0.0  # time.monotonic() of the file's first message
 
     # -- any thread -------------------------------------------------------------------
 
@@ -305,15 +319,25 @@ class Recorder:
         self._topics["calls"] = _Topic("/calls", "calls")
         while True:
             try:
-                item = self._queue.get(timeout=IDLE_FLUSH if self._dirty else None)
+                item = self._queue.get(timeout=self._wait())
             except queue.Empty:
-                self._guard(self._flush)
+                self._guard(self._finish if self._too_old() else self._flush)
                 continue
             if item is None:
                 self._guard(self._finish)
                 return
-            if self.enabled or isinstance(item[0], _Forget):
+            if self.enabled:
                 self._guard(self._write, *item)
+
+    def _wait(self) -> float | None:
+        """How long the writer may wait for a message: until the next flush or finish."""
+        waits = [IDLE_FLUSH] if self._dirty else []
+        if self._writer is not None:
+            waits.append(max(0.0, self._opened_at + self.max_seconds - time.monotonic()))
+        return min(waits, default=None)
+
+    def _too_old(self) -> bool:
+        return self._writer is not None and time.monotonic() - self._opened_at >= self.max_seconds
 
     def _guard(self, action: Any, *args: Any) -> None:
         try:
@@ -325,10 +349,8 @@ class Recorder:
             self._abandon()
 
     def _write(self, key: object, payload: str | bytes, log_time: int) -> None:
-        if isinstance(key, _Forget):
-            for each in key.keys:
-                self._topics.pop(each, None)
-                self._channel_ids.pop(each, None)
+        if key is _CALL_ENDED:
+            self._finish()
             return
         topic = self._topics.get(key)
         if topic is None:
@@ -364,7 +386,7 @@ class Recorder:
         self.written += 1
         self._dirty = True
         assert self._file is not None
-        if self._file.tell() >= self.max_bytes:
+        if self._file.tell() >= self.max_bytes or self._too_old():
             self._finish()
 
     def _open(self) -> Writer:
@@ -381,6 +403,7 @@ class Recorder:
         self._schema_ids.clear()
         self._channel_ids.clear()
         self.path = path
+        self._opened_at = time.monotonic()
         self._prune()
         return self._writer
 
@@ -393,9 +416,15 @@ class Recorder:
         return sorted(found)
 
     def _prune(self) -> None:
-        existing = self._existing()
-        for _, path in existing[: max(0, len(existing) - self.keep)]:
+        """Delete the oldest files (never the one just begun) down to ``keep`` and ``keep_bytes``."""
+        existing = [path for _, path in self._existing()]
+        sizes = [path.stat().st_size for path in existing]
+        count, total = len(existing), sum(sizes)
+        for path, size in zip(existing, sizes, strict=True):
+            if path == self.path or (count <= self.keep and total <= self.keep_bytes):
+                break
             path.unlink(missing_ok=True)
+            count, total = count - 1, total - size
 
     def _flush(self) -> None:
         if self._writer is not None and self._file is not None:
@@ -439,23 +468,28 @@ class RecordingService:
         self.recorder = recorder
         self.call = call
         role = str(call.role) if call.role is not None else ""
-        metadata = {"call": call.id, "peer": call.peer, "role": role}
-        # Registered here, on the loop, before any message: the writer thread only reads.
+        # A topic per user and stream, shared by all of the user's calls (one MCAP channel
+        # each), so kept after the call: users are few. Registered here, on the loop,
+        # before any message: the writer thread only reads.
         topics = recorder._topics
         self._keys: dict[tuple[str, bool], object] = {}
         for stream in sorted(recorder.streams):
             for sent in (True, False):
-                key = (call.id, stream, sent)
+                key = (call.peer, stream, sent)
                 direction = "out" if sent else "in"
-                name = f"/{call.peer}/{stream}" + ("" if sent else "/in")
-                topics[key] = _Topic(
-                    name, f"{stream}:{direction}", {**metadata, "direction": direction}, not sent
-                )
+                if key not in topics:
+                    topics[key] = _Topic(
+                        f"/{call.peer}/{stream}" + ("" if sent else "/in"),
+                        f"{stream}:{direction}",
+                        {"peer": call.peer, "stream": stream, "direction": direction},
+                        untrusted=not sent,
+                    )
                 self._keys[stream, sent] = key
         recorder._put(
             "calls",
             json.dumps({"event": "start", "call": call.id, "peer": call.peer, "role": role}),
         )
+        recorder.calls += 1
         call.tap = self._tap
 
     def _tap(self, channel: str, sent: bool, payload: str | bytes) -> None:
@@ -467,7 +501,7 @@ class RecordingService:
         """Nothing: the tap records as messages go."""
 
     def close(self) -> None:
-        """The call ended: stop tapping it and record its end."""
+        """The call ended: stop tapping it, record its end and finish the file."""
         self.call.tap = None
         end = self.call.end
         event = {
@@ -478,9 +512,6 @@ class RecordingService:
             "detail": end.detail if end is not None else "",
         }
         self.recorder._put("calls", json.dumps(event, ensure_ascii=False))
-        keys = tuple(self._keys.values())
-        if self.recorder.enabled:  # after its last message: the writer thread forgets it
-            self.recorder._put(_Forget(keys), b"")
-        else:
-            for key in keys:
-                self.recorder._topics.pop(key, None)
+        # After its last message: what was recorded of the call is readable at once.
+        self.recorder._put(_CALL_ENDED, b"")
+        self.recorder.calls -= 1

@@ -8,7 +8,8 @@ maps Nav2's interfaces onto the protocol (names from ``[ros2]``, relative to its
 NavStack                     ROS 2
 ===========================  =============================================================
 ``map()``                    ``/map`` ``nav_msgs/OccupancyGrid`` (transient local); each
-                             new map bumps ``map_version()``
+                             map that differs (cells, resolution, origin) bumps
+                             ``map_version()``, one republished unchanged does not
 ``pose()``                   ``/amcl_pose`` ``PoseWithCovarianceStamped``, or the tf
                              ``map`` → ``base_link`` chain of ``/tf`` + ``/tf_static``
 ``velocity()``               ``/odom`` ``nav_msgs/Odometry`` twist
@@ -331,6 +332,7 @@ class Ros2NavStack:
 
         self._grid: OccupancyGrid | None = None
         self._map_version = 0
+        self._maps_received = 0
         self._map_ready = threading.Event()
         self._map_at = 0.0
         self._pose: PoseEstimate | None = None
@@ -596,9 +598,14 @@ class Ros2NavStack:
     def _on_map(self, msg: Any, _attachment: Any) -> None:
         grid = grid_from_msg(msg, max_cells=self._settings.max_map_cells)
         with self._lock:
+            self._maps_received += 1
+            self._map_at = time.monotonic()
+            # SLAM nodes and map servers republish on a timer: an unchanged map keeps its
+            # version (and snapshot), so no one re-encodes or re-downloads it.
+            if self._grid is not None and self._grid.same_content(grid):
+                return
             self._grid = grid
             self._map_version += 1
-            self._map_at = time.monotonic()
         self._map_ready.set()
         log.info(
             "map %dx%d @ %g m from %s (version %d)",
@@ -793,7 +800,10 @@ class Ros2NavStack:
         return grid
 
     def map_version(self) -> int:
-        """How many maps have arrived (each new one on the map topic adds one)."""
+        """How many different maps have arrived (a map republished unchanged adds none).
+
+        A map is its cells, resolution and origin; the message's header stamp is not.
+        """
         with self._lock:
             return self._map_version
 
@@ -904,7 +914,8 @@ class Ros2NavStack:
                 "nav2": nav2,
                 "map": (
                     f"{grid.width}x{grid.height} @ {grid.resolution:g} m, version "
-                    f"{self._map_version}, {age(self._map_at)}"
+                    f"{self._map_version} ({self._maps_received} received), "
+                    f"{age(self._map_at)}"
                     if grid is not None
                     else "none yet"
                 ),

@@ -262,8 +262,11 @@ class SimNavStack:
 
         The costmap, laser and cameras use the new map from the next step on; a running goal
         keeps its path (the laser still stops the base before a new wall) and replans on the
-        new map when it is blocked. :meth:`map_version` goes up by one.
+        new map when it is blocked. :meth:`map_version` goes up by one, unless the map is
+        the one in place (same cells, resolution and origin): then nothing changes.
         """
+        if grid.same_content(self._grid):
+            return
         costmap = Costmap.from_grid(grid, self._settings.robot_radius)
         laser = Laser(grid, beams=self._settings.laser_beams, range_max=self._settings.laser_range)
         self._grid, self._costmap, self._laser = grid, costmap, laser
