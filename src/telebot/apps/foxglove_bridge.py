@@ -140,6 +140,7 @@ BASE_FRAME = "base_link"
 COMMANDS = ("arm", "stop", "take", "release", "cancel")
 #: How long a service call waits for the robot's answer (s) before it answers "no answer".
 COMMAND_TIMEOUT = 10.0
+_NO_ANSWER = "no answer from the robot"
 #: What a command service says when the robot did it (its ack carries no words then).
 _DONE = {"arm": "armed", "stop": "stopped", "take": "you hold the drive", "release": "released"}
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
@@ -689,7 +690,7 @@ class FoxgloveBridge:
             except concurrent.futures.TimeoutError:
                 if self._closing or time.monotonic() > deadline:
                     future.cancel()
-                    return closing if self._closing else _result(False, "no answer")
+                    return closing if self._closing else _result(False, _NO_ANSWER)
 
     async def command(self, what: str, payload: bytes = b"{}") -> dict[str, Any]:
         """Do command ``what`` (one of :data:`COMMANDS`) as the web page's button does and
@@ -714,10 +715,12 @@ class FoxgloveBridge:
                 }
                 ack = await actions[what]()
         except TimeoutError:
-            return _result(False, "no answer from the robot")
+            return _result(False, _NO_ANSWER)
         except TelebotError as exc:
             return _result(False, str(exc))
-        return _result(ack.ok, ack.text or (_DONE[what] if ack.ok else what), ack.reason)
+        return _result(
+            ack.ok, ack.text or (_DONE[what] if ack.ok else f"{what} refused"), ack.reason
+        )
 
 
 def _trigger_problem(payload: bytes) -> str | None:
