@@ -356,13 +356,15 @@ async def test_a_foxglove_user_arms_cancels_and_stops_through_services(tmp_path:
         # A goal from the 3D panel now drives the robot; cancel ends it, still armed.
         await fox.advertise(7, GOAL_TOPIC, "json", "geometry_msgs/msg/PoseStamped")
         start = nav.true_pose
-        far = (start.x + 4.0, start.y)
+        far = (start.x + 8.0, start.y)
         await fox.publish(7, pose_stamped(*far))
         await wait_until(lambda: away(start) > 0.3, timeout=15)
         cancelled = await fox.call("/telebot/cancel")
         assert cancelled["ok"] and cancelled["text"] == "cancelled", cancelled
         await wait_until(standing, timeout=15)
-        assert safety().armed and math.hypot(nav.true_pose.x - far[0], nav.true_pose.y) > 1.0
+        assert (
+            safety().armed and math.hypot(nav.true_pose.x - far[0], nav.true_pose.y - far[1]) > 1.0
+        )
 
         # Stop: the robot stops and stays stopped (latched) until armed again.
         start = nav.true_pose
