@@ -8,7 +8,10 @@ import asyncio
 import base64
 import contextlib
 import json
+import logging
 import math
+import os
+import re
 import struct
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
@@ -20,12 +23,18 @@ import pytest
 from mcap.reader import make_reader
 
 from conftest import wait_until
-from rig import FAST_SIM, GENEROUS_TIMEOUT, ROBOT, robot_on_hub
-from telebot.apps.foxglove_bridge import FoxgloveBridge, goal_from_pose_stamped
+from rig import FAST_SIM, GENEROUS_TIMEOUT, ROBOT, USER, robot_on_hub
+from telebot.apps.foxglove_bridge import (
+    COMMANDS,
+    GOAL_TOPIC,
+    FoxgloveBridge,
+    goal_from_pose_stamped,
+)
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.config import AppConfig, CallSettings
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.client import RobotClient, connect
+from telebot.services.schemas import BRIDGE_SCHEMAS, SCHEMAS
 from telebot.services.video import VideoSettings
 
 #: The ws-protocol spec's subprotocol is "foxglove.websocket.v1"; foxglove-sdk servers speak
@@ -94,14 +103,19 @@ class WsChannel:
 
 
 class FoxgloveWsClient:
-    """Just enough of the Foxglove WebSocket protocol (v1): advertise, subscribe, publish."""
+    """Just enough of the Foxglove WebSocket protocol (v1): advertise, subscribe, publish,
+    call services."""
 
     def __init__(self, ws: aiohttp.ClientWebSocketResponse) -> None:
         self.ws = ws
         self.server_info: dict[str, Any] = {}
         self.channels: dict[str, WsChannel] = {}
         self.messages: dict[str, list[bytes]] = {}
+        #: Advertised services by name, as the server described them.
+        self.services: dict[str, dict[str, Any]] = {}
         self._subscriptions: dict[int, str] = {}
+        self._calls: dict[int, asyncio.Future[tuple[str, bytes]]] = {}
+        self._call_ids = 0
         self._reader: asyncio.Task[None] | None = None
 
     def start(self) -> None:
@@ -129,12 +143,41 @@ class FoxgloveWsClient:
                             ch.get("schemaEncoding", ""),
                             ch["schema"],
                         )
+                elif data["op"] == "advertiseServices":
+                    for service in data["services"]:
+                        self.services[service["name"]] = service
+                elif data["op"] == "serviceCallFailure":
+                    self._answer(data["callId"], ("failure", data["message"].encode()))
             elif msg.type == aiohttp.WSMsgType.BINARY:
                 raw = msg.data
+                if raw[0] == 0x03:  # serviceCallResponse: service, call, encoding, payload
+                    _service, call_id, length = struct.unpack_from("<III", raw, 1)
+                    encoding = raw[13 : 13 + length].decode()
+                    self._answer(call_id, (encoding, bytes(raw[13 + length :])))
+                    continue
                 assert raw[0] == 0x01, f"opcode {raw[0]}"  # messageData
                 subscription, _timestamp = struct.unpack_from("<IQ", raw, 1)
                 topic = self._subscriptions[subscription]
                 self.messages.setdefault(topic, []).append(bytes(raw[13:]))
+
+    def _answer(self, call_id: int, answer: tuple[str, bytes]) -> None:
+        future = self._calls.pop(call_id, None)
+        if future is not None and not future.done():
+            future.set_result(answer)
+
+    async def call(self, service: str, request: bytes = b"{}") -> dict[str, Any]:
+        """Call ``service`` (JSON) as the Service Call panel does; its JSON response."""
+        await wait_until(lambda: service in self.services)
+        self._call_ids += 1
+        call_id = self._call_ids
+        future: asyncio.Future[tuple[str, bytes]] = asyncio.get_running_loop().create_future()
+        self._calls[call_id] = future
+        header = struct.pack("<BIII", 0x02, self.services[service]["id"], call_id, 4)
+        await self.ws.send_bytes(header + b"json" + request)
+        encoding, payload = await asyncio.wait_for(future, 30)
+        assert encoding == "json", payload.decode()  # not a failure
+        answer: dict[str, Any] = json.loads(payload)
+        return answer
 
     async def subscribe(self, *topics: str) -> None:
         subs = []
@@ -269,6 +312,154 @@ async def test_a_goal_published_from_foxglove_drives_the_robot(tmp_path: Path) -
         await wait_until(lambda: bridge.goals_refused == 1)
 
 
+def pose_stamped(x: float, y: float) -> bytes:
+    """A ``geometry_msgs/msg/PoseStamped`` as Foxglove's 3D panel publishes it (json)."""
+    message = {
+        "header": {"frame_id": "map", "stamp": {"sec": 0, "nanosec": 0}},
+        "pose": {
+            "position": {"x": x, "y": y, "z": 0.0},
+            "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+        },
+    }
+    return json.dumps(message).encode()
+
+
+async def test_a_foxglove_user_arms_cancels_and_stops_through_services(tmp_path: Path) -> None:
+    async with (
+        robot_and_user(tmp_path) as (nav, client),
+        FoxgloveBridge(client, port=0) as bridge,
+        ws_client(bridge.url) as fox,
+    ):
+        assert "services" in (await _server_info(fox))["capabilities"]
+        await wait_until(lambda: {f"/telebot/{what}" for what in COMMANDS} <= fox.services.keys())
+        arm = fox.services["/telebot/arm"]
+        assert arm["type"] == "telebot.Trigger"
+        assert arm["request"]["schemaName"] == "telebot.TriggerRequest"
+        assert arm["response"]["schemaName"] == "telebot.TriggerResult"
+
+        def safety() -> Any:
+            return client.latest_safety.value
+
+        def away(start: Any) -> float:
+            return math.hypot(nav.true_pose.x - start.x, nav.true_pose.y - start.y)
+
+        def standing() -> bool:
+            return abs(nav.velocity().linear) < 1e-3 and abs(nav.velocity().angular) < 1e-3
+
+        await wait_until(lambda: safety() is not None)
+        assert not safety().armed  # the robot starts stopped: nothing but a user arms it
+        refused = await fox.call("/telebot/arm", b'{"force": true}')
+        assert not refused["ok"] and "takes no fields" in refused["text"]
+        assert await fox.call("/telebot/arm") == {"ok": True, "text": "armed", "code": "ok"}
+        await wait_until(lambda: safety().armed and safety().holder == USER)
+
+        # A goal from the 3D panel now drives the robot; cancel ends it, still armed.
+        await fox.advertise(7, GOAL_TOPIC, "json", "geometry_msgs/msg/PoseStamped")
+        start = nav.true_pose
+        far = (start.x + 8.0, start.y)
+        await fox.publish(7, pose_stamped(*far))
+        await wait_until(lambda: away(start) > 0.3, timeout=15)
+        cancelled = await fox.call("/telebot/cancel")
+        assert cancelled["ok"] and cancelled["text"] == "cancelled", cancelled
+        await wait_until(standing, timeout=15)
+        assert (
+            safety().armed and math.hypot(nav.true_pose.x - far[0], nav.true_pose.y - far[1]) > 1.0
+        )
+
+        # Stop: the robot stops and stays stopped (latched) until armed again.
+        start = nav.true_pose
+        await fox.publish(7, pose_stamped(*far))
+        await wait_until(lambda: away(start) > 0.3, timeout=15)
+        stopped = await fox.call("/telebot/stop")
+        assert stopped["ok"], stopped
+        await wait_until(lambda: not safety().armed and standing(), timeout=15)
+        assert math.hypot(nav.true_pose.x - far[0], nav.true_pose.y - far[1]) > 1.0
+        assert bridge.goals_received == 2 and bridge.goals_refused == 0
+
+        # Release and take the drive back.
+        assert (await fox.call("/telebot/release"))["ok"]
+        await wait_until(lambda: safety().holder is None)
+        assert (await fox.call("/telebot/take"))["ok"]
+        await wait_until(lambda: safety().holder == USER)
+        # What the services did is on /telebot/safety, as the page's buttons are.
+        await wait_until(lambda: bridge.counts.get("/telebot/commands", 0) >= 5)
+
+
+async def test_a_megabyte_of_garbage_on_goal_pose_is_refused_in_a_short_line(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.WARNING, logger="telebot.foxglove")
+    huge_number = json.dumps({"pose": {"position": {"x": "9" * 2**20 + "x", "y": 0}}})
+    huge_key = json.dumps({"pose": {"X" * 2**20: 1}})
+    garbage = os.urandom(2**20)
+    async with (
+        robot_and_user(tmp_path) as (_, client),
+        FoxgloveBridge(client, port=0) as bridge,
+        ws_client(bridge.url) as fox,
+    ):
+        await wait_until(lambda: "/telebot/goal" in fox.channels)
+        await fox.subscribe("/telebot/goal")
+        await fox.advertise(7, GOAL_TOPIC, "json", "geometry_msgs/msg/PoseStamped")
+        await fox.advertise(8, GOAL_TOPIC, "cdr", "geometry_msgs/msg/PoseStamped")
+        sent = [(7, huge_number.encode()), (7, huge_key.encode()), (7, garbage), (8, garbage)]
+        for channel, payload in sent:
+            assert len(payload) >= 2**20
+            await fox.publish(channel, payload)
+        await wait_until(lambda: len(fox.messages.get("/telebot/goal", [])) == len(sent))
+        assert bridge.goals_refused == len(sent)
+    refusals = fox.messages["/telebot/goal"]
+    for raw in refusals:
+        assert len(raw) < 1024, raw[:200]
+        refusal = json.loads(raw)
+        assert refusal["kind"] == "refused" and "PoseStamped" in refusal["text"]
+    assert "characters)" in json.loads(refusals[0])["text"]  # said how long it was
+    lines = [r.getMessage() for r in caplog.records if "was refused" in r.getMessage()]
+    assert len(lines) == len(sent)
+    assert all(len(line) < 1024 for line in lines), [len(line) for line in lines]
+
+
+README = Path(__file__).resolve().parent.parent / "README.md"
+
+
+def readme_foxglove_tables() -> tuple[dict[str, str], set[str]]:
+    """The README's Foxglove section: its channel table (topic -> schema) and its services."""
+    section = README.read_text().split("### Foxglove and MCAP", 1)[1].split("\n### ", 1)[0]
+    topics: dict[str, str] = {}
+    services: set[str] = set()
+    for line in section.splitlines():
+        if row := re.match(r"\| `(/[^`]*)` \| `([^`]*)` \|", line):
+            topics[row[1]] = row[2]
+        elif row := re.match(r"\| `(/telebot/[a-z]+)` \| [^`]", line):
+            services.add(row[1])
+    return topics, services
+
+
+async def test_the_bridge_advertises_the_readme_topics_with_named_json_schemas(
+    tmp_path: Path,
+) -> None:
+    readme_topics, readme_services = readme_foxglove_tables()
+    assert readme_topics and readme_services
+    async with (
+        robot_and_user(tmp_path) as (_, client),
+        FoxgloveBridge(client, port=0) as bridge,
+        ws_client(bridge.url) as fox,
+    ):
+        await wait_until(lambda: len(fox.channels) >= len(readme_topics))
+        await wait_until(lambda: len(fox.services) >= len(readme_services))
+        advertised = {topic: channel.schema_name for topic, channel in fox.channels.items()}
+        assert advertised == readme_topics
+        assert set(fox.services) == readme_services
+        for name, schema in BRIDGE_SCHEMAS.items():
+            channel = fox.channels[f"/telebot/{name}"]
+            assert (channel.encoding, channel.schema_encoding) == ("json", "jsonschema")
+            assert channel.schema_name == schema["title"] and schema["title"].startswith("telebot.")
+            assert json.loads(channel.schema) == schema
+        # One definition: the robot's own recordings name their telemetry the same way.
+        assert (
+            json.loads(fox.channels["/telebot/telemetry"].schema) == SCHEMAS[("telemetry", "out")]
+        )
+
+
 async def _server_info(fox: FoxgloveWsClient) -> dict[str, Any]:
     await wait_until(lambda: bool(fox.server_info))
     return fox.server_info
@@ -330,6 +521,8 @@ async def test_a_recording_reads_back_with_the_mcap_reader(tmp_path: Path) -> No
     assert schemas["/pose"] == "foxglove.PoseInFrame"
     assert schemas["/plan"] == "foxglove.PosesInFrame"
     assert schemas["/camera"] == "foxglove.CompressedImage"
+    assert schemas["/telebot/chat"] == "telebot.ChatEvent"
+    assert schemas["/telebot/telemetry"] == "telebot.Telemetry"
     for topic in ("/map", "/pose", "/tf", "/plan", "/camera", "/telebot/telemetry"):
         assert messages.get(topic), topic
     chat = [json.loads(data) for _, data in messages["/telebot/chat"]]

@@ -15,7 +15,8 @@ import pytest
 
 from conftest import wait_until
 from rig import ROBOT, Daemon, Process, free_port
-from test_foxglove import read_mcap
+from telebot.apps.user_cli import build_parser
+from test_foxglove import read_mcap, ws_client
 
 pytestmark = pytest.mark.zenoh
 
@@ -129,3 +130,41 @@ def test_bad_output_and_taken_port_are_one_line_errors(tmp_path: Path) -> None:
     assert busy.returncode == 2
     assert busy.stderr.startswith(f"telebot-user: error: cannot serve on 127.0.0.1:{port}: ")
     assert len(busy.stderr.strip().splitlines()) == 1 and "Traceback" not in busy.stderr
+
+
+async def test_an_observer_in_foxglove_may_stop_but_not_arm(
+    daemon: Daemon, processes: list[Process]
+) -> None:
+    # The robot's name after --topics: the flag takes one topic, the name stays the robot's.
+    args = user_args(daemon)
+    args[1] = str(daemon.observer_home)
+    port = free_port()
+    command = ["telebot.apps.user_cli", "foxglove", "--topics", "/scan", ROBOT]
+    fox = Process([*command, "--port", str(port), *args])
+    processes.append(fox)
+    announced = fox.next_line(timeout=30)
+    assert f"ws://127.0.0.1:{port}" in announced and "role observer" in announced, announced
+    async with ws_client(f"ws://127.0.0.1:{port}") as client:
+        await wait_until(lambda: "/scan" in client.channels, timeout=20)  # relayed
+        refused = await client.call("/telebot/arm")
+        assert not refused["ok"] and refused["code"] == "observer", refused
+        assert refused["text"] == "olga is an observer: observers may not re-arm"
+        assert (await client.call("/telebot/stop"))["ok"]  # anyone may stop
+    fox.signal(signal.SIGINT)
+    assert fox.popen.wait(timeout=20) == 0, fox.stderr()
+
+
+def test_topics_take_one_value_per_flag_and_the_robot_may_come_anywhere() -> None:
+    parser = build_parser()
+    for argv, topics in (
+        (["foxglove", "--topics", "/scan", ROBOT], ["/scan"]),
+        (["foxglove", ROBOT, "--topic", "/scan"], ["/scan"]),
+        (["record", "--topic", "/scan", "--topic", "/odom", ROBOT, "-o", "x"], ["/scan", "/odom"]),
+        (["record", "--topics", "/scan,/odom", "-o", "x", ROBOT], ["/scan", "/odom"]),
+    ):
+        args = parser.parse_args(argv)
+        assert (args.robot, args.topics) == (ROBOT, topics), argv
+    # The old list form: a one-line error that says what to do, not "robot required".
+    old = _cli("foxglove", "--topics", "/scan", "/odom", ROBOT)
+    assert old.returncode == 2 and len(old.stderr.strip().splitlines()) == 1
+    assert "'/odom' is a topic, not a robot name: give one topic per --topic" in old.stderr

@@ -64,6 +64,7 @@ __all__ = [
     "UnknownRosType",
     "UnknownTopic",
     "UnknownTransport",
+    "excerpt",
 ]
 
 
@@ -186,3 +187,17 @@ class UnknownRosType(Ros2Error, LookupError):
 
 class CdrError(Ros2Error, ValueError):
     """Bytes that are not a valid CDR-encoded message of the expected type."""
+
+
+#: What an error message or a log line quotes of someone's input, at most (characters).
+EXCERPT = 200
+
+
+def excerpt(text: str, limit: int = EXCERPT) -> str:
+    """``text`` on one line and at most about ``limit`` characters, for error messages and
+    log lines that quote what someone sent: a megabyte of garbage is never echoed back, only
+    its start and its size (``'AAAA… (1048576 characters)'``)."""
+    line = " ".join(text[: 2 * limit].split())
+    if len(line) <= limit and len(text) <= 2 * limit:
+        return line
+    return f"{line[: limit - 1]}… ({len(text)} characters)"

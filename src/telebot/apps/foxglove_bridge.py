@@ -9,33 +9,47 @@ same channels go to both, so a recording holds exactly what Foxglove showed.
 
 Channels (topic — schema)::
 
-    /map                foxglove.Grid            the robot's occupancy grid (int8: -1 unknown,
-                                                 0 free … 100 occupied), again when it changes
+    /map                foxglove.Grid            the robot's map as its map transfer gives it
+                                                 (``getmap``): cropped to the known cells,
+                                                 trinary int8 (-1 unknown, 0 free, 100
+                                                 occupied); again when it changes
     /pose               foxglove.PoseInFrame     the robot's pose in "map"
     /tf                 foxglove.FrameTransforms map → base_link, so panels can follow it
     /plan               foxglove.PosesInFrame    the planned path (empty: none)
     /camera             foxglove.CompressedImage the robot's video (JPEG as sent, never
                                                  re-encoded; frame_id: the camera's name)
-    /telebot/telemetry  JSON                     battery, state, link, video settings
-    /telebot/safety     JSON                     safety state changes, and this user's
+    /telebot/telemetry  telebot.Telemetry        battery, state, link, video settings
+    /telebot/safety     telebot.SafetyEvent      safety state changes, and this user's
                                                  stop / arm / take / release with their acks
-    /telebot/goal       JSON                     goals sent and their updates
-    /telebot/chat       JSON                     chat commands and the robot's replies
-    /telebot/commands   JSON                     every command this user gave (chat, goal,
+    /telebot/goal       telebot.GoalEvent        goals sent and their updates
+    /telebot/chat       telebot.ChatEvent        chat commands and the robot's replies
+    /telebot/commands   telebot.Command          every command this user gave (chat, goal,
                                                  safety), in order
-    /telebot/connection JSON                     the call dropped / came back / ended
+    /telebot/connection telebot.ConnectionEvent  the call dropped / came back / ended
     TOPIC (relayed)     ros2msg schema, cdr      a robot topic relayed over the call
+
+The JSON channels' schemas (``jsonschema``, named ``telebot.*``) come from
+:mod:`telebot.services.schemas`, as the robot's own call recordings' do.
 
 Goals from Foxglove: a client that advertises ``/goal_pose`` (the 3D panel's "publish pose"
 tool; ``geometry_msgs/msg/PoseStamped`` in ``json`` or ``cdr``) drives the robot through
 :meth:`RobotClient.goto`, the normal goal path, so the robot's supervisor rules hold (a
 driver only, armed, within its speed cap).
+
+Commands from Foxglove: the server advertises the services ``/telebot/arm``,
+``/telebot/stop``, ``/telebot/take``, ``/telebot/release`` and ``/telebot/cancel`` (the
+app's Service Call panel calls them; request ``{}``, response ``{"ok", "text", "code"}``,
+schema ``telebot.Trigger``): the web page's buttons. They go to the robot as the page's do,
+so its supervisor decides (anyone may stop; arm, take and release are a driver's; cancel
+ends the running goal).
 """
 
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
+import functools
 import json
 import logging
 import math
@@ -44,7 +58,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import AsyncIterator, Callable, Mapping, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, Sequence
 from dataclasses import asdict
 from pathlib import Path
 from types import TracebackType
@@ -80,23 +94,30 @@ from foxglove.websocket import (
     ChannelView,
     Client,
     ClientChannel,
+    MessageSchema,
     ServerListener,
+    Service,
+    ServiceRequest,
+    ServiceSchema,
     WebSocketServer,
 )
 
 from telebot.apps.tasks import BackgroundTasks
 from telebot.channels.transports.base import Transport
 from telebot.config import AppConfig
-from telebot.errors import CallEnded, RelayRefused, TelebotError, UnknownTopic
+from telebot.errors import CallEnded, RelayRefused, TelebotError, UnknownTopic, excerpt
 from telebot.rights import Right, may
 from telebot.services.client import ConnectionEvent, RobotClient
 from telebot.services.mapxfer import MapDownload
 from telebot.services.proto.plan import PlanUpdate
 from telebot.services.proto.relay import RelayedMessage, TopicInfo
+from telebot.services.proto.safety import SafetyAck
 from telebot.services.proto.status import PoseUpdate
 from telebot.services.proto.video import CompleteFrame
+from telebot.services.schemas import BRIDGE_SCHEMAS, TRIGGER_REQUEST, TRIGGER_RESULT, schema_bytes
 
 __all__ = [
+    "COMMANDS",
     "GOAL_TOPIC",
     "FoxgloveBridge",
     "check_output_file",
@@ -115,7 +136,13 @@ GOAL_TOPIC = "/goal_pose"
 MAP_FRAME = "map"
 #: The robot's body frame (``/tf`` carries map → base_link).
 BASE_FRAME = "base_link"
-_ANY_JSON: dict[str, Any] = {"type": "object"}
+#: What a Foxglove client may call as a service ``/telebot/NAME``: the web page's buttons.
+COMMANDS = ("arm", "stop", "take", "release", "cancel")
+#: How long a service call waits for the robot's answer (s) before it answers "no answer".
+COMMAND_TIMEOUT = 10.0
+_NO_ANSWER = "no answer from the robot"
+#: What a command service says when the robot did it (its ack carries no words then).
+_DONE = {"arm": "armed", "stop": "stopped", "take": "you hold the drive", "release": "released"}
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 
 
@@ -135,6 +162,15 @@ def _yaw_of(qx: float, qy: float, qz: float, qw: float) -> float:
     return math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
 
 
+def _json_schema(schema: dict[str, Any]) -> foxglove.Schema:
+    return foxglove.Schema(name=schema["title"], encoding="jsonschema", data=schema_bytes(schema))
+
+
+def _result(ok: bool, text: str, code: str = "") -> dict[str, Any]:
+    """A command service's response (``telebot.TriggerResult``)."""
+    return {"ok": ok, "text": text, "code": code}
+
+
 def goal_from_pose_stamped(
     data: bytes, encoding: str, schema_name: str = ""
 ) -> tuple[float, float, float | None]:
@@ -149,19 +185,20 @@ def goal_from_pose_stamped(
             x, y = float(position["x"]), float(position["y"])
             q = [float(orientation.get(k, 0.0)) for k in ("x", "y", "z", "w")]
         except (ValueError, KeyError, TypeError) as exc:
-            raise ValueError(f"not a JSON PoseStamped ({exc!r})") from None
+            # Quoted short: the exception may hold the whole (huge) value it choked on.
+            raise ValueError(f"not a JSON PoseStamped ({excerpt(repr(exc))})") from None
     elif encoding == "cdr":
         from telebot.robot.ros2.types import TypeLibrary
 
         try:
             msg = TypeLibrary().message("geometry_msgs/msg/PoseStamped").deserialize(data)
         except TelebotError as exc:
-            raise ValueError(f"not a CDR PoseStamped ({exc})") from None
+            raise ValueError(f"not a CDR PoseStamped ({excerpt(str(exc))})") from None
         position, orientation = msg.pose.position, msg.pose.orientation
         x, y = float(position.x), float(position.y)
         q = [float(orientation.x), float(orientation.y), float(orientation.z), float(orientation.w)]
     else:
-        raise ValueError(f"unsupported encoding {encoding!r} (use json or cdr)")
+        raise ValueError(f"unsupported encoding {excerpt(repr(encoding), 40)} (use json or cdr)")
     if not all(math.isfinite(v) for v in (x, y, *q)):
         raise ValueError("a goal needs finite numbers")
     if not any(q):
@@ -250,8 +287,13 @@ class FoxgloveBridge:
         self._plan = PosesInFrameChannel("/plan", context=ctx)
         self._camera = CompressedImageChannel("/camera", context=ctx)
         self._json = {
-            name: foxglove.Channel(f"/telebot/{name}", schema=_ANY_JSON, context=ctx)
-            for name in ("telemetry", "safety", "goal", "chat", "commands", "connection")
+            name: foxglove.Channel(
+                f"/telebot/{name}",
+                schema=_json_schema(schema),
+                message_encoding="json",
+                context=ctx,
+            )
+            for name, schema in BRIDGE_SCHEMAS.items()
         }
 
     # -- lifecycle --------------------------------------------------------------------
@@ -274,9 +316,10 @@ class FoxgloveBridge:
                     name=f"telebot {self.client.robot}",
                     host=self.host,
                     port=self.port,
-                    capabilities=[Capability.ClientPublish],
+                    capabilities=[Capability.ClientPublish, Capability.Services],
                     supported_encodings=["json", "cdr"],
                     server_listener=_Listener(self),
+                    services=self._services(),
                     context=self.context,
                 )
             except RuntimeError as exc:  # the SDK's FoxgloveError: bind failed
@@ -592,16 +635,105 @@ class FoxgloveBridge:
         try:
             x, y, yaw = goal_from_pose_stamped(data, encoding, schema_name)
         except ValueError as exc:
-            self.goals_refused += 1
-            log.warning("a goal from Foxglove was refused: %s", exc)
-            self._log_json("goal", {"kind": "refused", "text": str(exc)})
+            self._refuse_goal(str(exc))
             return
         if not may(self.client.call.role, Right.DRIVE):
-            self.goals_refused += 1
-            self._log_json("goal", {"kind": "refused", "text": "observers may not send goals"})
+            self._refuse_goal("observers may not send goals")
             return
         log.info("goal from Foxglove: (%.2f, %.2f)", x, y)
         self._tasks.spawn(self.client.goto(x, y, yaw))
+
+    def _refuse_goal(self, text: str) -> None:
+        # Said to every Foxglove client and recorded: a few hundred bytes at most, whatever
+        # the client sent.
+        text = excerpt(text)
+        self.goals_refused += 1
+        log.warning("a goal from Foxglove was refused: %s", text)
+        self._log_json("goal", {"kind": "refused", "text": text})
+
+    # -- commands from Foxglove (services) -------------------------------------------------
+
+    def _services(self) -> list[Service]:
+        schema = ServiceSchema(
+            "telebot.Trigger",
+            request=MessageSchema(encoding="json", schema=_json_schema(TRIGGER_REQUEST)),
+            response=MessageSchema(encoding="json", schema=_json_schema(TRIGGER_RESULT)),
+        )
+        return [
+            Service(f"/telebot/{what}", schema=schema, handler=self._on_service_call)
+            for what in COMMANDS
+        ]
+
+    def _on_service_call(self, request: ServiceRequest) -> bytes:
+        # On one of the SDK's threads (one per call, so a slow arm holds up no stop): the
+        # command runs on the event loop, this thread waits for its outcome, in short waits
+        # so that a bridge that closes never waits for it.
+        return json.dumps(self._command_from_thread(request.service_name, request.payload)).encode()
+
+    def _command_from_thread(self, service: str, payload: bytes) -> dict[str, Any]:
+        closing = _result(False, "the bridge is closing")
+        loop = self._loop
+        if loop is None or self._closing or loop.is_closed():
+            return closing
+        command = self.command(service.removeprefix("/telebot/"), bytes(payload))
+        try:
+            future = asyncio.run_coroutine_threadsafe(command, loop)
+        except RuntimeError:  # the loop closed just now
+            command.close()
+            return closing
+        deadline = time.monotonic() + COMMAND_TIMEOUT + 5.0
+        while True:
+            try:
+                return future.result(timeout=0.25)
+            except concurrent.futures.CancelledError:
+                return closing
+            except concurrent.futures.TimeoutError:
+                if self._closing or time.monotonic() > deadline:
+                    future.cancel()
+                    return closing if self._closing else _result(False, _NO_ANSWER)
+
+    async def command(self, what: str, payload: bytes = b"{}") -> dict[str, Any]:
+        """Do command ``what`` (one of :data:`COMMANDS`) as the web page's button does and
+        return ``{"ok", "text", "code"}`` (``telebot.TriggerResult``): the robot's answer,
+        or why it was not asked. ``payload``: the request, ``{}`` (or nothing); a stop
+        stops whatever came with it."""
+        if what not in COMMANDS:
+            return _result(False, f"unknown command {excerpt(what, 40)!r}: one of {COMMANDS}")
+        if what != "stop" and (problem := _trigger_problem(payload)) is not None:
+            return _result(False, f"{what}: {problem}")
+        client = self.client
+        try:
+            async with asyncio.timeout(COMMAND_TIMEOUT):
+                if what == "cancel":
+                    chat = await client.chat("cancel")
+                    return _result(chat.ok, chat.replies[-1] if chat.replies else "", chat.reason)
+                actions: dict[str, Callable[[], Awaitable[SafetyAck]]] = {
+                    "stop": functools.partial(client.stop, how="button"),
+                    "arm": client.arm,
+                    "take": client.take_drive,
+                    "release": client.release_drive,
+                }
+                ack = await actions[what]()
+        except TimeoutError:
+            return _result(False, _NO_ANSWER)
+        except TelebotError as exc:
+            return _result(False, str(exc))
+        return _result(
+            ack.ok, ack.text or (_DONE[what] if ack.ok else f"{what} refused"), ack.reason
+        )
+
+
+def _trigger_problem(payload: bytes) -> str | None:
+    """Why ``payload`` is not a command service's request (``{}`` or empty), or None."""
+    if not payload.strip():
+        return None
+    try:
+        request = json.loads(payload)
+    except ValueError:
+        return f"the request is not JSON ({excerpt(repr(payload[:400]))}): send {{}}"
+    if request != {}:
+        return f"the request takes no fields ({excerpt(json.dumps(request))}): send {{}}"
+    return None
 
 
 # -- the commands -----------------------------------------------------------------------

@@ -282,15 +282,17 @@ def build_parser() -> Parser:
         "foxglove",
         help="serve the robot to the Foxglove app (ws://HOST:PORT): map, pose, plan, video, goals",
         description="Call the robot and serve a Foxglove WebSocket server (open a connection "
-        "to ws://HOST:PORT in the Foxglove app). Topics: /map (foxglove.Grid), /pose "
+        "to ws://HOST:PORT in the Foxglove app). Topics: /map (foxglove.Grid: the known part of "
+        "the map, as getmap sends it), /pose "
         "(foxglove.PoseInFrame), /tf, /plan (foxglove.PosesInFrame), /camera "
         "(foxglove.CompressedImage), /telebot/* (JSON: telemetry, safety, goal, chat, "
-        "commands, connection) and the robot topics given with --topics (ros2msg, cdr). A pose "
+        "commands, connection) and the robot topics given with --topic (ros2msg, cdr). A pose "
         "published on /goal_pose (the 3D panel's publish tool) is a goal: it goes through the "
         "robot's supervisor as a click on the web page does (drivers only; the robot must be "
-        "armed).",
+        "armed). The services /telebot/arm, /telebot/stop, /telebot/take, /telebot/release and "
+        "/telebot/cancel (the Service Call panel; request {}) are the web page's buttons.",
     )
-    fox.add_argument("robot", type=name_arg, help="the robot's name")
+    fox.add_argument("robot", type=_robot_after_topics, help="the robot's name")
     fox.add_argument(
         "--port", type=_port, default=8765, help="TCP port to serve on (default 8765; 0: any)"
     )
@@ -312,7 +314,7 @@ def build_parser() -> Parser:
         "same channels as 'telebot-user foxglove'). A progress line shows on stderr; Ctrl-C "
         "or --duration ends the recording and finishes the file.",
     )
-    record.add_argument("robot", type=name_arg, help="the robot's name")
+    record.add_argument("robot", type=_robot_after_topics, help="the robot's name")
     record.add_argument(
         "-o", "--output", type=Path, required=True, metavar="FILE.mcap", help="MCAP file to write"
     )
@@ -345,13 +347,37 @@ def _add_record_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _robot_after_topics(text: str) -> str:
+    """argparse type of the robot of ``foxglove`` and ``record``: a name, and a topic there
+    (``--topics /scan /odom ROBOT``, the old list form) said to be one."""
+    if text.startswith("/"):
+        raise argparse.ArgumentTypeError(
+            f"{text[:80]!r} is a topic, not a robot name: give one topic per --topic "
+            "(--topic /scan --topic /odom ROBOT)"
+        )
+    return name_arg(text)
+
+
+def _topic_list(text: str) -> list[str]:
+    """argparse type of ``--topic``: one topic, or several separated by commas."""
+    topics = [topic.strip() for topic in text.split(",")]
+    if not all(topics):
+        raise argparse.ArgumentTypeError(f"an empty topic name in {text[:80]!r}")
+    return topics
+
+
 def _add_topics_option(parser: argparse.ArgumentParser) -> None:
+    # One value per flag (repeatable): a list flag would swallow the robot's name after it.
     parser.add_argument(
+        "--topic",
         "--topics",
-        nargs="+",
+        dest="topics",
+        action="extend",
+        type=_topic_list,
         default=[],
         metavar="TOPIC",
-        help="robot topics to relay as well (e.g. /scan; needs the robot's relay service)",
+        help="a robot topic to relay as well (e.g. /scan; needs the robot's relay service); "
+        "repeat for more (--topic /scan --topic /odom) or separate them with commas",
     )
 
 

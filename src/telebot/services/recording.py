@@ -51,6 +51,8 @@ from typing import IO, TYPE_CHECKING, Any, Final
 from mcap.writer import CompressionType, Writer
 
 from telebot.safety import AuditRecord
+from telebot.services.schemas import AUDIT_SCHEMA, CALLS_SCHEMA, SCHEMAS, schema_bytes
+from telebot.services.schemas import json_schema as _schema
 
 if TYPE_CHECKING:
     from telebot.channels.call import Call
@@ -71,133 +73,6 @@ MAX_PENDING = 20000
 IDLE_FLUSH = 1.0
 #: Largest chunk (bytes) the writer gathers before compressing and writing it.
 MAX_CHUNK = 1024 * 1024
-
-_NUMBER = {"type": "number"}
-_INT = {"type": "integer"}
-_TEXT = {"type": "string"}
-_BOOL = {"type": "boolean"}
-
-
-def _schema(title: str, properties: dict[str, Any]) -> dict[str, Any]:
-    return {"title": title, "type": "object", "properties": properties}
-
-
-#: The JSON schema of each recorded stream, by (channel, direction): "out" is what the
-#: robot sent, "in" what the user sent. Properties only (the protocol adds fields over
-#: time): Foxglove uses them to offer fields in its plots and panels.
-SCHEMAS: dict[tuple[str, str], dict[str, Any]] = {
-    ("pose", "out"): _schema(
-        "telebot.PoseUpdate",
-        {
-            "t": _NUMBER,
-            "x": _NUMBER,
-            "y": _NUMBER,
-            "yaw": _NUMBER,
-            "cov": {"type": "array", "items": _NUMBER},
-            "v": _NUMBER,
-            "w": _NUMBER,
-            "state": _TEXT,
-            "detail": _TEXT,
-            "goal": {"type": ["integer", "null"]},
-        },
-    ),
-    ("telemetry", "out"): _schema(
-        "telebot.Telemetry",
-        {
-            "t": _NUMBER,
-            "battery": _NUMBER,
-            "battery_low": _BOOL,
-            "state": _TEXT,
-            "detail": _TEXT,
-            "goal": {"type": ["string", "null"]},
-            "progress": {"type": ["number", "null"]},
-            "camera": _TEXT,
-            "speed_limit": _NUMBER,
-            "rtt": {"type": ["number", "null"]},
-            "loss": _NUMBER,
-            "armed": _BOOL,
-            "stop_reason": _TEXT,
-            "holder": {"type": ["string", "null"]},
-            "map_version": _INT,
-        },
-    ),
-    ("plan", "out"): _schema(
-        "telebot.PlanUpdate",
-        {
-            "type": _TEXT,
-            "seq": _INT,
-            "goal": {"type": ["integer", "null"]},
-            "points": {"type": "array", "items": {"type": "array", "items": _NUMBER}},
-        },
-    ),
-    ("goals", "out"): _schema(
-        "telebot.GoalUpdate",
-        {
-            "type": _TEXT,
-            "id": _INT,
-            "status": _TEXT,
-            "progress": _NUMBER,
-            "reason": _TEXT,
-            "code": _TEXT,
-        },
-    ),
-    ("goals", "in"): _schema(
-        "telebot.GoalCommand",
-        {"type": _TEXT, "id": _INT, "x": _NUMBER, "y": _NUMBER, "yaw": _NUMBER},
-    ),
-    ("chat", "out"): _schema(
-        "telebot.ChatReply",
-        {
-            "id": _INT,
-            "seq": _INT,
-            "text": _TEXT,
-            "final": _BOOL,
-            "ok": _BOOL,
-            "attachment": _TEXT,
-            "code": _TEXT,
-        },
-    ),
-    ("chat", "in"): _schema("telebot.ChatRequest", {"id": _INT, "text": _TEXT}),
-    ("safety", "out"): _schema(
-        "telebot.SafetyMessage",
-        {
-            "type": _TEXT,
-            "id": _INT,
-            "ok": _BOOL,
-            "reason": _TEXT,
-            "code": _TEXT,
-            "armed": _BOOL,
-            "holder": {"type": ["string", "null"]},
-            "cap": _NUMBER,
-            "blocked": _BOOL,
-        },
-    ),
-    ("safety", "in"): _schema("telebot.SafetyRequest", {"type": _TEXT, "id": _INT, "how": _TEXT}),
-}
-CALLS_SCHEMA = _schema(
-    "telebot.CallEvent",
-    {
-        "event": {"type": "string", "enum": ["start", "end"]},
-        "call": _TEXT,
-        "peer": _TEXT,
-        "role": _TEXT,
-        "kind": _TEXT,
-        "detail": _TEXT,
-    },
-)
-AUDIT_SCHEMA = _schema(
-    "telebot.AuditRecord",
-    {
-        "t": _NUMBER,
-        "who": _TEXT,
-        "role": _TEXT,
-        "call": {"type": ["string", "null"]},
-        "what": _TEXT,
-        "outcome": _TEXT,
-        "detail": _TEXT,
-        "how": _TEXT,
-    },
-)
 
 _FILE = re.compile(r"calls-(\d{6,})\.mcap")
 
@@ -372,7 +247,7 @@ class Recorder:
                 schema_id = writer.register_schema(
                     name=schema["title"],
                     encoding="jsonschema",
-                    data=json.dumps(schema).encode(),
+                    data=schema_bytes(schema),
                 )
                 self._schema_ids[topic.schema] = schema_id
             channel_id = writer.register_channel(
