@@ -69,7 +69,7 @@ def test_the_roster_marks_the_reader_and_the_driver() -> None:
     room = Conference("bot")
     room.join("c1", "alice", "driver")
     room.join("c2", "bob", "observer")
-    roster = room.roster("c2", holder="alice")
+    roster = room.roster("c2", driving="c1")
     assert [(m.name, m.role, m.driving, m.you) for m in roster.users] == [
         ("alice", "driver", True, False),
         ("bob", "observer", False, True),
@@ -212,7 +212,7 @@ def test_the_roster_line_of_the_chat() -> None:
     room = Conference("bot1")
     room.join("c1", "alice", "driver")
     room.join("c2", "bob", "observer")
-    assert format_roster(room.roster("c1", "alice")) == (
+    assert format_roster(room.roster("c1", "c1")) == (
         "alice (you) (driver, driving), bob (observer)"
     )
     assert format_message(Message(3, "bot1", "robot", "bob left")) == "[bot1: bob left]"
