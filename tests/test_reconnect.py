@@ -175,6 +175,72 @@ async def test_a_dropped_call_comes_back_with_its_streams_and_the_robot_stays_st
         await asyncio.gather(follower, return_exceptions=True)
 
 
+#: The robot's call timeout in the test below: the old call lingers on the robot long
+#: after the user's side dropped it (the issue saw 0.4 s; here the window cannot close
+#: before the new call comes, however slow the machine).
+LINGER = 8.0
+
+
+async def test_a_call_back_before_the_robot_saw_the_drop_replaces_it_with_its_drive(
+    tmp_path: Path,
+) -> None:
+    hub = MemoryHub(seed=3)
+    async with (
+        rig_robot_on_hub(tmp_path, hub, timeout=LINGER) as (nav, safety, server, endpoint),
+        MemoryTransport(hub, "user") as transport,
+        connect(
+            ROBOT, home=tmp_path / "user", config=AppConfig(reconnect=FAST), transport=transport
+        ) as client,
+    ):
+        events: list[ConnectionEvent] = []
+        client.on_connection.append(events.append)
+        await wait_until(lambda: client.conference.roster is not None)
+        assert (await client.arm()).ok
+        goal = asyncio.create_task(client.goto(9.5, 4.0))
+        await wait_until(lambda: nav.velocity() != Velocity())
+        first = client.call
+        # The link fails one way: the user hears nothing more and drops its call at once
+        # (the robot's presence is gone), while the robot still has the old call.
+        hub.link("robot", "user").up = False
+        with pytest.raises(CallEnded):
+            await asyncio.wait_for(goal, 5 + SLACK)
+        await wait_until(lambda: any(e.state == "reconnecting" for e in events))
+        assert first.id in [call.id for call in endpoint.calls]  # not dropped on the robot
+        hub.link("robot", "user").up = True
+        await wait_until(lambda: client.reconnects == 1)
+        # The new call took the old one's place, with its drive: the robot stopped and
+        # latched at once (it was moving on a link that is gone), and the old call is gone.
+        await wait_until(lambda: safety.state().holder_call == client.call.id)
+        state = safety.state()
+        assert not state.armed and state.holder == USER
+        assert state.reason == f"driver {USER} called again (the old call is replaced)"
+        await wait_until(lambda: nav.velocity() == Velocity())
+        assert nav.current_goal() is None  # cancelled, not resumed
+        await wait_until(lambda: [call.id for call in endpoint.calls] == [client.call.id])
+        assert list(server.open) == [client.call.id]
+        # Everyone hears one reconnection; the roster lists the user once, driving.
+        back = (ROBOT, "robot", f"{USER} reconnected (driver)")
+        await wait_until(lambda: back in _said(client))
+        await wait_until(lambda: _roster(client) == [(USER, "driver", True, True)])
+        # The driver gets the robot back with a deliberate arm.
+        assert (await client.arm()).ok
+        goal = asyncio.create_task(client.goto(9.5, 4.0))
+        await wait_until(lambda: nav.velocity() != Velocity())
+        assert (await client.stop()).ok
+        await asyncio.gather(goal, return_exceptions=True)
+        # No "left" for the replaced call, then or later.
+        assert not any(text.endswith(" left") for _, _, text in _said(client))
+
+
+def _said(client: RobotClient) -> list[tuple[str, str, str]]:
+    return [(m.sender, m.kind, m.text) for m in client.conference.messages]
+
+
+def _roster(client: RobotClient) -> list[tuple[str, str, bool, bool]]:
+    roster = client.conference.roster
+    return [] if roster is None else [(m.name, m.role, m.driving, m.you) for m in roster.users]
+
+
 async def drain(iterator: AsyncIterator[Any]) -> None:
     """Read ``iterator`` until it raises (within 5 s)."""
     async with asyncio.timeout(5):
