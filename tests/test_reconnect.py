@@ -13,6 +13,7 @@ import contextlib
 import io
 import json
 import random
+import signal
 import uuid
 from collections.abc import AsyncIterator, Iterator
 from dataclasses import dataclass, field
@@ -555,6 +556,54 @@ async def test_over_zenoh_the_call_comes_back_when_the_proxy_does(
     finally:
         if proxy._server is not None:
             await proxy.stop()
+
+
+@pytest.mark.zenoh
+async def test_over_zenoh_a_call_back_before_the_robot_saw_the_drop_gets_the_drive_back(
+    tmp_path: Path, processes: list[Any]
+) -> None:
+    # The robot's call timeout is long, the user's the product's: when the robot's process
+    # stalls (a loaded machine), the user drops its call and calls again while the robot,
+    # once it runs again, still has the old call (the 0.4 s window, made wide).
+    daemon = Daemon(tmp_path, observer=None, timeout=LINGER)
+    await asyncio.to_thread(daemon.start)
+    processes.append(daemon.events)
+    events: list[ConnectionEvent] = []
+    async with daemon.connect(call_timeout=REAL_TIMEOUT, timeout=20) as client:
+        client.on_connection.append(events.append)
+        await wait_until(lambda: client.conference.roster is not None)
+        assert (await client.arm()).ok
+        replies = client.chat_replies("fwd 3")
+        assert (await anext(replies)).text == "Forward command received"
+        first = client.call
+        daemon.events.signal(signal.SIGSTOP)
+        try:
+            await wait_until(lambda: any(e.state == "reconnecting" for e in events))
+        finally:
+            daemon.events.signal(signal.SIGCONT)
+        with pytest.raises(CallEnded):
+            async for _ in replies:
+                pass
+        await wait_until(lambda: client.reconnects == 1, timeout=20)
+        # The robot hung the old call up for the new one, which holds the drive, stopped.
+        ended = await daemon.call_ended(first.id)
+        assert (ended["kind"], ended["detail"]) == (
+            "hung_up",
+            "replaced by a new call from the same client",
+        )
+        stopped = await client.telemetry()
+        assert not stopped.armed and stopped.holder == USER
+        assert stopped.stop_reason == f"driver {USER} called again (the old call is replaced)"
+        joined = [r for r in daemon.audit() if r["what"] == "join" and r["call"] == client.call.id]
+        assert f"replaces call {first.id}" in joined[0]["detail"], joined
+        # The driver drives again after a deliberate arm.
+        assert (await client.arm()).ok
+        assert (await client.chat("fwd 0.2")).ok
+        # One reconnection in the conference, no "left" for the old call.
+        back = (ROBOT, "robot", f"{USER} reconnected (driver)")
+        await wait_until(lambda: back in _said(client))
+        assert _roster(client) == [(USER, "driver", True, True)]
+        assert not any(text.endswith(" left") for _, _, text in _said(client))
 
 
 async def test_in_a_browser_the_page_says_reconnecting_and_resumes_without_a_reload(
