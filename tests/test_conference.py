@@ -110,9 +110,11 @@ def test_a_call_replacing_its_client_s_old_one_reads_as_one_reconnection() -> No
     ]
     # Calling again is no way round the rate limit.
     assert room.say("c3", Say(1, "again"), now=1.0)[0].reason == Reason.TOO_FAST
+    # A client whose call dropped (its leave heard) comes back: a reconnection too.
+    assert room.join("c5", "carol", "observer", again=True).text == "carol reconnected (observer)"
     # Only the same user's call is replaced.
     assert room.join("c4", "bob", "observer", replaces="c3").text == "bob joined (observer)"
-    assert room.calls == ["c2", "c3", "c4"]
+    assert room.calls == ["c2", "c3", "c5", "c4"]
 
 
 def test_messages_round_trip_and_garbage_is_refused() -> None:

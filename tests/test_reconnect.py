@@ -172,6 +172,14 @@ async def test_a_dropped_call_comes_back_with_its_streams_and_the_robot_stays_st
         assert (await client.arm()).ok
         assert r.nav.current_goal() is None
         assert (await client.chat("where?")).ok
+        # The others heard the drop, then one reconnection (not a new user joining).
+        back = f"{USER} reconnected (driver)"
+        await wait_until(lambda: (ROBOT, "robot", back) in _said(client))
+        news = [text for _, _, text in _said(client) if text.startswith(f"{USER} ")]
+        assert [text for text in news if not text.endswith(" the drive")][-2:] == [
+            f"{USER} left",
+            back,
+        ]
         follower.cancel()
         await asyncio.gather(follower, return_exceptions=True)
 

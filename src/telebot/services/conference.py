@@ -60,6 +60,8 @@ ROSTER_EVERY = 1.0
 RESEND_AFTER = 0.3
 #: Messages a user's client keeps.
 KEEP = 500
+#: Clients whose call dropped, remembered so that their next call reads as a reconnection.
+_DROPS_KEPT = 64
 
 
 class _Room:
@@ -74,6 +76,8 @@ class _Room:
         self._holder: str | None = None
         self._holder_call: str | None = None
         self._armed: bool | None = None
+        #: Clients (user, instance) whose call dropped: their next call is a reconnection.
+        self.dropped: dict[tuple[str, str], None] = {}
 
     def holder_call(self) -> str | None:
         """The call holding the drive (None: free, or no supervisor)."""
@@ -157,9 +161,18 @@ class RobotConference:
             old = self.room.calls.pop(replaces, None)
             if old is not None:
                 old.channel.set_callback(None)
+        again = self._client in self.room.dropped
+        self.room.dropped.pop(self._client, None)
         self.room.calls[call.id] = self
-        self.room.broadcast(self.room.conference.join(call.id, call.peer, role, replaces=replaces))
+        self.room.broadcast(
+            self.room.conference.join(call.id, call.peer, role, replaces=replaces, again=again)
+        )
         self.room.push_roster()
+
+    @property
+    def _client(self) -> tuple[str, str]:
+        """Who called: the user and its client instance (one per client process)."""
+        return self.call.peer, self.call.peer_instance
 
     def _on_datagram(self, datagram: ReceivedDatagram) -> None:
         try:
@@ -206,6 +219,12 @@ class RobotConference:
         left = self.room.conference.leave(self.call.id)
         if left is not None:
             self.room.broadcast(left)
+        end = self.call.end
+        if end is not None and end.kind == "dropped" and self.call.peer_instance:
+            dropped = self.room.dropped
+            dropped[self._client] = None
+            while len(dropped) > _DROPS_KEPT:  # clients that never came back
+                del dropped[next(iter(dropped))]
         self.room.push_roster()
 
 

@@ -265,12 +265,21 @@ class Conference:
         """The call ids in the conference, in joining order."""
         return list(self._calls)
 
-    def join(self, call_id: str, user: str, role: str, *, replaces: str | None = None) -> Message:
+    def join(
+        self,
+        call_id: str,
+        user: str,
+        role: str,
+        *,
+        replaces: str | None = None,
+        again: bool = False,
+    ) -> Message:
         """A call came in; returns the announcement every call hears.
 
         ``replaces``: the same user's earlier call that this one takes the place of (its
         client called again): it leaves without a word, and everyone hears one
-        ``NAME reconnected (ROLE)`` instead of a join and a leave.
+        ``NAME reconnected (ROLE)`` instead of a join and a leave. ``again``: the call
+        comes from a client whose call dropped (its leave was heard): also ``reconnected``.
         """
         old = self._calls.get(replaces) if replaces is not None else None
         if replaces is not None and old is not None and old.name == user:
@@ -279,7 +288,7 @@ class Conference:
             self._calls[call_id] = _Caller(user, role, old.says, {})
             return self.announce(f"{user} reconnected ({role})")
         self._calls[call_id] = _Caller(user, role, deque(), {})
-        return self.announce(f"{user} joined ({role})")
+        return self.announce(f"{user} {'reconnected' if again else 'joined'} ({role})")
 
     def leave(self, call_id: str) -> Message | None:
         """A call ended; returns the announcement (None: the call was not in)."""
