@@ -9,10 +9,11 @@ from pathlib import Path
 import pytest
 
 from conftest import wait_until
-from fleet_rig import make_homes, running_robot, user_endpoint
-from telebot.channels.transports.memory import MemoryHub
+from fleet_rig import CALLS, make_homes, running_robot, user_endpoint, user_home
+from telebot.channels.call import UserEndpoint
+from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.errors import ProtocolError
-from telebot.identity import Role
+from telebot.identity import Identity, KnownRobots, Role
 from telebot.reasons import Reason
 from telebot.services.client import RobotClient
 from telebot.services.proto.conference import (
@@ -69,7 +70,7 @@ def test_the_roster_marks_the_reader_and_the_driver() -> None:
     room = Conference("bot")
     room.join("c1", "alice", "driver")
     room.join("c2", "bob", "observer")
-    roster = room.roster("c2", holder="alice")
+    roster = room.roster("c2", driving="c1")
     assert [(m.name, m.role, m.driving, m.you) for m in roster.users] == [
         ("alice", "driver", True, False),
         ("bob", "observer", False, True),
@@ -77,6 +78,43 @@ def test_the_roster_marks_the_reader_and_the_driver() -> None:
     assert decode_conference_reply(roster.encode()) == roster
     assert room.leave("c2") == Message(3, "bot", "robot", "bob left")
     assert room.leave("c2") is None
+
+
+def test_a_user_s_second_call_is_listed_but_only_the_call_holding_the_drive_drives() -> None:
+    room = Conference("bot")
+    room.join("c1", "alice", "driver")
+    room.join("c2", "alice", "driver")  # alice's page beside her terminal
+    roster = room.roster("c2", driving="c1")
+    assert [(m.name, m.driving, m.you) for m in roster.users] == [
+        ("alice", True, False),
+        ("alice", False, True),
+    ]
+
+
+def test_a_call_replacing_its_client_s_old_one_reads_as_one_reconnection() -> None:
+    room = Conference("bot")
+    room.join("c1", "alice", "driver")
+    room.join("c2", "bob", "observer")
+    for i in range(RATE_LIMIT):
+        assert room.say("c1", Say(i, "hi"), now=0.0)[0].ok
+    back = room.join("c3", "alice", "driver", replaces="c1")
+    assert back.text == "alice reconnected (driver)"
+    assert room.calls == ["c2", "c3"]
+    # The old call's end, when it comes, says nothing: no "alice left" after the rejoin.
+    assert room.leave("c1") is None
+    assert [m.text for m in room.since(0)] == [
+        "alice joined (driver)",
+        "bob joined (observer)",
+        *["hi"] * RATE_LIMIT,
+        "alice reconnected (driver)",
+    ]
+    # Calling again is no way round the rate limit.
+    assert room.say("c3", Say(1, "again"), now=1.0)[0].reason == Reason.TOO_FAST
+    # A client whose call dropped (its leave heard) comes back: a reconnection too.
+    assert room.join("c5", "carol", "observer", again=True).text == "carol reconnected (observer)"
+    # Only the same user's call is replaced.
+    assert room.join("c4", "bob", "observer", replaces="c3").text == "bob joined (observer)"
+    assert room.calls == ["c2", "c3", "c5", "c4"]
 
 
 def test_messages_round_trip_and_garbage_is_refused() -> None:
@@ -164,6 +202,50 @@ async def test_two_users_see_each_other_and_each_other_s_messages(tmp_path: Path
         await wait_until(lambda: [m[0] for m in _names(alice.conference.roster)] == ["alice"])
 
 
+async def test_a_user_s_second_client_observes_and_only_the_call_holding_the_drive_drives(
+    tmp_path: Path,
+) -> None:
+    hub = MemoryHub(seed=5)
+    async with (
+        two_users(tmp_path, hub) as (alice, bob),
+        MemoryTransport(hub, "alice-page") as transport,
+        UserEndpoint(
+            transport,
+            Identity.load(user_home(tmp_path, "alice")),
+            KnownRobots.load(user_home(tmp_path, "alice")),
+            settings=CALLS,
+        ) as page_end,
+    ):
+        # alice's second client (another process: the page beside her terminal).
+        page = RobotClient(await page_end.call("bot1", timeout=10))
+        page.start()
+        try:
+            expected = [
+                ("alice", "driver", True, False),
+                ("bob", "observer", False, True),
+                ("alice", "driver", False, False),
+            ]
+            await wait_until(lambda: _names(bob.conference.roster) == expected)
+            await wait_until(lambda: ("bot1", "robot", "alice joined (driver)") in _texts(bob))
+            # The second call observes: one driver, the first call.
+            refused = await page.arm()
+            assert not refused.ok and refused.reason == Reason.NOT_HOLDER
+            assert refused.text.startswith("your other call holds the drive")
+            # alice moves the drive to her page: the roster follows, the first call observes.
+            assert (await page.take_drive()).ok
+            await wait_until(
+                lambda: [m[2] for m in _names(bob.conference.roster)] == [False, False, True]
+            )
+            assert [m[2] for m in _names(page.conference.roster)] == [False, False, True]
+            assert _names(page.conference.roster)[2][3]  # "you" on the page's own entry
+            assert (await page.arm()).ok
+            assert not (await alice.arm()).ok
+        finally:
+            with contextlib.suppress(Exception):
+                await page.hangup()
+            await page.aclose()
+
+
 async def test_messages_lost_on_the_way_are_asked_for_again(tmp_path: Path) -> None:
     hub = MemoryHub(seed=11)
     async with two_users(tmp_path, hub) as (alice, bob):
@@ -212,8 +294,12 @@ def test_the_roster_line_of_the_chat() -> None:
     room = Conference("bot1")
     room.join("c1", "alice", "driver")
     room.join("c2", "bob", "observer")
-    assert format_roster(room.roster("c1", "alice")) == (
+    assert format_roster(room.roster("c1", "c1")) == (
         "alice (you) (driver, driving), bob (observer)"
+    )
+    room.join("c3", "alice", "driver")
+    assert format_roster(room.roster("c3", "c1")) == (
+        "alice (driver, driving), bob (observer), alice (you) (driver, another call)"
     )
     assert format_message(Message(3, "bot1", "robot", "bob left")) == "[bot1: bob left]"
     assert format_message(Message(4, "bob", "user", "hi")) == "[bob] hi"

@@ -259,6 +259,60 @@ def test_a_call_that_reappears_after_a_drop_stays_disarmed() -> None:
     assert not sup.request_motion("a2", 3.0, "goto lab").allowed
 
 
+def test_a_call_replaced_by_its_client_s_next_one_hands_over_the_drive_stopped() -> None:
+    # Alice's link failed one way: her client called again while her old call lingers
+    # here (not yet timed out), and the robot was moving on the old call.
+    sup = driving()
+    assert sup.request_motion("a", 1.0, "goto lab").allowed
+    sup.join("b", "bob", Role.DRIVER, 1.0)
+    actions = sup.join("a2", "alice", Role.DRIVER, 1.1, replaces="a")
+    # Fail safe: the robot stops and latches; the new call holds the drive, disarmed.
+    assert isinstance(actions[0], Stop) and not sup.armed
+    assert sup.stop_reason == "driver alice called again (the old call is replaced)"
+    assert sup.holder_call == "a2" and sup.holder == "alice"
+    assert [p.call_id for p in sup.participants()] == ["b", "a2"]
+    (record,) = audits(actions)
+    assert (record.who, record.what, record.outcome) == ("alice", "join", "stopped")
+    assert "replaces call a" in record.detail and "holds the drive" in record.detail
+    # Nothing moves until the new call re-arms (its link measured first).
+    assert sup.request_motion("a2", 1.1, "goto lab").code == Reason.NOT_ARMED
+    beat(sup, "a2", 1.2)
+    assert sup.rearm("a2", 1.2).allowed and sup.request_motion("a2", 1.2, "goto lab").allowed
+    # The old call's end, when the robot notices it, is only noted: it drives nothing now.
+    ended = sup.leave("a", "dropped", 1.5)
+    assert not stops(ended) and sup.armed and sup.holder_call == "a2"
+    assert [(r.what, r.outcome, r.detail) for r in audits(ended)] == [
+        ("drop", "noted", "replaced by call a2")
+    ]
+    # Only the same user's call is replaced: bob naming alice's call replaces nothing.
+    sup.join("b2", "bob", Role.DRIVER, 1.6, replaces="a2")
+    assert sup.holder_call == "a2" and sup.armed
+
+
+def test_replacing_a_call_that_did_not_drive_changes_nothing_of_the_drive() -> None:
+    sup = driving()
+    sup.join("b", "bob", Role.DRIVER, 1.0)
+    actions = sup.join("b2", "bob", Role.DRIVER, 1.1, replaces="b")
+    assert not stops(actions) and sup.armed and sup.holder_call == "a"
+    assert [p.call_id for p in sup.participants()] == ["a", "b2"]
+    assert not stops(sup.leave("b", "dropped", 1.2)) and sup.armed
+
+
+def test_a_user_s_second_call_observes_and_may_take_the_drive_from_the_first() -> None:
+    sup = driving()
+    sup.join("a2", "alice", Role.DRIVER, 1.0)  # another client of alice's (no replaces)
+    beat(sup, "a2", 1.0)
+    assert sup.holder_call == "a" and sup.armed
+    refused = sup.request_motion("a2", 1.0, "goto lab")
+    assert refused.code == Reason.NOT_HOLDER
+    assert refused.reason.startswith("your other call holds the drive")
+    taken = sup.take_drive("a2", 1.1)
+    assert taken.allowed and isinstance(taken.actions[0], Stop) and not sup.armed
+    assert sup.holder_call == "a2" and "taken from alice's call a" in taken.audit.detail
+    assert sup.stop_reason == "alice took the drive to another call"
+    assert sup.rearm("a2", 1.1).allowed
+
+
 def test_an_admin_takeover_stops_and_latches() -> None:
     sup = driving()
     sup.join("z", "zoe", Role.ADMIN, 1.0)
@@ -487,6 +541,13 @@ def test_bad_settings_are_config_errors(kwargs: dict[str, float]) -> None:
 CALLS = ("a", "b", "o", "z", "ghost")
 ROLES = {"a": Role.DRIVER, "b": Role.DRIVER, "o": Role.OBSERVER, "z": Role.ADMIN}
 DRIVING = {Role.DRIVER, Role.ADMIN}
+
+
+def role_of(call: str) -> Role:
+    """The role of ``call`` or of the call it replaced (``a'`` is ``a`` called again)."""
+    return ROLES.get(call.rstrip("'"), Role.OBSERVER)
+
+
 # Mostly the small steps of a live call, so that the robot gets armed and driven, with
 # steps onto and around the deadman's edge and some long silences.
 STEPS = st.one_of(
@@ -545,7 +606,7 @@ class SupervisorModel(RuleBasedStateMachine):
             self.sup.armed
             and holder is not None
             and holder in self.joined
-            and ROLES[holder] in DRIVING
+            and role_of(holder) in DRIVING
             and self.now - self.heard[holder] < TIMEOUT
         )
 
@@ -562,6 +623,26 @@ class SupervisorModel(RuleBasedStateMachine):
             self.joined.add(call)
             self.heard[call] = self.now
         self.check(actions)
+
+    @precondition(lambda self: bool(self.joined))
+    @rule(data=st.data())
+    def reconnect(self, data: st.DataObject) -> None:
+        # A client calls again before the robot saw its call drop: the new call (same
+        # user) replaces the old one, which never arms; the drive goes along, stopped.
+        old = data.draw(st.sampled_from(sorted(self.joined)))
+        new = old + "'"
+        held = self.sup.holder_call == old
+        actions = self.sup.join(new, old.rstrip("'").upper(), role_of(old), self.now, replaces=old)
+        self.joined.discard(old)
+        self.joined.add(new)
+        self.heard[new] = self.now
+        if held:
+            assert stops(actions) and self.sup.holder_call == new
+        self.check(actions)
+        # The old call's end comes later and is only noted.
+        holder = self.sup.holder_call
+        assert not stops(self.sup.leave(old, "dropped", self.now))
+        assert self.sup.holder_call == holder
 
     @rule(call=st.sampled_from(CALLS), dropped=st.booleans())
     def leave(self, call: str, dropped: bool) -> None:
@@ -628,7 +709,7 @@ class SupervisorModel(RuleBasedStateMachine):
         holder = self.sup.holder_call
         decision = self.sup.rearm(call, self.now)
         if decision.allowed:
-            assert call == holder and ROLES[call] in DRIVING
+            assert call == holder and role_of(call) in DRIVING
             self.latched = False
         self.check(decision.actions, rearmed=decision.allowed)
 
@@ -639,7 +720,9 @@ class SupervisorModel(RuleBasedStateMachine):
         if decision.allowed:
             assert ROLES[call] in DRIVING and self.sup.holder_call == call
             if holder not in (None, call):
-                assert ROLES[call] is Role.ADMIN and stops(decision.actions)
+                # An admin takes over; a user takes it from their own other call.
+                own = holder is not None and holder.rstrip("'") == call
+                assert (ROLES[call] is Role.ADMIN or own) and stops(decision.actions)
         self.check(decision.actions)
 
     @rule(call=st.sampled_from(CALLS))

@@ -41,7 +41,13 @@ Rules (fail safe: when in doubt, stop or refuse):
   call at a time; the first such call to join while the drive is free takes it at once
   (still disarmed), the others are observers until the holder releases it
   (:meth:`~SafetySupervisor.take_drive` then) or an admin takes it over. Motion, camera and
-  re-arm requests from any call but the holder are refused with the reason.
+  re-arm requests from any call but the holder are refused with the reason. A user's second
+  call is one more call: it observes while the first holds the drive, and may take the
+  drive from it (the robot stops and latches, as for an admin's takeover).
+- **A call replaced by its user's next one** (``join(..., replaces=)``: the same client
+  calling again before the robot noticed the old call drop) leaves at once; if it held the
+  drive the robot stops and latches and the drive passes to the new call, disarmed. A
+  replacement never arms, and the old call's end is then only noted.
 - **Navcam while moving.** An allowed motion selects the navigation camera first; another
   camera is refused while the robot moves unless ``usercam_while_moving``.
 - **Audit.** Every command, stop, re-arm and hand-over yields an :class:`AuditRecord` (who,
@@ -55,6 +61,7 @@ States, in words::
     ARMED ──(any stop · deadman · H leaves/drops/releases · admin takeover · clock fault)──►
         Stop, DISARMED (holder: none, or the admin after a takeover)
     DISARMED, H holds ──(H leaves/drops/releases)──► DISARMED, nobody holds
+    any, H holds ──(H's user calls again: H replaced by H')──► Stop, DISARMED, H' holds
 
 Only ARMED with a fresh link lets :meth:`~SafetySupervisor.request_motion` through.
 """
@@ -236,6 +243,8 @@ class Decision:
 #: A refusal: the text for people and its reason code.
 _Refusal: TypeAlias = tuple[str, Reason]
 _UNKNOWN_CALL: _Refusal = ("unknown call", Reason.UNKNOWN_CALL)
+#: Replaced calls remembered until their end is reported (a bound: ends always come).
+_REPLACED_KEPT = 256
 
 
 @dataclass(slots=True)
@@ -290,6 +299,8 @@ class SafetySupervisor:
         self._since = self._clock
         self._holder: str | None = None
         self._participants: dict[str, Participant] = {}
+        # Calls replaced by their user's next call (old id -> new id) until they end.
+        self._replaced: dict[str, str] = {}
         self._camera: str | None = None  # unknown until the supervisor selects one
         self._blocked = False
         self._announced: float | None = None
@@ -381,15 +392,27 @@ class SafetySupervisor:
 
     # -- participants --------------------------------------------------------------------
 
-    def join(self, call_id: str, user: str, role: Role, now: float) -> list[Action]:
+    def join(
+        self, call_id: str, user: str, role: Role, now: float, *, replaces: str | None = None
+    ) -> list[Action]:
         """A call came up. The first driver or admin to join a free drive takes it.
 
         Taking the drive this way arms nothing: the robot stays stopped until the holder
         re-arms it, so a call that reappears after a drop does not restart motion.
+
+        ``replaces``: the same user's earlier call that this one takes the place of (a
+        client calling again while the robot has not yet noticed its old call drop). That
+        call leaves the supervisor now; if it held the drive, the robot stops and latches
+        (it may have been moving on a link that is gone) and the drive passes to this call,
+        still disarmed. The old call's end is then only noted.
         """
         step = self._begin(now)
         if step is None:
             return self._fault(call_id, "join")
+        self._replaced.pop(call_id, None)  # an id used again is a new call (not expected)
+        old = self._participants.get(replaces) if replaces is not None else None
+        if old is not None and old.user == user and call_id not in self._participants:
+            return self._replace(step, old, call_id, role)
         if call_id in self._participants:
             # Two calls under one id is a bookkeeping fault: keep the first, and if it
             # was driving, stop rather than guess which one is real.
@@ -409,12 +432,40 @@ class SafetySupervisor:
         self._audit(step, call_id, "join", "noted", detail)
         return list(self._finish(step))
 
+    def _replace(self, step: _Step, old: Participant, call_id: str, role: Role) -> list[Action]:
+        """``call_id`` takes the place of ``old``, the same user's earlier call."""
+        del self._participants[old.call_id]
+        self._replaced[old.call_id] = call_id
+        while len(self._replaced) > _REPLACED_KEPT:  # ends that never came: forget the oldest
+            del self._replaced[next(iter(self._replaced))]
+        self._participants[call_id] = Participant(call_id, old.user, role, step.t, step.t)
+        detail = f"as {role.value}; replaces call {old.call_id} ({old.user} called again)"
+        outcome: Outcome = "noted"
+        if self._holder == old.call_id:
+            # Fail safe: what the old call started ran on a link that is gone.
+            self._disarm(step, f"driver {old.user} called again (the old call is replaced)")
+            outcome = "stopped"
+            if may(role, Right.DRIVE):
+                self._holder = call_id
+                detail += "; holds the drive (robot stays stopped until re-armed)"
+            else:
+                self._holder = None
+        elif self._holder is None and may(role, Right.DRIVE):
+            self._holder = call_id
+            detail += "; holds the drive (robot stays stopped until re-armed)"
+        self._audit(step, call_id, "join", outcome, detail)
+        return list(self._finish(step))
+
     def leave(self, call_id: str, how: Literal["hung_up", "dropped"], now: float) -> list[Action]:
         """A call ended. If it held the drive: stop, latch and free the drive."""
         step = self._begin(now)
         if step is None:
             return self._fault(call_id, "leave")
         what = "hang up" if how == "hung_up" else "drop"
+        successor = self._replaced.pop(call_id, None)
+        if successor is not None:
+            self._audit(step, call_id, what, "noted", f"replaced by call {successor}")
+            return list(self._finish(step))
         if call_id not in self._participants:
             self._audit(step, call_id, what, "refused", "unknown call")
             return list(self._finish(step))
@@ -547,10 +598,11 @@ class SafetySupervisor:
         return self._decide(step, call_id, "rearm", True, detail)
 
     def take_drive(self, call_id: str, now: float) -> Decision:
-        """Take the drive: a driver when it is free, an admin always.
+        """Take the drive: a driver when it is free or held by another call of the same
+        user, an admin always.
 
-        An admin taking it from someone else stops and latches the robot: the new holder
-        must re-arm it, after seeing where it is.
+        Taking it from another call stops and latches the robot: the new holder must
+        re-arm it, after seeing where it is.
         """
         step = self._begin(now)
         if step is None:
@@ -564,11 +616,17 @@ class SafetySupervisor:
         previous = self._holder_participant()
         if previous is not None and previous.call_id == call_id:
             return self._decide(step, call_id, "take drive", True, "already yours")
-        if previous is not None and not may(p.role, Right.TAKE_OVER):
+        own = previous is not None and previous.user == p.user
+        if previous is not None and not own and not may(p.role, Right.TAKE_OVER):
             refusal = f"the drive is held by {previous.user}; ask them to release it"
             return self._decide(step, call_id, "take drive", False, refusal, Reason.DRIVE_HELD)
         detail = ""
-        if previous is not None:
+        if previous is not None and own:
+            # A user moves the drive between their own calls (the page and the terminal):
+            # the robot stops, and this call re-arms it once its user sees where it is.
+            self._disarm(step, f"{p.user} took the drive to another call")
+            detail = f"taken from {p.user}'s call {previous.call_id}"
+        elif previous is not None:
             self._disarm(step, f"{p.user} (admin) took over the drive from {previous.user}")
             detail = f"taken over from {previous.user}"
         self._holder = call_id
@@ -691,6 +749,9 @@ class SafetySupervisor:
             holder = self._holder_participant()
             if holder is None:
                 text = f"you do not hold the drive (it is free: take it to {verb})"
+                return text, Reason.NOT_HOLDER
+            if holder.user == p.user:
+                text = f"your other call holds the drive (take it to {verb} from this one)"
                 return text, Reason.NOT_HOLDER
             return f"the drive is held by {holder.user}", Reason.NOT_HOLDER
         return None

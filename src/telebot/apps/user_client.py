@@ -92,10 +92,15 @@ async def _fetch_and_save(client: RobotClient, png_path: Path, timeout: float) -
 
 
 def format_roster(roster: Roster) -> str:
-    """Who is in the robot's calls, as the chat shows it: ``alice (driver, driving), …``."""
+    """Who is in the robot's calls, as the chat shows it: ``alice (driver, driving), …``;
+    a user's further calls (a page beside a terminal) say ``another call``."""
     people = []
+    seen: set[str] = set()
     for member in roster.users:
         notes = [member.role] + (["driving"] if member.driving else [])
+        if member.name in seen:
+            notes.append("another call")
+        seen.add(member.name)
         people.append(f"{member.name}{' (you)' if member.you else ''} ({', '.join(notes)})")
     return ", ".join(people) or "nobody"
 

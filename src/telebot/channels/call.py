@@ -137,6 +137,10 @@ class CallEnd:
 class Call:
     """An established, authenticated call with one peer; open channels with :meth:`channel`."""
 
+    #: On a robot: the caller's instance (16 hex digits, from the authenticated HELLO): the
+    #: user's client process, the same for all its calls ("" on a user's side).
+    peer_instance: str = ""
+
     def __init__(
         self,
         endpoint: _Endpoint,
@@ -775,6 +779,7 @@ class RobotEndpoint(_Endpoint):
             peer_presence=f"{self.namespace}/presence/user/{frame.caller}/{instance}",
             inbox=_CallInbox(self, frame.call_id),
         )
+        call.peer_instance = instance
         self._reply(frame, welcome.encode())
         log.info(
             "answered call %s from %s (%s, %s)",

@@ -5,8 +5,8 @@ Every call to a robot opens the ``conference`` channel (protocol:
 :class:`Conference` per :class:`~telebot.services.robot.RobotServer` (its *room*) knows
 every call: it pushes the roster (who is watching, who drives) to each call when it
 changes and once a second, relays each user's ``say`` to every call with the sender's name,
-and announces what everyone should know (who joined, left, holds the drive, stopped the
-robot). Replies to a chat command still go only to its sender (the ``chat`` channel).
+and announces what everyone should know (who joined, reconnected, left, holds the drive,
+stopped the robot). Replies to a chat command still go only to its sender (the ``chat`` channel).
 
 On the user's side :class:`ConferenceState` (``client.conference``) outlives reconnections:
 the latest roster, the messages heard, listeners, and :meth:`ConferenceState.say`.
@@ -60,6 +60,8 @@ ROSTER_EVERY = 1.0
 RESEND_AFTER = 0.3
 #: Messages a user's client keeps.
 KEEP = 500
+#: Clients whose call dropped, remembered so that their next call reads as a reconnection.
+_DROPS_KEPT = 64
 
 
 class _Room:
@@ -72,10 +74,14 @@ class _Room:
         self._tick_at = -math.inf
         self._next_roster = -math.inf
         self._holder: str | None = None
+        self._holder_call: str | None = None
         self._armed: bool | None = None
+        #: Clients (user, instance) whose call dropped: their next call is a reconnection.
+        self.dropped: dict[tuple[str, str], None] = {}
 
-    def holder(self) -> str | None:
-        return self.server.safety_status().holder if self.server.safety is not None else None
+    def holder_call(self) -> str | None:
+        """The call holding the drive (None: free, or no supervisor)."""
+        return self.server.safety.state().holder_call if self.server.safety is not None else None
 
     def broadcast(self, message: Message) -> None:
         text = message.encode()
@@ -83,9 +89,9 @@ class _Room:
             service.send(text)
 
     def push_roster(self) -> None:
-        holder = self.holder()
+        driving = self.holder_call()
         for call_id, service in list(self.calls.items()):
-            service.send(self.conference.roster(call_id, holder).encode())
+            service.send(self.conference.roster(call_id, driving).encode())
 
     def tick(self, now: float) -> None:
         """Once per robot cycle (every call's tick has the same ``now``): announce drive
@@ -96,6 +102,12 @@ class _Room:
         changed = False
         if self.server.safety is not None:
             status = self.server.safety_status()
+            holder_call = self.holder_call()
+            if holder_call != self._holder_call:
+                # The drive moved to another call: the roster says which; the news is only
+                # for another user (a reconnection keeps the drive with the same user).
+                self._holder_call = holder_call
+                changed = True
             if status.holder != self._holder:
                 self._holder = status.holder
                 text = f"{status.holder} holds the drive" if status.holder else "the drive is free"
@@ -142,9 +154,25 @@ class RobotConference:
         self.rejected = 0
         self._since_at = -math.inf
         role = str(call.role) if call.role is not None else "observer"
+        # A call that replaces its client's previous one (RobotServer.serve) reads as one
+        # reconnection: the old call leaves the room without a "left" after this "joined".
+        replaces = server.replaces(call.id)
+        if replaces is not None:
+            old = self.room.calls.pop(replaces, None)
+            if old is not None:
+                old.channel.set_callback(None)
+        again = self._client in self.room.dropped
+        self.room.dropped.pop(self._client, None)
         self.room.calls[call.id] = self
-        self.room.broadcast(self.room.conference.join(call.id, call.peer, role))
+        self.room.broadcast(
+            self.room.conference.join(call.id, call.peer, role, replaces=replaces, again=again)
+        )
         self.room.push_roster()
+
+    @property
+    def _client(self) -> tuple[str, str]:
+        """Who called: the user and its client instance (one per client process)."""
+        return self.call.peer, self.call.peer_instance
 
     def _on_datagram(self, datagram: ReceivedDatagram) -> None:
         try:
@@ -191,6 +219,12 @@ class RobotConference:
         left = self.room.conference.leave(self.call.id)
         if left is not None:
             self.room.broadcast(left)
+        end = self.call.end
+        if end is not None and end.kind == "dropped" and self.call.peer_instance:
+            dropped = self.room.dropped
+            dropped[self._client] = None
+            while len(dropped) > _DROPS_KEPT:  # clients that never came back
+                del dropped[next(iter(dropped))]
         self.room.push_roster()
 
 

@@ -526,6 +526,9 @@ class RobotServer:
         self.services: dict[str, CallServices] = {}
         #: Every open service of each call, by call id.
         self.open: dict[str, OpenServices] = {}
+        self._calls: dict[str, Call] = {}
+        # New call id -> the same client's earlier call it replaced (see serve()).
+        self._replaced: dict[str, str] = {}
         self._encoded: EncodedMap | None = None
         # A changed map being encoded in a worker thread, and a version that failed to encode.
         self._reencoding: asyncio.Future[EncodedMap] | None = None
@@ -621,14 +624,41 @@ class RobotServer:
         video = opened.get("video") if opened is not None else None
         return video.sender if isinstance(video, RobotVideo) else None
 
+    def replaces(self, call_id: str) -> str | None:
+        """The call that call ``call_id`` replaced (its client's previous call), if any."""
+        return self._replaced.get(call_id)
+
+    def _previous_call(self, call: Call) -> Call | None:
+        """The earlier call of ``call``'s client (same user, same instance), if still here.
+
+        A client calls again only once its own call has ended, so such a call is one the
+        robot has not yet seen drop (the link failed one way first, or its timeout has not
+        run out): it is dead, and the new call takes its place. Another client of the same
+        user (a page beside a terminal) has another instance: a second call, not this.
+        """
+        if not call.peer_instance:
+            return None
+        for other in self._calls.values():
+            if other.peer == call.peer and other.peer_instance == call.peer_instance:
+                return other
+        return None
+
     def serve(self, call: Call) -> CallServices | None:
-        """Open every registered service on ``call``; returns its core services (if any)."""
+        """Open every registered service on ``call``; returns its core services (if any).
+
+        A call from the client of a call still here replaces that call: the drive passes
+        to it (the robot stops and latches if it held the drive), the conference reads it
+        as one reconnection, and the old call is hung up.
+        """
+        previous = self._previous_call(call)
 
         def on_end(_: asyncio.Future[Any]) -> None:
             # The supervisor hears first: a driver's hang-up must stop the robot whatever
             # happens in the clean-up after it.
             if self.safety is not None:
                 self._guarded(self.safety.leave, call)
+            self._calls.pop(call.id, None)
+            self._replaced.pop(call.id, None)
             self._guarded(self.follow.call_ended, call.id)
             self.services.pop(call.id, None)
             opened = self.open.pop(call.id, None)
@@ -646,11 +676,19 @@ class RobotServer:
             )
             log.info("call %s from %s ended: %s", call.id, call.peer, end)
 
+        self._calls[call.id] = call
+        if previous is not None:
+            self._replaced[call.id] = previous.id
         if self.safety is not None:
-            self.safety.join(call)
+            self.safety.join(call, replaces=previous)
         # Before the services: if setting them up fails, the endpoint hangs up, and the
         # call must still leave the supervisor (or it would hold the drive for good).
         asyncio.ensure_future(call.wait_ended()).add_done_callback(on_end)
+        if previous is not None:
+            # Its client has ended it already: what it still holds here (services, video,
+            # the call's keys) goes now rather than at its timeout.
+            log.info("call %s from %s replaces call %s", call.id, call.peer, previous.id)
+            previous.hangup_now("replaced by a new call from the same client")
         opened = self.registry.open(self, call)
         self.open[call.id] = opened
         services = opened.get("core")

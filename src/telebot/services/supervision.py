@@ -116,11 +116,16 @@ class SafetyDriver:
 
     # -- events ---------------------------------------------------------------------------
 
-    def join(self, call: Call) -> None:
-        """A call came up."""
+    def join(self, call: Call, *, replaces: Call | None = None) -> None:
+        """A call came up; ``replaces``: the same user's earlier call it takes the place
+        of (it leaves the supervisor now, handing over its drive, disarmed)."""
         self._calls[call.id] = call
         role = call.role if call.role is not None else Role.OBSERVER
-        self.apply(self.supervisor.join(call.id, call.peer, role, self._clock()))
+        old = None
+        if replaces is not None:
+            self._calls.pop(replaces.id, None)  # no more signs of life from it count
+            old = replaces.id
+        self.apply(self.supervisor.join(call.id, call.peer, role, self._clock(), replaces=old))
 
     def leave(self, call: Call) -> None:
         """A call ended (hung up or dropped)."""

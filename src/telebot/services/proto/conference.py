@@ -17,7 +17,9 @@ other through it (messages the robot relays to every call, with the sender's nam
 ``seq`` numbers the robot's messages (1, 2, …; one sequence for all calls); the roster
 carries the newest, so a user who missed one (the channel is lossy) asks ``since`` its last
 and the robot sends again what it still holds. ``kind`` is ``user`` (a user's ``say``) or
-``robot`` (the robot's announcements: who joined, left, holds the drive, stopped it).
+``robot`` (the robot's announcements: who joined, reconnected, left, holds the drive,
+stopped it). The roster has one entry per call; ``driving`` is true for the one call that
+holds the drive (a user's second call is listed, not driving).
 Refusals of ``say`` carry a reason code: ``empty``, ``too_long``, ``too_fast``.
 
 :class:`Conference` is the robot's sans-IO state: who is in, the message history, the
@@ -263,10 +265,30 @@ class Conference:
         """The call ids in the conference, in joining order."""
         return list(self._calls)
 
-    def join(self, call_id: str, user: str, role: str) -> Message:
-        """A call came in; returns the announcement every call hears."""
+    def join(
+        self,
+        call_id: str,
+        user: str,
+        role: str,
+        *,
+        replaces: str | None = None,
+        again: bool = False,
+    ) -> Message:
+        """A call came in; returns the announcement every call hears.
+
+        ``replaces``: the same user's earlier call that this one takes the place of (its
+        client called again): it leaves without a word, and everyone hears one
+        ``NAME reconnected (ROLE)`` instead of a join and a leave. ``again``: the call
+        comes from a client whose call dropped (its leave was heard): also ``reconnected``.
+        """
+        old = self._calls.get(replaces) if replaces is not None else None
+        if replaces is not None and old is not None and old.name == user:
+            del self._calls[replaces]
+            # The rate limit goes on across the new call: calling again is no way round it.
+            self._calls[call_id] = _Caller(user, role, old.says, {})
+            return self.announce(f"{user} reconnected ({role})")
         self._calls[call_id] = _Caller(user, role, deque(), {})
-        return self.announce(f"{user} joined ({role})")
+        return self.announce(f"{user} {'reconnected' if again else 'joined'} ({role})")
 
     def leave(self, call_id: str) -> Message | None:
         """A call ended; returns the announcement (None: the call was not in)."""
@@ -320,10 +342,14 @@ class Conference:
         """The messages after ``seq`` still held (older ones are gone for good)."""
         return [m for m in self._history if m.seq > seq]
 
-    def roster(self, for_call: str, holder: str | None) -> Roster:
-        """The roster as call ``for_call`` sees it; ``holder``: the user holding the drive."""
+    def roster(self, for_call: str, driving: str | None) -> Roster:
+        """The roster as call ``for_call`` sees it; ``driving``: the call holding the drive.
+
+        One entry per call: a user with two calls (a page and a terminal) is listed twice,
+        and only the call that holds the drive is driving (one driver).
+        """
         users = tuple(
-            Member(c.name, c.role, holder is not None and c.name == holder, call_id == for_call)
+            Member(c.name, c.role, call_id == driving, call_id == for_call)
             for call_id, c in self._calls.items()
         )
         return Roster(self._seq, users)
