@@ -1,4 +1,10 @@
-"""The field tables of docs/protocol.md §16 are what the robot sends.
+"""docs/protocol.md §13 and §16 say what the robot does: the channels a call gets, and the
+fields of the pose, goals, telemetry and plan messages.
+
+§13: the channel table lists exactly the channels (and lanes) the robot's services open on a
+call, as ``telebot-robot run`` sets them up (every registered service, media included).
+
+§16: the field tables are what the robot sends.
 
 Real ``pose``, ``telemetry``, ``goals`` and ``plan`` messages, taken off a call to the
 in-process robot of ``rig.robot_on_hub`` (idle, then driving a goal sent as raw JSON), and the
@@ -17,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from conftest import ROBOT, wait_until
-from rig import FAST_SIM, GENEROUS_TIMEOUT, SLACK, robot_on_hub
+from rig import FAST_SIM, GENEROUS_TIMEOUT, robot_on_hub
 from telebot.channels.call import UserEndpoint
 from telebot.channels.channel import ReceivedDatagram
 from telebot.channels.transports import Lane
@@ -25,7 +31,9 @@ from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.config import CallSettings
 from telebot.identity import Identity, KnownRobots
 from telebot.reasons import Reason
+from telebot.services.audio import MemorySink, ToneSource
 from telebot.services.client import RobotClient
+from telebot.services.media import MediaSettings, RobotMedia
 from telebot.services.proto import GOALS, POSE, TELEMETRY
 from telebot.services.proto.messages import is_finite_number
 from telebot.services.proto.plan import PLAN
@@ -108,6 +116,58 @@ def conforms(message: dict[str, Any], name: str) -> bool:
     return not mismatches(message, name)
 
 
+_CHANNEL_ROW = re.compile(r"^\| `([\w/]+)` \| ([A-Z]+(?:, latest only)?) \| ")
+
+
+def documented_channels() -> dict[str, set[str]]:
+    """The channel table of §13: each channel's lanes as written (``DATA, latest only``)."""
+    text = PROTOCOL.read_text(encoding="utf-8")
+    section = text[text.index("## 13. Robot services") : text.index("### 13.1")]
+    found: dict[str, set[str]] = defaultdict(set)
+    for line in section.splitlines():
+        if row := _CHANNEL_ROW.match(line):
+            found[row.group(1)].add(row.group(2))
+    return found
+
+
+async def test_section_13_lists_every_channel_a_call_gets(tmp_path: Path) -> None:
+    hub = MemoryHub(seed=13)
+    async with robot_on_hub(tmp_path, hub, timeout=GENEROUS_TIMEOUT, sim=FAST_SIM) as (
+        _,
+        _,
+        server,
+        endpoint,
+    ):
+        # The daemon's services: the default registry plus media (robot_daemon.serve_robot).
+        media = RobotMedia(MediaSettings(voice="off"), mic=ToneSource(440), speaker=MemorySink())
+        media.attach(server)
+        try:
+            async with (
+                MemoryTransport(hub, "user") as transport,
+                UserEndpoint(
+                    transport,
+                    Identity.load(tmp_path / "user"),
+                    KnownRobots.load(tmp_path / "user"),
+                    settings=CallSettings(timeout=GENEROUS_TIMEOUT),
+                ) as user,
+            ):
+                user_call = await user.call(ROBOT)
+                await wait_until(lambda: user_call.id in server.open)
+                (robot_call,) = [c for c in endpoint.calls if c.id == user_call.id]
+                opened: dict[str, set[str]] = {
+                    name: {
+                        str(channel.lane.name) + (", latest only" if channel.latest_only else "")
+                    }
+                    for name, channel in robot_call.channels.items()
+                }
+                await user_call.hangup()
+        finally:
+            media.close()
+    documented = documented_channels()
+    assert "people" in opened  # §23's channel, once missing from the table
+    assert documented == opened
+
+
 def test_the_tables_are_found() -> None:
     # Guards the parser: a table it cannot read would let every message pass.
     assert set(TABLES) == {
@@ -171,24 +231,29 @@ async def test_the_robots_pose_telemetry_goals_and_plan_match_the_tables(tmp_pat
         idle_pose, idle_telemetry = seen["pose"][-1], seen["telemetry"][-1]
         assert idle_pose["goal"] is None and idle_telemetry["goal"] is None
 
-        # A goal as a client written from §16.2 sends it (repeated while the round trip is
-        # not measured yet: the robot refuses with ``rtt_unmeasured`` then).
-        client_id = 4242
-        request = GoalCommand("goal", client_id, 9.5, 4.0).encode()
+        # A goal as a client written from §16.2 sends it; a goal refused because the round
+        # trip is not measured yet (``rtt_unmeasured``) stays refused, so a retry takes a new id.
+        def last_status(goal_id: int) -> dict[str, Any] | None:
+            mine = [m for m in seen["status"] if m["id"] == goal_id]
+            return mine[-1] if mine else None
 
         def status_of(goal_id: int) -> str | None:
-            mine = [m for m in seen["status"] if m["id"] == goal_id]
-            return mine[-1]["status"] if mine else None
+            last = last_status(goal_id)
+            return last["status"] if last is not None else None
 
-        async def accepted() -> None:
-            while status_of(client_id) != "active":
-                refused = [m for m in seen["status"] if m["status"] == "refused"]
-                assert all(m["code"] == Reason.RTT_UNMEASURED for m in refused), refused
-                seen["status"].clear()
-                goals.send(request)
-                await asyncio.sleep(0.2)
+        async def start_goal() -> int:
+            for goal_id in range(4242, 4342):
+                goals.send(GoalCommand("goal", goal_id, 9.5, 4.0).encode())
+                await wait_until(lambda goal_id=goal_id: last_status(goal_id) is not None)
+                answer = last_status(goal_id)
+                assert answer is not None
+                if answer["status"] == "active":
+                    return goal_id
+                assert answer["code"] == Reason.RTT_UNMEASURED, answer
+                await asyncio.sleep(0.1)
+            raise AssertionError("the robot never accepted the goal")
 
-        await asyncio.wait_for(accepted(), 10.0 + SLACK)
+        client_id = await start_goal()
         running = nav.current_goal()
         assert running is not None
 
