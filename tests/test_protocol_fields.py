@@ -44,13 +44,12 @@ _HEADER = re.compile(r"^\| `?([\w ]+?)`? field \| type \| meaning \|$")
 _ROW = re.compile(r"^\| `(\w+)` \| ([^|]+?) \| .+ \|$")
 
 
-def field_tables() -> dict[str, dict[str, str]]:
-    """Each table of §16 by message name (``pose``, ``status``, ``place``, …): field → type."""
-    text = PROTOCOL.read_text(encoding="utf-8")
-    section = text[text.index("## 16. Pose, goals and telemetry") : text.index("## 17.")]
+def parse_tables(text: str) -> dict[str, dict[str, str]]:
+    """Each field table in ``text`` (header ``| `NAME` field | type | meaning |``) by NAME:
+    field → type as written (``integer or null``, ``text, optional``)."""
     tables: dict[str, dict[str, str]] = {}
     current: dict[str, str] | None = None
-    for line in section.splitlines():
+    for line in text.splitlines():
         if header := _HEADER.match(line):
             current = tables.setdefault(header.group(1), {})
         elif current is not None and (row := _ROW.match(line)):
@@ -58,6 +57,12 @@ def field_tables() -> dict[str, dict[str, str]]:
         elif not line.startswith("|"):
             current = None
     return tables
+
+
+def field_tables() -> dict[str, dict[str, str]]:
+    """Each table of §16 by message name (``pose``, ``status``, ``place``, …): field → type."""
+    text = PROTOCOL.read_text(encoding="utf-8")
+    return parse_tables(text[text.index("## 16. Pose, goals and telemetry") : text.index("## 17.")])
 
 
 TABLES = field_tables()
@@ -89,15 +94,18 @@ def _one(value: Any, kind: str) -> bool:
         "object of text": lambda v: (
             isinstance(v, dict) and all(isinstance(x, str) for x in v.values())
         ),
+        "array of text": lambda v: isinstance(v, list) and all(isinstance(x, str) for x in v),
         "array of places": lambda v: isinstance(v, list) and all(conforms(p, "place") for p in v),
     }
-    assert kind in simple, f"protocol.md §16 uses a type this test does not know: {kind!r}"
+    assert kind in simple, f"the docs use a type this test does not know: {kind!r}"
     return bool(simple[kind](value))
 
 
-def mismatches(message: dict[str, Any], name: str) -> list[str]:
+def mismatches(
+    message: dict[str, Any], name: str, tables: dict[str, dict[str, str]] = TABLES
+) -> list[str]:
     """What in ``message`` disagrees with the table of ``name`` (empty: it conforms)."""
-    table = TABLES[name]
+    table = tables[name]
     found = []
     for key, value in message.items():
         if key not in table:
