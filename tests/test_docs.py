@@ -1,7 +1,9 @@
 """What README.md and docs/*.md name must exist in the code, so the docs cannot rot.
 
 Every Python name the docs mention (``from telebot... import ...`` lines in code blocks, and
-dotted ``telebot.x.y.Name`` references anywhere) is imported and looked up.
+dotted ``telebot.x.y.Name`` references anywhere) is imported and looked up. A dotted name that
+is not a Python object must be a name the code spells out whole as a string: a JSON schema's
+title (``telebot.Telemetry`` on a Foxglove channel) or an entry-point group.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+SRC = ROOT / "src" / "telebot"
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 
 #: ``from telebot.x import A, B`` / ``import telebot.x`` at the start of a line (code blocks).
@@ -53,6 +56,19 @@ def _dotted_references() -> list[tuple[str, str]]:
     return found
 
 
+#: A string literal that is a whole dotted ``telebot.`` name (a schema title, a group name).
+_NAME_LITERAL = re.compile(r"""["'](telebot(?:\.\w+)+)["']""")
+
+
+def code_names() -> set[str]:
+    """Every ``"telebot.X"`` string literal of the source (not names inside longer text)."""
+    return {
+        name
+        for path in SRC.rglob("*.py")
+        for name in _NAME_LITERAL.findall(path.read_text(encoding="utf-8"))
+    }
+
+
 def resolve(ref: str) -> object:
     """The object ``ref`` (``package.module.Name.attr``) names: the longest importable module
     prefix, then attributes. Raises ImportError / AttributeError naming what is missing."""
@@ -81,6 +97,8 @@ def test_the_docs_are_scanned() -> None:
         "telebot.robot.nav.NavStack",
     } <= refs
     assert "telebot.pub" not in refs  # ``id_telebot.pub`` is a file name
+    assert {"telebot.robots", "telebot.transports"} <= code_names()
+    assert "telebot.robot.sim.SimNavStack" not in code_names()  # only whole string literals
     assert _entry_point_groups() == {"telebot.robots", "telebot.transports"}
 
 
@@ -91,7 +109,15 @@ def test_every_import_line_of_the_docs_works(where: str, line: str) -> None:
 
 @pytest.mark.parametrize(("where", "ref"), _dotted_references())
 def test_every_dotted_name_of_the_docs_exists(where: str, ref: str) -> None:
-    resolve(ref)
+    try:
+        resolve(ref)
+        problem = ""
+    except (ImportError, AttributeError) as exc:
+        problem = str(exc)
+    if problem:
+        assert ref in code_names(), (
+            f"{where}: {ref}: not importable ({problem}), nor a name the code uses"
+        )
 
 
 def test_every_entry_point_group_of_the_docs_is_the_codes() -> None:
