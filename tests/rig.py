@@ -246,6 +246,8 @@ class Daemon:
         self.user_config = self.write_user_config("user.toml")
         self.port = 0
         self.process: Process | None = None
+        #: The daemon's ``ready`` event (its first line) of the last start.
+        self.ready: dict[str, Any] = {}
 
     def add_user(self, name: str, role: Role, home: Path) -> Identity:
         """A new user with a home of its own, in the robot's contacts with ``role``."""
@@ -277,6 +279,7 @@ class Daemon:
         )
         line = self.process.next_line(timeout=ready_timeout)
         assert '"ready"' in line, line
+        self.ready = json.loads(line)
 
     def stop(self, *, graceful: bool = False) -> None:
         """Kill the daemon (SIGTERM first if ``graceful``)."""

@@ -92,7 +92,10 @@ DESCRIPTIONS: dict[Reason, str] = {
     Reason.CLOCK_FAULT: "the robot's clock failed: it stopped",
     Reason.UNKNOWN_COMMAND: "not a command (or an empty line): see help",
     Reason.USAGE: "bad arguments: the text is the command's usage line",
-    Reason.INVALID: "a number that is not finite, or another invalid argument",
+    Reason.INVALID: (
+        "a number that is not finite, or another invalid argument; "
+        "a `safety` request that does not decode (§18)"
+    ),
     Reason.UNKNOWN_PLACE: "no place of that name (the text lists the known ones)",
     Reason.UNKNOWN_CAMERA: "the robot has no camera of that name",
     Reason.UNKNOWN_GOAL: "a goal query for an id the robot does not know: send the goal again",

@@ -89,7 +89,10 @@ def build_parser() -> Parser:
         "(overrides sim.map of the config)",
     )
     daemon.add_argument(
-        "--events", action="store_true", help="print robot events as JSON lines on stdout"
+        "--events",
+        action="store_true",
+        help="print robot events as JSON lines on stdout: ready, call, chat, goal, safety, say, "
+        "ended, stopping (each kind and its fields: docs/events.md)",
     )
     daemon.add_argument(
         "--screen",
@@ -114,7 +117,10 @@ def build_parser() -> Parser:
     add_home_option(echo, "robot")
     add_connection_options(echo)
     echo.add_argument(
-        "--events", action="store_true", help="print call events as JSON lines on stdout"
+        "--events",
+        action="store_true",
+        help="print call events as JSON lines on stdout: ready, call, ended, stopping "
+        "(docs/events.md)",
     )
     return parser
 

@@ -141,7 +141,9 @@ def build_parser() -> Parser:
     runp = commands.add_parser("run", help="run the router until SIGINT/SIGTERM")
     _add_router_options(runp)
     runp.add_argument(
-        "--events", action="store_true", help="print a JSON 'ready' line on stdout when listening"
+        "--events",
+        action="store_true",
+        help="print a JSON 'ready' line on stdout when listening (docs/events.md)",
     )
     return parser
 

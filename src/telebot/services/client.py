@@ -74,6 +74,7 @@ from telebot.services.proto.safety import (
     SAFETY,
     RequestType,
     SafetyAck,
+    SafetyError,
     SafetyRequest,
     SafetyStatus,
     decode_safety_reply,
@@ -966,6 +967,9 @@ class RobotClient:
             return
         if isinstance(message, SafetyStatus):
             self.latest_safety.set(message)
+            return
+        if isinstance(message, SafetyError):  # our own requests always decode: a robot's bug
+            log.warning("the robot could not read a safety request: %s", message.text)
             return
         waiter = self._safety_waiters.get(message.id)
         if waiter is not None:

@@ -48,7 +48,9 @@ from telebot.services.proto.chat import ChatReply, decode_request
 from telebot.services.proto.mapxfer import MAX_MAP_VERSION, EncodedMap, encode_map
 from telebot.services.proto.safety import (
     SAFETY,
+    InvalidSafetyRequest,
     SafetyAck,
+    SafetyError,
     SafetyStatus,
     decode_safety_request,
 )
@@ -139,8 +141,15 @@ class CallServices:
     # -- safety ---------------------------------------------------------------------
 
     def _on_safety(self, datagram: ReceivedDatagram) -> None:
-        request = self._decode(self._safety_channel, decode_safety_request, datagram)
-        if request is None:
+        try:
+            request = decode_safety_request(datagram.payload)
+        except InvalidSafetyRequest as exc:
+            # Unlike other channels, a bad safety request is answered (a client that never
+            # hears back would repeat its stop for ever), and a stop is carried out anyway.
+            self._count_rejected(self._safety_channel, exc)
+            if exc.stop:
+                self._stop(exc.how)
+            self._send(self._safety_channel, SafetyError(str(exc), Reason.INVALID).encode())
             return
         earlier = self._safety_acks.get(request.id)
         if earlier is not None:
@@ -411,10 +420,13 @@ class CallServices:
         try:
             return decode(datagram.payload)
         except ProtocolError as exc:
-            self.rejected += 1
-            channel.stats.rejected += 1
-            log.debug("call %s: %s datagram dropped: %s", self.call.id, channel.name, exc)
+            self._count_rejected(channel, exc)
             return None
+
+    def _count_rejected(self, channel: Channel, exc: ProtocolError) -> None:
+        self.rejected += 1
+        channel.stats.rejected += 1
+        log.debug("call %s: %s datagram rejected: %s", self.call.id, channel.name, exc)
 
     def _send(self, channel: Any, text: str) -> None:
         if not self.call.active:

@@ -14,6 +14,13 @@ request (``reason``: the text for people; ``code``: the reason code of
 
     {"type": "state", "armed": false, "reason": "stop requested by alice",
      "holder": "alice", "cap": 0.0, "blocked": false}
+
+A request's ``id`` is an integer in 0 … 2³² − 1, the client's own per call and per channel (it
+does not share a number space with chat or goal ids). A request that does not decode (not
+JSON, an unknown ``type``, an ``id`` that is not such an integer) is answered with one error
+line instead of an ack, and a ``stop`` among them is still carried out (when in doubt, stop)::
+
+    {"type": "error", "ok": false, "reason": "safety: 'id' must be an integer in 0..4294967295", "code": "invalid"}
 """
 
 from __future__ import annotations
@@ -34,7 +41,9 @@ from telebot.services.proto.messages import (
 __all__ = [
     "SAFETY",
     "STOP_HOWS",
+    "InvalidSafetyRequest",
     "SafetyAck",
+    "SafetyError",
     "SafetyRequest",
     "SafetyStatus",
     "decode_safety_reply",
@@ -46,6 +55,8 @@ SAFETY = "safety"
 
 RequestType = Literal["stop", "arm", "take", "release"]
 _REQUEST_TYPES = ("stop", "arm", "take", "release")
+#: Longest piece of a peer's input an error text quotes (characters).
+_QUOTE = 40
 
 #: How a user stopped the robot (a stop's ``how``), for the audit log and the stop reason.
 STOP_HOWS: dict[str, str] = {
@@ -99,6 +110,37 @@ class SafetyAck:
 
 
 @dataclass(frozen=True, slots=True)
+class SafetyError:
+    """The robot's answer to a request that does not decode (it has no valid ``id`` to ack).
+
+    ``text`` says what was wrong in one line (the wire's ``reason``); ``reason`` is the code
+    (the wire's ``code``, ``invalid``).
+    """
+
+    text: str
+    reason: str
+
+    def encode(self) -> str:
+        """The datagram text."""
+        return encode_object(
+            {"type": "error", "ok": False, "reason": self.text, "code": self.reason}
+        )
+
+
+class InvalidSafetyRequest(ProtocolError):
+    """A ``safety`` request that does not decode; :attr:`stop` says it asked for a stop.
+
+    A stop is carried out even then (with :attr:`how` if that much was valid): when in
+    doubt, stop.
+    """
+
+    def __init__(self, message: str, *, stop: bool = False, how: str = "") -> None:
+        super().__init__(message)
+        self.stop = stop
+        self.how = how
+
+
+@dataclass(frozen=True, slots=True)
 class SafetyStatus:
     """The supervisor's state as the users see it."""
 
@@ -123,18 +165,37 @@ class SafetyStatus:
 
 
 def decode_safety_request(payload: str | bytes) -> SafetyRequest:
-    """Parse a user → robot ``safety`` datagram; ProtocolError when malformed."""
-    msg = decode_object(payload, what="safety")
+    """Parse a user → robot ``safety`` datagram.
+
+    Raises :class:`InvalidSafetyRequest` (one line, quoting at most a few dozen characters
+    of the input) when malformed.
+    """
+    try:
+        msg = decode_object(payload, what="safety")
+    except ProtocolError as exc:
+        raise InvalidSafetyRequest(str(exc)) from None
     kind = msg.get("type")
     if kind not in _REQUEST_TYPES:
-        raise ProtocolError(f"safety: unknown type {kind!r}")
+        raise InvalidSafetyRequest(
+            f"safety: unknown type {_quote(kind)}: stop, arm, take or release"
+        )
     how = msg.get("how", "")
     if kind != "stop" or not isinstance(how, str) or not _HOW.fullmatch(how):
         how = ""  # never a reason to drop a stop
-    return SafetyRequest(cast(RequestType, kind), require_int(msg, "id", what="safety"), how)
+    try:
+        request_id = require_int(msg, "id", what="safety")
+    except ProtocolError as exc:
+        raise InvalidSafetyRequest(str(exc), stop=kind == "stop", how=how) from None
+    return SafetyRequest(cast(RequestType, kind), request_id, how)
 
 
-def decode_safety_reply(payload: str | bytes) -> SafetyAck | SafetyStatus:
+def _quote(value: object) -> str:
+    """``repr(value)``, cut to a few dozen characters: an error never echoes big input back."""
+    text = repr(value)
+    return text if len(text) <= _QUOTE else text[: _QUOTE - 1] + "…"
+
+
+def decode_safety_reply(payload: str | bytes) -> SafetyAck | SafetyStatus | SafetyError:
     """Parse a robot → user ``safety`` datagram; ProtocolError when malformed."""
     msg = decode_object(payload, what="safety")
     kind = msg.get("type")
@@ -156,7 +217,9 @@ def decode_safety_reply(payload: str | bytes) -> SafetyAck | SafetyStatus:
             finite_number(msg, "cap", what="safety"),
             _bool(msg, "blocked"),
         )
-    raise ProtocolError(f"safety: unknown type {kind!r}")
+    if kind == "error":
+        return SafetyError(_text(msg, "reason"), decode_code(msg, what="safety"))
+    raise ProtocolError(f"safety: unknown type {_quote(kind)}")
 
 
 def _bool(msg: dict[str, Any], key: str) -> bool:
