@@ -29,7 +29,7 @@ import re
 from dataclasses import dataclass
 from typing import Any, Literal, cast
 
-from telebot.errors import ProtocolError
+from telebot.errors import ProtocolError, excerpt
 from telebot.reasons import decode_code
 from telebot.services.proto.messages import (
     decode_object,
@@ -191,8 +191,7 @@ def decode_safety_request(payload: str | bytes) -> SafetyRequest:
 
 def _quote(value: object) -> str:
     """``repr(value)``, cut to a few dozen characters: an error never echoes big input back."""
-    text = repr(value)
-    return text if len(text) <= _QUOTE else text[: _QUOTE - 1] + "…"
+    return excerpt(repr(value), _QUOTE)
 
 
 def decode_safety_reply(payload: str | bytes) -> SafetyAck | SafetyStatus | SafetyError:
