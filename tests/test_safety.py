@@ -631,6 +631,8 @@ class SupervisorModel(RuleBasedStateMachine):
         # user) replaces the old one, which never arms; the drive goes along, stopped.
         old = data.draw(st.sampled_from(sorted(self.joined)))
         new = old + "'"
+        while new in self.joined:  # call ids are never reused: a'' follows a'
+            new += "'"
         held = self.sup.holder_call == old
         actions = self.sup.join(new, old.rstrip("'").upper(), role_of(old), self.now, replaces=old)
         self.joined.discard(old)
