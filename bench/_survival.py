@@ -340,14 +340,14 @@ def stranger_child(port: int, call_id: str, seconds: float, where: str) -> None:
     settings = ZenohSettings(connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
     session = zenoh.open(build_zenoh_config(settings))
     base = f"telebot/robot/{ROBOT}"
-    keys = [f"{base}/in"]
+    keys = [f"{base}/in/mallory"]
     if where == "call":
-        keys += [f"{base}/call/{call_id}/ctl", f"{base}/call/{call_id}/data"]
+        keys += [f"{base}/call/{USER}/{call_id}/ctl", f"{base}/call/{USER}/{call_id}/data"]
     publishers = [session.declare_publisher(key) for key in keys]
-    header = b"\x01\x03" + bytes.fromhex(call_id)
+    header = b"\x02\x03" + bytes.fromhex(call_id)
     junk = [
         os.urandom(200),  # garbage
-        b"\x01\x03" + os.urandom(6),  # a truncated DATA frame
+        b"\x02\x03" + os.urandom(6),  # a truncated DATA frame
         header + os.urandom(8 + 100),  # alice's call id, no valid seal
         header + os.urandom(8 + 16_000),
     ]

@@ -3,10 +3,17 @@ call being set up ends up when its first frames hang it up."""
 
 from __future__ import annotations
 
+import json
+import logging
+import os
 import time
 
-from conftest import ROBOT, Homes, memory_endpoints, wait_until
-from telebot.channels.proto.session import start_call
+import pytest
+
+from conftest import ROBOT, USER, Homes, memory_endpoints, wait_until
+from telebot.channels.proto.frames import LEGACY_VERSION, Hello, Welcome
+from telebot.channels.proto.noise import InitiatorHandshake
+from telebot.channels.proto.session import finish_call, start_call
 from telebot.channels.transports import Lane
 from telebot.channels.transports.memory import MemoryHub
 
@@ -27,7 +34,7 @@ async def test_a_live_call_id_in_a_new_hello_makes_no_second_call(homes: Homes) 
             call_id=bytes.fromhex(call.id),
             wall_time_ns=time.time_ns(),
         )
-        publisher = user.transport.publisher(f"telebot/robot/{ROBOT}/in", Lane.CONTROL)
+        publisher = user.transport.publisher(f"telebot/robot/{ROBOT}/in/{USER}", Lane.CONTROL)
         publisher.put(hello.encode())
         publisher.close()
         await wait_until(lambda: robot.stats.rejected["call_id_reused"] == 1)
@@ -46,3 +53,66 @@ async def test_a_call_hung_up_by_its_first_frames_is_not_kept(homes: Homes) -> N
         assert call.end is not None and call.end.kind == "hung_up"
         assert "robot busy" in call.end.detail
         assert user.calls == []
+
+
+def _old_hello(homes: Homes, instance: bytes) -> tuple[Hello, InitiatorHandshake]:
+    """A HELLO as a client of protocol version 1 writes it (version byte 1)."""
+    unsigned = Hello(os.urandom(8), homes.user.name, instance, b"", 1, (1,), LEGACY_VERSION)
+    handshake = InitiatorHandshake(
+        homes.user.private_key, homes.robot.public_key, unsigned.prologue
+    )
+    payload = json.dumps({"user": homes.user.name, "ts": time.time_ns()}).encode()
+    message = handshake.write_message(payload)
+    return Hello(unsigned.call_id, homes.user.name, instance, message, 1, (1,), 1), handshake
+
+
+async def test_a_client_of_protocol_version_1_is_refused_with_the_reason(
+    homes: Homes, caplog: pytest.LogCaptureFixture
+) -> None:
+    """An older client's HELLO on the old key gets an authenticated version-1 refusal on
+    its old inbox (it shows the reason instead of timing out), and the robot logs it once."""
+    async with memory_endpoints(homes, MemoryHub(seed=1)) as (robot, user):
+        instance = os.urandom(8)
+        old_inbox = f"telebot/user/{homes.user.name}/{instance.hex()}/in"
+        answers: list[bytes] = []
+        user.transport.subscribe(old_inbox, lambda b: answers.extend(s.payload for s in b))
+        hello, handshake = _old_hello(homes, instance)
+        publisher = user.transport.publisher(f"telebot/robot/{ROBOT}/in", Lane.CONTROL)
+        with caplog.at_level(logging.WARNING, logger="telebot.call"):
+            for _ in range(3):  # an old client repeats its HELLO
+                publisher.put(hello.encode())
+            await wait_until(lambda: len(answers) == 3)
+        assert answers[0] == answers[1] == answers[2]  # the cached answer, repeated
+        assert answers[0][:2] == bytes([LEGACY_VERSION, 2])  # a WELCOME it can read
+        answer, _ = finish_call(handshake, Welcome(hello.call_id, answers[0][10:]))
+        assert not answer.accepted
+        assert answer.reason == (
+            f"{ROBOT} speaks telebot protocol version 2, this client version 1: upgrade telebot"
+        )
+        warnings = [
+            r.getMessage() for r in caplog.records if "protocol version 1" in r.getMessage()
+        ]
+        assert len(warnings) == 1, warnings
+        assert robot.stats.rejected["old_protocol_version"] == 1 and not robot.calls
+
+
+async def test_a_hello_under_another_users_name_in_the_key_is_not_read(homes: Homes) -> None:
+    """The key names the sender: a HELLO whose caller is not the key's last chunk (or on
+    the version-1 key) is dropped before any cryptography; the real one gets its call."""
+    async with memory_endpoints(homes, MemoryHub(seed=1)) as (robot, user):
+        hello, _ = start_call(
+            homes.user.private_key,
+            homes.robot.public_key,
+            caller=homes.user.name,
+            instance=user.instance,
+            call_id=os.urandom(8),
+            wall_time_ns=time.time_ns(),
+        )
+        for key in (f"telebot/robot/{ROBOT}/in/mallory", f"telebot/robot/{ROBOT}/in"):
+            publisher = user.transport.publisher(key, Lane.CONTROL)
+            publisher.put(hello.encode())
+            publisher.close()
+        await wait_until(lambda: robot.stats.rejected["sender_mismatch"] == 2)
+        assert not robot.calls
+        call = await user.call(ROBOT)
+        assert call.active

@@ -206,4 +206,6 @@ def test_no_project_file_reads_beside_the_checkout() -> None:
     makefile = (root / "Makefile").read_text()
     if any(needle in makefile for needle in needles):
         offenders.append("Makefile")
-    assert offenders == [], f"these files read beside the checkout, which users do not have: {offenders}"
+    assert offenders == [], (
+        f"these files read beside the checkout, which users do not have: {offenders}"
+    )
