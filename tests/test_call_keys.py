@@ -10,12 +10,23 @@ import time
 
 import pytest
 
-from conftest import ROBOT, USER, Homes, memory_endpoints, wait_until
-from telebot.channels.proto.frames import LEGACY_VERSION, Hello, Welcome
+from conftest import ROBOT, SLACK, USER, Homes, free_port, memory_endpoints, wait_until
+from rig import GENEROUS_TIMEOUT
+from telebot.channels.call import CONTROL_LIMITS, RobotEndpoint, UserEndpoint
+from telebot.channels.proto.frames import (
+    LEGACY_VERSION,
+    DataFrame,
+    Hello,
+    Welcome,
+    encode_datagram,
+)
 from telebot.channels.proto.noise import InitiatorHandshake
 from telebot.channels.proto.session import finish_call, start_call
 from telebot.channels.transports import Lane
+from telebot.channels.transports.base import Publisher
 from telebot.channels.transports.memory import MemoryHub
+from telebot.channels.transports.zenoh import ZenohTransport
+from telebot.config import CallSettings, ZenohSettings
 
 
 async def test_a_live_call_id_in_a_new_hello_makes_no_second_call(homes: Homes) -> None:
@@ -116,3 +127,53 @@ async def test_a_hello_under_another_users_name_in_the_key_is_not_read(homes: Ho
         assert not robot.calls
         call = await user.call(ROBOT)
         assert call.active
+
+
+def _publish_while_the_loop_is_busy(
+    publisher: Publisher, genuine: bytes, call_id: bytes, forged: int
+) -> None:
+    """Blocks the event loop (a plain function called from a coroutine) while ``genuine``
+    and then ``forged`` forged frames of ``call_id`` are published and received."""
+    publisher.put(genuine)
+    for n in range(forged):
+        publisher.put(DataFrame.make_header(call_id, 10_000 + n) + os.urandom(41))
+        if n % 50 == 0:
+            time.sleep(0.002)  # let the reader thread keep up with zenoh's own channel
+    time.sleep(0.5 * SLACK)  # the reader has queued (or refused) all of it
+
+
+@pytest.mark.zenoh
+async def test_forged_frames_never_push_a_genuine_control_frame_out_of_the_queue(
+    homes: Homes,
+) -> None:
+    """Over real zenoh: a genuine CONTROL frame, then more forged frames (the call's
+    header, fresh counters, random tags) than the CONTROL queue holds, arrive while the
+    event loop is busy. The forged ones fail the AEAD on the transport's thread and are
+    never queued, so the genuine frame, the oldest, is still delivered (without that, the
+    queue's bound would drop it to make room for forgeries)."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    robot_settings = ZenohSettings(listen=[endpoint], multicast_scouting=False)
+    user_settings = ZenohSettings(connect=[endpoint], multicast_scouting=False)
+    settings = CallSettings(timeout=GENEROUS_TIMEOUT)
+    async with (
+        ZenohTransport(robot_settings) as robot_transport,
+        ZenohTransport(user_settings) as user_transport,
+        RobotEndpoint(robot_transport, homes.robot, homes.contacts, settings=settings) as robot,
+        UserEndpoint(user_transport, homes.user, homes.known, settings=settings) as user,
+    ):
+        got: list[str] = []
+        robot.on_call = lambda c: c.channel("chat", lane=Lane.CONTROL)
+        call = await user.call(ROBOT)
+        chat = call.channel("chat", lane=Lane.CONTROL)
+        chat.set_callback(lambda d: got.append(str(d.payload)))
+        await wait_until(lambda: len(robot.calls) == 1)
+        robot_call = robot.calls[0]
+        key = f"{user.base}/call/{ROBOT}/{call.id}/ctl"
+        publisher = robot_transport.publisher(key, Lane.CONTROL)
+        genuine = robot_call._session.seal(encode_datagram(b"chat", "genuine"))
+        header = bytes.fromhex(call.id)
+        forged_count = CONTROL_LIMITS.max_samples + 200
+        _publish_while_the_loop_is_busy(publisher, genuine, header, forged_count)
+        await wait_until(lambda: "genuine" in got)
+        await wait_until(lambda: call.stats.rejected["forged"] >= forged_count)
+        assert call.active and call.receive_dropped == 0

@@ -410,6 +410,12 @@ class _CallInbox:
     different keys, so a few frames may be read before the WELCOME: they wait here).
     Anything that is not a DATA frame of this call is counted and dropped before any
     cryptography.
+
+    The CONTROL key's subscription has a gate (:meth:`CallSession.authentic`, run on the
+    transport's receiving thread): once the call is up, only frames that authenticate
+    are queued there, so a flood of forged frames on it (a stranger who sniffed the
+    call's keys) costs one failed AEAD each off the event loop, and never pushes a
+    heartbeat or a stop out of the queue. They are counted as ``forged``.
     """
 
     def __init__(self, endpoint: _Endpoint, call_id: bytes, peer: str) -> None:
@@ -418,11 +424,12 @@ class _CallInbox:
         self._early: list[Sample] = []
         self._early_dropped = 0
         self._closed = False
+        self._gated_seen = 0  # forged CONTROL frames already counted in the call's stats
         keys = f"{endpoint.base}/call/{peer}/{call_id.hex()}"
         transport = endpoint.transport
-        self._subscriptions = [
-            transport.subscribe(f"{keys}/ctl", self._on_samples, limits=CONTROL_LIMITS)
-        ]
+        control = transport.subscribe(f"{keys}/ctl", self._on_samples, limits=CONTROL_LIMITS)
+        control.gate = self._authentic
+        self._subscriptions = [control]
         try:
             self._subscriptions.append(
                 transport.subscribe(f"{keys}/data", self._on_samples, limits=DATA_LIMITS)
@@ -443,6 +450,11 @@ class _CallInbox:
         queues = sum(sub.stats.dropped + sub.stats.oversized for sub in self._subscriptions)
         return queues + self._early_dropped
 
+    def _authentic(self, payload: bytes) -> bool:
+        """Transport thread: whether a CONTROL frame may be queued (any, while set up)."""
+        call = self._call
+        return call is None or call._session.authentic(payload)
+
     def attach(self, call: Call) -> None:
         """Deliver to ``call`` from now on, starting with what arrived early."""
         self._call = call
@@ -458,6 +470,10 @@ class _CallInbox:
             self._early_dropped += max(0, len(samples) - room)
             return
         rejected = call._session.stats.rejected
+        gated = self._subscriptions[0].stats.gated
+        if gated != self._gated_seen:
+            rejected["forged"] += gated - self._gated_seen
+            self._gated_seen = gated
         call_id = self.call_id
         for sample in samples:
             if call.end is not None:  # a handler ended the call: the rest is for nobody
