@@ -196,19 +196,31 @@ async def test_a_user_cannot_put_on_another_users_call_keys_and_calls_still_work
     fleet: Fleet,
 ) -> None:
     """bob, certified, sniffs the key alice's call frames go to and puts on it: the router
-    drops his frames (the key names alice), while alice's call goes on through it."""
+    drops his frames (the key names alice), while alice's call goes on through it. The
+    same for rover, a certified robot, on alice's side of her call with guiabot."""
     seen: list[tuple[str, bytes]] = []
     admin = await asyncio.to_thread(_raw_session, fleet, fleet.admin)
     bob = await asyncio.to_thread(_raw_session, fleet, fleet.other_user)
+    rover = await asyncio.to_thread(_raw_session, fleet, fleet.robot_certs["rover"])
     try:
         admin.declare_subscriber(
-            "telebot/robot/guiabot/**",
+            "telebot/**",
             lambda s: seen.append((str(s.key_expr), s.payload.to_bytes())),
         )
         config = fleet.router.app_config(fleet.user)
         async with connect("guiabot", home=fleet.user_home, config=config, timeout=20) as client:
             await wait_until(lambda: any(key.endswith("/ctl") for key, _ in seen))
-            alices_ctl = next(key for key, _ in seen if key.endswith("/ctl"))
+            await wait_until(
+                lambda: any(k.startswith("telebot/user/") and k.endswith("/ctl") for k, _ in seen)
+            )
+            alices_ctl = next(
+                key for key, _ in seen if key.startswith("telebot/robot/") and key.endswith("/ctl")
+            )
+            users_ctl = next(
+                key for key, _ in seen if key.startswith("telebot/user/") and key.endswith("/ctl")
+            )
+            rover.put(users_ctl, b"rover-forged-ctl")
+            rover.put(f"telebot/user/{USER}/0000000000000000/in/rover", b"rover-allowed")
             alices_data = alices_ctl.removesuffix("/ctl") + "/data"
             bob.put(alices_ctl, b"bob-forged-ctl")
             bob.put(alices_data, b"bob-forged-data")
@@ -216,13 +228,16 @@ async def test_a_user_cannot_put_on_another_users_call_keys_and_calls_still_work
             # two puts before it on the same link.
             bob.put(f"telebot/robot/guiabot/in/{OTHER_USER}", b"bob-allowed")
             await wait_until(lambda: any(p == b"bob-allowed" for _, p in seen))
+            await wait_until(lambda: any(p == b"rover-allowed" for _, p in seen))
             assert not any(p.startswith(b"bob-forged") for _, p in seen), alices_ctl
+            assert not any(p.startswith(b"rover-forged") for _, p in seen), users_ctl
             replies = [r.text async for r in client.chat_replies("where")]
             assert replies, "alice's call works through the router"
             assert client.reconnects == 0 and client.call.active
-        assert f"/call/{USER}/" in alices_ctl  # the key names its sender
+        assert f"/call/{USER}/" in alices_ctl  # the keys name their sender
+        assert "/call/guiabot/" in users_ctl
     finally:
-        for session in (admin, bob):
+        for session in (admin, bob, rover):
             await asyncio.to_thread(session.close)
 
 
