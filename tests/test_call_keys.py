@@ -24,9 +24,11 @@ from telebot.channels.proto.noise import InitiatorHandshake
 from telebot.channels.proto.session import finish_call, start_call
 from telebot.channels.transports import Lane
 from telebot.channels.transports.base import Publisher
-from telebot.channels.transports.memory import MemoryHub
+from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.channels.transports.zenoh import ZenohTransport
 from telebot.config import CallSettings, ZenohSettings
+from telebot.errors import CallTimeout
+from telebot.identity import encode_key
 
 
 async def test_a_live_call_id_in_a_new_hello_makes_no_second_call(homes: Homes) -> None:
@@ -177,3 +179,26 @@ async def test_forged_frames_never_push_a_genuine_control_frame_out_of_the_queue
         await wait_until(lambda: "genuine" in got)
         await wait_until(lambda: call.stats.rejected["forged"] >= forged_count)
         assert call.active and call.receive_dropped == 0
+
+
+async def test_calling_a_robot_of_protocol_version_1_times_out_naming_the_version(
+    homes: Homes,
+) -> None:
+    """A version-1 robot (online, listening on the old handshake key only) never sees a
+    version-2 HELLO: the call times out, and says to check the robot's protocol version."""
+    hub = MemoryHub(seed=1)
+    async with (
+        MemoryTransport(hub, "old-robot") as old_robot,
+        MemoryTransport(hub, "user") as user_transport,
+        UserEndpoint(user_transport, homes.user, homes.known) as user,
+    ):
+        heard: list[bytes] = []
+        old_robot.subscribe(
+            f"telebot/robot/{ROBOT}/in", lambda b: heard.extend(s.payload for s in b)
+        )
+        old_robot.declare_presence(
+            f"telebot/presence/robot/{ROBOT}/{encode_key(homes.robot.public_key)}"
+        )
+        with pytest.raises(CallTimeout, match="does it run telebot protocol version 2"):
+            await user.call(ROBOT, timeout=1.0)
+        assert heard == []  # the HELLO went to .../in/alice, where version 1 never listens
