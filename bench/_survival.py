@@ -137,7 +137,9 @@ async def measure_flood(
     rss_before = daemon.rss_mb()
     child = Child(script, *args)
     try:
-        if child.next_line(60) != "ready":
+        # In a thread: the child takes a while to start (imports, zenoh), and a loop
+        # blocked that long drops alice's call (no heartbeats) before any flood begins.
+        if await asyncio.to_thread(child.next_line, 60) != "ready":
             raise RuntimeError("the flooding child did not start")
         stops, peak = await stops_during(alice, daemon, FLOOD_SECONDS)
     finally:
