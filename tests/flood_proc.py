@@ -13,6 +13,13 @@ the robot's telemetry still get through). It prints one JSON object per line::
 dropped unread; ``reconnects`` counts calls that dropped and came back (0: never dropped).
 
     python -m flood_proc --home HOME --config user.toml --connect tcp/127.0.0.1:7447
+
+With ``--forge CALL_ID --user NAME``, it is instead a stranger in no call (a bare zenoh
+session) that sniffed a live call's keys: it publishes forged DATA frames (the call's
+header, fresh counters just ahead of any the call used, random ciphertext; most the
+size of a heartbeat, some of 1 KB) on the robot's CONTROL key of NAME's call, paced at
+``--rate`` frames per second, and prints ``{"event": "flooding"}`` then
+``{"event": "done", "sent": N}``.
 """
 
 from __future__ import annotations
@@ -81,14 +88,57 @@ async def flood(robot: str, home: Path, config: AppConfig, seconds: float) -> in
     return 0
 
 
+def forge(robot: str, user: str, call_id: str, connect: str, rate: float, seconds: float) -> int:
+    """Publish forged frames on ``user``'s call ``call_id`` with ``robot`` at ``rate``/s."""
+    import os
+    import time
+
+    import zenoh
+
+    from telebot.channels.proto.frames import DataFrame
+    from telebot.channels.transports.base import Lane
+    from telebot.channels.transports.zenoh import LANE_QOS, build_zenoh_config
+    from telebot.config import ZenohSettings
+
+    settings = ZenohSettings(connect=[connect], multicast_scouting=False)
+    session = zenoh.open(build_zenoh_config(settings))
+    key = f"telebot/robot/{robot}/call/{user}/{call_id}/ctl"
+    publisher = session.declare_publisher(key, **LANE_QOS[Lane.CONTROL])
+    call = bytes.fromhex(call_id)
+    bodies = [os.urandom(41) for _ in range(15)] + [os.urandom(1000)]
+    counter = 1_000  # ahead of the call's own counters (a stranger can read them)
+    sent = 0
+    tick = 0.01  # a burst every 10 ms
+    say("flooding")
+    start = time.monotonic()
+    while (now := time.monotonic()) < start + seconds:
+        due = int((now - start) * rate) - sent
+        for _ in range(max(0, due)):
+            counter += 1
+            header = DataFrame.make_header(call, counter)
+            publisher.put(header + bodies[counter % len(bodies)])
+            sent += 1
+        time.sleep(tick)
+    session.close()
+    say("done", sent=sent, seconds=round(time.monotonic() - start, 2))
+    return 0
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--home", type=Path, required=True, help="the user's home")
-    parser.add_argument("--config", type=Path, required=True, help="the user's TOML config")
+    parser.add_argument("--home", type=Path, help="the user's home (not with --forge)")
+    parser.add_argument("--config", type=Path, help="the user's TOML config (not with --forge)")
     parser.add_argument("--connect", required=True, help="the robot's zenoh endpoint")
     parser.add_argument("--robot", default="guiabot")
     parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--forge", metavar="CALL_ID", help="forge frames on this call's keys")
+    parser.add_argument("--user", default="alice", help="whose call --forge floods")
+    parser.add_argument("--rate", type=float, default=20_000.0, help="forged frames per second")
     args = parser.parse_args()
+    if args.forge:
+        sys.exit(forge(args.robot, args.user, args.forge, args.connect, args.rate, args.seconds))
+    if args.home is None or args.config is None:
+        parser.error("--home and --config are required (unless --forge)")
     config = load_toml(args.config, AppConfig)
     config.transport.zenoh.connect = [args.connect]
     sys.exit(asyncio.run(flood(args.robot, args.home, config, args.seconds)))

@@ -3,12 +3,32 @@ call being set up ends up when its first frames hang it up."""
 
 from __future__ import annotations
 
+import json
+import logging
+import os
 import time
 
-from conftest import ROBOT, Homes, memory_endpoints, wait_until
-from telebot.channels.proto.session import start_call
+import pytest
+
+from conftest import ROBOT, SLACK, USER, Homes, free_port, memory_endpoints, wait_until
+from rig import GENEROUS_TIMEOUT
+from telebot.channels.call import CONTROL_LIMITS, RobotEndpoint, UserEndpoint
+from telebot.channels.proto.frames import (
+    LEGACY_VERSION,
+    DataFrame,
+    Hello,
+    Welcome,
+    encode_datagram,
+)
+from telebot.channels.proto.noise import InitiatorHandshake
+from telebot.channels.proto.session import finish_call, start_call
 from telebot.channels.transports import Lane
-from telebot.channels.transports.memory import MemoryHub
+from telebot.channels.transports.base import Publisher
+from telebot.channels.transports.memory import MemoryHub, MemoryTransport
+from telebot.channels.transports.zenoh import ZenohTransport
+from telebot.config import CallSettings, ZenohSettings
+from telebot.errors import CallTimeout
+from telebot.identity import encode_key
 
 
 async def test_a_live_call_id_in_a_new_hello_makes_no_second_call(homes: Homes) -> None:
@@ -27,7 +47,7 @@ async def test_a_live_call_id_in_a_new_hello_makes_no_second_call(homes: Homes) 
             call_id=bytes.fromhex(call.id),
             wall_time_ns=time.time_ns(),
         )
-        publisher = user.transport.publisher(f"telebot/robot/{ROBOT}/in", Lane.CONTROL)
+        publisher = user.transport.publisher(f"telebot/robot/{ROBOT}/in/{USER}", Lane.CONTROL)
         publisher.put(hello.encode())
         publisher.close()
         await wait_until(lambda: robot.stats.rejected["call_id_reused"] == 1)
@@ -46,3 +66,139 @@ async def test_a_call_hung_up_by_its_first_frames_is_not_kept(homes: Homes) -> N
         assert call.end is not None and call.end.kind == "hung_up"
         assert "robot busy" in call.end.detail
         assert user.calls == []
+
+
+def _old_hello(homes: Homes, instance: bytes) -> tuple[Hello, InitiatorHandshake]:
+    """A HELLO as a client of protocol version 1 writes it (version byte 1)."""
+    unsigned = Hello(os.urandom(8), homes.user.name, instance, b"", 1, (1,), LEGACY_VERSION)
+    handshake = InitiatorHandshake(
+        homes.user.private_key, homes.robot.public_key, unsigned.prologue
+    )
+    payload = json.dumps({"user": homes.user.name, "ts": time.time_ns()}).encode()
+    message = handshake.write_message(payload)
+    return Hello(unsigned.call_id, homes.user.name, instance, message, 1, (1,), 1), handshake
+
+
+async def test_a_client_of_protocol_version_1_is_refused_with_the_reason(
+    homes: Homes, caplog: pytest.LogCaptureFixture
+) -> None:
+    """An older client's HELLO on the old key gets an authenticated version-1 refusal on
+    its old inbox (it shows the reason instead of timing out), and the robot logs it once."""
+    async with memory_endpoints(homes, MemoryHub(seed=1)) as (robot, user):
+        instance = os.urandom(8)
+        old_inbox = f"telebot/user/{homes.user.name}/{instance.hex()}/in"
+        answers: list[bytes] = []
+        user.transport.subscribe(old_inbox, lambda b: answers.extend(s.payload for s in b))
+        hello, handshake = _old_hello(homes, instance)
+        publisher = user.transport.publisher(f"telebot/robot/{ROBOT}/in", Lane.CONTROL)
+        with caplog.at_level(logging.WARNING, logger="telebot.call"):
+            for _ in range(3):  # an old client repeats its HELLO
+                publisher.put(hello.encode())
+            await wait_until(lambda: len(answers) == 3)
+        assert answers[0] == answers[1] == answers[2]  # the cached answer, repeated
+        assert answers[0][:2] == bytes([LEGACY_VERSION, 2])  # a WELCOME it can read
+        answer, _ = finish_call(handshake, Welcome(hello.call_id, answers[0][10:]))
+        assert not answer.accepted
+        assert answer.reason == (
+            f"{ROBOT} speaks telebot protocol version 2, this client version 1: upgrade telebot"
+        )
+        warnings = [
+            r.getMessage() for r in caplog.records if "protocol version 1" in r.getMessage()
+        ]
+        assert len(warnings) == 1, warnings
+        assert robot.stats.rejected["old_protocol_version"] == 1 and not robot.calls
+
+
+async def test_a_hello_under_another_users_name_in_the_key_is_not_read(homes: Homes) -> None:
+    """The key names the sender: a HELLO whose caller is not the key's last chunk (or on
+    the version-1 key) is dropped before any cryptography; the real one gets its call."""
+    async with memory_endpoints(homes, MemoryHub(seed=1)) as (robot, user):
+        hello, _ = start_call(
+            homes.user.private_key,
+            homes.robot.public_key,
+            caller=homes.user.name,
+            instance=user.instance,
+            call_id=os.urandom(8),
+            wall_time_ns=time.time_ns(),
+        )
+        for key in (f"telebot/robot/{ROBOT}/in/mallory", f"telebot/robot/{ROBOT}/in"):
+            publisher = user.transport.publisher(key, Lane.CONTROL)
+            publisher.put(hello.encode())
+            publisher.close()
+        await wait_until(lambda: robot.stats.rejected["sender_mismatch"] == 2)
+        assert not robot.calls
+        call = await user.call(ROBOT)
+        assert call.active
+
+
+def _publish_while_the_loop_is_busy(
+    publisher: Publisher, genuine: bytes, call_id: bytes, forged: int
+) -> None:
+    """Blocks the event loop (a plain function called from a coroutine) while ``genuine``
+    and then ``forged`` forged frames of ``call_id`` are published and received."""
+    publisher.put(genuine)
+    for n in range(forged):
+        publisher.put(DataFrame.make_header(call_id, 10_000 + n) + os.urandom(41))
+        if n % 50 == 0:
+            time.sleep(0.002)  # let the reader thread keep up with zenoh's own channel
+    time.sleep(0.5 * SLACK)  # the reader has queued (or refused) all of it
+
+
+@pytest.mark.zenoh
+async def test_forged_frames_never_push_a_genuine_control_frame_out_of_the_queue(
+    homes: Homes,
+) -> None:
+    """Over real zenoh: a genuine CONTROL frame, then more forged frames (the call's
+    header, fresh counters, random tags) than the CONTROL queue holds, arrive while the
+    event loop is busy. The forged ones fail the AEAD on the transport's thread and are
+    never queued, so the genuine frame, the oldest, is still delivered (without that, the
+    queue's bound would drop it to make room for forgeries)."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    robot_settings = ZenohSettings(listen=[endpoint], multicast_scouting=False)
+    user_settings = ZenohSettings(connect=[endpoint], multicast_scouting=False)
+    settings = CallSettings(timeout=GENEROUS_TIMEOUT)
+    async with (
+        ZenohTransport(robot_settings) as robot_transport,
+        ZenohTransport(user_settings) as user_transport,
+        RobotEndpoint(robot_transport, homes.robot, homes.contacts, settings=settings) as robot,
+        UserEndpoint(user_transport, homes.user, homes.known, settings=settings) as user,
+    ):
+        got: list[str] = []
+        robot.on_call = lambda c: c.channel("chat", lane=Lane.CONTROL)
+        call = await user.call(ROBOT)
+        chat = call.channel("chat", lane=Lane.CONTROL)
+        chat.set_callback(lambda d: got.append(str(d.payload)))
+        await wait_until(lambda: len(robot.calls) == 1)
+        robot_call = robot.calls[0]
+        key = f"{user.base}/call/{ROBOT}/{call.id}/ctl"
+        publisher = robot_transport.publisher(key, Lane.CONTROL)
+        genuine = robot_call._session.seal(encode_datagram(b"chat", "genuine"))
+        header = bytes.fromhex(call.id)
+        forged_count = CONTROL_LIMITS.max_samples + 200
+        _publish_while_the_loop_is_busy(publisher, genuine, header, forged_count)
+        await wait_until(lambda: "genuine" in got)
+        await wait_until(lambda: call.stats.rejected["forged"] >= forged_count)
+        assert call.active and call.receive_dropped == 0
+
+
+async def test_calling_a_robot_of_protocol_version_1_times_out_naming_the_version(
+    homes: Homes,
+) -> None:
+    """A version-1 robot (online, listening on the old handshake key only) never sees a
+    version-2 HELLO: the call times out, and says to check the robot's protocol version."""
+    hub = MemoryHub(seed=1)
+    async with (
+        MemoryTransport(hub, "old-robot") as old_robot,
+        MemoryTransport(hub, "user") as user_transport,
+        UserEndpoint(user_transport, homes.user, homes.known) as user,
+    ):
+        heard: list[bytes] = []
+        old_robot.subscribe(
+            f"telebot/robot/{ROBOT}/in", lambda b: heard.extend(s.payload for s in b)
+        )
+        old_robot.declare_presence(
+            f"telebot/presence/robot/{ROBOT}/{encode_key(homes.robot.public_key)}"
+        )
+        with pytest.raises(CallTimeout, match="does it run telebot protocol version 2"):
+            await user.call(ROBOT, timeout=1.0)
+        assert heard == []  # the HELLO went to .../in/alice, where version 1 never listens

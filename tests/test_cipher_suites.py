@@ -219,7 +219,7 @@ class FakeRobot:
         self.hellos: list[Hello] = []
         self._answers = answers
         self._transport = transport
-        transport.subscribe(f"telebot/robot/{ROBOT}/in", self._on_samples)
+        transport.subscribe(f"telebot/robot/{ROBOT}/in/*", self._on_samples)
 
     def _on_samples(self, samples: Sequence[Sample]) -> None:
         for sample in samples:
@@ -230,7 +230,7 @@ class FakeRobot:
             self.hellos.append(hello)
             if self._answers:
                 retry = Retry(hello.call_id, self._answers.pop(0)).encode()
-                inbox = f"telebot/user/{hello.caller}/{hello.instance.hex()}/in"
+                inbox = f"telebot/user/{hello.caller}/{hello.instance.hex()}/in/{ROBOT}"
                 self._transport.publisher(inbox, Lane.CONTROL).put(retry)
 
 

@@ -284,7 +284,7 @@ async def test_forged_tampered_replayed_and_garbage_frames_are_dropped_and_count
         call = await user.call(ROBOT)
         chat = call.channel("chat")
         # The call's DATA key on the robot (chat is a DATA-lane channel here).
-        inbox = f"telebot/robot/{ROBOT}/call/{call.id}/data"
+        inbox = f"telebot/robot/{ROBOT}/call/{USER}/{call.id}/data"
         captured: list[bytes] = []
 
         def tap(samples: Any) -> None:
@@ -318,7 +318,7 @@ async def test_forged_tampered_replayed_and_garbage_frames_are_dropped_and_count
         other_call[2] ^= 0xFF  # another call's id on this call's key
         raw.put(bytes(other_call))
         # The same garbage on the handshake key is the endpoint's to count.
-        handshake = user.transport.publisher(f"telebot/robot/{ROBOT}/in", Lane.CONTROL)
+        handshake = user.transport.publisher(f"telebot/robot/{ROBOT}/in/{USER}", Lane.CONTROL)
         for junk in (fresh, os.urandom(200), b""):
             handshake.put(junk)
         handshake.close()

@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from telebot.channels.proto.frames import (
     CALL_ID_LEN,
     INSTANCE_LEN,
+    LEGACY_VERSION,
     MAX_BUNDLE,
     MAX_CHANNEL_NAME,
     MAX_DATAGRAM,
@@ -107,7 +108,8 @@ def frame_bytes(frame: Hello | Welcome | DataFrame | Retry) -> bytes:
 
 def assert_valid_frame(data: bytes, frame: object) -> None:
     """A decoded frame re-encodes to exactly the bytes it came from."""
-    assert data[0] == VERSION
+    # Only a HELLO may be of version 1 (read, to be refused with a reason).
+    assert data[0] == VERSION or (isinstance(frame, Hello) and data[0] == LEGACY_VERSION)
     if isinstance(frame, Hello):
         assert data[1] == 4
         assert NAME_PATTERN.fullmatch(frame.caller)
@@ -195,17 +197,28 @@ def test_data_frame_round_trip(frame: DataFrame) -> None:
 
 def test_data_header_layout() -> None:
     header = DataFrame.make_header(b"ABCDEFGH", 0x0102030405060708)
-    assert header == b"\x01\x03ABCDEFGH\x01\x02\x03\x04\x05\x06\x07\x08"
+    assert header == b"\x02\x03ABCDEFGH\x01\x02\x03\x04\x05\x06\x07\x08"
 
 
 def test_hello_layout_and_prologue() -> None:
     hello = Hello(b"\x00" * 7 + b"\x01", "alice", b"instance", b"noise", 2, (2, 1))
     assert hello.prologue == (
-        b"\x01\x04" + b"\x00" * 7 + b"\x01" + b"\x05alice" + b"instance" + b"\x02\x02\x02\x01"
+        b"\x02\x04" + b"\x00" * 7 + b"\x01" + b"\x05alice" + b"instance" + b"\x02\x02\x02\x01"
     )
     assert hello.encode() == hello.prologue + b"noise"
     # The defaults: ChaChaPoly alone.
     assert Hello(bytes(8), "a", bytes(8), b"n").prologue.endswith(b"\x01\x01\x01")
+
+
+def test_a_version_1_hello_is_read_as_one_and_other_version_1_frames_are_refused() -> None:
+    hello = Hello(bytes(8), "alice", bytes(8), bytes(96), 1, (1,), LEGACY_VERSION)
+    assert hello.encode()[0] == 1 and hello.prologue[0] == 1
+    assert decode_frame(hello.encode()) == hello  # read, so that it can be refused
+    welcome = Welcome(bytes(8), bytes(48), LEGACY_VERSION)
+    assert welcome.encode()[:2] == b"\x01\x02"
+    for frame in (welcome.encode(), bytes([1, 3]) + bytes(8 + 8 + 16)):
+        with pytest.raises(ProtocolError, match="unsupported protocol version 1"):
+            decode_frame(frame)
 
 
 def test_hello_of_the_protocol_before_suites_is_refused_with_a_clear_error() -> None:
@@ -395,8 +408,11 @@ def test_invalid_names(name: str) -> None:
 # --------------------------------------------------------------------------- rejection
 
 
-@pytest.mark.parametrize("version", [0, 2, 3, 255])
-@pytest.mark.parametrize("kind", [2, 3, 4, 5])
+# A version-1 HELLO is read (test_a_version_1_hello_is_read_as_one_...): not among these.
+@pytest.mark.parametrize(
+    ("version", "kind"),
+    [(v, k) for v in (0, 1, 3, 255) for k in (2, 3, 4, 5) if (v, k) != (LEGACY_VERSION, 4)],
+)
 def test_unknown_version_is_refused(version: int, kind: int) -> None:
     valid = {
         4: Hello(bytes(8), "alice", bytes(8), b"n").encode(),
@@ -452,26 +468,26 @@ def test_malformed_messages_are_refused(data: bytes, match: str) -> None:
     ("data", "match"),
     [
         (b"", "too short"),
-        (bytes([1, 3]) + bytes(7), "too short"),
-        (bytes([1, 3]) + bytes(8 + 8 + 15), "DATA frame too short"),
-        (bytes([1, 4]) + bytes(8), "HELLO frame too short"),
-        (bytes([1, 4]) + bytes(8) + b"\x05alice" + bytes(8), "truncated"),  # no suites
-        (bytes([1, 4]) + bytes(8) + b"\x05alice" + bytes(8) + b"\x01", "truncated"),
-        (bytes([1, 4]) + bytes(8) + b"\x05alice" + bytes(8) + b"\x01\x01\x01", "truncated"),
-        (bytes([1, 4]) + bytes(8) + b"\x05alice" + bytes(8) + b"\x01\x02\x01", "truncated"),
-        (bytes([1, 4]) + bytes(8) + b"\x05ali", "truncated"),
-        (bytes([1, 4]) + bytes(8) + b"\x00" + bytes(11), "caller name"),  # empty name
-        (bytes([1, 4]) + bytes(8) + b"\x03a b" + bytes(11), "caller name"),
-        (bytes([1, 4]) + bytes(8) + b"\x02\xc3\xa9" + bytes(11), "caller name"),  # é
-        (bytes([1, 4]) + bytes(8) + b"\x41" + b"a" * 65 + bytes(11), "caller name"),  # 65 chars
+        (bytes([2, 3]) + bytes(7), "too short"),
+        (bytes([2, 3]) + bytes(8 + 8 + 15), "DATA frame too short"),
+        (bytes([2, 4]) + bytes(8), "HELLO frame too short"),
+        (bytes([2, 4]) + bytes(8) + b"\x05alice" + bytes(8), "truncated"),  # no suites
+        (bytes([2, 4]) + bytes(8) + b"\x05alice" + bytes(8) + b"\x01", "truncated"),
+        (bytes([2, 4]) + bytes(8) + b"\x05alice" + bytes(8) + b"\x01\x01\x01", "truncated"),
+        (bytes([2, 4]) + bytes(8) + b"\x05alice" + bytes(8) + b"\x01\x02\x01", "truncated"),
+        (bytes([2, 4]) + bytes(8) + b"\x05ali", "truncated"),
+        (bytes([2, 4]) + bytes(8) + b"\x00" + bytes(11), "caller name"),  # empty name
+        (bytes([2, 4]) + bytes(8) + b"\x03a b" + bytes(11), "caller name"),
+        (bytes([2, 4]) + bytes(8) + b"\x02\xc3\xa9" + bytes(11), "caller name"),  # é
+        (bytes([2, 4]) + bytes(8) + b"\x41" + b"a" * 65 + bytes(11), "caller name"),  # 65 chars
         (
-            bytes([1, 4]) + bytes(8) + b"\x01a" + bytes(8) + b"\x01\x01\x01" + bytes(2049),
+            bytes([2, 4]) + bytes(8) + b"\x01a" + bytes(8) + b"\x01\x01\x01" + bytes(2049),
             "too long",
         ),
-        (bytes([1, 5]) + bytes(8), "RETRY frame of the wrong size"),
-        (bytes([1, 5]) + bytes(10), "RETRY frame of the wrong size"),
-        (bytes([1, 2]) + bytes(8), "missing"),
-        (bytes([1, 2]) + bytes(8) + bytes(2049), "too long"),
+        (bytes([2, 5]) + bytes(8), "RETRY frame of the wrong size"),
+        (bytes([2, 5]) + bytes(10), "RETRY frame of the wrong size"),
+        (bytes([2, 2]) + bytes(8), "missing"),
+        (bytes([2, 2]) + bytes(8) + bytes(2049), "too long"),
     ],
 )
 def test_malformed_frames_are_refused(data: bytes, match: str) -> None:

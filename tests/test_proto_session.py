@@ -385,7 +385,7 @@ def test_seal_and_open_both_ways(suite: Suite) -> None:
     pair = make_pair(suite=suite)
     assert pair.caller.suite is pair.robot.suite is suite
     sealed = pair.caller.seal(datagram("hi robot"))
-    assert sealed[:2] == b"\x01\x03"
+    assert sealed[:2] == b"\x02\x03"
     assert sealed[2:10] == pair.caller.call_id
     assert b"hi robot" not in sealed
     assert pair.robot.open(frame(sealed), now=0.1) == Datagram("chat", "hi robot")

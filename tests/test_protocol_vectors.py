@@ -146,9 +146,50 @@ def test_documented_vectors_match_the_code(suite: Suite) -> None:
         assert value in wholes, f"{suite.label}: {value} in docs/protocol.md is not computed"
 
 
-def test_documented_retry_matches_the_code() -> None:
+#: The HELLO a user sends after the RETRY of section 11.8: a fresh ephemeral and ``ts``.
+RETRY_E = bytes(range(128, 160))
+RETRY_P1 = b'{"user": "alice", "ts": 1700000000000000001}'
+
+
+def hello_after_retry() -> Hello:
+    """The user of 11.5 (offers aesgcm, chachapoly) writes its HELLO again with ChaChaPoly."""
+    offers = (int(Suite.AESGCM), int(Suite.CHACHAPOLY))
+    unsigned = Hello(CALL_ID, "alice", INSTANCE, b"", Suite.CHACHAPOLY, offers)
+    initiator = InitiatorHandshake(
+        USER_S,
+        public_key_of(ROBOT_S),
+        unsigned.prologue,
+        suite=Suite.CHACHAPOLY,
+        ephemeral_private=RETRY_E,
+    )
+    message = initiator.write_message(RETRY_P1)
+    return Hello(CALL_ID, "alice", INSTANCE, message, Suite.CHACHAPOLY, offers)
+
+
+def test_documented_retry_and_the_hello_after_it_match_the_code() -> None:
     text = PROTOCOL_MD.read_text(encoding="utf-8")
-    assert Retry(CALL_ID, Suite.CHACHAPOLY).encode().hex() in text
+    retry_section = text[text.index("### 11.8 RETRY") : text.index("\n## 12. ")]
+    assert Retry(CALL_ID, Suite.CHACHAPOLY).encode().hex() in retry_section
+    hello = hello_after_retry()
+    flat = re.sub(r"[\s`]", "", retry_section)
+    for part in (hello.prologue, hello.noise_message[:32], hello.encode()):
+        assert part.hex() in flat, part.hex()
+    assert public_key_of(RETRY_E).hex() in flat
+    # A robot that prefers ChaChaPoly reads it (the same offers it answered RETRY to).
+    offer, handshake = read_hello(ROBOT_S, hello)
+    assert (offer.user, offer.timestamp_ns, handshake.suite) == ("alice", 1700000000000000001, 1)
+    # Every hex string shown in 11.8 is one of these values (none is stale).
+    wholes = "|".join(
+        [
+            Retry(CALL_ID, Suite.CHACHAPOLY).encode().hex(),
+            hello.encode().hex(),
+            RETRY_E.hex(),
+            public_key_of(RETRY_E).hex(),
+            RETRY_P1.decode(),
+        ]
+    )
+    for value in hex_in(retry_section):
+        assert value in wholes, value
 
 
 def test_appendix_a_derives_the_same_vectors_from_the_bare_primitives() -> None:
@@ -180,6 +221,7 @@ def test_the_two_suites_give_other_handshakes() -> None:
 
 
 if __name__ == "__main__":  # prints the values for the document
+    print("hello after retry", hello_after_retry().encode().hex())
     for each in Suite:
         print(each.label)
         for key, val in vectors(each).items():

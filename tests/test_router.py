@@ -175,10 +175,10 @@ async def test_the_acl_keeps_a_robot_off_another_robots_keys(fleet: Fleet) -> No
         rover.put("telebot/robot/guiabot/in", "from-rover")
         fake = rover.liveliness().declare_token("telebot/presence/robot/guiabot/FAKE")
         rover.declare_subscriber("telebot/robot/guiabot/in", lambda s: rover_got.append(b""))
-        rover.put(f"telebot/user/{USER}/0000000000000000/in", "rover-allowed")
+        rover.put(f"telebot/user/{USER}/0000000000000000/in/rover", "rover-allowed")
         probe = rover.liveliness().declare_token("telebot/presence/robot/rover/PROBE")
         await wait_until(lambda: "rover-allowed" in got and any("PROBE" in t for t in tokens))
-        user.put("telebot/robot/guiabot/in", "from-user")  # the user may
+        user.put(f"telebot/robot/guiabot/in/{USER}", "from-user")  # the user may
         await wait_until(lambda: "from-user" in got)
         assert "from-rover" not in got
         assert not any(t.endswith("/FAKE") for t in tokens)
@@ -189,6 +189,55 @@ async def test_the_acl_keeps_a_robot_off_another_robots_keys(fleet: Fleet) -> No
         bob_token.undeclare()
     finally:
         for session in (admin, rover, user, bob):
+            await asyncio.to_thread(session.close)
+
+
+async def test_a_user_cannot_put_on_another_users_call_keys_and_calls_still_work(
+    fleet: Fleet,
+) -> None:
+    """bob, certified, sniffs the key alice's call frames go to and puts on it: the router
+    drops his frames (the key names alice), while alice's call goes on through it. The
+    same for rover, a certified robot, on alice's side of her call with guiabot."""
+    seen: list[tuple[str, bytes]] = []
+    admin = await asyncio.to_thread(_raw_session, fleet, fleet.admin)
+    bob = await asyncio.to_thread(_raw_session, fleet, fleet.other_user)
+    rover = await asyncio.to_thread(_raw_session, fleet, fleet.robot_certs["rover"])
+    try:
+        admin.declare_subscriber(
+            "telebot/**",
+            lambda s: seen.append((str(s.key_expr), s.payload.to_bytes())),
+        )
+        config = fleet.router.app_config(fleet.user)
+        async with connect("guiabot", home=fleet.user_home, config=config, timeout=20) as client:
+            await wait_until(lambda: any(key.endswith("/ctl") for key, _ in seen))
+            await wait_until(
+                lambda: any(k.startswith("telebot/user/") and k.endswith("/ctl") for k, _ in seen)
+            )
+            alices_ctl = next(
+                key for key, _ in seen if key.startswith("telebot/robot/") and key.endswith("/ctl")
+            )
+            users_ctl = next(
+                key for key, _ in seen if key.startswith("telebot/user/") and key.endswith("/ctl")
+            )
+            rover.put(users_ctl, b"rover-forged-ctl")
+            rover.put(f"telebot/user/{USER}/0000000000000000/in/rover", b"rover-allowed")
+            alices_data = alices_ctl.removesuffix("/ctl") + "/data"
+            bob.put(alices_ctl, b"bob-forged-ctl")
+            bob.put(alices_data, b"bob-forged-data")
+            # What bob may do, after: once it came through, the router had handled the
+            # two puts before it on the same link.
+            bob.put(f"telebot/robot/guiabot/in/{OTHER_USER}", b"bob-allowed")
+            await wait_until(lambda: any(p == b"bob-allowed" for _, p in seen))
+            await wait_until(lambda: any(p == b"rover-allowed" for _, p in seen))
+            assert not any(p.startswith(b"bob-forged") for _, p in seen), alices_ctl
+            assert not any(p.startswith(b"rover-forged") for _, p in seen), users_ctl
+            replies = [r.text async for r in client.chat_replies("where")]
+            assert replies, "alice's call works through the router"
+            assert client.reconnects == 0 and client.call.active
+        assert f"/call/{USER}/" in alices_ctl  # the keys name their sender
+        assert "/call/guiabot/" in users_ctl
+    finally:
+        for session in (admin, bob, rover):
             await asyncio.to_thread(session.close)
 
 

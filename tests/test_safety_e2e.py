@@ -401,6 +401,52 @@ async def test_a_data_flood_drops_no_call_and_its_stop_still_reaches_the_base(
         print(done)
 
 
+@pytest.mark.zenoh
+async def test_forged_frames_on_a_calls_control_key_drop_no_call(
+    daemon: Daemon, processes: list[Process]
+) -> None:
+    """A stranger who sniffed alice's call keys floods the robot's CONTROL key of her call
+    with forged frames, 20,000 a second for 10 s, on a machine kept busy by two CPU
+    burners: they fail authentication and are refused before they are queued, and her
+    heartbeats still get through, so neither side drops the call. (The rig's generous
+    call timeout, as for the data flood above: on a machine this loaded a stall of the
+    whole process may outlast 0.5 s with no flood at all. That forgeries cannot push a
+    heartbeat out of the queue is test_call_keys.py's, exactly.)"""
+    async with daemon.connect() as alice:
+        call = alice.call.id
+        assert (await alice.stop()).ok
+        with cpu_burners():
+            forger = Process(
+                [
+                    "flood_proc",
+                    "--forge",
+                    call,
+                    "--user",
+                    daemon.driver,
+                    "--connect",
+                    daemon.endpoint,
+                    "--robot",
+                    ROBOT,
+                    "--rate",
+                    "20000",
+                    "--seconds",
+                    str(FLOOD_SECONDS),
+                ],
+                env=child_env(),
+            )
+            processes.append(forger)
+            await forger.wait_event("flooding", timeout=30)
+            done = await forger.wait_event("done", timeout=FLOOD_SECONDS + 30)
+        assert done["sent"] >= 0.5 * 20_000 * FLOOD_SECONDS, done  # it did flood
+        assert alice.reconnects == 0 and alice.call.id == call and alice.call.active
+        assert (await alice.chat("where?")).ok
+        events = []
+        while not daemon.events.lines.empty():
+            events.append(daemon.events.lines.get_nowait())
+        # The robot's side did not drop it either (it would have said "ended").
+        assert not [e for e in events if '"ended"' in e and call in e], events
+
+
 # -- the audit log ---------------------------------------------------------------------------
 
 

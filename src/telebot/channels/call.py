@@ -4,14 +4,19 @@ The protocol logic is in :mod:`telebot.channels.proto` (sans-IO); this module mo
 frames over a :class:`~telebot.channels.transports.base.Transport` and keeps time.
 
 Key expressions (``ns`` is the namespace, ``telebot`` by default; ``{base}`` is
-``{ns}/robot/{robot}`` for a robot and ``{ns}/user/{user}/{instance}`` for a user client)::
+``{ns}/robot/{robot}`` for a robot and ``{ns}/user/{user}/{instance}`` for a user client;
+``{sender}`` is the name of the side that publishes on the key, so that a router's access
+control can let each side publish only on keys that name it)::
 
-    {base}/in                                  handshake frames (HELLO, WELCOME, RETRY)
-    {base}/call/{call_id}/ctl                  one call's CONTROL frames (heartbeats, stop,
+    {base}/in/{sender}                         handshake frames (HELLO, WELCOME, RETRY)
+    {base}/call/{sender}/{call_id}/ctl         one call's CONTROL frames (heartbeats, stop,
                                                chat, goals, safety, hang-up)
-    {base}/call/{call_id}/data                 one call's DATA and BULK frames
+    {base}/call/{sender}/{call_id}/data        one call's DATA and BULK frames
     {ns}/presence/robot/{robot}/{public_key}   presence token of a robot
     {ns}/presence/user/{user}/{instance}       presence token of a user client
+
+A robot also listens on ``{base}/in``, the handshake key of protocol version 1, only to
+answer an older client's HELLO with a refusal that names the version it must upgrade to.
 
 Every key has its own subscription with its own bounded queue (:data:`HANDSHAKE_LIMITS`,
 :data:`CONTROL_LIMITS`, :data:`DATA_LIMITS`): a flood of data can only drop that call's
@@ -40,7 +45,9 @@ from typing import Literal, Self
 from telebot.channels.channel import Channel, DatagramTap, ReceivedDatagram
 from telebot.channels.proto.frames import (
     INSTANCE_LEN,
+    LEGACY_VERSION,
     MAX_FRAME,
+    VERSION,
     Bundle,
     Coalescer,
     DataFrame,
@@ -158,7 +165,7 @@ class Call:
         self.peer = peer
         #: The role of the user in this call (the contact's role, as the robot granted it).
         self.role = role
-        call_keys = f"{peer_base}/call/{session.call_id.hex()}"
+        call_keys = f"{peer_base}/call/{endpoint.identity.name}/{session.call_id.hex()}"
         self._peer_keys = {
             Lane.CONTROL: f"{call_keys}/ctl",
             Lane.DATA: f"{call_keys}/data",
@@ -407,19 +414,26 @@ class _CallInbox:
     different keys, so a few frames may be read before the WELCOME: they wait here).
     Anything that is not a DATA frame of this call is counted and dropped before any
     cryptography.
+
+    The CONTROL key's subscription has a gate (:meth:`CallSession.authentic`, run on the
+    transport's receiving thread): once the call is up, only frames that authenticate
+    are queued there, so a flood of forged frames on it (a stranger who sniffed the
+    call's keys) costs one failed AEAD each off the event loop, and never pushes a
+    heartbeat or a stop out of the queue. They are counted as ``forged``.
     """
 
-    def __init__(self, endpoint: _Endpoint, call_id: bytes) -> None:
+    def __init__(self, endpoint: _Endpoint, call_id: bytes, peer: str) -> None:
         self.call_id = call_id
         self._call: Call | None = None
         self._early: list[Sample] = []
         self._early_dropped = 0
         self._closed = False
-        keys = f"{endpoint.base}/call/{call_id.hex()}"
+        self._gated_seen = 0  # forged CONTROL frames already counted in the call's stats
+        keys = f"{endpoint.base}/call/{peer}/{call_id.hex()}"
         transport = endpoint.transport
-        self._subscriptions = [
-            transport.subscribe(f"{keys}/ctl", self._on_samples, limits=CONTROL_LIMITS)
-        ]
+        control = transport.subscribe(f"{keys}/ctl", self._on_samples, limits=CONTROL_LIMITS)
+        control.gate = self._authentic
+        self._subscriptions = [control]
         try:
             self._subscriptions.append(
                 transport.subscribe(f"{keys}/data", self._on_samples, limits=DATA_LIMITS)
@@ -440,6 +454,11 @@ class _CallInbox:
         queues = sum(sub.stats.dropped + sub.stats.oversized for sub in self._subscriptions)
         return queues + self._early_dropped
 
+    def _authentic(self, payload: bytes) -> bool:
+        """Transport thread: whether a CONTROL frame may be queued (any, while set up)."""
+        call = self._call
+        return call is None or call._session.authentic(payload)
+
     def attach(self, call: Call) -> None:
         """Deliver to ``call`` from now on, starting with what arrived early."""
         self._call = call
@@ -455,6 +474,10 @@ class _CallInbox:
             self._early_dropped += max(0, len(samples) - room)
             return
         rejected = call._session.stats.rejected
+        gated = self._subscriptions[0].stats.gated
+        if gated != self._gated_seen:
+            rejected["forged"] += gated - self._gated_seen
+            self._gated_seen = gated
         call_id = self.call_id
         for sample in samples:
             if call.end is not None:  # a handler ended the call: the rest is for nobody
@@ -521,10 +544,14 @@ class _Endpoint:
         self._last_hangup = -math.inf  # event-loop time of the last HANGUP sent
         self._incompatible_seen: set[str] = set()  # warned about once each
 
-    # Subclasses name their key prefix, handshake inbox and presence keys.
+    # Subclasses name their key prefix, handshake inbox and presence keys. The inbox is
+    # a prefix: peers publish on ``{inbox}/{their name}``.
     base: str
     inbox: str
     presence_key: str
+    #: Whether to listen on the version-1 handshake key ``{inbox}`` too (a robot does,
+    #: to tell older clients to upgrade).
+    _legacy_inbox = False
 
     async def __aenter__(self) -> Self:
         await self.start()
@@ -540,8 +567,10 @@ class _Endpoint:
 
     async def start(self) -> None:
         """Listen on the inbox and announce presence (the transport must be open)."""
+        # ``in/**`` also matches ``in`` itself (zenoh's ``**`` is zero or more chunks).
+        pattern = f"{self.inbox}/**" if self._legacy_inbox else f"{self.inbox}/*"
         self._subscription = self.transport.subscribe(
-            self.inbox, self._on_samples, limits=HANDSHAKE_LIMITS
+            pattern, self._on_samples, limits=HANDSHAKE_LIMITS
         )
         self._presence = self.transport.declare_presence(self.presence_key)
 
@@ -616,13 +645,19 @@ class _Endpoint:
 
     def _on_samples(self, samples: Sequence[Sample]) -> None:
         """Handshake frames; a call's frames come on its own keys (:class:`_CallInbox`)."""
+        prefix = f"{self.inbox}/"
         for sample in samples:
+            # The sender's name is the key's last chunk (None: the version-1 key).
+            sender = sample.key[len(prefix) :] if sample.key.startswith(prefix) else None
+            if sender is not None and "/" in sender:
+                self.stats.rejected["not_a_handshake_key"] += 1
+                continue
             try:
                 frame = decode_frame(sample.payload)
                 if isinstance(frame, DataFrame):
                     self.stats.rejected["data_on_handshake_key"] += 1
                 else:
-                    self._on_handshake(frame)
+                    self._on_handshake(frame, sender)
             except IncompatiblePeer as exc:
                 # A peer of another version: say so once (its HELLO repeats 4 times a
                 # second), then count it like any other frame that does not decode.
@@ -638,7 +673,7 @@ class _Endpoint:
                 self.stats.rejected["internal_error"] += 1
                 log.exception("error handling a frame on %s", sample.key)
 
-    def _on_handshake(self, frame: Hello | Welcome | Retry) -> None:
+    def _on_handshake(self, frame: Hello | Welcome | Retry, sender: str | None) -> None:
         raise ProtocolError(f"unexpected {type(frame).__name__} frame")
 
 
@@ -651,6 +686,8 @@ class RobotEndpoint(_Endpoint):
     ``async with RobotEndpoint(transport, identity, contacts) as robot:`` then
     ``async for call in robot.incoming():`` or set :attr:`on_call`.
     """
+
+    _legacy_inbox = True
 
     def __init__(
         self,
@@ -683,9 +720,14 @@ class RobotEndpoint(_Endpoint):
         while True:
             yield await self._incoming.get()
 
-    def _on_handshake(self, frame: Hello | Welcome | Retry) -> None:
+    def _on_handshake(self, frame: Hello | Welcome | Retry, sender: str | None) -> None:
         if not isinstance(frame, Hello):
             raise ProtocolError(f"a robot does not take {type(frame).__name__} frames")
+        if frame.version == VERSION and sender != frame.caller:
+            # The key names the sender (a router lets only that user publish on it): a
+            # HELLO that names someone else, or one on the version-1 key, is not read.
+            self.stats.rejected["sender_mismatch"] += 1
+            return
         raw = frame.encode()
         cached = self._answered.get(frame.call_id)
         if cached is not None:
@@ -710,6 +752,9 @@ class RobotEndpoint(_Endpoint):
             # A live call's id in a new HELLO (its answer left the cache): never a second
             # call, with its own keys, on top of the first.
             self.stats.rejected["call_id_reused"] += 1
+            return
+        if frame.version == LEGACY_VERSION:
+            self._refuse_old_version(frame, raw)
             return
         suite = choose_suite(frame.offers, self.suites)
         if suite is not None and suite != frame.suite:
@@ -777,7 +822,7 @@ class RobotEndpoint(_Endpoint):
             role=contact.role,
             peer_base=f"{self.namespace}/user/{frame.caller}/{instance}",
             peer_presence=f"{self.namespace}/presence/user/{frame.caller}/{instance}",
-            inbox=_CallInbox(self, frame.call_id),
+            inbox=_CallInbox(self, frame.call_id, frame.caller),
         )
         call.peer_instance = instance
         self._reply(frame, welcome.encode())
@@ -800,6 +845,38 @@ class RobotEndpoint(_Endpoint):
         else:
             self._incoming.put_nowait(call)
 
+    def _refuse_old_version(self, frame: Hello, raw: bytes) -> None:
+        """Answer an older client's HELLO with a refusal it can read, naming the version.
+
+        The refusal is a version-1 WELCOME (authenticated, so the old client shows its
+        reason rather than timing out) on the version-1 inbox; no call is made.
+        """
+        offer, handshake = read_hello(self.identity.private_key, frame)  # raises if forged
+        if offer.user != frame.caller:
+            raise ProtocolError(
+                f"HELLO header names {frame.caller!r} but its payload {offer.user!r}"
+            )
+        self.stats.rejected["old_protocol_version"] += 1
+        reason = (
+            f"{self.identity.name} speaks telebot protocol version {VERSION}, this client "
+            f"version {LEGACY_VERSION}: upgrade telebot"
+        )
+        if frame.caller not in self._incompatible_seen and len(self._incompatible_seen) < 64:
+            self._incompatible_seen.add(frame.caller)  # its HELLO repeats: say so once
+            log.warning(
+                "refused a call from %r: it runs telebot protocol version %d, this robot %d "
+                "(the caller must upgrade telebot)",
+                frame.caller,
+                LEGACY_VERSION,
+                VERSION,
+            )
+        welcome, _ = answer_hello(
+            handshake, frame.call_id, Answer(False, self.identity.name, reason=reason)
+        )
+        encoded = Welcome(frame.call_id, welcome.noise_message, LEGACY_VERSION).encode()
+        self._remember(frame.call_id, raw, encoded)
+        self._reply(frame, encoded)
+
     def _refuse(self, frame: Hello, raw: bytes, handshake: ResponderHandshake, reason: str) -> None:
         """Answer ``frame`` with a refusal naming ``reason`` (repeated if the HELLO is)."""
         welcome, _ = answer_hello(
@@ -816,6 +893,8 @@ class RobotEndpoint(_Endpoint):
 
     def _reply(self, hello: Hello, welcome: bytes) -> None:
         inbox = f"{self.namespace}/user/{hello.caller}/{hello.instance.hex()}/in"
+        if hello.version != LEGACY_VERSION:  # version 1 clients listen on ``…/in`` itself
+            inbox = f"{inbox}/{self.identity.name}"
         publisher = self.transport.publisher(inbox, Lane.CONTROL)
         try:
             publisher.put(welcome)
@@ -924,8 +1003,8 @@ class UserEndpoint(_Endpoint):
         publisher: Publisher | None = None
         watch: Subscription | None = None
         try:
-            self._pending_inbox[call_id] = inbox = _CallInbox(self, call_id)
-            publisher = self.transport.publisher(f"{self.namespace}/robot/{robot}/in", Lane.CONTROL)
+            self._pending_inbox[call_id] = inbox = _CallInbox(self, call_id, robot)
+            publisher = self.transport.publisher(self._hello_key(robot), Lane.CONTROL)
             # A robot online under this name with another key cannot read the HELLO and
             # never answers: its presence token (which carries its key) tells at once.
             tokens: dict[str, bool] = {}
@@ -950,7 +1029,12 @@ class UserEndpoint(_Endpoint):
             if not isinstance(exc, TimeoutError):
                 raise
             online = robot in {p.name for p in await self.robots_online(wait=0.0)}
-            hint = "it is online but did not answer" if online else "is it online?"
+            hint = (
+                # A version-1 robot listens on another key and never sees the HELLO.
+                f"it is online but did not answer: does it run telebot protocol version {VERSION}?"
+                if online
+                else "is it online?"
+            )
             if self.transport.unanswered_hint:
                 hint += f" {self.transport.unanswered_hint}"
             raise CallTimeout(
@@ -1008,13 +1092,21 @@ class UserEndpoint(_Endpoint):
         log.debug("%s picked cipher suite %s: calling again", robot, new_handshake.suite.label)
         self._pending[retry.call_id] = (new_handshake, future)
         self._pending_hello[retry.call_id] = frame = hello.encode()
-        publisher = self.transport.publisher(f"{self.namespace}/robot/{robot}/in", Lane.CONTROL)
+        publisher = self.transport.publisher(self._hello_key(robot), Lane.CONTROL)
         try:
             publisher.put(frame)
         finally:
             publisher.close()
 
-    def _on_handshake(self, frame: Hello | Welcome | Retry) -> None:
+    def _hello_key(self, robot: str) -> str:
+        """Where this user's HELLOs to ``robot`` go: the robot's inbox, under our name."""
+        return f"{self.namespace}/robot/{robot}/in/{self.identity.name}"
+
+    def _on_handshake(self, frame: Hello | Welcome | Retry, sender: str | None) -> None:
+        robot = self._pending_robot.get(frame.call_id)
+        if robot is not None and sender != robot:  # an answer comes on in/{the robot}
+            self.stats.rejected["sender_mismatch"] += 1
+            return
         if isinstance(frame, Retry):
             self._on_retry(frame)
             return

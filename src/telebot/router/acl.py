@@ -4,29 +4,36 @@ Everything here returns plain dicts (JSON-serialisable, also valid JSON5) built 
 names and paths; nothing is opened or read. ``apps/router_cli.py`` loads them into
 zenoh-python, and ``telebot-router config`` prints the router's one for ``zenohd -c``.
 
-The access-control list follows the key layout of docs/protocol.md §2.1; per common
-name (``robot:R``, ``user:U``, ``admin:A``), on what the client *sends* to the router
-(ingress; what the router forwards to it is whatever it was allowed to subscribe to):
+The access-control list follows the key layout of docs/protocol.md §2.1, where every
+key a peer publishes on names that peer; per common name (``robot:R``, ``user:U``,
+``admin:A``), on what the client *sends* to the router (ingress; what the router
+forwards to it is whatever it was allowed to subscribe to):
 
 =========================  ==============================================================
 robot R may                keys
 =========================  ==============================================================
 subscribe                  ``{ns}/robot/R/**`` (its inbox and its calls' keys)
-publish (put)              ``{ns}/user/*/*/in``, ``{ns}/user/*/*/call/*/ctl|data``
+publish (put)              ``{ns}/user/*/*/in/R``, ``{ns}/user/*/*/call/R/*/ctl|data``;
+                           ``{ns}/user/*/*/in`` (version 1's inbox: the refusal that
+                           tells an older client to upgrade)
 liveliness token           ``{ns}/presence/robot/R/*``
 watch liveliness           ``{ns}/presence/user/*/*``
 user U may
 subscribe                  ``{ns}/user/U/**``
-publish (put)              ``{ns}/robot/*/in``, ``{ns}/robot/*/call/*/ctl|data``
+publish (put)              ``{ns}/robot/*/in/U``, ``{ns}/robot/*/call/U/*/ctl|data``;
+                           ``{ns}/robot/*/in`` (version 1's HELLO key, so that an older
+                           client is told to upgrade rather than left unanswered)
 liveliness token           ``{ns}/presence/user/U/*``
 watch liveliness           ``{ns}/presence/robot/*/*``
 admin A may                everything
 =========================  ==============================================================
 
 Everything else is denied (``default_permission: deny``): a robot cannot publish to or
-read any robot's keys, its own included (nobody calls a robot from a robot), a user
-cannot read another user's keys or pose as another user's presence, and no certificate
-outside the list (or on ``revoked.txt``) can do anything at all.
+read any robot's keys, its own included (nobody calls a robot from a robot), nor publish
+on a call key that names another robot; a user cannot read another user's keys, pose as
+another user's presence, or publish on a robot's handshake or call keys under another
+user's name (so not into another user's call); and no certificate outside the list (or
+on ``revoked.txt``) can do anything at all.
 """
 
 from __future__ import annotations
@@ -106,11 +113,13 @@ def _rule(rid: str, messages: list[str], keys: Iterable[str]) -> dict[str, Any]:
 
 def _member_rules(member: Member, ns: str) -> list[dict[str, Any]]:
     tag, name = f"{member.kind}-{member.name}", member.name
-    call_keys = ("in", "call/*/ctl", "call/*/data")
+    # The keys a peer publishes on name it (the last chunk of the handshake key, the
+    # chunk after "call"); "in" alone is protocol version 1's handshake key.
+    put_keys = ("in", f"in/{name}", f"call/{name}/*/ctl", f"call/{name}/*/data")
     if member.kind == "robot":
         return [
             _rule(f"{tag}-sub", ["declare_subscriber"], [f"{ns}/robot/{name}/**"]),
-            _rule(f"{tag}-put", ["put"], [f"{ns}/user/*/*/{k}" for k in call_keys]),
+            _rule(f"{tag}-put", ["put"], [f"{ns}/user/*/*/{k}" for k in put_keys]),
             _rule(
                 f"{tag}-token",
                 ["liveliness_token", "liveliness_query"],
@@ -125,7 +134,7 @@ def _member_rules(member: Member, ns: str) -> list[dict[str, Any]]:
     if member.kind == "user":
         return [
             _rule(f"{tag}-sub", ["declare_subscriber"], [f"{ns}/user/{name}/**"]),
-            _rule(f"{tag}-put", ["put"], [f"{ns}/robot/*/{k}" for k in call_keys]),
+            _rule(f"{tag}-put", ["put"], [f"{ns}/robot/*/{k}" for k in put_keys]),
             _rule(
                 f"{tag}-token",
                 ["liveliness_token", "liveliness_query"],

@@ -3,11 +3,11 @@
 Every frame starts with a version byte and a type byte, then the 8-byte call id that
 the caller picked at random. Integers are big-endian unless said otherwise::
 
-    HELLO    ver=1 | type=4 | call_id[8] | name_len u8 | name | instance[8]
+    HELLO    ver=2 | type=4 | call_id[8] | name_len u8 | name | instance[8]
                    | suite u8 | offer_len u8 | offers[offer_len] | noise_msg1
-    WELCOME  ver=1 | type=2 | call_id[8] | noise_msg2
-    DATA     ver=1 | type=3 | call_id[8] | counter u64 | AEAD(ciphertext + 16-byte tag)
-    RETRY    ver=1 | type=5 | call_id[8] | suite u8
+    WELCOME  ver=2 | type=2 | call_id[8] | noise_msg2
+    DATA     ver=2 | type=3 | call_id[8] | counter u64 | AEAD(ciphertext + 16-byte tag)
+    RETRY    ver=2 | type=5 | call_id[8] | suite u8
 
 HELLO's header (everything before ``noise_msg1``) is the Noise prologue, so a frame
 whose header was changed in flight fails the handshake. Its ``offers`` are the cipher
@@ -16,7 +16,10 @@ one ``noise_msg1`` is written with; a robot that picks another answers RETRY, an
 caller sends the HELLO again with that suite (see ``session.py``). DATA's 18-byte
 header is the AEAD's associated data and its counter is the nonce (see :mod:`.noise`).
 Type 1 was the HELLO of telebot before cipher suites were negotiated; it is refused
-with an error that says so.
+with an error that says so. Version 2 put the sender's name in the zenoh keys (see
+``call.py``); the frames are those of version 1 but for the version byte. A version-1
+HELLO (type 4) still decodes, as a :class:`Hello` with ``version=1``, so that a robot
+can tell an older client why it will not be answered (:data:`LEGACY_VERSION`).
 
 Inside a DATA frame's plaintext the first byte says what it carries::
 
@@ -43,6 +46,7 @@ from telebot.errors import DatagramTooLarge, IncompatiblePeer, ProtocolError
 __all__ = [
     "CALL_ID_LEN",
     "INSTANCE_LEN",
+    "LEGACY_VERSION",
     "MAX_BUNDLE",
     "MAX_CHANNEL_NAME",
     "MAX_DATAGRAM",
@@ -68,7 +72,10 @@ __all__ = [
     "validate_name",
 ]
 
-VERSION = 1
+VERSION = 2
+#: The protocol before the sender's name was in the keys: only its HELLO is read, to
+#: refuse it with a reason (docs/protocol.md section 4.2).
+LEGACY_VERSION = 1
 CALL_ID_LEN = 8
 INSTANCE_LEN = 8
 #: Largest datagram payload a channel carries, as Skype's App2App did (32 KB).
@@ -138,13 +145,15 @@ class Hello:
     noise_message: bytes
     suite: int = 1
     offers: tuple[int, ...] = (1,)
+    #: :data:`VERSION`, or :data:`LEGACY_VERSION` for an older client's HELLO.
+    version: int = VERSION
 
     @property
     def prologue(self) -> bytes:
         """The header bytes, bound into the handshake as the Noise prologue."""
         name = self.caller.encode("ascii")
         return (
-            bytes([VERSION, TYPE_HELLO])
+            bytes([self.version, TYPE_HELLO])
             + self.call_id
             + bytes([len(name)])
             + name
@@ -163,10 +172,12 @@ class Welcome:
 
     call_id: bytes
     noise_message: bytes
+    #: :data:`VERSION`, or :data:`LEGACY_VERSION` for the refusal sent to an older client.
+    version: int = VERSION
 
     def encode(self) -> bytes:
         """The frame's bytes."""
-        return bytes([VERSION, TYPE_WELCOME]) + self.call_id + self.noise_message
+        return bytes([self.version, TYPE_WELCOME]) + self.call_id + self.noise_message
 
 
 @dataclass(slots=True)
@@ -210,9 +221,16 @@ def decode_frame(data: bytes) -> Frame:
     if len(data) > MAX_FRAME:
         raise ProtocolError(f"frame too long ({len(data)} bytes)")
     version, kind = data[0], data[1]
-    if version != VERSION:
-        raise ProtocolError(f"unsupported protocol version {version}")
     call_id = bytes(data[2:10])
+    if version != VERSION:
+        if version == LEGACY_VERSION and kind == TYPE_HELLO:
+            return _decode_hello(data, call_id, LEGACY_VERSION)
+        if version == LEGACY_VERSION and kind == TYPE_LEGACY_HELLO:
+            raise IncompatiblePeer(
+                "HELLO without cipher suite negotiation (frame type 1): the caller runs an "
+                "older telebot and must be upgraded"
+            )
+        raise ProtocolError(f"unsupported protocol version {version}")
     if kind == TYPE_DATA:
         if len(data) < DATA_HEADER_LEN + _TAG_LEN:
             raise ProtocolError("DATA frame too short")
@@ -224,11 +242,6 @@ def decode_frame(data: bytes) -> Frame:
         if len(data) != 2 + CALL_ID_LEN + 1:
             raise ProtocolError("RETRY frame of the wrong size")
         return Retry(call_id, data[10])
-    if kind == TYPE_LEGACY_HELLO:
-        raise IncompatiblePeer(
-            "HELLO without cipher suite negotiation (frame type 1): the caller runs an "
-            "older telebot and must be upgraded"
-        )
     if kind == TYPE_WELCOME:
         noise_message = bytes(data[10:])
         if not noise_message or len(noise_message) > _MAX_NOISE_MESSAGE:
@@ -237,7 +250,7 @@ def decode_frame(data: bytes) -> Frame:
     raise ProtocolError(f"unknown frame type {kind}")
 
 
-def _decode_hello(data: bytes, call_id: bytes) -> Hello:
+def _decode_hello(data: bytes, call_id: bytes, version: int = VERSION) -> Hello:
     if len(data) < 11:
         raise ProtocolError("HELLO frame too short")
     name_len = data[10]
@@ -261,7 +274,9 @@ def _decode_hello(data: bytes, call_id: bytes) -> Hello:
     noise_message = bytes(data[noise_start:])
     if len(noise_message) > _MAX_NOISE_MESSAGE:
         raise ProtocolError("HELLO handshake message too long")
-    return Hello(call_id, caller, bytes(data[name_end:suite_at]), noise_message, suite, offers)
+    return Hello(
+        call_id, caller, bytes(data[name_end:suite_at]), noise_message, suite, offers, version
+    )
 
 
 @dataclass(slots=True)

@@ -110,8 +110,11 @@ class SubscriptionStats:
     received: int = 0  # samples delivered or queued for delivery
     dropped: int = 0  # queued, then discarded because the consumer fell behind
     oversized: int = 0  # discarded uncopied: larger than ``ReceiveLimits.max_payload``
+    gated: int = 0  # refused by the subscription's ``gate`` before they were queued
 
 
+#: A check of a payload before it is queued: False drops it (see :attr:`Subscription.gate`).
+Gate = Callable[[bytes], bool]
 SampleBatchCallback = Callable[[Sequence[Sample]], None]
 PresenceCallback = Callable[[str, bool], None]
 
@@ -133,6 +136,12 @@ class Subscription(abc.ABC):
 
     #: This subscription's own counters (a presence watch leaves them at zero).
     stats: SubscriptionStats
+    #: If set, each payload is passed to it before it is queued, on whatever thread
+    #: receives it (the zenoh reader thread), and only those it returns True for are
+    #: queued and delivered (the others count in ``stats.gated``). So a check that is
+    #: cheap and needs no state the loop changes (a call's AEAD) keeps what fails it out
+    #: of the bounded queue, where it would push genuine frames out.
+    gate: Gate | None = None
 
     @abc.abstractmethod
     def close(self) -> None:

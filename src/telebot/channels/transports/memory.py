@@ -595,6 +595,9 @@ class MemoryTransport(Transport):
                         sub.stats.oversized += 1
                         self.stats.oversized += 1
                         continue
+                    if sub.gate is not None and not sub.gate(sample.payload):
+                        sub.stats.gated += 1
+                        continue
                     batches.setdefault(sub, []).append(sample)
         if self._inbox:
             self._arm(self._inbox[0][0])

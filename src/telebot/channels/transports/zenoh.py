@@ -329,6 +329,15 @@ async def _run_in_daemon_thread(fn: Callable[[], _T], name: str) -> _T:
     return await future
 
 
+def _passes(gate: Callable[[bytes], bool], payload: bytes) -> bool:
+    """Reader thread: the gate's verdict; a gate that fails lets the loop decide."""
+    try:
+        return gate(payload)
+    except Exception:
+        logger.exception("subscription gate raised; the payload is delivered")
+        return True
+
+
 class _Undeclarable(Protocol):
     # zenoh's stubs leave undeclare() unannotated; this gives our calls a type.
     def undeclare(self) -> object: ...
@@ -441,6 +450,7 @@ class ZenohSubscription(_Entity, Subscription):
         self._received = 0  # reader
         self._dropped = 0  # reader
         self._oversized = 0  # reader
+        self._gated = 0  # reader
         self.stats = SubscriptionStats()
         self._closed = False
         self._raw: zenoh.Subscriber[zenoh.handlers.Handler[zenoh.Sample]] | None = None
@@ -473,17 +483,27 @@ class ZenohSubscription(_Entity, Subscription):
                 if sample.kind == _PUT and not self._closed:
                     raw = sample.payload
                     size = len(raw)
+                    payload = None
                     if size > max_payload:
                         self._oversized += 1
                         self._wake()  # so that the count is reported, with nothing to deliver
                     else:
+                        payload = raw.to_bytes()
+                        gate = self.gate
+                        # Before anything is dropped for it: what fails the gate takes
+                        # no room from the frames queued before it.
+                        if gate is not None and not _passes(gate, payload):
+                            # Counted, not reported at once: waking the loop for each
+                            # of a flood's frames would cost it what the gate saved.
+                            self._gated += 1
+                            payload = None
+                    if payload is not None:
                         while queue and (
                             len(queue) >= max_samples
                             or self._bytes_in - self._bytes_dropped - self._bytes_out + size
                             > max_bytes
                         ):
                             self._drop_oldest()
-                        payload = raw.to_bytes()
                         self._bytes_in += size
                         queue.append(payload if exact else (str(sample.key_expr), payload))
                         taken += 1
@@ -561,6 +581,7 @@ class ZenohSubscription(_Entity, Subscription):
         total.dropped += dropped - stats.dropped
         total.oversized += oversized - stats.oversized
         stats.received, stats.dropped, stats.oversized = received, dropped, oversized
+        stats.gated = self._gated
 
     def _mark_closed(self) -> None:
         self._closed = True
