@@ -176,8 +176,12 @@ async def test_forged_frames_never_push_a_genuine_control_frame_out_of_the_queue
         header = bytes.fromhex(call.id)
         forged_count = CONTROL_LIMITS.max_samples + 200
         _publish_while_the_loop_is_busy(publisher, genuine, header, forged_count)
-        await wait_until(lambda: "genuine" in got)
-        await wait_until(lambda: call.stats.rejected["forged"] >= forged_count)
+        await wait_until(lambda: "genuine" in got, timeout=10 + SLACK)
+        # More forgeries than the queue holds came and were refused (a loaded machine's
+        # zenoh may lose a few of its own; the bound is what would have evicted the genuine).
+        await wait_until(
+            lambda: call.stats.rejected["forged"] > CONTROL_LIMITS.max_samples, timeout=10 + SLACK
+        )
         assert call.active and call.receive_dropped == 0
 
 
