@@ -131,22 +131,25 @@ def video_channel(call: Call) -> Channel:
 
 
 class _RateMeter:
-    """Events per second over the last :data:`_RATE_WINDOW` seconds."""
+    """Events (or an amount of them, such as bytes) per second over the last
+    :data:`_RATE_WINDOW` seconds."""
 
     def __init__(self) -> None:
-        self._times: deque[float] = deque()
+        self._times: deque[tuple[float, int]] = deque()
+        self._sum = 0
 
-    def tick(self, now: float) -> None:
-        self._times.append(now)
+    def tick(self, now: float, amount: int = 1) -> None:
+        self._times.append((now, amount))
+        self._sum += amount
         self._trim(now)
 
     def rate(self, now: float) -> float:
         self._trim(now)
-        return len(self._times) / _RATE_WINDOW
+        return self._sum / _RATE_WINDOW
 
     def _trim(self, now: float) -> None:
-        while self._times and self._times[0] <= now - _RATE_WINDOW:
-            self._times.popleft()
+        while self._times and self._times[0][0] <= now - _RATE_WINDOW:
+            self._sum -= self._times.popleft()[1]
 
 
 async def _until_call_ends(channel: Channel) -> None:
@@ -608,6 +611,10 @@ class VideoReceiverStats:
     stale: int = 0
     #: Frame ids from the first to the newest frame completed (what the sender sent).
     expected: int = 0
+    #: Encoded bytes of the whole frames received (what the link carried to the decoder).
+    received_bytes: int = 0
+    #: The codec of the newest whole frame (None before the first).
+    codec: int | None = None
 
     @property
     def lost(self) -> int:
@@ -668,6 +675,7 @@ class VideoReceiver:
         self._pending: CompleteFrame | VideoFrame | None = None
         self._ready = asyncio.Event()
         self._meter = _RateMeter()
+        self._bytes = _RateMeter()
         self._timer: asyncio.TimerHandle | None = None
         self._watch: asyncio.Task[None] | None = None
         self._ended = False
@@ -679,6 +687,11 @@ class VideoReceiver:
     def fps(self) -> float:
         """Frames handed to the consumer over the last second."""
         return self._meter.rate(self._loop.time())
+
+    @property
+    def bitrate(self) -> float:
+        """Bits per second of the whole frames received over the last second."""
+        return 8 * self._bytes.rate(self._loop.time())
 
     @property
     def ended(self) -> bool:
@@ -831,6 +844,9 @@ class VideoReceiver:
             return
         if self._first_id is None:
             self._first_id = complete.frame_id
+        self.stats.received_bytes += len(complete.data)
+        self.stats.codec = complete.codec
+        self._bytes.tick(self._loop.time(), len(complete.data))
         self.stats.expected = serial_diff(complete.frame_id, self._first_id) + 1
         if not self.gate.admit(complete.frame_id, complete.codec, complete.keyframe):
             self._ask_keyframe()  # a delta frame after a loss: wait for a keyframe
