@@ -54,7 +54,7 @@ async def bench(presses: int) -> tuple[list[float], list[float]]:
                 await arm(rig)
                 x = rig.nav.pose().pose.x
                 target = ENDS[1] if x < sum(ENDS) / 2 else ENDS[0]
-                goal = rig.ui._spawn(rig.client.goto(target, CORRIDOR_Y))
+                goal = asyncio.create_task(rig.client.goto(target, CORRIDOR_Y))
                 await wait_for(lambda: abs(rig.nav.velocity().linear) > 0.2, what=f"moving ({i})")
                 stops = len(rig.zeroed)
                 await page.keyboard.press("s")

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from conftest import ROBOT, Homes, memory_endpoints, wait_until
+from telebot.channels.call import Call
 from telebot.channels.transports.memory import MemoryHub
 from telebot.config import ServiceSettings, SimSettings
 from telebot.errors import ProtocolError
@@ -350,3 +351,96 @@ async def test_garbage_on_the_media_channels_is_dropped_and_counted(homes: Homes
         audio_stats = robot_side.audio_in.sequencer.stats
         assert audio_stats.malformed + audio_stats.late >= 3
         assert rig.client.call.active
+
+
+async def test_the_robot_asks_for_the_users_media_only_once_it_came(homes: Homes) -> None:
+    """A call that sends no media gets no reports on video/user and audio/user (§25); once
+    the call sends voice or pictures, the robot reports on that stream (and only on it)."""
+    from telebot.channels.channel import ReceivedDatagram
+    from telebot.channels.transports.base import Lane
+    from telebot.services.proto.media import USER_AUDIO, USER_VIDEO, encode_audio
+    from telebot.services.proto.video import encode_jpeg, fragment
+
+    loop = asyncio.get_running_loop()
+    nav = SimNavStack.from_settings(FAST, now=loop.time())
+    server = RobotServer(nav, ServiceSettings(), control_hz=50, map_name="small")
+    media = RobotMedia(MediaSettings(voice="off"), mic=ToneSource(440), speaker=MemorySink())
+    media.attach(server)
+    await server.prepare()
+    reports: dict[str, list[bytes]] = {USER_VIDEO: [], USER_AUDIO: []}
+    async with memory_endpoints(homes, MemoryHub(seed=3)) as (robot_endpoint, user_endpoint):
+        server.attach(robot_endpoint)
+        runner = asyncio.create_task(server.run(), name="robot-loop")
+        try:
+            call = await user_endpoint.call(ROBOT)  # a bare call: no media service, no media
+            channels = {name: call.channel(name, lane=Lane.BULK) for name in reports}
+            for name, channel in channels.items():
+
+                def on_datagram(datagram: ReceivedDatagram, into: list[bytes] = reports[name]):
+                    into.append(datagram.payload)
+
+                channel.set_callback(on_datagram)
+            await wait_until(lambda: len(media._calls) == 1)
+            await asyncio.sleep(1.0)  # five report intervals: a window to count in
+            assert reports == {USER_VIDEO: [], USER_AUDIO: []}
+            # Voice comes: the robot asks for more of it, still not for pictures.
+            opus = OpusEncoder().encode(np.zeros(960, dtype=np.int16))
+            for seq in range(3):
+                channels[USER_AUDIO].send(encode_audio(seq, time.time(), opus))
+            await wait_until(lambda: len(reports[USER_AUDIO]) >= 3)
+            assert reports[USER_VIDEO] == []
+            picture = encode_jpeg(np.zeros((48, 64, 3), dtype=np.uint8), 80)
+            for datagram in fragment(0, "user", time.time(), picture, codec=CODEC_JPEG):
+                channels[USER_VIDEO].send(datagram)
+            await wait_until(lambda: len(reports[USER_VIDEO]) >= 3)
+            await wait_until(lambda: media.user_frames_decoded >= 1)
+            assert call.active
+            await call.hangup()
+        finally:
+            runner.cancel()
+            await asyncio.gather(runner, return_exceptions=True)
+            media.close()
+
+
+async def test_the_users_media_stops_unasked_after_the_probe(homes: Homes) -> None:
+    """Against a robot that never asks (no §25 media service), the user's camera and
+    microphone go out for the probe time only, then stop; the call goes on."""
+    from telebot.channels.channel import ReceivedDatagram
+    from telebot.channels.transports.base import Lane
+    from telebot.services.proto.media import USER_AUDIO, USER_MEDIA_PROBE, USER_VIDEO
+
+    got: dict[str, list[float]] = {USER_VIDEO: [], USER_AUDIO: []}
+    async with memory_endpoints(homes, MemoryHub(seed=4)) as (robot_endpoint, user_endpoint):
+
+        def on_call(robot_call: Call) -> None:
+            for name, into in got.items():
+
+                def on_datagram(datagram: ReceivedDatagram, into: list[float] = into) -> None:
+                    into.append(loop.time())
+
+                robot_call.channel(name, lane=Lane.BULK).set_callback(on_datagram)
+
+        loop = asyncio.get_running_loop()
+        robot_endpoint.on_call = on_call
+        client = RobotClient(await user_endpoint.call(ROBOT))
+        try:
+            client.talk(mic="tone:1000", camera=TestPattern(160, 120))
+            await wait_until(lambda: len(got[USER_VIDEO]) > 2 and len(got[USER_AUDIO]) > 2)
+            await asyncio.sleep(USER_MEDIA_PROBE)
+
+            async def quiet() -> bool:
+                """Whether nothing more comes for a second, within 20 s."""
+                for _ in range(20):
+                    counts = {name: len(times) for name, times in got.items()}
+                    await asyncio.sleep(1.0)  # a window to count in
+                    if {name: len(times) for name, times in got.items()} == counts:
+                        return True
+                return False
+
+            assert await quiet(), {name: len(times) for name, times in got.items()}
+            assert client.call.active
+        finally:
+            client.talk()
+            with contextlib.suppress(Exception):
+                await client.call.hangup()
+            await client.aclose()

@@ -405,6 +405,51 @@ async def test_mute_camera_off_and_push_to_talk(rig: MediaRig) -> None:
     assert await sent(page, "sentVideo") > 2  # the camera came back
 
 
+async def screen_shows(screen: Any, video: bool) -> None:
+    """Wait until the robot's screen shows the user's picture (``video``) or says that the
+    camera is off, with the picture cleared."""
+    if video:
+        await screen.wait_for_function(
+            "() => window.telebotScreen.state.video"
+            " && getComputedStyle(document.getElementById('idle')).display === 'none'",
+            timeout=30000,
+        )
+        return
+    await screen.wait_for_function(
+        "() => !window.telebotScreen.state.video && window.telebotScreen.state.call"
+        " && getComputedStyle(document.getElementById('idle')).display !== 'none'",
+        timeout=30000,
+    )
+    assert await screen.inner_text("#idle") == f"{USER}'s camera is off"
+    assert (await screen.inner_text("#state")).startswith(f"{USER} is")
+    # The last picture is gone from the canvas, not merely covered.
+    painted = await screen.evaluate(
+        "() => { const c = document.getElementById('video');"
+        " const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;"
+        " return d.some((v) => v !== 0); }"
+    )
+    assert not painted
+
+
+async def test_the_robot_screen_says_when_the_users_camera_is_off(rig: MediaRig) -> None:
+    screen = rig.screen_page
+    await screen_shows(screen, video=True)
+    await rig.page.click("#camera-off")
+    try:
+        await screen_shows(screen, video=False)
+        assert rig.media.state.video is False and rig.client.call.active
+    finally:
+        await rig.page.click("#camera-off")
+    await screen_shows(screen, video=True)
+    # The camera stays on, but its pictures stop reaching the robot (a stalled uplink):
+    # the screen must not freeze on the last one either.
+    uplink = rig.ui.media.uplink
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(uplink, "send", lambda *args: False)
+        await screen_shows(screen, video=False)
+    await screen_shows(screen, video=True)
+
+
 async def test_a_browser_without_webcodecs_gets_jpeg(rig: MediaRig) -> None:
     context = await rig.browser.new_context()
     try:

@@ -15,6 +15,7 @@ import contextlib
 import io
 import json
 import os
+import re
 import statistics
 import subprocess
 import sys
@@ -40,6 +41,7 @@ from telebot.config import AppConfig, CallSettings, MemorySettings, SimSettings,
 from telebot.identity import ContactBook, Identity
 from telebot.robot.nav import CameraFrame, CameraInfo
 from telebot.robot.sim.stack import SimNavStack
+from telebot.services.proto.media import CODEC_H264, CODEC_JPEG
 from telebot.services.proto.video import encode_jpeg, fragment
 from telebot.services.shm import FrameRingReader, FrameRingWriter, RingFrame
 from telebot.services.video import (
@@ -130,6 +132,10 @@ async def test_a_frame_needing_more_than_one_datagram_is_rebuilt(
         VideoReceiver(video_channel(link.call)) as receiver,
     ):
         got = await take(receiver, 5)
+        # The live bit rate counts the whole frames of the last second, as they came.
+        live = receiver.bitrate
+    assert live > 0 and receiver.stats.received_bytes >= sum(f.jpeg_bytes for f in got)
+    assert receiver.stats.codec == CODEC_JPEG
     assert all(f.fragments >= 3 for f in got)
     assert sender.stats.fragments >= 3 * sender.stats.frames > 0
     assert diff(got[-1].image, nav.get_frame("navcam").image) < 4.0
@@ -373,7 +379,8 @@ async def test_the_video_command_records_and_shares_frames(
             await sender.close()
     assert code == 0, log.getvalue()
     summary = log.getvalue().strip().splitlines()[-1]
-    assert "fps on average" in summary and "lost 0 of" in summary, summary
+    assert "fps, " in summary and "kbit/s on average" in summary, summary
+    assert summary.startswith(f"{ROBOT}: JPEG, ") and "lost 0 of" in summary, summary
     assert len(shared) > 5 and shared == sorted(shared)  # a local program saw the frames
     capture = cv2.VideoCapture(str(out))
     try:
@@ -382,6 +389,37 @@ async def test_the_video_command_records_and_shares_frames(
     finally:
         capture.release()
     assert size == (640, 480) and count >= 15  # about a second at 30 fps
+
+
+async def test_the_video_command_prints_the_codec_and_bit_rate_it_receives(
+    homes: Homes, nav: SimNavStack
+) -> None:
+    hub_name = f"video-rate-{uuid.uuid4().hex[:8]}"
+    config = AppConfig(
+        transport=TransportSettings(kind="memory", memory=MemorySettings(hub=hub_name, node="u"))
+    )
+    senders: list[VideoSender] = []
+    settings = VideoSettings(codecs=(CODEC_H264, CODEC_JPEG))
+    async with (
+        MemoryTransport(MemoryHub.named(hub_name), "robot") as transport,
+        RobotEndpoint(transport, homes.robot, homes.contacts) as robot,
+    ):
+
+        def on_call(call: Call) -> None:
+            sender = VideoSender.for_call(call, nav, settings)
+            sender.start()
+            senders.append(sender)
+
+        robot.on_call = on_call
+        log = io.StringIO()
+        code = await video(ROBOT, home=homes.user_home, config=config, duration=1.0, stream=log)
+        for sender in senders:
+            await sender.close()
+    assert code == 0, log.getvalue()
+    summary = log.getvalue().strip().splitlines()[-1]
+    found = re.match(rf"{ROBOT}: H\.264, [\d.]+ fps, (\d+) kbit/s on average, ", summary)
+    assert found is not None, summary
+    assert int(found[1]) > 0 and senders[0].stats.frames > 5, summary
 
 
 def test_the_recorder_keeps_real_time_repeating_over_gaps_and_cutting_outages(

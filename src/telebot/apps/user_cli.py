@@ -175,7 +175,7 @@ def build_parser() -> Parser:
 
     video = commands.add_parser(
         "video",
-        help="receive the robot's video: show fps and loss, record it, share it in memory",
+        help="receive the robot's video: show codec, fps, bit rate and loss; record it, share it in memory",
     )
     video.add_argument("robot", type=name_arg, help="the robot's name")
     video.add_argument(

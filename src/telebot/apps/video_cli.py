@@ -2,7 +2,7 @@
 (record frames another telebot-user shares in shared memory).
 
 ``video ROBOT [--record out.mp4] [--shm NAME] [--duration S]`` calls the robot, receives its
-video, shows the frame rate and frame loss on stderr while it runs, records to an MP4 file
+video, shows the codec, frame rate, bit rate and frame loss on stderr while it runs, records to an MP4 file
 (OpenCV's video writer, ``mp4v``) and publishes every frame into the shared-memory ring
 ``NAME`` for local programs. ``video-log NAME -o out.mp4 [--duration S]`` is such a program.
 
@@ -28,6 +28,7 @@ import numpy.typing as npt
 from telebot.apps.common import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from telebot.config import AppConfig
 from telebot.services.client import connect
+from telebot.services.proto.media import CODEC_H264, CODEC_JPEG, CODEC_VP8
 from telebot.services.shm import FrameRingReader, FrameRingWriter, validate_ring_name
 from telebot.services.video import VideoFrame, VideoReceiver, video_channel
 
@@ -40,6 +41,8 @@ MAX_FILL = 5.0
 FIRST_FRAME_TIMEOUT = 10.0
 #: The shared-memory ring holds pictures up to this size (larger ones are shrunk).
 RING_SIZE = (1280, 720)
+#: How the status line names the codec the frames come in.
+CODEC_LABELS = {CODEC_H264: "H.264", CODEC_VP8: "VP8", CODEC_JPEG: "JPEG"}
 #: Status lines: every second on a terminal, every STATUS_EVERY seconds otherwise.
 STATUS_EVERY = 5.0
 
@@ -216,11 +219,14 @@ def _summary(
     elapsed: float | None = None,
 ) -> str:
     stats = receiver.stats
-    rate = (
-        f"{stats.delivered / elapsed:.1f} fps on average" if elapsed else f"{receiver.fps:.1f} fps"
-    )
+    if elapsed:
+        bits = 8 * stats.received_bytes / elapsed
+        rate = f"{stats.delivered / elapsed:.1f} fps, {bits / 1000:.0f} kbit/s on average"
+    else:
+        rate = f"{receiver.fps:.1f} fps, {receiver.bitrate / 1000:.0f} kbit/s"
+    codec = CODEC_LABELS.get(frame.codec, f"codec {frame.codec}")
     text = (
-        f"{robot}: {rate}, {_describe(frame)}, {stats.delivered} frames, "
+        f"{robot}: {codec}, {rate}, {_describe(frame)}, {stats.delivered} frames, "
         f"lost {stats.lost} of {stats.expected} ({stats.loss:.1%})"
     )
     if recorder is not None:

@@ -9,8 +9,10 @@ settings, :func:`install_robot_media` registers its per-call service ``media``):
 
 * streams its microphone (Opus, one packet per 20 ms of the event loop's clock, encoded
   once for all calls) on ``audio`` to every user whose reports ask for it;
-* asks every caller for their camera (``video/user``) and microphone (``audio/user``):
-  it reports on both for the whole call, so the user's side sends them if it has them;
+* asks every caller for their camera (``video/user``) and microphone (``audio/user``)
+  once they came: the user's side sends for up to 2 s unasked, the robot reports on a
+  stream from its first frame or packet to the end of the call (a call that sends no
+  media gets no reports);
 * decodes the user's voice into its speaker sink (``[media] speaker``) and the user's
   pictures for local consumers (:meth:`RobotMedia.on_user_picture`, and the
   shared-memory ring ``[media] user_video_ring``);
@@ -80,6 +82,7 @@ from telebot.services.proto.media import (
     CODEC_VP8,
     FRAME_MS,
     USER_AUDIO,
+    USER_MEDIA_PROBE,
     USER_VIDEO,
     AudioPacket,
     AudioSequencer,
@@ -127,6 +130,9 @@ log = logging.getLogger("telebot.services.media")
 BLOCK = FRAME_MS / 1000
 #: A stream's sender stops this long after the receiver's last report.
 IDLE_AFTER = 2.0
+#: The user's camera counts as off when no picture of it came for this long (s): the
+#: user turned it off, or its video stalled (the screen must not show a frozen face).
+USER_VIDEO_STALE = 2.0
 #: User frames waiting for the robot's decoder thread before new ones are dropped.
 MAX_DECODE_QUEUE = 8
 
@@ -163,7 +169,8 @@ class CallState:
     user: str | None = None
     role: str | None = None
     driving: bool = False
-    #: Whether the user's camera / microphone are coming.
+    #: Whether pictures of the user's camera came within :data:`USER_VIDEO_STALE` s
+    #: (False: the camera is off, or its video stalled); whether the user was heard.
     video: bool = False
     audio: bool = False
 
@@ -184,11 +191,16 @@ class AudioBlock:
 
 
 class _AudioOut:
-    """Sends AUDIO packets on one channel while its receiver's reports come."""
+    """Sends AUDIO packets on one channel while its receiver's reports come; with ``probe``
+    (the user's microphone) also for that long from the first wish to send, before any."""
 
-    def __init__(self, channel: Channel, loop: asyncio.AbstractEventLoop) -> None:
+    def __init__(
+        self, channel: Channel, loop: asyncio.AbstractEventLoop, *, probe: float = 0.0
+    ) -> None:
         self.channel = channel
         self._loop = loop
+        self.probe = probe
+        self._probe_from: float | None = None
         self._last_report: float | None = None
         self._bye = False
         self._seq = 0
@@ -197,8 +209,15 @@ class _AudioOut:
         channel.set_callback(self._on_datagram)
 
     def watching(self, now: float) -> bool:
+        """Whether to send now (a sender asks just before it sends)."""
         at = self._last_report
-        return at is not None and not self._bye and now - at <= IDLE_AFTER
+        if at is None:
+            if self.probe <= 0:
+                return False
+            if self._probe_from is None:
+                self._probe_from = now
+            return now - self._probe_from <= self.probe
+        return not self._bye and now - at <= IDLE_AFTER
 
     def _on_datagram(self, datagram: ReceivedDatagram) -> None:
         try:
@@ -219,7 +238,11 @@ class _AudioOut:
 
 
 class _AudioIn:
-    """Takes AUDIO packets on one channel and reports back every 200 ms while running."""
+    """Takes AUDIO packets on one channel and reports back every 200 ms while running.
+
+    With ``wait_for_media`` (the robot, on ``audio/user``) the reports begin only with the
+    first packet taken: a call that sends no voice gets no reports (§25).
+    """
 
     def __init__(
         self,
@@ -227,49 +250,62 @@ class _AudioIn:
         on_packets: Callable[[list[AudioPacket | None]], None],
         loop: asyncio.AbstractEventLoop,
         report_interval: float = REPORT_INTERVAL,
+        *,
+        wait_for_media: bool = False,
     ) -> None:
         self.channel = channel
         self.sequencer = AudioSequencer()
         self._on_packets = on_packets
         self._loop = loop
         self.report_interval = report_interval
+        self.wait_for_media = wait_for_media
         self._timer: asyncio.TimerHandle | None = None
         self.running = False
+        #: Whether reports are going (from start, or from the first packet).
+        self.reporting = False
 
     def start(self) -> None:
         if self.running:
             return
         self.running = True
         self.channel.set_callback(self._on_datagram)
+        if not self.wait_for_media or self.sequencer.stats.packets:
+            self._start_reports()
+
+    def _start_reports(self) -> None:
+        self.reporting = True
         self._on_timer()
 
     def stop(self, *, bye: bool) -> None:
         if not self.running:
             return
         self.running = False
+        reporting, self.reporting = self.reporting, False
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
         self.channel.set_callback(None)
-        if bye:
+        if bye and reporting:
             report = self.sequencer.report(int(self._loop.time() * 1000), bye=True)
             with contextlib.suppress(TelebotError):
                 self.channel.send(report.encode())
 
     def _on_datagram(self, datagram: ReceivedDatagram) -> None:
         out = self.sequencer.on_datagram(datagram.payload, self._loop.time())
+        if not self.reporting and self.running and self.sequencer.stats.packets:
+            self._start_reports()  # the first voice of the call: ask for more from now on
         if out:
             self._on_packets(out)
 
     def _on_timer(self) -> None:
         self._timer = None
-        if not self.running:
+        if not self.running or not self.reporting:
             return
         report = self.sequencer.report(int(self._loop.time() * 1000))
         try:
             self.channel.send(report.encode())
         except CallEnded:
-            self.running = False
+            self.running = self.reporting = False
             return
         except TelebotError as exc:
             log.debug("audio report not sent: %s", exc)
@@ -370,7 +406,7 @@ class RobotMedia:
         self._audio_subs: list[Callable[[AudioPacket], None]] = []
         self._state_subs: list[Callable[[CallState], None]] = []
         self._picture_subs: list[Callable[[npt.NDArray[np.uint8], CompleteFrame], None]] = []
-        #: The user's camera across calls; the robot always asks for it during a call.
+        #: The user's camera across calls; the robot asks for it once a call sends it.
         self.user_video = VideoFeed()
         self._decoder = VideoDecoder()
         self._decode_pool: concurrent.futures.ThreadPoolExecutor | None = None
@@ -604,7 +640,7 @@ class RobotMedia:
                 text = f"connecting… ({call.peer})"
             else:
                 text = f"{call.peer} is {'driving' if driving else 'watching'}"
-            state = CallState(text, call.peer, str(call.role), driving, seen, heard)
+            state = CallState(text, call.peer, str(call.role), driving, chosen.camera_on(), heard)
         if state != self._state:
             self._state = state
             for callback in list(self._state_subs):
@@ -626,21 +662,35 @@ class RobotMediaService:
     def __init__(self, media: RobotMedia, server: RobotServer, call: Call) -> None:
         self.media = media
         self.call = call
-        loop = asyncio.get_running_loop()
+        loop = self._loop = asyncio.get_running_loop()
         self.audio_out = _AudioOut(call.channel(AUDIO, lane=Lane.BULK), loop)
+        # The robot asks for the caller's camera and voice (reports) once they came: a
+        # call that sends none gets no reports on video/user and audio/user (§25).
         self.video_in = VideoFeedService(
-            media.user_video, call, channel=call.channel(USER_VIDEO, lane=Lane.BULK)
+            media.user_video,
+            call,
+            channel=call.channel(USER_VIDEO, lane=Lane.BULK),
+            wait_for_media=True,
         )
         self._decoder = OpusDecoder()
         self.audio_in = _AudioIn(
-            call.channel(USER_AUDIO, lane=Lane.BULK), self._on_user_audio, loop
+            call.channel(USER_AUDIO, lane=Lane.BULK),
+            self._on_user_audio,
+            loop,
+            wait_for_media=True,
         )
-        self.audio_in.start()  # the robot always wants to hear its caller
+        self.audio_in.start()
         media._added(self)
 
     def tick(self, now: float) -> None:
-        """Keep the screen's call state current (who drives changes with the safety state)."""
+        """Keep the screen's call state current (who drives changes with the safety state,
+        the camera goes off when its pictures stop)."""
         self.media.update_state()
+
+    def camera_on(self) -> bool:
+        """Whether a picture of the caller's camera came within :data:`USER_VIDEO_STALE` s."""
+        at = self.video_in.last_frame_at
+        return at is not None and self._loop.time() - at <= USER_VIDEO_STALE
 
     def close(self) -> None:
         """The call ended: stop asking for the user's media."""
@@ -746,7 +796,10 @@ class _UserSources:
     camera: PictureSource | None = None
     video: VideoSettings = field(
         default_factory=lambda: VideoSettings(
-            codecs=(CODEC_VP8, CODEC_H264, CODEC_JPEG), max_fps=15.0, max_bitrate=800_000
+            codecs=(CODEC_VP8, CODEC_H264, CODEC_JPEG),
+            max_fps=15.0,
+            max_bitrate=800_000,
+            probe=USER_MEDIA_PROBE,
         )
     )
 
@@ -836,7 +889,9 @@ class UserMediaService:
         self.call = call
         self._loop = asyncio.get_running_loop()
         self.audio_in = _AudioIn(call.channel(AUDIO, lane=Lane.BULK), media._deliver, self._loop)
-        self.audio_out = _AudioOut(call.channel(USER_AUDIO, lane=Lane.BULK), self._loop)
+        self.audio_out = _AudioOut(
+            call.channel(USER_AUDIO, lane=Lane.BULK), self._loop, probe=USER_MEDIA_PROBE
+        )
         self._video_channel = call.channel(USER_VIDEO, lane=Lane.BULK)
         self.video_out: VideoSender | None = None
         self._opus: OpusEncoder | None = None

@@ -131,22 +131,25 @@ def video_channel(call: Call) -> Channel:
 
 
 class _RateMeter:
-    """Events per second over the last :data:`_RATE_WINDOW` seconds."""
+    """Events (or an amount of them, such as bytes) per second over the last
+    :data:`_RATE_WINDOW` seconds."""
 
     def __init__(self) -> None:
-        self._times: deque[float] = deque()
+        self._times: deque[tuple[float, int]] = deque()
+        self._sum = 0
 
-    def tick(self, now: float) -> None:
-        self._times.append(now)
+    def tick(self, now: float, amount: int = 1) -> None:
+        self._times.append((now, amount))
+        self._sum += amount
         self._trim(now)
 
     def rate(self, now: float) -> float:
         self._trim(now)
-        return len(self._times) / _RATE_WINDOW
+        return self._sum / _RATE_WINDOW
 
     def _trim(self, now: float) -> None:
-        while self._times and self._times[0] <= now - _RATE_WINDOW:
-            self._times.popleft()
+        while self._times and self._times[0][0] <= now - _RATE_WINDOW:
+            self._sum -= self._times.popleft()[1]
 
 
 async def _until_call_ends(channel: Channel) -> None:
@@ -323,7 +326,10 @@ class VideoSender:
 
     @property
     def codec(self) -> int | None:
-        """The codec used for the receiver now (None: they share none)."""
+        """The codec used for the receiver now (None: they share none); before any report,
+        while it probes (the user's camera), its own first choice."""
+        if self.settings.probe > 0 and self.controller.reports == 0:
+            return self.settings.codecs[0]
         return choose_codec(self.accepted, self.settings.codecs)
 
     @property
@@ -608,6 +614,10 @@ class VideoReceiverStats:
     stale: int = 0
     #: Frame ids from the first to the newest frame completed (what the sender sent).
     expected: int = 0
+    #: Encoded bytes of the whole frames received (what the link carried to the decoder).
+    received_bytes: int = 0
+    #: The codec of the newest whole frame (None before the first).
+    codec: int | None = None
 
     @property
     def lost(self) -> int:
@@ -668,6 +678,7 @@ class VideoReceiver:
         self._pending: CompleteFrame | VideoFrame | None = None
         self._ready = asyncio.Event()
         self._meter = _RateMeter()
+        self._bytes = _RateMeter()
         self._timer: asyncio.TimerHandle | None = None
         self._watch: asyncio.Task[None] | None = None
         self._ended = False
@@ -679,6 +690,11 @@ class VideoReceiver:
     def fps(self) -> float:
         """Frames handed to the consumer over the last second."""
         return self._meter.rate(self._loop.time())
+
+    @property
+    def bitrate(self) -> float:
+        """Bits per second of the whole frames received over the last second."""
+        return 8 * self._bytes.rate(self._loop.time())
 
     @property
     def ended(self) -> bool:
@@ -831,6 +847,9 @@ class VideoReceiver:
             return
         if self._first_id is None:
             self._first_id = complete.frame_id
+        self.stats.received_bytes += len(complete.data)
+        self.stats.codec = complete.codec
+        self._bytes.tick(self._loop.time(), len(complete.data))
         self.stats.expected = serial_diff(complete.frame_id, self._first_id) + 1
         if not self.gate.admit(complete.frame_id, complete.codec, complete.keyframe):
             self._ask_keyframe()  # a delta frame after a loss: wait for a keyframe
@@ -974,10 +993,19 @@ class VideoFeedService:
     While the feed is wanted it takes the call's video channel, reassembles frames and
     sends a receiver report at once and then every ``report_interval`` (so the robot
     keeps sending); when nobody is subscribed any more, or on :meth:`close` with the call
-    still up, it sends a *bye*.
+    still up, it sends a *bye*. With ``wait_for_media`` (the robot, on ``video/user``) the
+    reports, keyframe requests and bye begin only once a fragment came: a call that sends
+    no video gets none (docs/protocol.md §25).
     """
 
-    def __init__(self, feed: VideoFeed, call: Call, *, channel: Channel | None = None) -> None:
+    def __init__(
+        self,
+        feed: VideoFeed,
+        call: Call,
+        *,
+        channel: Channel | None = None,
+        wait_for_media: bool = False,
+    ) -> None:
         self.feed = feed
         self.call = call
         #: The call's ``video`` channel, or another stream's (the robot's ``video/user``).
@@ -990,6 +1018,11 @@ class VideoFeedService:
         self._started_at = 0.0
         self._running = False
         self._closed = False
+        self.wait_for_media = wait_for_media
+        #: Whether reports are going (while running, once media came if it waits for it).
+        self.reporting = False
+        #: The loop time of the newest whole frame handed to the feed (None: none yet).
+        self.last_frame_at: float | None = None
         feed._service = self
         self.update()
 
@@ -1006,7 +1039,8 @@ class VideoFeedService:
             self._running = True
             self._started_at = self._loop.time()
             self.channel.set_callback(self._on_datagram)
-            self._on_timer()
+            if not self.wait_for_media or self.reassembler.stats.fragments:
+                self._start_reports()
         elif not self.feed.wanted and self._running:
             self._halt(bye=True)
 
@@ -1028,9 +1062,13 @@ class VideoFeedService:
         self.gate.corrupt()
         self._ask_keyframe()
 
+    def _start_reports(self) -> None:
+        self.reporting = True
+        self._on_timer()
+
     def _ask_keyframe(self) -> None:
         now = self._loop.time()
-        if not self._running or not self.requests.due(self.gate.need_keyframe, now):
+        if not self.reporting or not self.requests.due(self.gate.need_keyframe, now):
             return
         report = self.reassembler.report(int(now * 1000), keyframe=True, codecs=self.feed.codecs)
         with contextlib.suppress(TelebotError):
@@ -1038,11 +1076,12 @@ class VideoFeedService:
 
     def _halt(self, *, bye: bool) -> None:
         self._running = False
+        reporting, self.reporting = self.reporting, False
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
         self.channel.set_callback(None)
-        if bye:
+        if bye and reporting:
             report = self.reassembler.report(
                 int(self._loop.time() * 1000), bye=True, codecs=self.feed.codecs
             )
@@ -1053,16 +1092,19 @@ class VideoFeedService:
         if not self._running or datagram.received_at < self._started_at:
             return
         complete = self.reassembler.on_datagram(datagram.payload, self._loop.time())
+        if not self.reporting and self.reassembler.stats.fragments:
+            self._start_reports()  # the first video of the call: ask for more from now on
         if complete is None:
             return
         if not self.gate.admit(complete.frame_id, complete.codec, complete.keyframe):
             self._ask_keyframe()
             return
+        self.last_frame_at = self._loop.time()
         self.feed._deliver(complete)
 
     def _on_timer(self) -> None:
         self._timer = None
-        if not self._running:
+        if not self._running or not self.reporting:
             return
         now = self._loop.time()
         self.reassembler.poll(now)
@@ -1072,7 +1114,7 @@ class VideoFeedService:
         try:
             self.channel.send(report.encode())
         except CallEnded:
-            self._running = False
+            self._running = self.reporting = False
             return
         except TelebotError as exc:  # a transport hiccup: the next report will do
             log.debug("video report not sent: %s", exc)

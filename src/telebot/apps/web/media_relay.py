@@ -28,6 +28,7 @@ from telebot.channels.transports.base import Lane
 from telebot.errors import CallEnded, ProtocolError, TelebotError
 from telebot.services.proto.media import (
     CODEC_NAMES,
+    USER_MEDIA_PROBE,
     USER_VIDEO,
     AudioPacket,
     choose_codec,
@@ -166,7 +167,9 @@ KEY_GAP: Final = 0.3
 
 class _Uplink:
     """The user's camera to the robot: the page's encoded pictures, fragmented on
-    ``video/user`` while the robot's reports ask for them (never decoded here)."""
+    ``video/user`` while the robot's reports ask for them (never decoded here), and, before
+    the call's first report, for :data:`USER_MEDIA_PROBE` s from the first picture (the
+    robot asks only once pictures came)."""
 
     def __init__(self, relay: MediaRelay) -> None:
         self.relay = relay
@@ -178,6 +181,7 @@ class _Uplink:
         self.frame_id = 0
         self.last_report: float | None = None
         self.last_report_ms: int | None = None
+        self.probe_from: float | None = None
         self.bye = False
         #: The robot's codec list, best first (empty: none yet).
         self.codecs: tuple[int, ...] = ()
@@ -194,13 +198,15 @@ class _Uplink:
         self.call = call
         self.channel = call.channel(USER_VIDEO, lane=Lane.BULK)
         self.channel.set_callback(self._on_report)
-        self.last_report = self.last_report_ms = None
+        self.last_report = self.last_report_ms = self.probe_from = None
         self.codecs = ()
 
     def wanted(self, now: float) -> bool:
-        """Whether the robot asks for the user's camera now."""
+        """Whether the robot asks for the user's camera now (or has not been offered it)."""
         at = self.last_report
-        return at is not None and not self.bye and now - at <= IDLE_AFTER
+        if at is None:
+            return self.probe_from is None or now - self.probe_from <= USER_MEDIA_PROBE
+        return not self.bye and now - at <= IDLE_AFTER
 
     def _on_report(self, datagram: ReceivedDatagram) -> None:
         try:
@@ -230,8 +236,11 @@ class _Uplink:
     def send(self, codec: str, key: bool, capture_time: float, data: bytes) -> bool:
         """Fragment one page picture onto the call; False when not sent (not wanted, no room)."""
         channel = self.channel
-        if channel is None or not self.wanted(asyncio.get_running_loop().time()):
+        now = asyncio.get_running_loop().time()
+        if channel is None or not self.wanted(now):
             return False
+        if self.last_report is None and self.probe_from is None:
+            self.probe_from = now  # the first picture offered on this call, unasked
         frame_id = self.frame_id
         self.frame_id = (frame_id + 1) % _U32
         try:

@@ -4,13 +4,16 @@ As the Guiabot's top screen showed Skype, ``telebot-robot run`` serves
 ``http://127.0.0.1:8090/`` (``[screen]`` in the config, ``--screen HOST:PORT|off``) for a
 browser in kiosk mode on the robot's display. The page (``static/screen.html``) shows the
 video of the user who is sending theirs full screen, their name, the call state ("alice is
-driving", "connecting…") and plays their voice. This process never decodes: it passes the
+driving", "connecting…") and plays their voice. While the user's camera is off (no picture
+of it for ``USER_VIDEO_STALE`` s: turned off, or stalled) the page clears the picture and
+says "alice's camera is off" instead. This process never decodes: it passes the
 encoded frames and Opus packets on to the page, whose ``media.js`` decodes them with
 WebCodecs (the code the user's page uses).
 
 Websocket ``/ws`` (server → page; docs/protocol.md §19)::
 
-    {"type": "state", "user": "alice", "text": "alice is driving", "call": true}
+    {"type": "state", "user": "alice", "text": "alice is driving", "call": true,
+     "video": true}
     binary: media messages (:func:`~telebot.apps.web.media_relay.pack_media`)
 
 and page → server ``{"type": "keyframe"}`` when the page lost a frame (or just opened)
@@ -74,7 +77,13 @@ class RobotScreen:
         self.pages: set[_Page] = set()
         #: Called when a page asks for a keyframe of the user's video.
         self.on_keyframe: Callable[[], None] = lambda: None
-        self.state: dict[str, Any] = {"type": "state", "user": "", "text": "", "call": False}
+        self.state: dict[str, Any] = {
+            "type": "state",
+            "user": "",
+            "text": "",
+            "call": False,
+            "video": False,
+        }
         self.frames_sent = 0
         self._runner: web.AppRunner | None = None
         self._tasks = BackgroundTasks("screen page", expected=(ConnectionError, RuntimeError))
@@ -129,9 +138,10 @@ class RobotScreen:
 
     # -- what the page shows ----------------------------------------------------------
 
-    def show_state(self, user: str, text: str, *, call: bool) -> None:
-        """The call state line: ``user`` on the line (or ""), ``text`` for people."""
-        state = {"type": "state", "user": user, "text": text, "call": call}
+    def show_state(self, user: str, text: str, *, call: bool, video: bool = False) -> None:
+        """The call state line: ``user`` on the line (or ""), ``text`` for people; ``video``:
+        whether the user's camera is coming (else the page says it is off)."""
+        state = {"type": "state", "user": user, "text": text, "call": call, "video": video}
         if state == self.state:
             return
         self.state = state
@@ -265,7 +275,9 @@ def bind_screen(screen: RobotScreen, media: RobotMedia) -> Callable[[], None]:
         screen.audio(packet.seq, packet.capture_time, packet.data)
 
     def on_state(state: CallState) -> None:
-        screen.show_state(state.user or "", state.text, call=state.user is not None)
+        screen.show_state(
+            state.user or "", state.text, call=state.user is not None, video=state.video
+        )
 
     screen.on_keyframe = media.request_keyframe
     return media.subscribe(

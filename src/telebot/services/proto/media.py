@@ -71,6 +71,7 @@ __all__ = [
     "MIN_KEYFRAME_GAP",
     "SAMPLE_RATE",
     "USER_AUDIO",
+    "USER_MEDIA_PROBE",
     "USER_VIDEO",
     "VIDEO",
     "VIDEO_CODECS",
@@ -95,6 +96,9 @@ AUDIO: Final = "audio"
 USER_AUDIO: Final = "audio/user"
 #: All media channels (all BULK lane, every datagram kept).
 MEDIA_CHANNELS: Final = (VIDEO, USER_VIDEO, AUDIO, USER_AUDIO)
+#: Seconds a user sends on ``video/user`` / ``audio/user`` before the robot's first report:
+#: the robot reports (asks for more) only once media came (docs/protocol.md §25).
+USER_MEDIA_PROBE: Final = 2.0
 
 KIND_AUDIO: Final = 0x03
 CODEC_OPUS: Final = 0x10

@@ -736,6 +736,9 @@ class VideoSettings:
     #: Send only while receiver reports come; stop this long (s) after the last one.
     on_demand: bool = True
     idle_after: float = 2.0
+    #: Seconds an on-demand sender sends before any report came (0: none). The user's
+    #: camera uses it: the robot asks for it only once it came (docs/protocol.md §25).
+    probe: float = 0.0
     #: Codecs the sender may use, its preference first (:func:`~telebot.services.proto.media.
     #: choose_codec` picks among those the receiver lists; JPEG for an old receiver).
     codecs: tuple[int, ...] = (CODEC_JPEG,)
@@ -755,6 +758,7 @@ class VideoSettings:
             (0 < self.min_scale <= 1, "0 < min_scale <= 1"),
             (FRAGMENT_HEADER.size + MAX_CAMERA_NAME < self.max_payload <= MAX_DATAGRAM, ""),
             (self.idle_after > 0, "idle_after > 0"),
+            (self.probe >= 0, "probe >= 0"),
             (bool(self.codecs), "at least one codec"),
             (self.keyframe_interval > 0, "keyframe_interval > 0"),
             (0 < self.min_bitrate <= self.max_bitrate, "0 < min_bitrate <= max_bitrate"),
@@ -856,6 +860,7 @@ class VideoRateController:
         self.link = _LinkEstimate()
         self._last_report: Report | None = None
         self._last_report_at: float | None = None
+        self._created = now
         self._hold_until = -math.inf
         self._best_since: float | None = None
         self._bye = False
@@ -900,11 +905,14 @@ class VideoRateController:
         return min(frag_budget, self.rate / self.fps)
 
     def watching(self, now: float) -> bool:
-        """Whether a receiver reported within ``idle_after`` (always True if not on demand)."""
+        """Whether a receiver reported within ``idle_after`` (always True if not on demand),
+        or, before any report, whether the ``probe`` time since creation runs."""
         if not self.settings.on_demand:
             return True
         at = self._last_report_at
-        return at is not None and not self._bye and now - at <= self.settings.idle_after
+        if at is None:
+            return self.settings.probe > 0 and now - self._created <= self.settings.probe
+        return not self._bye and now - at <= self.settings.idle_after
 
     # -- inputs
 
