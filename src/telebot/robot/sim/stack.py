@@ -209,6 +209,8 @@ class SimNavStack:
         #: Emergency stops acted on (see :meth:`emergency_stop`).
         self.emergency_stops = 0
         self._scan: LaserScan = self._laser.scan(self._base.pose, ())
+        # Obstacles or people added or removed since the scan was taken.
+        self._world_changed = False
 
     # ------------------------------------------------------------------ construction
 
@@ -505,7 +507,7 @@ class SimNavStack:
         return self._collisions
 
     def laser_scan(self) -> LaserScan:
-        """The latest laser scan (taken at the last step)."""
+        """The latest laser scan, taken at the end of the last step (where :meth:`pose` is)."""
         return self._scan
 
     def add_obstacle(self, obstacle: Obstacle) -> int:
@@ -513,11 +515,13 @@ class SimNavStack:
         obstacle_id = self._next_obstacle_id
         self._next_obstacle_id += 1
         self._obstacles[obstacle_id] = obstacle
+        self._world_changed = True
         return obstacle_id
 
     def remove_obstacle(self, obstacle_id: int) -> None:
         """Take a dynamic obstacle away (unknown ids are ignored)."""
-        self._obstacles.pop(obstacle_id, None)
+        if self._obstacles.pop(obstacle_id, None) is not None:
+            self._world_changed = True
 
     @property
     def obstacles(self) -> Mapping[int, Obstacle]:
@@ -530,12 +534,14 @@ class SimNavStack:
         self._next_person_id += 1
         self._people[person_id] = (walker, self._now)
         self._update_people(self._now)
+        self._world_changed = True
         return person_id
 
     def remove_person(self, person_id: int) -> None:
         """Take a person out of the world (unknown ids are ignored)."""
         if self._people.pop(person_id, None) is not None:
             self._update_people(self._now)
+            self._world_changed = True
 
     def people_truth(self) -> tuple[PersonTruth, ...]:
         """Where the simulated people really are, as of the last step (ground truth)."""
@@ -607,13 +613,21 @@ class SimNavStack:
         if self._people:
             self._update_people(now)
         obstacles = self._world_obstacles()
-        self._scan = self._laser.scan(self._base.pose, obstacles)
+        if self._world_changed:
+            # Obstacles or people came or went since the last scan: the control of this
+            # step sees them.
+            self._scan = self._laser.scan(self._base.pose, obstacles)
         if self._goal is not None:
             self._control(self._goal, self._now)
         self._teleop_blocked = False
         if self._teleop:
             self._guard_teleop()
         self._move(now, obstacles)
+        # The scan is taken where the base is at ``now``, the time of :meth:`pose`: a scan
+        # placed in the map with a pose it was not taken at shifts everything it saw by the
+        # distance driven since (a braking robot then sees standing people walk at it).
+        self._scan = self._laser.scan(self._base.pose, obstacles)
+        self._world_changed = False
 
     # ------------------------------------------------------------------ internals
 
