@@ -409,15 +409,14 @@ class FollowController:
             linear = speed + DISTANCE_GAIN * gap
         error = normalize_angle(math.atan2(aim[1] - pose.y, aim[0] - pose.x) - pose.yaw)
         angular = max(-limits.angular_speed, min(limits.angular_speed, HEADING_GAIN * error))
-        top = max(0.0, min(cap, settings.max_speed, limits.linear_speed))
+        fastest = max(0.0, min(cap, settings.max_speed, limits.linear_speed))
         # Always slow enough to brake before min_distance and before what the laser sees;
-        # backwards, before what it sees behind.
+        # backwards (away from the person), before what it sees behind.
         room = min(distance - settings.min_distance, clearance) - BRAKING_MARGIN
-        back_room = behind - BRAKING_MARGIN
         # 0.8: the bound falls no faster than the acceleration limit lets the speed fall.
-        top = min(top, math.sqrt(2.0 * 0.8 * limits.linear_accel * max(room, 0.0)))
-        back = min(top, BACK_OFF_SPEED)
-        back = min(back, math.sqrt(2.0 * 0.8 * limits.linear_accel * max(back_room, 0.0)))
+        top = min(fastest, math.sqrt(2.0 * 0.8 * limits.linear_accel * max(room, 0.0)))
+        back_room = max(behind - BRAKING_MARGIN, 0.0)
+        back = min(fastest, BACK_OFF_SPEED, math.sqrt(2.0 * 0.8 * limits.linear_accel * back_room))
         linear = max(-back, min(linear, top))
         if abs(error) >= TURN_IN_PLACE:
             linear = 0.0
