@@ -16,16 +16,21 @@ import pytest
 
 from follow_walk import Walk
 from telebot.channels.proto.session import CallStats
-from telebot.config import FollowSettings, PeopleSettings, RobotConfig, load_toml
+from telebot.config import FollowSettings, PeopleSettings, RobotConfig, SimSettings, load_toml
 from telebot.errors import ConfigError
 from telebot.identity import Role
 from telebot.reasons import Reason, Refusal
 from telebot.robot.follow import (
+    BACK_OFF_SPEED,
+    BRAKING_MARGIN,
+    SETTLE_TOLERANCE,
+    SETTLED,
     Drive,
     Ended,
     FollowController,
     MotionLimits,
     clearance_ahead,
+    clearance_behind,
     pick_target,
 )
 from telebot.robot.nav import GoalStatus, Pose2D, Velocity
@@ -186,6 +191,58 @@ def test_it_turns_on_the_spot_to_keep_a_standing_person_in_front() -> None:
     assert robot.pose.yaw == pytest.approx(math.pi / 2, abs=0.05)
 
 
+def settle(start: float, behind: float, seconds: float = 12.0) -> list[Drive]:
+    """A person standing ``start`` m ahead of the robot, for ``seconds``; every command."""
+    controller = FollowController(1, SETTINGS, LIMITS, now=0.0)
+    robot = Kinematic(Pose2D(0.0, 0.0, 0.0))
+    drives = []
+    for i in range(1, int(seconds / DT)):
+        room = behind + robot.pose.x  # a wall ``behind`` m behind where the robot started
+        update = controller.update(
+            [person(start, 0.0, i * DT)], robot.pose, cap=0.5, now=i * DT, behind=room
+        )
+        assert isinstance(update, Drive), update
+        robot.move(update)
+        drives.append(update)
+    return drives
+
+
+@pytest.mark.parametrize("start", [0.65, 0.9, 1.0, 1.5, 2.5])
+def test_it_settles_at_the_distance_from_a_standing_person(start: float) -> None:
+    # Nearer (a robot that braked from walking pace) or further (one that fell behind):
+    # it moves until it stands at the distance, within SETTLED, and stays.
+    drives = settle(start, behind=math.inf)
+    assert abs(drives[-1].distance - SETTINGS.distance) <= SETTLED + 0.005
+    assert drives[-1].linear == 0.0 and drives[-1].waiting
+    # Backwards slowly; each command within the acceleration limits.
+    assert min(d.linear for d in drives) >= -BACK_OFF_SPEED - 1e-9
+    for a, b in itertools.pairwise(drives):
+        assert abs(b.linear - a.linear) <= LIMITS.linear_accel * DT + 1e-9
+
+
+def test_within_the_tolerance_a_standing_person_does_not_make_it_move() -> None:
+    band = SETTLE_TOLERANCE - 0.001
+    for start in (SETTINGS.distance - band, SETTINGS.distance + band):
+        assert all(d.linear == 0.0 for d in settle(start, behind=math.inf, seconds=3.0))
+
+
+def test_it_backs_off_only_as_far_as_it_sees_free_behind() -> None:
+    # Nothing seen behind (a laser that does not look there): it never reverses.
+    assert all(d.linear >= 0.0 for d in settle(0.9, behind=0.0))
+    # A wall 0.25 m behind: it stops before it (braking margin kept), short of 1.2 m.
+    drives = settle(0.9, behind=0.25)
+    assert min(d.linear for d in drives) < 0.0
+    assert 0.9 + 0.25 - BRAKING_MARGIN - 0.01 <= drives[-1].distance < SETTINGS.distance - 0.05
+
+
+def test_clearance_behind_needs_a_scan_that_sees_behind() -> None:
+    points = np.array([[-1.0, 0.1], [2.0, 0.0]])
+    full = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+    assert clearance_behind(points, 0.25, full) == pytest.approx(1.0 - math.sqrt(0.25**2 - 0.01))
+    front = np.linspace(-math.radians(135), math.radians(135), 270)  # a 270° laser
+    assert clearance_behind(points, 0.25, front) == 0.0
+
+
 def test_pick_target_takes_the_nearest_person_in_front() -> None:
     here = Pose2D(0.0, 0.0, 0.0)
     tracks = [
@@ -231,6 +288,24 @@ def test_it_follows_a_walker_through_two_rooms_and_a_door(the_walk: Walk) -> Non
     assert the_walk.nav.true_pose.y > 2.4
     stopped = result.stopped_within()
     assert stopped is not None and stopped <= 1.0
+
+
+def test_it_stands_at_the_distance_from_a_walker_who_stopped() -> None:
+    """The issue's case: braking from walking pace took it to 0.97–1.00 m of the person.
+
+    The walker of the corridor stops; the robot, which follows through its own base, the
+    simulation's laser and a perfect tracker, stands 1.2 m from them, centre to centre,
+    within SETTLED (and the distance the robot sees is the true one: no localisation
+    noise here).
+    """
+    sim = SimSettings(map="small", control_hz=20.0, position_noise=0.0, heading_noise_deg=0.0)
+    w = Walk(sim=sim)
+    result = w.run(w.walker.duration + 8.0)
+    assert result.ended == "", result.ended
+    assert result.min_distance >= SETTINGS.min_distance
+    last = result.distance[-1]
+    assert abs(last - SETTINGS.distance) <= SETTLED + 0.01, last
+    assert w.nav.velocity().linear == 0.0
 
 
 def test_a_follow_that_loses_the_person_stops_the_robot() -> None:

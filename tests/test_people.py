@@ -299,6 +299,41 @@ def test_an_empty_corridor_raises_no_alerts_while_the_robot_drives() -> None:
     assert score.false <= 5  # track-samples, of 590
 
 
+def test_a_robot_stopped_after_a_stalled_step_sees_a_standing_person_stand() -> None:
+    """Issue 23: "person approaching ahead, 0.9 m" right after a stop, both standing still.
+
+    The simulator took its scan before moving the base and handed it out with the pose
+    after: the people in it were placed in the map as far off as the base had just driven.
+    A robot driving at 0.5 m/s on a loaded machine (a 0.4 s step) then stopped at once
+    saw a standing person jump 0.2 m towards it, and the tracker made that a walk.
+    """
+    stack = small(Pose2D(1.0, 1.2, 0.0))
+    stack.add_person(Walker.standing(4.5, 1.2, yaw=math.pi))
+    perception = PeoplePerception(stack, PeopleSettings(camera_hz=0), threaded=False)
+
+    def behind(stack: SimNavStack) -> float:
+        return float(stack.laser_scan().ranges[0])  # beam 0 looks straight back
+
+    wall = stack.true_pose.x - behind(stack)  # the corridor's west end
+    stopped = False
+    while stack.now < 9.0:
+        stall = not stopped and 4.5 - stack.true_pose.x <= 1.4
+        if not stopped:
+            stack.drive(0.5, 0.0)
+        stack.step(stack.now + (0.4 if stall else 0.05))
+        perception.step(stack.now)
+        if stall:
+            stack.stop()
+            stopped = True
+        # The scan is taken where the pose is: the wall behind is as far as the pose says.
+        assert behind(stack) == pytest.approx(stack.true_pose.x - wall, abs=0.01)
+    assert stopped
+    (person,) = perception.tracks()
+    assert math.hypot(person.vx, person.vy) < 0.1
+    approaching = [a.alert.text for a in perception.alerts if a.alert.kind == "approaching"]
+    assert approaching == []
+
+
 # --------------------------------------------------------------------------- the cameras
 
 

@@ -7,6 +7,7 @@ file, never a silent default. :func:`load_toml` turns any problem into one
 
 from __future__ import annotations
 
+import math
 import os
 import tomllib
 from pathlib import Path
@@ -40,6 +41,7 @@ __all__ = [
     "StrictModel",
     "TransportSettings",
     "VideoConfig",
+    "WalkerSettings",
     "ZenohSettings",
     "ZenohTlsSettings",
     "default_home",
@@ -181,6 +183,40 @@ HARD_MAX_LINEAR_SPEED = 1.5
 HARD_MAX_ANGULAR_SPEED = 3.0
 
 
+class WalkerSettings(StrictModel):
+    """One ``[[sim.walkers]]`` entry: a simulated person walking a scripted path.
+
+    Each starts when the robot does; see :class:`telebot.robot.sim.people.Walker`. The map
+    is checked when the simulator loads it: every waypoint and the straight line between
+    two must be free space.
+    """
+
+    #: Map-frame points ``[x, y]`` or ``[x, y, pause_s]`` (standing ``pause_s`` there on
+    #: arrival); it stands at the last one for good, unless ``loop``.
+    waypoints: list[list[float]] = Field(min_length=1, max_length=1000)
+    #: Walking speed (m/s).
+    speed: float = Field(default=1.0, ge=0.1, le=2.5)
+    #: Seconds standing at the first waypoint before walking.
+    start_delay: float = Field(default=0.0, ge=0, le=86400)
+    #: Walk back to the first waypoint and round again, for ever.
+    loop: bool = False
+
+    @model_validator(mode="after")
+    def _points(self) -> WalkerSettings:
+        for index, point in enumerate(self.waypoints):
+            if len(point) not in (2, 3):
+                raise ValueError(
+                    f"waypoint {index} must be [x, y] or [x, y, pause_s], not {len(point)} numbers"
+                )
+            if not all(math.isfinite(v) for v in point):
+                raise ValueError(f"waypoint {index} must be finite numbers")
+            if len(point) == 3 and not 0.0 <= point[2] <= 86400:
+                raise ValueError(f"waypoint {index}: pause must be 0 … 86400 s, not {point[2]:g}")
+        if self.loop and len({(p[0], p[1]) for p in self.waypoints}) < 2:
+            raise ValueError("a loop needs two different waypoints")
+        return self
+
+
 class SimSettings(StrictModel):
     """The simulated robot: map, places, speed limits, sensors, battery (SI units)."""
 
@@ -232,6 +268,8 @@ class SimSettings(StrictModel):
     #: Camera image size (pixels).
     camera_width: int = Field(default=640, ge=32, le=3840)
     camera_height: int = Field(default=480, ge=24, le=2160)
+    #: Simulated people walking scripted paths (``[[sim.walkers]]``).
+    walkers: list[WalkerSettings] = Field(default_factory=list, max_length=100)
 
 
 #: A ROS 2 graph name (topic, action, namespace): slash-separated, ROS characters only.

@@ -17,7 +17,12 @@ Rules:
 - **Never closer than ``min_distance``** (0.6 m): the speed is always low enough to brake
   before it, and a person inside it ends the follow ("person too close").
 - **Stop when the person stops**, and turn on the spot to keep them in front (in the
-  usercam's view).
+  usercam's view). Then **settle at the distance**: braking from walking pace takes the
+  robot nearer than ``distance`` (or it stopped further back), so once the person stands
+  it moves until the straight-line distance, centre to centre, is within
+  :data:`SETTLED` of ``distance``: forward along the trail, or slowly backwards (only where
+  the laser sees the space behind it free). It moves again only when the distance leaves
+  ``distance`` ± :data:`SETTLE_TOLERANCE`.
 - **A jumping track never makes it lunge**: a measurement further than ``max_jump`` from
   where the person should be is ignored; the velocity changes only within the robot's
   acceleration limits; a person seen only jumping for ``lost_after`` is lost.
@@ -50,6 +55,7 @@ __all__ = [
     "MotionLimits",
     "Track",
     "clearance_ahead",
+    "clearance_behind",
     "pick_target",
 ]
 
@@ -68,8 +74,17 @@ TURN_IN_PLACE = math.radians(60.0)
 BRAKING_MARGIN = 0.1
 #: Weight of a new measurement in the smoothed position and velocity (0 … 1).
 SMOOTHING = 0.5
-#: A standing person farther than ``distance`` + this (m) is still approached.
-STANDING_SLACK = 0.4
+#: A standing person nearer or further than ``distance`` ± this (m, centre to centre) makes
+#: the robot move to settle again …
+SETTLE_TOLERANCE = 0.1
+#: … until it is within this (m) of ``distance``.
+SETTLED = 0.02
+#: Settling speed: at least this (m/s), so that it ends, …
+SETTLE_CREEP = 0.05
+#: … and backwards at most this (m/s): the robot does not look where it reverses.
+BACK_OFF_SPEED = 0.15
+#: Beams this close to straight behind (rad) are what says the space behind is seen.
+REAR_VIEW = math.radians(10.0)
 #: An obstacle hold ends only after this long without one (s).
 UNBLOCKED_AFTER = 0.5
 #: Longest time step the controller integrates at once (s): a stalled loop must not turn
@@ -190,6 +205,19 @@ def clearance_ahead(
     return max(float(reach.min()), 0.0)
 
 
+def clearance_behind(
+    points: npt.NDArray[np.float64], radius: float, angles: npt.NDArray[np.float64]
+) -> float:
+    """Free distance straight behind a round base (m), as :func:`clearance_ahead` ahead.
+
+    ``angles``: the beams of the scan the ``points`` came from. A scan with no beam within
+    :data:`REAR_VIEW` of straight behind does not see there: 0 (nothing is known free).
+    """
+    if angles.size == 0 or float(np.max(np.abs(angles))) < math.pi - REAR_VIEW:
+        return 0.0
+    return clearance_ahead(-points, radius)
+
+
 class FollowController:
     """Follows one track (see the module docstring); one instance per follow."""
 
@@ -223,6 +251,8 @@ class FollowController:
         self._trail: deque[tuple[float, float]] = deque()
         self._held_since: float | None = None
         self._clear_since: float | None = None
+        # Settling at the distance from a standing person: +1 forward, -1 backward, 0 not.
+        self._settling = 0
         self._ended: Ended | None = None
         #: Measurements ignored as jumps (detector errors).
         self.jumps = 0
@@ -250,14 +280,16 @@ class FollowController:
         cap: float,
         now: float,
         clearance: float = math.inf,
+        behind: float = 0.0,
         blocked: bool = False,
     ) -> FollowUpdate:
         """One control cycle: the velocity to command, or why the follow ends.
 
         ``cap``: the linear speed cap in force (safety and link); ``clearance``: free
-        distance ahead of the base, the person aside (:func:`clearance_ahead`);
-        ``blocked``: the robot reports an obstacle holding it up. Once ended, it stays
-        ended and answers the same :class:`Ended`.
+        distance ahead of the base, the person aside (:func:`clearance_ahead`); ``behind``:
+        free distance behind it (:func:`clearance_behind`; 0, the default: unknown, it
+        never backs off); ``blocked``: the robot reports an obstacle holding it up. Once
+        ended, it stays ended and answers the same :class:`Ended`.
         """
         if self._ended is not None:
             return self._ended
@@ -274,7 +306,7 @@ class FollowController:
         if min(distance, math.dist(raw, (pose.x, pose.y))) < self.settings.min_distance:
             return self._end(Reason.PERSON_TOO_CLOSE, "person too close")
         self._update_trail(pose)
-        linear, angular, wanted, waiting = self._wanted(pose, distance, cap, clearance)
+        linear, angular, wanted, waiting = self._wanted(pose, distance, cap, clearance, behind)
         held = (blocked or clearance <= BRAKING_MARGIN) and wanted
         if held:
             self._clear_since = None
@@ -353,10 +385,10 @@ class FollowController:
             trail.popleft()
 
     def _wanted(
-        self, pose: Pose2D, distance: float, cap: float, clearance: float
+        self, pose: Pose2D, distance: float, cap: float, clearance: float, behind: float
     ) -> tuple[float, float, bool, bool]:
         """(speed, turn) before the acceleration limits, whether the robot wants to move
-        (the person is far enough ahead), and whether it waits for a standing person."""
+        ahead (the person is far enough ahead), and whether it waits for a standing person."""
         settings, limits = self.settings, self.limits
         assert self._position is not None
         here = (pose.x, pose.y)
@@ -366,28 +398,41 @@ class FollowController:
         aim = next((c for c in self._trail if math.dist(here, c) >= LOOKAHEAD), self._position)
         speed = math.hypot(*self._velocity)
         waiting = speed < settings.standing_speed
-        gap = along - settings.distance
         if waiting:
-            # Stop with the person; only a long way behind does the robot close in.
-            want = gap > STANDING_SLACK
-            linear = DISTANCE_GAIN * gap if want else 0.0
+            linear = self._settle(distance - settings.distance)
+            want = linear > 0.0
             aim = aim if want else self._position
         else:
+            self._settling = 0
+            gap = along - settings.distance
             want = gap > 0.0
             linear = speed + DISTANCE_GAIN * gap
         error = normalize_angle(math.atan2(aim[1] - pose.y, aim[0] - pose.x) - pose.yaw)
         angular = max(-limits.angular_speed, min(limits.angular_speed, HEADING_GAIN * error))
-        top = max(0.0, min(cap, settings.max_speed, limits.linear_speed))
-        # Always slow enough to brake before min_distance and before what the laser sees.
+        fastest = max(0.0, min(cap, settings.max_speed, limits.linear_speed))
+        # Always slow enough to brake before min_distance and before what the laser sees;
+        # backwards (away from the person), before what it sees behind.
         room = min(distance - settings.min_distance, clearance) - BRAKING_MARGIN
         # 0.8: the bound falls no faster than the acceleration limit lets the speed fall.
-        top = min(top, math.sqrt(2.0 * 0.8 * limits.linear_accel * max(room, 0.0)))
-        linear = max(0.0, min(linear, top))
+        top = min(fastest, math.sqrt(2.0 * 0.8 * limits.linear_accel * max(room, 0.0)))
+        back_room = max(behind - BRAKING_MARGIN, 0.0)
+        back = min(fastest, BACK_OFF_SPEED, math.sqrt(2.0 * 0.8 * limits.linear_accel * back_room))
+        linear = max(-back, min(linear, top))
         if abs(error) >= TURN_IN_PLACE:
             linear = 0.0
         else:
             linear *= math.cos(error)
         return linear, angular, want, waiting
+
+    def _settle(self, gap: float) -> float:
+        """The speed that brings the robot to ``distance`` from a standing person, ``gap``
+        (m) being how much further than that it is now (straight line, centre to centre)."""
+        if self._settling == 0 and abs(gap) > SETTLE_TOLERANCE:
+            self._settling = 1 if gap > 0.0 else -1
+        if self._settling * gap <= SETTLED:
+            self._settling = 0  # settled (or overshot: then it stops, never hunts)
+            return 0.0
+        return math.copysign(max(DISTANCE_GAIN * abs(gap), SETTLE_CREEP), gap)
 
     def _limit(self, wanted: Velocity, dt: float) -> Velocity:
         """The acceleration limits: no command differs from the last by more than allowed."""

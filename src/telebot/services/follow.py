@@ -40,6 +40,7 @@ from telebot.robot.follow import (
     MotionLimits,
     Track,
     clearance_ahead,
+    clearance_behind,
     pick_target,
 )
 from telebot.robot.nav import (
@@ -257,12 +258,14 @@ class FollowService:
             return
         pose = self.nav.pose().pose
         tracks = self._tracks()
+        ahead, behind = self._clearance(pose, controller)
         update = controller.update(
             tracks,
             pose,
             cap=cap,
             now=now,
-            clearance=self._clearance(pose, controller),
+            clearance=ahead,
+            behind=behind,
             blocked=self.nav.status().state is NavState.BLOCKED,
         )
         match update:
@@ -301,15 +304,17 @@ class FollowService:
         why = self._safety_refusal(state) or "stopped"
         self.end_follow(goal, GoalStatus.CANCELLED, f"stopped: {why}", Reason.STOPPED)
 
-    def _clearance(self, pose: Pose2D, controller: FollowController) -> float:
-        """Free distance ahead from the robot's laser, the followed person aside."""
+    def _clearance(self, pose: Pose2D, controller: FollowController) -> tuple[float, float]:
+        """Free distance ahead and behind from the robot's laser, the followed person aside."""
         nav = self.nav
         if not isinstance(nav, LaserSource):
-            return math.inf  # a base without a laser here guards itself (collision monitor)
+            # A base without a laser here guards itself ahead (collision monitor); it is
+            # never backed off blind.
+            return math.inf, 0.0
         try:
             scan = nav.laser_scan()
             if scan is None:
-                return 0.0  # fail safe: no scan yet, no driving ahead
+                return 0.0, 0.0  # fail safe: no scan yet, no driving
             angles = np.asarray(scan.angles, dtype=np.float64)
             ranges = np.asarray(scan.ranges, dtype=np.float64)
             hit = np.isfinite(ranges) & (ranges < scan.range_max)
@@ -318,7 +323,7 @@ class FollowService:
             )
         except Exception:
             log.exception("laser scan unavailable")
-            return 0.0  # fail safe: no scan, no driving ahead
+            return 0.0, 0.0  # fail safe: no scan, no driving
         person = controller.person
         local: tuple[float, float] | None = None
         if person is not None:
@@ -326,7 +331,7 @@ class FollowService:
             c, s = math.cos(pose.yaw), math.sin(pose.yaw)
             local = (dx * c + dy * s, -dx * s + dy * c)
         radius = float(getattr(getattr(nav, "settings", None), "robot_radius", 0.25))
-        return clearance_ahead(points, radius, local)
+        return clearance_ahead(points, radius, local), clearance_behind(points, radius, angles)
 
     def _nobody(self, tracks: Sequence[Track], pose: Pose2D) -> str:
         if not tracks:

@@ -110,6 +110,8 @@ class Walker:
     ``start_delay`` seconds standing at the first waypoint (plus its ``pause``) before walking;
     ``yaw`` is the facing while nothing sets it (a walker with one waypoint stands there
     facing ``yaw``). ``shirt_bgr`` and ``trousers_bgr`` colour the figure in the cameras.
+    ``loop``: from the last waypoint it walks back to the first (pausing there its
+    ``pause``) and round again, for ever, instead of standing at the last.
     """
 
     waypoints: tuple[Waypoint, ...]
@@ -119,6 +121,7 @@ class Walker:
     height: float = 1.75
     shirt_bgr: tuple[int, int, int] = (150, 60, 30)
     trousers_bgr: tuple[int, int, int] = (40, 35, 30)
+    loop: bool = False
     _segs: tuple[tuple[float, float, float], ...] = field(
         init=False, repr=False, compare=False, default=()
     )
@@ -136,7 +139,11 @@ class Walker:
             raise ValueError("walker yaw and height must be finite")
         if not 1.0 <= self.height <= 2.2:
             raise ValueError(f"walker height must be 1.0 … 2.2 m, not {self.height}")
-        object.__setattr__(self, "_segs", _segments(self.waypoints))
+        points = (*self.waypoints, self.waypoints[0]) if self.loop else self.waypoints
+        segs = _segments(points)
+        if self.loop and not any(length > 0 for length, _, _ in segs):
+            raise ValueError("a looping walker needs two different waypoints")
+        object.__setattr__(self, "_segs", segs)
 
     @classmethod
     def along(
@@ -157,7 +164,10 @@ class Walker:
 
     @property
     def duration(self) -> float:
-        """Seconds from being added to arriving at the last waypoint (for good)."""
+        """Seconds from being added to arriving at the last waypoint (for good); a loop
+        never arrives: infinite."""
+        if self.loop:
+            return math.inf
         total = self.start_delay + self.waypoints[0].pause
         for length, _, pause in self._segs[:-1]:
             total += length / self.speed + pause
@@ -173,7 +183,13 @@ class Walker:
         x, y, travelled = first.x, first.y, 0.0
         if t <= 0.0:
             return PersonState(x, y, yaw, 0.0, 0.0, False, 0.0)
-        last = len(self._segs) - 1
+        if self.loop:
+            # One round: every segment walked and every pause stood, the first's last.
+            period = sum(length / self.speed + pause for length, _, pause in self._segs)
+            laps = math.floor(t / period)
+            t -= laps * period
+            travelled = laps * sum(length for length, _, _ in self._segs)
+        last = -1 if self.loop else len(self._segs) - 1
         for index, (length, heading, pause) in enumerate(self._segs):
             walk = length / self.speed
             yaw = heading if length > 0 else yaw
@@ -191,7 +207,7 @@ class Walker:
                 )
             t -= walk
             travelled += length
-            end = self.waypoints[index + 1]
+            end = self.waypoints[(index + 1) % len(self.waypoints)]
             x, y = end.x, end.y
             if index == last:
                 break

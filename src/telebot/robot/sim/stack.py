@@ -17,6 +17,7 @@ robot's map changes, and bumps :meth:`SimNavStack.map_version`.
 from __future__ import annotations
 
 import enum
+import itertools
 import math
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -27,7 +28,15 @@ import numpy as np
 import numpy.typing as npt
 
 from telebot.config import RobotConfig, SimSettings
-from telebot.errors import InvalidCommand, MapError, NoPath, RobotError, UnknownCamera, UnknownPlace
+from telebot.errors import (
+    ConfigError,
+    InvalidCommand,
+    MapError,
+    NoPath,
+    RobotError,
+    UnknownCamera,
+    UnknownPlace,
+)
 from telebot.reasons import Reason
 from telebot.robot.grid import OccupancyGrid
 from telebot.robot.mapfile import load_map, load_places, places_path_for
@@ -58,7 +67,7 @@ from telebot.robot.sim.controller import (
     straight_command,
 )
 from telebot.robot.sim.laser import Laser, LaserScan
-from telebot.robot.sim.people import PersonTruth, Walker, legs_of
+from telebot.robot.sim.people import PersonTruth, Walker, Waypoint, legs_of
 from telebot.robot.sim.planner import Costmap
 from telebot.robot.sim.world import Obstacle
 
@@ -209,6 +218,8 @@ class SimNavStack:
         #: Emergency stops acted on (see :meth:`emergency_stop`).
         self.emergency_stops = 0
         self._scan: LaserScan = self._laser.scan(self._base.pose, ())
+        # Obstacles or people added or removed since the scan was taken.
+        self._world_changed = False
 
     # ------------------------------------------------------------------ construction
 
@@ -238,6 +249,8 @@ class SimNavStack:
         stack = cls(grid, places, settings, start=start, now=now, map_name=settings.map)
         if start is None and not places:
             raise MapError(f"{yaml_path}: the map has no places file: set sim.start")
+        for walker in walkers_of(settings, grid):
+            stack.add_person(walker)
         return stack
 
     @classmethod
@@ -508,7 +521,7 @@ class SimNavStack:
         return self._collisions
 
     def laser_scan(self) -> LaserScan:
-        """The latest laser scan (taken at the last step)."""
+        """The latest laser scan, taken at the end of the last step (where :meth:`pose` is)."""
         return self._scan
 
     def add_obstacle(self, obstacle: Obstacle) -> int:
@@ -516,11 +529,13 @@ class SimNavStack:
         obstacle_id = self._next_obstacle_id
         self._next_obstacle_id += 1
         self._obstacles[obstacle_id] = obstacle
+        self._world_changed = True
         return obstacle_id
 
     def remove_obstacle(self, obstacle_id: int) -> None:
         """Take a dynamic obstacle away (unknown ids are ignored)."""
-        self._obstacles.pop(obstacle_id, None)
+        if self._obstacles.pop(obstacle_id, None) is not None:
+            self._world_changed = True
 
     @property
     def obstacles(self) -> Mapping[int, Obstacle]:
@@ -533,12 +548,14 @@ class SimNavStack:
         self._next_person_id += 1
         self._people[person_id] = (walker, self._now)
         self._update_people(self._now)
+        self._world_changed = True
         return person_id
 
     def remove_person(self, person_id: int) -> None:
         """Take a person out of the world (unknown ids are ignored)."""
         if self._people.pop(person_id, None) is not None:
             self._update_people(self._now)
+            self._world_changed = True
 
     def people_truth(self) -> tuple[PersonTruth, ...]:
         """Where the simulated people really are, as of the last step (ground truth)."""
@@ -610,13 +627,21 @@ class SimNavStack:
         if self._people:
             self._update_people(now)
         obstacles = self._world_obstacles()
-        self._scan = self._laser.scan(self._base.pose, obstacles)
+        if self._world_changed:
+            # Obstacles or people came or went since the last scan: the control of this
+            # step sees them.
+            self._scan = self._laser.scan(self._base.pose, obstacles)
         if self._goal is not None:
             self._control(self._goal, self._now)
         self._teleop_blocked = False
         if self._teleop:
             self._guard_teleop()
         self._move(now, obstacles)
+        # The scan is taken where the base is at ``now``, the time of :meth:`pose`: a scan
+        # placed in the map with a pose it was not taken at shifts everything it saw by the
+        # distance driven since (a braking robot then sees standing people walk at it).
+        self._scan = self._laser.scan(self._base.pose, obstacles)
+        self._world_changed = False
 
     # ------------------------------------------------------------------ internals
 
@@ -964,6 +989,60 @@ def _follow(goal: SimGoal, waypoints: npt.NDArray[np.float64]) -> None:
     goal.plan = tuple(
         Pose2D(float(x), float(y), yaw) for (x, y), yaw in zip(waypoints, yaws, strict=True)
     )
+
+
+def walkers_of(settings: SimSettings, grid: OccupancyGrid) -> list[Walker]:
+    """The ``[[sim.walkers]]`` of ``settings`` as walkers, checked against the map.
+
+    Raises :class:`~telebot.errors.ConfigError` naming the walker and the waypoint when a
+    waypoint, or the straight line walked to it, is not free space on ``grid``.
+    """
+    walkers = []
+    for index, entry in enumerate(settings.walkers):
+        name = f"sim.walkers[{index}]"
+        points = [Waypoint(p[0], p[1], p[2] if len(p) == 3 else 0.0) for p in entry.waypoints]
+        for number, point in enumerate(points):
+            if not _free(grid, point.x, point.y):
+                raise ConfigError(
+                    f"{name}: waypoint {number} ({point.x:g}, {point.y:g}) is not free space "
+                    f"on map {settings.map!r}"
+                )
+        legs = list(itertools.pairwise(points))
+        if entry.loop:
+            legs.append((points[-1], points[0]))
+        for a, b in legs:
+            blocked = _first_blocked(grid, a, b)
+            if blocked is not None:
+                raise ConfigError(
+                    f"{name}: the way from ({a.x:g}, {a.y:g}) to ({b.x:g}, {b.y:g}) goes "
+                    f"through a wall at ({blocked[0]:.2f}, {blocked[1]:.2f})"
+                )
+        walkers.append(
+            Walker(
+                tuple(points),
+                entry.speed,
+                start_delay=entry.start_delay,
+                loop=entry.loop,
+            )
+        )
+    return walkers
+
+
+def _free(grid: OccupancyGrid, x: float, y: float) -> bool:
+    row, col = grid.cell_of(x, y)
+    return grid.contains_cell(row, col) and 0 <= int(grid.data[row, col]) < 50
+
+
+def _first_blocked(grid: OccupancyGrid, a: Waypoint, b: Waypoint) -> tuple[float, float] | None:
+    """The first point on the line from ``a`` to ``b`` that is not free space, or None."""
+    length = math.hypot(b.x - a.x, b.y - a.y)
+    steps = max(math.ceil(length / (grid.resolution / 2.0)), 1)
+    for i in range(steps + 1):
+        x = a.x + (b.x - a.x) * i / steps
+        y = a.y + (b.y - a.y) * i / steps
+        if not _free(grid, x, y):
+            return x, y
+    return None
 
 
 def braking_speed_distance(speed: float, accel: float) -> float:
