@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import asyncio
+import codecs
 import contextlib
 import math
 import os
 import sys
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncGenerator, AsyncIterator, Coroutine, Iterator
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -19,7 +20,7 @@ from telebot.services.proto.chat import ChatReply
 from telebot.services.proto.conference import Message, Roster, say_text
 from telebot.services.proto.people import PeopleAlertMessage
 
-__all__ = ["chat_session", "format_pose", "get_map", "send_command", "where"]
+__all__ = ["chat_session", "format_pose", "get_map", "read_lines", "send_command", "where"]
 
 
 def format_pose(x: float, y: float, yaw: float) -> str:
@@ -217,9 +218,11 @@ async def chat_session(
     """``telebot-user chat``: interactive on a terminal, one command per line otherwise.
 
     Piped input runs the commands one after the other, each to its end (a script of
-    moves), and ends after the last one, all within ``timeout``. On a terminal commands
-    run at once, and while the robot moves any key stops it (Escape always does).
-    ``record``: an MCAP file of the call (``--record``).
+    moves), and ends after the last one, all within ``timeout``: stdin is read without
+    blocking the event loop, so while the script pauses the call stays up, the conference
+    shows and the timeout runs. On a terminal commands run at once, and while the robot
+    moves any key stops it (Escape always does). ``record``: an MCAP file of the call
+    (``--record``).
     """
     from telebot.apps.foxglove_bridge import recording
 
@@ -234,27 +237,102 @@ async def chat_session(
             f"connected to {robot} (role {client.call.role}); type help, Ctrl-D to leave",
             file=sys.stderr,
         )
-        if not stdin.isatty():
-            failures = 0
-            try:
-                async with asyncio.timeout(timeout):
-                    for line in stdin:
-                        command = line.strip()
-                        if not command:
-                            continue
-                        print(f"> {command}", flush=True)
-                        if not await _run_command(
-                            client, command, None, map_dir, survive_drop=True
-                        ):
-                            failures += 1
-            except TimeoutError:
-                print(
-                    f"telebot-user: error: chat did not finish within {timeout:g} s",
-                    file=sys.stderr,
-                )
-                return EXIT_USAGE
-            return EXIT_OK if failures == 0 else EXIT_FAILURE
-        return await _interactive(client, map_dir)
+        if stdin.isatty():
+            return await _interactive(client, map_dir)
+        try:
+            async with asyncio.timeout(timeout):
+                return await _until_no_call(client, _piped(client, stdin, map_dir))
+        except TimeoutError:
+            pass  # said once the call is closed: the error is the last line on stderr
+    # Pauses in the script count: --timeout bounds the whole chat.
+    print(
+        f"telebot-user: error: chat did not finish within {timeout:g} s (--timeout)",
+        file=sys.stderr,
+    )
+    return EXIT_USAGE
+
+
+async def _piped(client: RobotClient, stdin: TextIO, map_dir: Path) -> int:
+    """Piped chat: one command per line, each to its end before the next."""
+    failures = 0
+    async with contextlib.aclosing(read_lines(stdin)) as lines:
+        async for line in lines:
+            command = line.strip()
+            if not command:
+                continue
+            print(f"> {command}", flush=True)
+            if not await _run_command(client, command, None, map_dir, survive_drop=True):
+                failures += 1
+    return EXIT_OK if failures == 0 else EXIT_FAILURE
+
+
+async def _until_no_call(client: RobotClient, work: Coroutine[Any, Any, int]) -> int:
+    """``work``'s exit status, or 1 as soon as no call will come any more (the client has
+    said why on stderr): a chat waiting for input must not outlive its robot."""
+    task = asyncio.ensure_future(work)
+    finished = asyncio.ensure_future(client.wait_finished())
+    try:
+        await asyncio.wait({task, finished}, return_when=asyncio.FIRST_COMPLETED)
+        if task.done():
+            return task.result()
+        return EXIT_FAILURE
+    finally:
+        for future in (task, finished):
+            future.cancel()
+        await asyncio.gather(task, finished, return_exceptions=True)
+
+
+async def read_lines(stream: TextIO) -> AsyncGenerator[str, None]:
+    """The lines of ``stream`` (stdin), read without blocking the event loop.
+
+    While a piped chat waits for its next line the loop must go on: the call's heartbeats
+    keep the robot's deadman quiet, alerts and roster changes show, ``--timeout`` runs. A
+    pipe, terminal or socket is read when the loop says it is readable; a regular file or
+    an in-memory text (never waiting on anyone) is read as it is.
+    """
+    loop = asyncio.get_running_loop()
+    try:
+        fd = stream.fileno()
+    except (AttributeError, OSError, ValueError):  # io.UnsupportedOperation is both
+        fd = -1
+    chunks: asyncio.Queue[bytes] = asyncio.Queue()
+
+    def readable() -> None:
+        try:
+            data = os.read(fd, 65536)
+        except BlockingIOError:
+            return
+        except OSError:
+            data = b""  # a read error ends the input like an end of file
+        if not data:
+            loop.remove_reader(fd)
+        chunks.put_nowait(data)
+
+    watched = fd >= 0
+    if watched:
+        try:
+            loop.add_reader(fd, readable)
+        except OSError:  # epoll refuses regular files (and /dev/null)
+            watched = False
+    if not watched:
+        for line in stream:
+            yield line
+        return
+    decoder = codecs.getincrementaldecoder("utf-8")(errors="replace")
+    pending = ""
+    try:
+        while True:
+            data = await chunks.get()
+            pending += decoder.decode(data, final=not data)
+            *complete, pending = pending.split("\n")
+            for line in complete:
+                yield line + "\n"
+            if not data:
+                break
+        if pending:
+            yield pending
+    finally:
+        loop.remove_reader(fd)
 
 
 async def _interactive(client: RobotClient, map_dir: Path) -> int:

@@ -1,0 +1,118 @@
+"""``telebot-user chat`` as people run it: the command in its own process, fed through a pipe
+(a script with pauses) or a terminal (a pty), the robot daemon in another, over zenoh.
+
+What ``chat --help`` promises is what these tests check: piped commands run one after the
+other within ``--timeout``, pauses included; the call lives on while the script pauses; the
+conference shows on stderr while the chat waits for input.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import subprocess
+import time
+from collections.abc import Iterator
+
+import pytest
+
+from conftest import wait_until
+from rig import ROBOT, SLACK, Daemon, Process
+from telebot.apps.user_cli import main
+
+pytestmark = pytest.mark.zenoh
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
+    """alice drives, olga observes (the rig's generous call timeout: no test here is about
+    drop timing). One pose a second: a pose that lags a goal's end lags it visibly."""
+    daemon = Daemon(tmp_path_factory.mktemp("chat"))
+    with daemon.robot_config.open("a") as config:
+        config.write("[services]\npose_hz = 1\n")
+    daemon.start()
+    yield daemon
+    daemon.stop()
+
+
+def chat(daemon: Daemon, *args: str, stdin: int = subprocess.PIPE) -> Process:
+    """``telebot-user chat ROBOT ARGS`` as alice, in its own process."""
+    return Process(
+        [
+            "telebot.apps.user_cli",
+            "chat",
+            ROBOT,
+            *args,
+            "--home",
+            str(daemon.user_home),
+            "--config",
+            str(daemon.user_config),
+            "--connect",
+            daemon.endpoint,
+        ],
+        stdin=stdin,
+    )
+
+
+async def reply(process: Process, timeout: float = 20.0) -> str:
+    """The next stdout line, awaited without blocking this test's loop (its calls beat)."""
+    return await asyncio.to_thread(process.next_line, timeout + SLACK)
+
+
+def chat_help(capsys: pytest.CaptureFixture[str]) -> str:
+    with pytest.raises(SystemExit):
+        main(["chat", "--help"])
+    return " ".join(capsys.readouterr().out.split())
+
+
+async def test_a_paced_piped_script_keeps_its_call_and_shows_the_conference_while_idle(
+    daemon: Daemon, processes: list[Process], capsys: pytest.CaptureFixture[str]
+) -> None:
+    promise = chat_help(capsys)
+    assert "their messages, the robot's announcements and who is in the call show on stderr" in (
+        promise
+    )
+    assert "pauses in the input included" in promise
+    alice = chat(daemon)
+    processes.append(alice)
+    alice.write("arm\n")
+    assert await reply(alice, 60) == "> arm"
+    assert (await reply(alice)).startswith("armed:")
+    armed = time.monotonic()
+    # While the script pauses, the chat waits for its next line: the conference still shows.
+    assert daemon.observer is not None
+    async with daemon.connect(daemon.observer_home) as olga:
+        await wait_until(lambda: "olga (observer)" in alice.stderr(), timeout=10 + SLACK)
+        assert (await olga.say("hello from the hall")).ok
+        await wait_until(lambda: "[olga] hello from the hall" in alice.stderr())
+    # A pause longer than the call's timeout: without heartbeats the call would drop and
+    # the robot would latch stopped.
+    await asyncio.sleep(max(0.0, armed + daemon.timeout + 1.0 - time.monotonic()))
+    alice.write("where?\n")
+    assert await reply(alice) == "> where?"
+    assert (await reply(alice)).startswith("x ")
+    await asyncio.sleep(1.0)
+    alice.write("fwd 0.5\n")  # still armed: no re-arm needed
+    assert [await reply(alice) for _ in range(3)] == [
+        "> fwd 0.5",
+        "Forward command received",
+        "finished moving",
+    ]
+    assert alice.popen.stdin is not None
+    alice.popen.stdin.close()
+    assert await asyncio.to_thread(alice.popen.wait, 30) == 0, alice.stderr()
+    assert "interrupted" not in alice.stderr() and "reconnecting" not in alice.stderr()
+    alices = [r for r in daemon.audit() if r.get("who") == daemon.driver]
+    assert not [r for r in alices if r["what"] in ("deadman", "drop")], alices
+
+
+async def test_the_timeout_fires_while_a_piped_chat_waits_for_input(
+    daemon: Daemon, processes: list[Process]
+) -> None:
+    waiting = chat(daemon, "--timeout", "3")
+    processes.append(waiting)
+    # Nothing is written and the pipe stays open: the chat waits for a line that never comes.
+    code = await asyncio.to_thread(waiting.popen.wait, 40)
+    errors = waiting.stderr().splitlines()
+    assert code == 2, errors
+    assert errors[-1] == "telebot-user: error: chat did not finish within 3 s (--timeout)"
+    assert not any("Traceback" in line for line in errors)
