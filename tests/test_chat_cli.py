@@ -9,6 +9,7 @@ conference shows on stderr while the chat waits for input.
 from __future__ import annotations
 
 import asyncio
+import os
 import subprocess
 import time
 from collections.abc import Iterator
@@ -116,3 +117,46 @@ async def test_the_timeout_fires_while_a_piped_chat_waits_for_input(
     assert code == 2, errors
     assert errors[-1] == "telebot-user: error: chat did not finish within 3 s (--timeout)"
     assert not any("Traceback" in line for line in errors)
+
+
+async def until_line(process: Process, needle: str, timeout: float = 20.0) -> list[str]:
+    """The stdout lines up to the first that contains ``needle``."""
+    lines: list[str] = []
+    while not lines or needle not in lines[-1]:
+        lines.append(await reply(process, timeout))
+    return lines
+
+
+async def test_on_a_terminal_a_key_stops_a_motion_and_after_its_end_is_a_command(
+    daemon: Daemon, processes: list[Process]
+) -> None:
+    keyboard, terminal = os.openpty()
+    try:
+        alice = chat(daemon, stdin=terminal)
+    finally:
+        os.close(terminal)
+    processes.append(alice)
+    try:
+        os.write(keyboard, b"arm\r")
+        await until_line(alice, "armed:", 60)
+        os.write(keyboard, b"fwd 1.5\r")
+        await until_line(alice, "Forward command received")
+        # Typed at once on seeing the reply: the newest pose (one a second here) was sent
+        # while the robot still moved, but the goal has ended: this is a command.
+        lines = await until_line(alice, "finished moving")
+        os.write(keyboard, b"where?\r")
+        lines += await until_line(alice, "heading")
+        assert not [line for line in lines if "key pressed" in line], lines
+        # While a motion runs, any key stops the robot (the paper's rule), however new the
+        # pose: the motion's acknowledgement is enough.
+        os.write(keyboard, b"fwd 3\r")
+        await until_line(alice, "Forward command received")
+        os.write(keyboard, b"x")
+        await until_line(alice, "[key pressed: stopping]")
+        lines = await until_line(alice, "stopped")
+        os.write(keyboard, b"\x04")  # Ctrl-D on an empty line: leave
+        assert await asyncio.to_thread(alice.popen.wait, 30) == 0, alice.stderr()
+    finally:
+        os.close(keyboard)
+    stops = [r for r in daemon.audit() if r["what"] == "stop" and r.get("how") == "key"]
+    assert len(stops) == 1, stops

@@ -19,6 +19,7 @@ from telebot.services.client import ConnectionEvent, RobotClient, connect
 from telebot.services.proto.chat import ChatReply
 from telebot.services.proto.conference import Message, Roster, say_text
 from telebot.services.proto.people import PeopleAlertMessage
+from telebot.services.proto.status import PoseUpdate
 
 __all__ = ["chat_session", "format_pose", "get_map", "read_lines", "send_command", "where"]
 
@@ -143,14 +144,17 @@ async def _run_command(
     map_dir: Path,
     *,
     survive_drop: bool = False,
+    motions: _Motions | None = None,
 ) -> bool:
     """One chat command: print its replies; fetch the map for getmap. True if it succeeded.
 
     ``survive_drop``: a call that drops under the command fails the command (never sent
     again on the next call) instead of raising, unless no call will come any more.
+    ``motions``: told when the command's motion starts and ends (the terminal chat).
     """
     ok = False
     attachment = None
+    moving = False
     try:
         if (message := say_text(command)) is not None:
             # "say TEXT": to everyone in the robot's calls (the conference), not a command.
@@ -159,6 +163,14 @@ async def _run_command(
                 print(f"! say refused: {said.text}", flush=True)
             return said.ok
         async for reply in client.chat_replies(command, timeout=timeout):
+            # A motion runs from its acknowledgement to its final reply: noted before the
+            # reply shows, so that a key typed on seeing "finished moving" is a command.
+            if motions is not None and not reply.final and not moving:
+                moving = True
+                motions.started()
+            elif motions is not None and reply.final and moving:
+                moving = False
+                motions.ended()
             _print_reply(reply)
             if reply.final:
                 ok, attachment = reply.ok, reply.attachment
@@ -170,6 +182,9 @@ async def _run_command(
         what = "the call ended" if client.finished else "the call dropped (not resent)"
         print(f"! {command}: interrupted, {what}", flush=True)
         return False
+    finally:
+        if moving and motions is not None:  # no final reply will come for it
+            motions.ended()
     return ok
 
 
@@ -356,15 +371,45 @@ def _cbreak(fd: int) -> Iterator[None]:
 
     saved = termios.tcgetattr(fd)
     try:
-        tty.setcbreak(fd)
+        tty.setcbreak(fd, termios.TCSANOW)  # not TCSAFLUSH: keys typed while connecting count
         yield
     finally:
         termios.tcsetattr(fd, termios.TCSADRAIN, saved)
 
 
-def _moving(client: RobotClient) -> bool:
-    pose = client.latest_pose.value
-    return pose is not None and (pose.v != 0.0 or pose.w != 0.0 or pose.state == "moving")
+class _Motions:
+    """Whether the robot moves, as the terminal chat decides what a key means.
+
+    Decided from the goals' own state, not from the pose, which comes 10 times a second
+    and so lags a goal's end: a key typed just after "finished moving" is a command, not a
+    stop. This chat's motions run from their acknowledgement to their final reply, and
+    while one runs any key stops the robot. A motion someone else started shows only in
+    the pose: a pose that says the robot moves counts, unless it is the one that was the
+    newest when one of this chat's motions ended (it was sent before that end).
+    """
+
+    def __init__(self, client: RobotClient) -> None:
+        self._client = client
+        self._running = 0
+        self._stale: PoseUpdate | None = None
+
+    def started(self) -> None:
+        """One of this chat's motions was acknowledged: it runs."""
+        self._running += 1
+
+    def ended(self) -> None:
+        """One of this chat's motions had its final reply (or its call dropped)."""
+        self._running -= 1
+        self._stale = self._client.latest_pose.value
+
+    def moving(self) -> bool:
+        """Whether a key now stops the robot."""
+        if self._running:
+            return True
+        pose = self._client.latest_pose.value
+        if pose is None or pose is self._stale:
+            return False
+        return pose.v != 0.0 or pose.w != 0.0 or pose.state == "moving"
 
 
 async def _edit_lines(client: RobotClient, map_dir: Path, keys: asyncio.Queue[str]) -> int:
@@ -385,6 +430,7 @@ async def _read_keys(
     finished: asyncio.Future[Any],
 ) -> int:
     line = ""
+    motions = _Motions(client)
     async with asyncio.TaskGroup() as tasks:
         while True:
             key = asyncio.ensure_future(keys.get())
@@ -396,7 +442,7 @@ async def _read_keys(
             chunk = key.result()
             if not chunk:
                 break
-            if _moving(client):
+            if motions.moving():
                 # The paper's rule: any key while the robot moves stops it, at once.
                 tasks.create_task(client.stop(how="key"))
                 print("\r\033[K[key pressed: stopping]", flush=True)
@@ -415,7 +461,9 @@ async def _read_keys(
                         return EXIT_OK
                     if command:
                         tasks.create_task(
-                            _run_command(client, command, None, map_dir, survive_drop=True)
+                            _run_command(
+                                client, command, None, map_dir, survive_drop=True, motions=motions
+                            )
                         )
                     print(prompt, end="", flush=True)
                 elif char in ("\x7f", "\b"):
