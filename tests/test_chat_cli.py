@@ -19,6 +19,8 @@ import pytest
 from conftest import wait_until
 from rig import ROBOT, SLACK, Daemon, Process
 from telebot.apps.user_cli import main
+from telebot.apps.user_client import where
+from telebot.services.proto.safety import LATCHED
 
 pytestmark = pytest.mark.zenoh
 
@@ -127,8 +129,8 @@ async def until_line(process: Process, needle: str, timeout: float = 20.0) -> li
     return lines
 
 
-async def test_on_a_terminal_a_key_stops_a_motion_and_after_its_end_is_a_command(
-    daemon: Daemon, processes: list[Process]
+async def test_on_a_terminal_a_key_stops_a_motion_after_its_end_is_a_command_and_status_says_latched(
+    daemon: Daemon, processes: list[Process], capsys: pytest.CaptureFixture[str]
 ) -> None:
     keyboard, terminal = os.openpty()
     try:
@@ -151,12 +153,24 @@ async def test_on_a_terminal_a_key_stops_a_motion_and_after_its_end_is_a_command
         # pose: the motion's acknowledgement is enough.
         os.write(keyboard, b"fwd 3\r")
         await until_line(alice, "Forward command received")
+        pressed = time.monotonic()  # the robot's audit stamps are this clock too
         os.write(keyboard, b"x")
         await until_line(alice, "[key pressed: stopping]")
-        lines = await until_line(alice, "stopped")
+        await until_line(alice, "stopped")
+        # Stopped is not idle: the latch, and who stopped the robot, show in the status.
+        os.write(keyboard, b"status\r")
+        lines = await until_line(alice, "latched")
+        assert lines[-1].endswith(f"{LATCHED}: stop requested by {daemon.driver} (key)"), lines
         os.write(keyboard, b"\x04")  # Ctrl-D on an empty line: leave
         assert await asyncio.to_thread(alice.popen.wait, 30) == 0, alice.stderr()
     finally:
         os.close(keyboard)
-    stops = [r for r in daemon.audit() if r["what"] == "stop" and r.get("how") == "key"]
-    assert len(stops) == 1, stops
+    # The one key stop (a stop is sent again until acknowledged: each copy is audited).
+    stops = [r["t"] for r in daemon.audit() if r["what"] == "stop" and r.get("how") == "key"]
+    assert stops and min(stops) >= pressed, (stops, pressed)
+    # ...and in `telebot-user where`, from another call after this one hung up.
+    capsys.readouterr()
+    assert await where(ROBOT, home=daemon.user_home, config=daemon.config(), timeout=10) == 0
+    said = capsys.readouterr().out
+    assert said.startswith("x ")
+    assert said.endswith(f"; {LATCHED}: stop requested by {daemon.driver} (key)\n"), said

@@ -19,6 +19,7 @@ from telebot.services.client import ConnectionEvent, RobotClient, connect
 from telebot.services.proto.chat import ChatReply
 from telebot.services.proto.conference import Message, Roster, say_text
 from telebot.services.proto.people import PeopleAlertMessage
+from telebot.services.proto.safety import latched_text
 from telebot.services.proto.status import PoseUpdate
 
 __all__ = ["chat_session", "format_pose", "get_map", "read_lines", "send_command", "where"]
@@ -490,7 +491,21 @@ async def get_map(
 async def where(robot: str, *, home: Path, config: AppConfig, timeout: float) -> int:
     """``telebot-user where``: the robot's pose in the map frame and what it is doing."""
     async with _robot(robot, home, config, config.call.connect_timeout) as client:
-        pose = await client.pose(timeout=timeout)
+        try:
+            pose = await client.pose(timeout=timeout)
+            # Every robot sends its safety state with its first pose, and on every change.
+            safety = client.latest_safety.value
+            if safety is None:
+                async with asyncio.timeout(timeout):
+                    safety = await client.latest_safety.next()
+        except TimeoutError:
+            print(
+                f"telebot-user: error: {robot} sent no pose and state within {timeout:g} s",
+                file=sys.stderr,
+            )
+            return EXIT_USAGE
     state = pose.state + (f" ({pose.detail})" if pose.detail else "")
+    if not safety.armed:  # stopped and latched is not "idle": it will not move until re-armed
+        state = latched_text(safety.reason)
     print(f"{format_pose(pose.x, pose.y, pose.yaw)}; {state}")
     return EXIT_OK
