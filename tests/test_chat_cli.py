@@ -9,17 +9,21 @@ conference shows on stderr while the chat waits for input.
 from __future__ import annotations
 
 import asyncio
+import io
 import os
 import subprocess
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
 from conftest import wait_until
 from rig import ROBOT, SLACK, Daemon, Process
 from telebot.apps.user_cli import main
-from telebot.apps.user_client import where
+from telebot.apps.user_client import SHOWN_CHARS, chat_session, where
+from telebot.services.proto.chat import MAX_REQUEST_TEXT
+from telebot.services.proto.conference import MAX_TEXT
 from telebot.services.proto.safety import LATCHED
 
 pytestmark = pytest.mark.zenoh
@@ -174,3 +178,28 @@ async def test_on_a_terminal_a_key_stops_a_motion_after_its_end_is_a_command_and
     said = capsys.readouterr().out
     assert said.startswith("x ")
     assert said.endswith(f"; {LATCHED}: stop requested by {daemon.driver} (key)\n"), said
+
+
+async def test_a_line_too_long_gets_one_short_line_and_the_script_goes_on(
+    daemon: Daemon, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    script = io.StringIO("x" * 200_000 + "\nsay " + "y" * 200_000 + "\nwhere?\n")
+    status = await chat_session(
+        ROBOT,
+        home=daemon.user_home,
+        config=daemon.config(),
+        timeout=60,
+        map_dir=tmp_path,
+        stdin=script,
+    )
+    out = capsys.readouterr().out
+    lines = out.splitlines()
+    assert status == 1  # the long lines failed
+    assert lines[:2] == [
+        "> " + "x" * SHOWN_CHARS + "…",
+        f"! chat request: text is longer than {MAX_REQUEST_TEXT} characters",
+    ]
+    assert lines[2] == "> say " + "y" * (SHOWN_CHARS - 4) + "…"
+    assert lines[3] == f"! say refused: message longer than {MAX_TEXT} characters"
+    assert lines[4] == "> where?" and lines[5].startswith("x ")
+    assert len(out) < 1000

@@ -14,9 +14,10 @@ from typing import Any, TextIO
 
 from telebot.apps.common import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from telebot.config import AppConfig
-from telebot.errors import CallEnded
+from telebot.errors import CallEnded, ProtocolError
 from telebot.services.client import ConnectionEvent, RobotClient, connect
 from telebot.services.proto.chat import ChatReply
+from telebot.services.proto.conference import MAX_TEXT as MAX_SAY_TEXT
 from telebot.services.proto.conference import Message, Roster, say_text
 from telebot.services.proto.people import PeopleAlertMessage
 from telebot.services.proto.safety import latched_text
@@ -138,6 +139,16 @@ def _print_reply(reply: ChatReply) -> None:
     print(f"{'' if reply.ok or not reply.final else '! '}{reply.text}", flush=True)
 
 
+#: How much of a command the chat shows when it echoes or names it.
+SHOWN_CHARS = 80
+
+
+def shown(command: str) -> str:
+    """``command`` as the chat echoes it: cut at :data:`SHOWN_CHARS` (a line of a megabyte
+    is not printed back)."""
+    return command if len(command) <= SHOWN_CHARS else command[:SHOWN_CHARS] + "…"
+
+
 async def _run_command(
     client: RobotClient,
     command: str,
@@ -159,6 +170,9 @@ async def _run_command(
     try:
         if (message := say_text(command)) is not None:
             # "say TEXT": to everyone in the robot's calls (the conference), not a command.
+            if len(message) > MAX_SAY_TEXT:  # what the robot refuses, and may not fit a datagram
+                print(f"! say refused: message longer than {MAX_SAY_TEXT} characters", flush=True)
+                return False
             said = await client.say(message, timeout=timeout or 5.0)
             if not said.ok:
                 print(f"! say refused: {said.text}", flush=True)
@@ -177,11 +191,14 @@ async def _run_command(
                 ok, attachment = reply.ok, reply.attachment
         if ok and attachment == "map":
             await _fetch_and_save(client, map_dir / f"{client.robot}-map.png", timeout or 60.0)
+    except ProtocolError as exc:  # a command no robot would take (too long): not sent
+        print(f"! {exc}", flush=True)
+        return False
     except CallEnded:
         if not survive_drop:
             raise
         what = "the call ended" if client.finished else "the call dropped (not resent)"
-        print(f"! {command}: interrupted, {what}", flush=True)
+        print(f"! {shown(command)}: interrupted, {what}", flush=True)
         return False
     finally:
         if moving and motions is not None:  # no final reply will come for it
@@ -214,7 +231,7 @@ async def send_command(
             ok = await _run_command(client, command, timeout, map_dir)
         except TimeoutError:
             print(
-                f"telebot-user: error: {robot} did not finish {command!r} within {timeout:g} s",
+                f"telebot-user: error: {robot} did not finish {shown(command)!r} within {timeout:g} s",
                 file=sys.stderr,
             )
             return EXIT_USAGE
@@ -276,7 +293,7 @@ async def _piped(client: RobotClient, stdin: TextIO, map_dir: Path) -> int:
             command = line.strip()
             if not command:
                 continue
-            print(f"> {command}", flush=True)
+            print(f"> {shown(command)}", flush=True)
             if not await _run_command(client, command, None, map_dir, survive_drop=True):
                 failures += 1
     return EXIT_OK if failures == 0 else EXIT_FAILURE
