@@ -15,16 +15,18 @@ import subprocess
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
 from conftest import wait_until
 from rig import ROBOT, SLACK, Daemon, Process
 from telebot.apps.user_cli import main
-from telebot.apps.user_client import SHOWN_CHARS, chat_session, where
+from telebot.apps.user_client import SHOWN_CHARS, _Motions, chat_session, where
 from telebot.services.proto.chat import MAX_REQUEST_TEXT
 from telebot.services.proto.conference import MAX_TEXT
 from telebot.services.proto.safety import LATCHED
+from telebot.services.proto.status import PoseUpdate
 
 pytestmark = pytest.mark.zenoh
 
@@ -203,3 +205,28 @@ async def test_a_line_too_long_gets_one_short_line_and_the_script_goes_on(
     assert lines[3] == f"! say refused: message longer than {MAX_TEXT} characters"
     assert lines[4] == "> where?" and lines[5].startswith("x ")
     assert len(out) < 1000
+
+
+def test_after_its_own_motion_the_terminal_goes_by_goals_not_by_the_rolling_base() -> None:
+    latest = SimpleNamespace(value=None)
+    motions = _Motions(SimpleNamespace(latest_pose=latest))  # type: ignore[arg-type]
+
+    def pose(v: float, state: str, goal: int | None = None) -> PoseUpdate:
+        latest.value = PoseUpdate(0.0, 1.0, 1.0, 0.0, (0.0, 0.0, 0.0), v, 0.0, state, "", goal)
+        motions.on_pose(latest.value)
+        return latest.value
+
+    assert not motions.moving()
+    motions.started()  # "Forward command received"
+    assert motions.moving()  # even before any pose says so
+    pose(0.8, "moving", goal=5)
+    motions.ended()  # "finished moving": the newest pose was sent before that
+    assert not motions.moving()
+    pose(0.2, "moving")  # the base rolls to rest after the goal's end: a key is a command
+    assert not motions.moving()
+    pose(0.0, "idle")
+    assert not motions.moving()
+    pose(0.5, "moving")  # then someone else drives it (a follow from the page)...
+    assert motions.moving()
+    pose(0.0, "idle", goal=7)  # ...or sends a goal: any key stops the robot
+    assert motions.moving()

@@ -398,18 +398,24 @@ def _cbreak(fd: int) -> Iterator[None]:
 class _Motions:
     """Whether the robot moves, as the terminal chat decides what a key means.
 
-    Decided from the goals' own state, not from the pose, which comes 10 times a second
-    and so lags a goal's end: a key typed just after "finished moving" is a command, not a
-    stop. This chat's motions run from their acknowledgement to their final reply, and
-    while one runs any key stops the robot. A motion someone else started shows only in
-    the pose: a pose that says the robot moves counts, unless it is the one that was the
-    newest when one of this chat's motions ended (it was sent before that end).
+    Decided from the goals' own state, not from the pose's velocity, which lags a goal's
+    end (one pose every 0.1 s, and the base still rolls to rest after "finished moving"):
+    a key typed just after the final reply is a command, not a stop.
+
+    - This chat's motions run from their acknowledgement to their final reply: while one
+      runs, any key stops the robot.
+    - Otherwise a pose that names a running goal (someone else's) means moving; so does a
+      pose that says the robot moves without a goal (a follow, manual driving), except
+      while the base comes to rest after one of this chat's motions ended.
+    - The pose that was the newest when one of this chat's motions ended was sent before
+      that end: it says nothing about what runs now.
     """
 
     def __init__(self, client: RobotClient) -> None:
         self._client = client
         self._running = 0
         self._stale: PoseUpdate | None = None
+        self._settling = False
 
     def started(self) -> None:
         """One of this chat's motions was acknowledged: it runs."""
@@ -419,6 +425,17 @@ class _Motions:
         """One of this chat's motions had its final reply (or its call dropped)."""
         self._running -= 1
         self._stale = self._client.latest_pose.value
+        self._settling = True
+
+    def on_pose(self, pose: PoseUpdate) -> None:
+        """A pose came: once the base is at rest after this chat's motion, it has settled."""
+        if self._settling and pose is not self._stale and _at_rest(pose):
+            self._settling = False
+
+    async def watch(self) -> None:
+        """Follow the poses as they come (until cancelled)."""
+        async for pose in self._client.poses():
+            self.on_pose(pose)
 
     def moving(self) -> bool:
         """Whether a key now stops the robot."""
@@ -427,17 +444,27 @@ class _Motions:
         pose = self._client.latest_pose.value
         if pose is None or pose is self._stale:
             return False
-        return pose.v != 0.0 or pose.w != 0.0 or pose.state == "moving"
+        if pose.goal is not None:  # a goal runs, and not one of ours
+            return True
+        return not self._settling and not _at_rest(pose)
+
+
+def _at_rest(pose: PoseUpdate) -> bool:
+    return pose.v == 0.0 and pose.w == 0.0 and pose.state != "moving"
 
 
 async def _edit_lines(client: RobotClient, map_dir: Path, keys: asyncio.Queue[str]) -> int:
     prompt = f"{client.robot}> "
     print(prompt, end="", flush=True)
     finished = asyncio.ensure_future(client.wait_finished())
+    motions = _Motions(client)
+    watch = asyncio.ensure_future(motions.watch())
     try:
-        return await _read_keys(client, map_dir, keys, prompt, finished)
+        return await _read_keys(client, map_dir, keys, prompt, finished, motions)
     finally:
-        finished.cancel()
+        for future in (finished, watch):
+            future.cancel()
+        await asyncio.gather(finished, watch, return_exceptions=True)
 
 
 async def _read_keys(
@@ -446,9 +473,9 @@ async def _read_keys(
     keys: asyncio.Queue[str],
     prompt: str,
     finished: asyncio.Future[Any],
+    motions: _Motions,
 ) -> int:
     line = ""
-    motions = _Motions(client)
     async with asyncio.TaskGroup() as tasks:
         while True:
             key = asyncio.ensure_future(keys.get())
