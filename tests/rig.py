@@ -127,11 +127,16 @@ class Process:
 
     Its stdout lines are read by a thread into :attr:`lines`; its stderr by another, which
     keeps the last lines (a pipe nobody reads would block a chatty daemon once full).
+    ``stdin``: ``subprocess.PIPE`` for a pipe to :meth:`write` to, or a file descriptor
+    (a pty's end); None inherits this process's.
     """
 
-    def __init__(self, args: list[str], env: dict[str, str] | None = None) -> None:
+    def __init__(
+        self, args: list[str], env: dict[str, str] | None = None, *, stdin: int | None = None
+    ) -> None:
         self.popen = subprocess.Popen(
             [sys.executable, "-m", *args],
+            stdin=stdin,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
@@ -182,6 +187,12 @@ class Process:
             if event.get("event") == name:
                 return event
 
+    def write(self, text: str) -> None:
+        """Write ``text`` to the process's stdin pipe, at once."""
+        assert self.popen.stdin is not None, "started without stdin=subprocess.PIPE"
+        self.popen.stdin.write(text)
+        self.popen.stdin.flush()
+
     def stderr(self) -> str:
         """The last lines the process wrote to stderr (all of them once it has exited)."""
         if self.popen.poll() is not None:
@@ -204,9 +215,10 @@ class Process:
         self.popen.wait(timeout=10)
         for reader in self._readers:
             reader.join(timeout=5)
-        for pipe in (self.popen.stdout, self.popen.stderr):
+        for pipe in (self.popen.stdin, self.popen.stdout, self.popen.stderr):
             if pipe is not None:
-                pipe.close()
+                with contextlib.suppress(OSError):  # stdin: a broken pipe on its flush
+                    pipe.close()
 
 
 class Daemon:

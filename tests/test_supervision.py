@@ -167,6 +167,25 @@ def test_an_observer_may_stop_but_not_drive_or_arm(tmp_path: Path) -> None:
     driver.close()
 
 
+def test_chat_status_says_the_robot_is_latched_and_who_stopped_it(tmp_path: Path) -> None:
+    nav, driver, _ = armed_driver(tmp_path)
+    driver.join(FakeCall("c2", "olga", Role.OBSERVER))  # type: ignore[arg-type]
+    replies: list[ChatReply] = []
+    alice = ChatSession(nav, role=Role.DRIVER, send=replies.append, gate=driver.gate("c1"))
+    olga = ChatSession(nav, role=Role.OBSERVER, send=replies.append, gate=driver.gate("c2"))
+
+    def status() -> str:
+        alice.handle_text(len(replies) + 1, "status")
+        return replies[-1].text
+
+    assert status() == "idle"  # armed, standing still
+    olga.handle_text(100, "stop")
+    assert status() == "stopped (latched: re-arm with arm): stop requested by olga (chat)"
+    alice.handle_text(101, "arm")
+    assert status() == "idle"
+    driver.close()
+
+
 def test_the_holder_leaving_stops_and_latches(tmp_path: Path) -> None:
     nav, driver, alice = armed_driver(tmp_path)
     driver.gate("c1").motion("fwd 5")

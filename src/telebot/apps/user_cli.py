@@ -119,8 +119,9 @@ def build_parser() -> Parser:
         "commands from stdin when piped",
         description="Chat with a robot. On a terminal, commands run as you type them and, "
         "while the robot moves, any key stops it (Escape always does). Piped, one command "
-        "per line runs to its end before the next, and the command exits after the last one "
-        "(within --timeout). The robot starts stopped: send 'arm' before moving it. If the "
+        "per line runs to its end before the next, and the command exits after the last one; "
+        "all of it, pauses in the input included, within --timeout (else exit 2). While chat "
+        "waits for input its call stays up. The robot starts stopped: send 'arm' before moving it. If the "
         "call drops, chat calls the robot again by itself and says so on stderr ([reconnect] "
         "in the config); the robot stays stopped until you send 'arm' again. Everyone in the "
         "robot's calls is a conference: 'say TEXT' reaches all of them with your name; their "
@@ -151,7 +152,8 @@ def build_parser() -> Parser:
             "--timeout",
             type=_positive_float,
             default=300.0,
-            help="seconds the command (piped chat: all commands) may take (default 300)",
+            help="seconds the command may take (piped chat: all commands, pauses in the input "
+            "included; default 300)",
         )
         parser_.add_argument(
             "--map-dir",

@@ -3,23 +3,27 @@
 from __future__ import annotations
 
 import asyncio
+import codecs
 import contextlib
 import math
 import os
 import sys
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncGenerator, AsyncIterator, Coroutine, Iterator
 from pathlib import Path
 from typing import Any, TextIO
 
 from telebot.apps.common import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from telebot.config import AppConfig
-from telebot.errors import CallEnded
+from telebot.errors import CallEnded, ProtocolError
 from telebot.services.client import ConnectionEvent, RobotClient, connect
 from telebot.services.proto.chat import ChatReply
+from telebot.services.proto.conference import MAX_TEXT as MAX_SAY_TEXT
 from telebot.services.proto.conference import Message, Roster, say_text
 from telebot.services.proto.people import PeopleAlertMessage
+from telebot.services.proto.safety import latched_text
+from telebot.services.proto.status import PoseUpdate
 
-__all__ = ["chat_session", "format_pose", "get_map", "send_command", "where"]
+__all__ = ["chat_session", "format_pose", "get_map", "read_lines", "send_command", "where"]
 
 
 def format_pose(x: float, y: float, yaw: float) -> str:
@@ -140,6 +144,16 @@ def _print_reply(reply: ChatReply) -> None:
     print(f"{'' if reply.ok or not reply.final else '! '}{reply.text}", flush=True)
 
 
+#: How much of a command the chat shows when it echoes or names it.
+SHOWN_CHARS = 80
+
+
+def shown(command: str) -> str:
+    """``command`` as the chat echoes it: cut at :data:`SHOWN_CHARS` (a line of a megabyte
+    is not printed back)."""
+    return command if len(command) <= SHOWN_CHARS else command[:SHOWN_CHARS] + "…"
+
+
 async def _run_command(
     client: RobotClient,
     command: str,
@@ -147,33 +161,53 @@ async def _run_command(
     map_dir: Path,
     *,
     survive_drop: bool = False,
+    motions: _Motions | None = None,
 ) -> bool:
     """One chat command: print its replies; fetch the map for getmap. True if it succeeded.
 
     ``survive_drop``: a call that drops under the command fails the command (never sent
     again on the next call) instead of raising, unless no call will come any more.
+    ``motions``: told when the command's motion starts and ends (the terminal chat).
     """
     ok = False
     attachment = None
+    moving = False
     try:
         if (message := say_text(command)) is not None:
             # "say TEXT": to everyone in the robot's calls (the conference), not a command.
+            if len(message) > MAX_SAY_TEXT:  # what the robot refuses, and may not fit a datagram
+                print(f"! say refused: message longer than {MAX_SAY_TEXT} characters", flush=True)
+                return False
             said = await client.say(message, timeout=timeout or 5.0)
             if not said.ok:
                 print(f"! say refused: {said.text}", flush=True)
             return said.ok
         async for reply in client.chat_replies(command, timeout=timeout):
+            # A motion runs from its acknowledgement to its final reply: noted before the
+            # reply shows, so that a key typed on seeing "finished moving" is a command.
+            if motions is not None and not reply.final and not moving:
+                moving = True
+                motions.started()
+            elif motions is not None and reply.final and moving:
+                moving = False
+                motions.ended()
             _print_reply(reply)
             if reply.final:
                 ok, attachment = reply.ok, reply.attachment
         if ok and attachment == "map":
             await _fetch_and_save(client, map_dir / f"{client.robot}-map.png", timeout or 60.0)
+    except ProtocolError as exc:  # a command no robot would take (too long): not sent
+        print(f"! {exc}", flush=True)
+        return False
     except CallEnded:
         if not survive_drop:
             raise
         what = "the call ended" if client.finished else "the call dropped (not resent)"
-        print(f"! {command}: interrupted, {what}", flush=True)
+        print(f"! {shown(command)}: interrupted, {what}", flush=True)
         return False
+    finally:
+        if moving and motions is not None:  # no final reply will come for it
+            motions.ended()
     return ok
 
 
@@ -202,7 +236,7 @@ async def send_command(
             ok = await _run_command(client, command, timeout, map_dir)
         except TimeoutError:
             print(
-                f"telebot-user: error: {robot} did not finish {command!r} within {timeout:g} s",
+                f"telebot-user: error: {robot} did not finish {shown(command)!r} within {timeout:g} s",
                 file=sys.stderr,
             )
             return EXIT_USAGE
@@ -222,9 +256,11 @@ async def chat_session(
     """``telebot-user chat``: interactive on a terminal, one command per line otherwise.
 
     Piped input runs the commands one after the other, each to its end (a script of
-    moves), and ends after the last one, all within ``timeout``. On a terminal commands
-    run at once, and while the robot moves any key stops it (Escape always does).
-    ``record``: an MCAP file of the call (``--record``).
+    moves), and ends after the last one, all within ``timeout``: stdin is read without
+    blocking the event loop, so while the script pauses the call stays up, the conference
+    shows and the timeout runs. On a terminal commands run at once, and while the robot
+    moves any key stops it (Escape always does). ``record``: an MCAP file of the call
+    (``--record``).
     """
     from telebot.apps.foxglove_bridge import recording
 
@@ -239,27 +275,102 @@ async def chat_session(
             f"connected to {robot} (role {client.call.role}); type help, Ctrl-D to leave",
             file=sys.stderr,
         )
-        if not stdin.isatty():
-            failures = 0
-            try:
-                async with asyncio.timeout(timeout):
-                    for line in stdin:
-                        command = line.strip()
-                        if not command:
-                            continue
-                        print(f"> {command}", flush=True)
-                        if not await _run_command(
-                            client, command, None, map_dir, survive_drop=True
-                        ):
-                            failures += 1
-            except TimeoutError:
-                print(
-                    f"telebot-user: error: chat did not finish within {timeout:g} s",
-                    file=sys.stderr,
-                )
-                return EXIT_USAGE
-            return EXIT_OK if failures == 0 else EXIT_FAILURE
-        return await _interactive(client, map_dir)
+        if stdin.isatty():
+            return await _interactive(client, map_dir)
+        try:
+            async with asyncio.timeout(timeout):
+                return await _until_no_call(client, _piped(client, stdin, map_dir))
+        except TimeoutError:
+            pass  # said once the call is closed: the error is the last line on stderr
+    # Pauses in the script count: --timeout bounds the whole chat.
+    print(
+        f"telebot-user: error: chat did not finish within {timeout:g} s (--timeout)",
+        file=sys.stderr,
+    )
+    return EXIT_USAGE
+
+
+async def _piped(client: RobotClient, stdin: TextIO, map_dir: Path) -> int:
+    """Piped chat: one command per line, each to its end before the next."""
+    failures = 0
+    async with contextlib.aclosing(read_lines(stdin)) as lines:
+        async for line in lines:
+            command = line.strip()
+            if not command:
+                continue
+            print(f"> {shown(command)}", flush=True)
+            if not await _run_command(client, command, None, map_dir, survive_drop=True):
+                failures += 1
+    return EXIT_OK if failures == 0 else EXIT_FAILURE
+
+
+async def _until_no_call(client: RobotClient, work: Coroutine[Any, Any, int]) -> int:
+    """``work``'s exit status, or 1 as soon as no call will come any more (the client has
+    said why on stderr): a chat waiting for input must not outlive its robot."""
+    task = asyncio.ensure_future(work)
+    finished = asyncio.ensure_future(client.wait_finished())
+    try:
+        await asyncio.wait({task, finished}, return_when=asyncio.FIRST_COMPLETED)
+        if task.done():
+            return task.result()
+        return EXIT_FAILURE
+    finally:
+        for future in (task, finished):
+            future.cancel()
+        await asyncio.gather(task, finished, return_exceptions=True)
+
+
+async def read_lines(stream: TextIO) -> AsyncGenerator[str, None]:
+    """The lines of ``stream`` (stdin), read without blocking the event loop.
+
+    While a piped chat waits for its next line the loop must go on: the call's heartbeats
+    keep the robot's deadman quiet, alerts and roster changes show, ``--timeout`` runs. A
+    pipe, terminal or socket is read when the loop says it is readable; a regular file or
+    an in-memory text (never waiting on anyone) is read as it is.
+    """
+    loop = asyncio.get_running_loop()
+    try:
+        fd = stream.fileno()
+    except (AttributeError, OSError, ValueError):  # io.UnsupportedOperation is both
+        fd = -1
+    chunks: asyncio.Queue[bytes] = asyncio.Queue()
+
+    def readable() -> None:
+        try:
+            data = os.read(fd, 65536)
+        except BlockingIOError:
+            return
+        except OSError:
+            data = b""  # a read error ends the input like an end of file
+        if not data:
+            loop.remove_reader(fd)
+        chunks.put_nowait(data)
+
+    watched = fd >= 0
+    if watched:
+        try:
+            loop.add_reader(fd, readable)
+        except OSError:  # epoll refuses regular files (and /dev/null)
+            watched = False
+    if not watched:
+        for line in stream:
+            yield line
+        return
+    decoder = codecs.getincrementaldecoder("utf-8")(errors="replace")
+    pending = ""
+    try:
+        while True:
+            data = await chunks.get()
+            pending += decoder.decode(data, final=not data)
+            *complete, pending = pending.split("\n")
+            for line in complete:
+                yield line + "\n"
+            if not data:
+                break
+        if pending:
+            yield pending
+    finally:
+        loop.remove_reader(fd)
 
 
 async def _interactive(client: RobotClient, map_dir: Path) -> int:
@@ -283,25 +394,82 @@ def _cbreak(fd: int) -> Iterator[None]:
 
     saved = termios.tcgetattr(fd)
     try:
-        tty.setcbreak(fd)
+        tty.setcbreak(fd, termios.TCSANOW)  # not TCSAFLUSH: keys typed while connecting count
         yield
     finally:
         termios.tcsetattr(fd, termios.TCSADRAIN, saved)
 
 
-def _moving(client: RobotClient) -> bool:
-    pose = client.latest_pose.value
-    return pose is not None and (pose.v != 0.0 or pose.w != 0.0 or pose.state == "moving")
+class _Motions:
+    """Whether the robot moves, as the terminal chat decides what a key means.
+
+    Decided from the goals' own state, not from the pose's velocity, which lags a goal's
+    end (one pose every 0.1 s, and the base still rolls to rest after "finished moving"):
+    a key typed just after the final reply is a command, not a stop.
+
+    - This chat's motions run from their acknowledgement to their final reply: while one
+      runs, any key stops the robot.
+    - Otherwise a pose that names a running goal (someone else's) means moving; so does a
+      pose that says the robot moves without a goal (a follow, manual driving), except
+      while the base comes to rest after one of this chat's motions ended.
+    - The pose that was the newest when one of this chat's motions ended was sent before
+      that end: it says nothing about what runs now.
+    """
+
+    def __init__(self, client: RobotClient) -> None:
+        self._client = client
+        self._running = 0
+        self._stale: PoseUpdate | None = None
+        self._settling = False
+
+    def started(self) -> None:
+        """One of this chat's motions was acknowledged: it runs."""
+        self._running += 1
+
+    def ended(self) -> None:
+        """One of this chat's motions had its final reply (or its call dropped)."""
+        self._running -= 1
+        self._stale = self._client.latest_pose.value
+        self._settling = True
+
+    def on_pose(self, pose: PoseUpdate) -> None:
+        """A pose came: once the base is at rest after this chat's motion, it has settled."""
+        if self._settling and pose is not self._stale and _at_rest(pose):
+            self._settling = False
+
+    async def watch(self) -> None:
+        """Follow the poses as they come (until cancelled)."""
+        async for pose in self._client.poses():
+            self.on_pose(pose)
+
+    def moving(self) -> bool:
+        """Whether a key now stops the robot."""
+        if self._running:
+            return True
+        pose = self._client.latest_pose.value
+        if pose is None or pose is self._stale:
+            return False
+        if pose.goal is not None:  # a goal runs, and not one of ours
+            return True
+        return not self._settling and not _at_rest(pose)
+
+
+def _at_rest(pose: PoseUpdate) -> bool:
+    return pose.v == 0.0 and pose.w == 0.0 and pose.state != "moving"
 
 
 async def _edit_lines(client: RobotClient, map_dir: Path, keys: asyncio.Queue[str]) -> int:
     prompt = f"{client.robot}> "
     print(prompt, end="", flush=True)
     finished = asyncio.ensure_future(client.wait_finished())
+    motions = _Motions(client)
+    watch = asyncio.ensure_future(motions.watch())
     try:
-        return await _read_keys(client, map_dir, keys, prompt, finished)
+        return await _read_keys(client, map_dir, keys, prompt, finished, motions)
     finally:
-        finished.cancel()
+        for future in (finished, watch):
+            future.cancel()
+        await asyncio.gather(finished, watch, return_exceptions=True)
 
 
 async def _read_keys(
@@ -310,6 +478,7 @@ async def _read_keys(
     keys: asyncio.Queue[str],
     prompt: str,
     finished: asyncio.Future[Any],
+    motions: _Motions,
 ) -> int:
     line = ""
     async with asyncio.TaskGroup() as tasks:
@@ -323,7 +492,7 @@ async def _read_keys(
             chunk = key.result()
             if not chunk:
                 break
-            if _moving(client):
+            if motions.moving():
                 # The paper's rule: any key while the robot moves stops it, at once.
                 tasks.create_task(client.stop(how="key"))
                 print("\r\033[K[key pressed: stopping]", flush=True)
@@ -342,7 +511,9 @@ async def _read_keys(
                         return EXIT_OK
                     if command:
                         tasks.create_task(
-                            _run_command(client, command, None, map_dir, survive_drop=True)
+                            _run_command(
+                                client, command, None, map_dir, survive_drop=True, motions=motions
+                            )
                         )
                     print(prompt, end="", flush=True)
                 elif char in ("\x7f", "\b"):
@@ -369,7 +540,21 @@ async def get_map(
 async def where(robot: str, *, home: Path, config: AppConfig, timeout: float) -> int:
     """``telebot-user where``: the robot's pose in the map frame and what it is doing."""
     async with _robot(robot, home, config, config.call.connect_timeout) as client:
-        pose = await client.pose(timeout=timeout)
+        try:
+            pose = await client.pose(timeout=timeout)
+            # Every robot sends its safety state with its first pose, and on every change.
+            safety = client.latest_safety.value
+            if safety is None:
+                async with asyncio.timeout(timeout):
+                    safety = await client.latest_safety.next()
+        except TimeoutError:
+            print(
+                f"telebot-user: error: {robot} sent no pose and state within {timeout:g} s",
+                file=sys.stderr,
+            )
+            return EXIT_USAGE
     state = pose.state + (f" ({pose.detail})" if pose.detail else "")
+    if not safety.armed:  # stopped and latched is not "idle": it will not move until re-armed
+        state = latched_text(safety.reason)
     print(f"{format_pose(pose.x, pose.y, pose.yaw)}; {state}")
     return EXIT_OK

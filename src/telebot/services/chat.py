@@ -70,6 +70,7 @@ from telebot.services.proto.chat import (
     parse_command,
 )
 from telebot.services.proto.mapxfer import EncodedMap, encode_map
+from telebot.services.proto.safety import latched_text
 from telebot.services.relay import allowed_topic
 
 __all__ = [
@@ -173,6 +174,10 @@ class DriveGate(Protocol):
 
     def release(self) -> Refusal | None:
         """Give the drive up."""
+        ...
+
+    def latched(self) -> str | None:
+        """Why the robot is stopped and latched (who or what stopped it); None while armed."""
         ...
 
 
@@ -464,6 +469,10 @@ class ChatSession:
         return f"places: {listed}"
 
     def _status(self) -> str:
+        # Stopped and latched is not "idle": the robot will not move until re-armed.
+        latched = self._gate.latched() if self._gate is not None else None
+        if latched is not None:
+            return latched_text(latched)
         status = self._nav.status()
         goal = self._nav.current_goal()
         text = str(status.state)

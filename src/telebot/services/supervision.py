@@ -259,3 +259,8 @@ class CallGate:
         """Give the drive up (the robot stops)."""
         sup = self._driver.supervisor
         return self._decide(sup.release_drive(self.call_id, self._driver._clock()))
+
+    def latched(self) -> str | None:
+        """Why the robot is stopped and latched (who or what stopped it); None while armed."""
+        sup = self._driver.supervisor
+        return None if sup.armed else sup.stop_reason

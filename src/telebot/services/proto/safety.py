@@ -39,6 +39,7 @@ from telebot.services.proto.messages import (
 )
 
 __all__ = [
+    "LATCHED",
     "SAFETY",
     "STOP_HOWS",
     "InvalidSafetyRequest",
@@ -48,10 +49,22 @@ __all__ = [
     "SafetyStatus",
     "decode_safety_reply",
     "decode_safety_request",
+    "latched_text",
 ]
 
 #: The channel's name.
 SAFETY = "safety"
+
+#: The robot's state, as chat ``status`` and ``telebot-user where`` say it, while it is
+#: stopped and latched (it stays stopped until the drive holder re-arms it).
+LATCHED = "stopped (latched: re-arm with arm)"
+
+
+def latched_text(reason: str) -> str:
+    """The robot's state while stopped and latched, with who or what stopped it
+    (``reason``: the safety state's, e.g. "stop requested by alice (key)")."""
+    return f"{LATCHED}: {reason}" if reason else LATCHED
+
 
 RequestType = Literal["stop", "arm", "take", "release"]
 _REQUEST_TYPES = ("stop", "arm", "take", "release")

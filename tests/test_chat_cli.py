@@ -1,0 +1,232 @@
+"""``telebot-user chat`` as people run it: the command in its own process, fed through a pipe
+(a script with pauses) or a terminal (a pty), the robot daemon in another, over zenoh.
+
+What ``chat --help`` promises is what these tests check: piped commands run one after the
+other within ``--timeout``, pauses included; the call lives on while the script pauses; the
+conference shows on stderr while the chat waits for input.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import os
+import subprocess
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+from conftest import wait_until
+from rig import ROBOT, SLACK, Daemon, Process
+from telebot.apps.user_cli import main
+from telebot.apps.user_client import SHOWN_CHARS, _Motions, chat_session, where
+from telebot.services.proto.chat import MAX_REQUEST_TEXT
+from telebot.services.proto.conference import MAX_TEXT
+from telebot.services.proto.safety import LATCHED
+from telebot.services.proto.status import PoseUpdate
+
+pytestmark = pytest.mark.zenoh
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
+    """alice drives, olga observes (the rig's generous call timeout: no test here is about
+    drop timing). One pose a second: a pose that lags a goal's end lags it visibly."""
+    daemon = Daemon(tmp_path_factory.mktemp("chat"))
+    with daemon.robot_config.open("a") as config:
+        config.write("[services]\npose_hz = 1\n")
+    daemon.start()
+    yield daemon
+    daemon.stop()
+
+
+def chat(daemon: Daemon, *args: str, stdin: int = subprocess.PIPE) -> Process:
+    """``telebot-user chat ROBOT ARGS`` as alice, in its own process."""
+    return Process(
+        [
+            "telebot.apps.user_cli",
+            "chat",
+            ROBOT,
+            *args,
+            "--home",
+            str(daemon.user_home),
+            "--config",
+            str(daemon.user_config),
+            "--connect",
+            daemon.endpoint,
+        ],
+        stdin=stdin,
+    )
+
+
+async def reply(process: Process, timeout: float = 20.0) -> str:
+    """The next stdout line, awaited without blocking this test's loop (its calls beat)."""
+    return await asyncio.to_thread(process.next_line, timeout + SLACK)
+
+
+def chat_help(capsys: pytest.CaptureFixture[str]) -> str:
+    with pytest.raises(SystemExit):
+        main(["chat", "--help"])
+    return " ".join(capsys.readouterr().out.split())
+
+
+async def test_a_paced_piped_script_keeps_its_call_and_shows_the_conference_while_idle(
+    daemon: Daemon, processes: list[Process], capsys: pytest.CaptureFixture[str]
+) -> None:
+    promise = chat_help(capsys)
+    assert "their messages, the robot's announcements and who is in the call show on stderr" in (
+        promise
+    )
+    assert "pauses in the input included" in promise
+    alice = chat(daemon)
+    processes.append(alice)
+    alice.write("arm\n")
+    assert await reply(alice, 60) == "> arm"
+    assert (await reply(alice)).startswith("armed:")
+    armed = time.monotonic()
+    # While the script pauses, the chat waits for its next line: the conference still shows.
+    assert daemon.observer is not None
+    async with daemon.connect(daemon.observer_home) as olga:
+        await wait_until(lambda: "olga (observer)" in alice.stderr(), timeout=10 + SLACK)
+        assert (await olga.say("hello from the hall")).ok
+        await wait_until(lambda: "[olga] hello from the hall" in alice.stderr())
+    # A pause longer than the call's timeout: without heartbeats the call would drop and
+    # the robot would latch stopped.
+    await asyncio.sleep(max(0.0, armed + daemon.timeout + 1.0 - time.monotonic()))
+    alice.write("where?\n")
+    assert await reply(alice) == "> where?"
+    assert (await reply(alice)).startswith("x ")
+    await asyncio.sleep(1.0)
+    alice.write("fwd 0.5\n")  # still armed: no re-arm needed
+    assert [await reply(alice) for _ in range(3)] == [
+        "> fwd 0.5",
+        "Forward command received",
+        "finished moving",
+    ]
+    assert alice.popen.stdin is not None
+    alice.popen.stdin.close()
+    assert await asyncio.to_thread(alice.popen.wait, 30) == 0, alice.stderr()
+    assert "interrupted" not in alice.stderr() and "reconnecting" not in alice.stderr()
+    alices = [r for r in daemon.audit() if r.get("who") == daemon.driver]
+    assert not [r for r in alices if r["what"] in ("deadman", "drop")], alices
+
+
+async def test_the_timeout_fires_while_a_piped_chat_waits_for_input(
+    daemon: Daemon, processes: list[Process]
+) -> None:
+    waiting = chat(daemon, "--timeout", "3")
+    processes.append(waiting)
+    # Nothing is written and the pipe stays open: the chat waits for a line that never comes.
+    code = await asyncio.to_thread(waiting.popen.wait, 40)
+    errors = waiting.stderr().splitlines()
+    assert code == 2, errors
+    assert errors[-1] == "telebot-user: error: chat did not finish within 3 s (--timeout)"
+    assert not any("Traceback" in line for line in errors)
+
+
+async def until_line(process: Process, needle: str, timeout: float = 20.0) -> list[str]:
+    """The stdout lines up to the first that contains ``needle``."""
+    lines: list[str] = []
+    while not lines or needle not in lines[-1]:
+        lines.append(await reply(process, timeout))
+    return lines
+
+
+async def test_on_a_terminal_a_key_stops_a_motion_after_its_end_is_a_command_and_status_says_latched(
+    daemon: Daemon, processes: list[Process], capsys: pytest.CaptureFixture[str]
+) -> None:
+    keyboard, terminal = os.openpty()
+    try:
+        alice = chat(daemon, stdin=terminal)
+    finally:
+        os.close(terminal)
+    processes.append(alice)
+    try:
+        os.write(keyboard, b"arm\r")
+        await until_line(alice, "armed:", 60)
+        os.write(keyboard, b"fwd 1.5\r")
+        await until_line(alice, "Forward command received")
+        # Typed at once on seeing the reply: the newest pose (one a second here) was sent
+        # while the robot still moved, but the goal has ended: this is a command.
+        lines = await until_line(alice, "finished moving")
+        os.write(keyboard, b"where?\r")
+        lines += await until_line(alice, "heading")
+        assert not [line for line in lines if "key pressed" in line], lines
+        # While a motion runs, any key stops the robot (the paper's rule), however new the
+        # pose: the motion's acknowledgement is enough.
+        os.write(keyboard, b"fwd 3\r")
+        await until_line(alice, "Forward command received")
+        pressed = time.monotonic()  # the robot's audit stamps are this clock too
+        os.write(keyboard, b"x")
+        await until_line(alice, "[key pressed: stopping]")
+        await until_line(alice, "stopped")
+        # Stopped is not idle: the latch, and who stopped the robot, show in the status.
+        os.write(keyboard, b"status\r")
+        lines = await until_line(alice, "latched")
+        assert lines[-1].endswith(f"{LATCHED}: stop requested by {daemon.driver} (key)"), lines
+        os.write(keyboard, b"\x04")  # Ctrl-D on an empty line: leave
+        assert await asyncio.to_thread(alice.popen.wait, 30) == 0, alice.stderr()
+    finally:
+        os.close(keyboard)
+    # The one key stop (a stop is sent again until acknowledged: each copy is audited).
+    stops = [r["t"] for r in daemon.audit() if r["what"] == "stop" and r.get("how") == "key"]
+    assert stops and min(stops) >= pressed, (stops, pressed)
+    # ...and in `telebot-user where`, from another call after this one hung up.
+    capsys.readouterr()
+    assert await where(ROBOT, home=daemon.user_home, config=daemon.config(), timeout=10) == 0
+    said = capsys.readouterr().out
+    assert said.startswith("x ")
+    assert said.endswith(f"; {LATCHED}: stop requested by {daemon.driver} (key)\n"), said
+
+
+async def test_a_line_too_long_gets_one_short_line_and_the_script_goes_on(
+    daemon: Daemon, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    script = io.StringIO("x" * 200_000 + "\nsay " + "y" * 200_000 + "\nwhere?\n")
+    status = await chat_session(
+        ROBOT,
+        home=daemon.user_home,
+        config=daemon.config(),
+        timeout=60,
+        map_dir=tmp_path,
+        stdin=script,
+    )
+    out = capsys.readouterr().out
+    lines = out.splitlines()
+    assert status == 1  # the long lines failed
+    assert lines[:2] == [
+        "> " + "x" * SHOWN_CHARS + "…",
+        f"! chat request: text is longer than {MAX_REQUEST_TEXT} characters",
+    ]
+    assert lines[2] == "> say " + "y" * (SHOWN_CHARS - 4) + "…"
+    assert lines[3] == f"! say refused: message longer than {MAX_TEXT} characters"
+    assert lines[4] == "> where?" and lines[5].startswith("x ")
+    assert len(out) < 1000
+
+
+def test_after_its_own_motion_the_terminal_goes_by_goals_not_by_the_rolling_base() -> None:
+    latest = SimpleNamespace(value=None)
+    motions = _Motions(SimpleNamespace(latest_pose=latest))  # type: ignore[arg-type]
+
+    def pose(v: float, state: str, goal: int | None = None) -> PoseUpdate:
+        latest.value = PoseUpdate(0.0, 1.0, 1.0, 0.0, (0.0, 0.0, 0.0), v, 0.0, state, "", goal)
+        motions.on_pose(latest.value)
+        return latest.value
+
+    assert not motions.moving()
+    motions.started()  # "Forward command received"
+    assert motions.moving()  # even before any pose says so
+    pose(0.8, "moving", goal=5)
+    motions.ended()  # "finished moving": the newest pose was sent before that
+    assert not motions.moving()
+    pose(0.2, "moving")  # the base rolls to rest after the goal's end: a key is a command
+    assert not motions.moving()
+    pose(0.0, "idle")
+    assert not motions.moving()
+    pose(0.5, "moving")  # then someone else drives it (a follow from the page)...
+    assert motions.moving()
+    pose(0.0, "idle", goal=7)  # ...or sends a goal: any key stops the robot
+    assert motions.moving()
