@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from conftest import ROBOT, Homes, memory_endpoints, wait_until
+from telebot.channels.call import UserEndpoint
 from telebot.channels.channel import ReceivedDatagram
 from telebot.channels.transports.memory import MemoryHub
 from telebot.config import ServiceSettings, SimSettings
@@ -236,7 +237,7 @@ class Rig:
     server: RobotServer
     client: RobotClient
     hub: MemoryHub
-    user: object  # the user's endpoint, for a second call
+    user: UserEndpoint  # the user's endpoint, for a second client beside it
 
 
 @contextlib.asynccontextmanager
@@ -303,16 +304,20 @@ async def test_a_stop_empties_the_plan_and_a_user_who_joins_gets_the_current_one
         await wait_until(lambda: client.plan is not None and len(client.plan.points) > 2)
         plan = client.plan
         assert plan is not None
-        # A second user calls in while the goal runs: the plan comes at once, not after a goal.
-        call = await rig.user.call(ROBOT)  # type: ignore[attr-defined]
-        second = RobotClient(call)
-        await wait_until(lambda: second.plan is not None)
-        assert second.plan == plan
-        rig.nav.stop()
-        await wait_until(lambda: client.plan is not None and client.plan.points == ())
-        await wait_until(lambda: second.plan is not None and second.plan.points == ())
-        assert (await asyncio.wait_for(goal, timeout=10)).status == "cancelled"
-        await call.hangup()
+        # A second client calls in while the goal runs: the plan comes at once, not after a
+        # goal. (Another client: a call again from the same one would replace the first.)
+        async with UserEndpoint(
+            rig.user.transport, rig.user.identity, rig.user.known_robots, settings=rig.user.settings
+        ) as other_client:
+            call = await other_client.call(ROBOT)
+            second = RobotClient(call)
+            await wait_until(lambda: second.plan is not None)
+            assert second.plan == plan
+            rig.nav.stop()
+            await wait_until(lambda: client.plan is not None and client.plan.points == ())
+            await wait_until(lambda: second.plan is not None and second.plan.points == ())
+            assert (await asyncio.wait_for(goal, timeout=10)).status == "cancelled"
+            await call.hangup()
 
 
 async def test_the_plan_arrives_over_a_lossy_link(homes: Homes) -> None:

@@ -163,9 +163,18 @@ async def test_each_call_end_finishes_the_file_with_one_channel_per_topic(tmp_pa
     directory = tmp_path / "rec"
     recorder = Recorder(directory)
     recorder.start()
-    async with recorded_robot(tmp_path, recorder) as (_, first, endpoint):
-        # The same user's second call while the first is still up (as after a reconnect).
-        second = RobotClient(await endpoint.call(ROBOT))
+    async with (
+        recorded_robot(tmp_path, recorder) as (_, first, endpoint),
+        # The same user's second client (another program): its call is a second call beside
+        # the first (a call again from the same client would replace the first).
+        UserEndpoint(
+            endpoint.transport,
+            Identity.load(tmp_path / "user"),
+            KnownRobots.load(tmp_path / "user"),
+            settings=CallSettings(timeout=GENEROUS_TIMEOUT),
+        ) as other_client,
+    ):
+        second = RobotClient(await other_client.call(ROBOT))
         assert [reply.text async for reply in first.chat_replies("where")]
         assert [reply.text async for reply in second.chat_replies("status")]
         await first.pose()

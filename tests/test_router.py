@@ -209,10 +209,13 @@ async def test_a_user_cannot_put_on_another_users_call_keys_and_calls_still_work
         )
         config = fleet.router.app_config(fleet.user)
         async with connect("guiabot", home=fleet.user_home, config=config, timeout=20) as client:
-            await wait_until(lambda: any(key.endswith("/ctl") for key, _ in seen))
-            await wait_until(
-                lambda: any(k.startswith("telebot/user/") and k.endswith("/ctl") for k, _ in seen)
-            )
+            # Both sides' control frames (heartbeats) seen, whichever came first.
+            for side in ("telebot/robot/", "telebot/user/"):
+                await wait_until(
+                    lambda side=side: any(
+                        k.startswith(side) and k.endswith("/ctl") for k, _ in seen
+                    )
+                )
             alices_ctl = next(
                 key for key, _ in seen if key.startswith("telebot/robot/") and key.endswith("/ctl")
             )
