@@ -371,7 +371,7 @@ async def main() -> None:
                         __file__, "robots", tmp, router.endpoint, str(started), str(count)
                     )
                     children.append(child)
-                    ready = json.loads(child.next_line(180))
+                    ready = json.loads(await asyncio.to_thread(child.next_line, 180))
                     robot_pids.append(ready["pid"])
                     started += count
                 telebot_ms = [await list_telebot(user, n) for _ in range(LISTINGS)]
@@ -392,7 +392,7 @@ async def main() -> None:
                         names = share[k::OBSERVERS]
                         child = Child(__file__, "observers", tmp, router.endpoint, str(k), *names)
                         children.append(child)
-                        ready = json.loads(child.next_line(300))
+                        ready = json.loads(await asyncio.to_thread(child.next_line, 300))
                         observer_pids.append(ready["pid"])
                         for failure in ready["failed"]:
                             print(f"   observer {k} could not call {failure}", flush=True)
