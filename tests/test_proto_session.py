@@ -397,6 +397,21 @@ def test_seal_and_open_both_ways(suite: Suite) -> None:
     assert not pair.robot.stats.rejected
 
 
+def test_the_gate_lets_each_genuine_frame_through_once_before_it_is_opened() -> None:
+    """A copy of a genuine frame put back on the key is refused by the gate even before
+    the first copy was opened (a replayer cannot fill the queue with it), forgeries and
+    other calls' frames are refused, and the frame then opens as usual."""
+    pair = make_pair()
+    first, second = (pair.caller.seal(datagram(text)) for text in ("one", "two"))
+    assert pair.robot.authentic(first)
+    assert not pair.robot.authentic(first)  # the replayed copy, still unopened
+    assert not pair.robot.authentic(flip(second, 8 * 30))  # a changed byte: forged
+    assert not pair.robot.authentic(make_pair().caller.seal(datagram("other call")))
+    assert pair.robot.authentic(second)  # out of order is fine, once
+    assert pair.robot.open(frame(second), now=0.1) == Datagram("chat", "two")
+    assert pair.robot.open(frame(first), now=0.1) == Datagram("chat", "one")
+
+
 def test_the_suites_seal_differently_and_do_not_open_each_other() -> None:
     """Same inputs, other suite: other keys, so a frame of one never opens in the other."""
     chacha = make_pair(call_id=bytes(8), suite=Suite.CHACHAPOLY)

@@ -235,6 +235,7 @@ class CallSession:
         self._opener = keys.suite.aead(keys.receive_key)
         # authentic()'s own: it may run on another thread than open().
         self._checker = keys.suite.aead(keys.receive_key)
+        self._gate_window = ReplayWindow()
         self._prefix = DataFrame.make_header(call_id, 0)[:DATA_PREFIX_LEN]
         self._nonce = keys.suite.nonce
         self._send_counter = 0
@@ -281,20 +282,20 @@ class CallSession:
     # -- receiving -------------------------------------------------------------------
 
     def authentic(self, data: bytes) -> bool:
-        """Whether the raw frame ``data`` would pass :meth:`open`'s checks: this call's
-        version, type and id, a counter the replay window takes, and the AEAD tag.
+        """Whether the raw frame ``data`` is this call's, new and genuine: this call's
+        version, type and id, a counter not seen before, and the AEAD tag.
 
-        Changes nothing (it does not accept the counter), so the transport may ask it on
-        its receiving thread before it queues a frame: a forged frame then costs one
-        failed AEAD there and never takes a genuine frame's place in the queue. A frame
-        it lets through is opened again by :meth:`open`, which decides. (It reads the
-        replay window without a lock; a stale read can only let a replay through, to be
-        refused by :meth:`open`, or, very rarely, drop a genuine frame: calls are lossy.)
+        The transport asks it on its receiving thread before it queues a frame, so a
+        forged frame costs one failed AEAD there and never takes a genuine frame's place
+        in the queue; nor does a copy of a genuine frame put back on the key, since the
+        gate keeps a replay window of its own (each counter is let through once, even
+        before :meth:`open` has seen it). Only that one thread may call it. A frame it
+        lets through is opened again by :meth:`open`, which decides.
         """
         if len(data) < _MIN_DATA or data[:DATA_PREFIX_LEN] != self._prefix:
             return False
         counter = int.from_bytes(data[DATA_PREFIX_LEN:DATA_HEADER_LEN], "big")
-        if not self._replay.check(counter):
+        if not self._gate_window.check(counter):
             return False
         try:
             self._checker.decrypt(
@@ -302,6 +303,7 @@ class CallSession:
             )
         except InvalidTag:
             return False
+        self._gate_window.accept(counter)
         return True
 
     def open(self, frame: DataFrame, now: float) -> Message:

@@ -50,6 +50,7 @@ from telebot.channels.transports.base import (
     Subscription,
     SubscriptionStats,
     Transport,
+    gate_passes,
 )
 from telebot.config import TransportSettings
 from telebot.errors import TransportError
@@ -595,7 +596,7 @@ class MemoryTransport(Transport):
                         sub.stats.oversized += 1
                         self.stats.oversized += 1
                         continue
-                    if sub.gate is not None and not sub.gate(sample.payload):
+                    if sub.gate is not None and not gate_passes(sub.gate, sample.payload):
                         sub.stats.gated += 1
                         continue
                     batches.setdefault(sub, []).append(sample)

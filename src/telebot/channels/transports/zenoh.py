@@ -69,6 +69,7 @@ from telebot.channels.transports.base import (
     Subscription,
     SubscriptionStats,
     Transport,
+    gate_passes,
 )
 from telebot.config import TransportSettings, ZenohSettings
 from telebot.errors import TransportError
@@ -329,15 +330,6 @@ async def _run_in_daemon_thread(fn: Callable[[], _T], name: str) -> _T:
     return await future
 
 
-def _passes(gate: Callable[[bytes], bool], payload: bytes) -> bool:
-    """Reader thread: the gate's verdict; a gate that fails lets the loop decide."""
-    try:
-        return gate(payload)
-    except Exception:
-        logger.exception("subscription gate raised; the payload is delivered")
-        return True
-
-
 class _Undeclarable(Protocol):
     # zenoh's stubs leave undeclare() unannotated; this gives our calls a type.
     def undeclare(self) -> object: ...
@@ -492,7 +484,7 @@ class ZenohSubscription(_Entity, Subscription):
                         gate = self.gate
                         # Before anything is dropped for it: what fails the gate takes
                         # no room from the frames queued before it.
-                        if gate is not None and not _passes(gate, payload):
+                        if gate is not None and not gate_passes(gate, payload):
                             # Counted, not reported at once: waking the loop for each
                             # of a flood's frames would cost it what the gate saved.
                             self._gated += 1
