@@ -220,6 +220,23 @@ def test_it_settles_at_the_distance_from_a_standing_person(start: float) -> None
         assert abs(b.linear - a.linear) <= LIMITS.linear_accel * DT + 1e-9
 
 
+def test_it_never_reverses_after_a_person_still_walking() -> None:
+    # A slow walker 0.8 m ahead (closer than the distance, walking on just above the
+    # standing speed): the robot waits for the gap to open but does not back off; only a
+    # standing person makes it reverse.
+    controller = FollowController(1, SETTINGS, LIMITS, now=0.0)
+    robot = Kinematic(Pose2D(0.0, 0.0, 0.0))
+    walker_x, pace = 0.8, 0.16
+    for i in range(1, int(2.0 / DT)):
+        walker_x += pace * DT
+        update = controller.update(
+            [person(walker_x, 0.0, i * DT, vx=pace)], robot.pose, cap=0.5, now=i * DT, behind=5.0
+        )
+        assert isinstance(update, Drive), update
+        assert update.linear >= 0.0, (i, update)
+        robot.move(update)
+
+
 def test_within_the_tolerance_a_standing_person_does_not_make_it_move() -> None:
     band = SETTLE_TOLERANCE - 0.001
     for start in (SETTINGS.distance - band, SETTINGS.distance + band):
@@ -238,9 +255,19 @@ def test_it_backs_off_only_as_far_as_it_sees_free_behind() -> None:
 def test_clearance_behind_needs_a_scan_that_sees_behind() -> None:
     points = np.array([[-1.0, 0.1], [2.0, 0.0]])
     full = np.linspace(-math.pi, math.pi, 360, endpoint=False)
-    assert clearance_behind(points, 0.25, full) == pytest.approx(1.0 - math.sqrt(0.25**2 - 0.01))
+    every = np.ones(full.size, dtype=bool)
+    assert clearance_behind(points, 0.25, full, every) == pytest.approx(
+        1.0 - math.sqrt(0.25**2 - 0.01)
+    )
     front = np.linspace(-math.radians(135), math.radians(135), 270)  # a 270° laser
-    assert clearance_behind(points, 0.25, front) == 0.0
+    assert clearance_behind(points, 0.25, front, np.ones(front.size, dtype=bool)) == 0.0
+    # A beam straight behind that brought nothing back (covered, masked, too close to
+    # measure: a ROS driver's NaN or -inf) is no proof of free space.
+    blind = every.copy()
+    blind[0] = False  # the beam at -180°
+    assert clearance_behind(points, 0.25, full, blind) == 0.0
+    covered = np.zeros(full.size, dtype=bool)
+    assert clearance_behind(np.empty((0, 2)), 0.25, full, covered) == 0.0
 
 
 def test_pick_target_takes_the_nearest_person_in_front() -> None:

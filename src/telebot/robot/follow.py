@@ -206,14 +206,21 @@ def clearance_ahead(
 
 
 def clearance_behind(
-    points: npt.NDArray[np.float64], radius: float, angles: npt.NDArray[np.float64]
+    points: npt.NDArray[np.float64],
+    radius: float,
+    angles: npt.NDArray[np.float64],
+    returned: npt.NDArray[np.bool_],
 ) -> float:
     """Free distance straight behind a round base (m), as :func:`clearance_ahead` ahead.
 
-    ``angles``: the beams of the scan the ``points`` came from. A scan with no beam within
-    :data:`REAR_VIEW` of straight behind does not see there: 0 (nothing is known free).
+    ``angles``: the beams of the scan the ``points`` came from; ``returned``: which of them
+    hit something within range. The laser must see straight behind: with no beam within
+    :data:`REAR_VIEW` of it, or one there that brought nothing back (a covered laser, a
+    sector masked off, a reading too close to measure all look like that), nothing is
+    known free: 0.
     """
-    if angles.size == 0 or float(np.max(np.abs(angles))) < math.pi - REAR_VIEW:
+    rear = np.abs(angles) >= math.pi - REAR_VIEW
+    if not rear.any() or not returned[rear].all():
         return 0.0
     return clearance_ahead(-points, radius)
 
@@ -406,7 +413,8 @@ class FollowController:
             self._settling = 0
             gap = along - settings.distance
             want = gap > 0.0
-            linear = speed + DISTANCE_GAIN * gap
+            # Never backwards after a walking person: it only backs off from one standing.
+            linear = max(speed + DISTANCE_GAIN * gap, 0.0)
         error = normalize_angle(math.atan2(aim[1] - pose.y, aim[0] - pose.x) - pose.yaw)
         angular = max(-limits.angular_speed, min(limits.angular_speed, HEADING_GAIN * error))
         fastest = max(0.0, min(cap, settings.max_speed, limits.linear_speed))

@@ -331,7 +331,7 @@ class FollowService:
             c, s = math.cos(pose.yaw), math.sin(pose.yaw)
             local = (dx * c + dy * s, -dx * s + dy * c)
         radius = float(getattr(getattr(nav, "settings", None), "robot_radius", 0.25))
-        return clearance_ahead(points, radius, local), clearance_behind(points, radius, angles)
+        return clearance_ahead(points, radius, local), clearance_behind(points, radius, angles, hit)
 
     def _nobody(self, tracks: Sequence[Track], pose: Pose2D) -> str:
         if not tracks:
