@@ -209,7 +209,8 @@ async def test_a_line_too_long_gets_one_short_line_and_the_script_goes_on(
 
 def test_after_its_own_motion_the_terminal_goes_by_goals_not_by_the_rolling_base() -> None:
     latest = SimpleNamespace(value=None)
-    motions = _Motions(SimpleNamespace(latest_pose=latest))  # type: ignore[arg-type]
+    clock = [0.0]
+    motions = _Motions(SimpleNamespace(latest_pose=latest), clock=lambda: clock[0])  # type: ignore[arg-type]
 
     def pose(v: float, state: str, goal: int | None = None) -> PoseUpdate:
         latest.value = PoseUpdate(0.0, 1.0, 1.0, 0.0, (0.0, 0.0, 0.0), v, 0.0, state, "", goal)
@@ -230,3 +231,23 @@ def test_after_its_own_motion_the_terminal_goes_by_goals_not_by_the_rolling_base
     assert motions.moving()
     pose(0.0, "idle", goal=7)  # ...or sends a goal: any key stops the robot
     assert motions.moving()
+
+
+def test_after_its_own_motion_the_exceptions_end_in_time() -> None:
+    # Odometry that never reads exactly zero, or poses that stop coming: a key is a
+    # command only for a moment after "finished moving", then it stops the robot again.
+    latest = SimpleNamespace(value=None)
+    clock = [0.0]
+    motions = _Motions(SimpleNamespace(latest_pose=latest), clock=lambda: clock[0])  # type: ignore[arg-type]
+    latest.value = PoseUpdate(0.0, 1.0, 1.0, 0.0, (0.0, 0.0, 0.0), 0.8, 0.0, "moving", "", 5)
+    motions.started()
+    motions.ended()
+    assert not motions.moving()  # the pose of before the end
+    clock[0] = _Motions.STALE_AT_MOST + 0.01
+    assert motions.moving()  # no newer pose came: that one names a goal, in doubt it moves
+    noisy = PoseUpdate(0.5, 1.0, 1.0, 0.0, (0.0, 0.0, 0.0), 0.001, 0.0, "idle", "", None)
+    latest.value = noisy
+    motions.on_pose(noisy)
+    assert not motions.moving()  # settling: the base may still creep
+    clock[0] = _Motions.SETTLE_AT_MOST + 0.01
+    assert motions.moving()  # it never read zero: after a second, a key stops it

@@ -8,7 +8,8 @@ import contextlib
 import math
 import os
 import sys
-from collections.abc import AsyncGenerator, AsyncIterator, Coroutine, Iterator
+import time
+from collections.abc import AsyncGenerator, AsyncIterator, Callable, Coroutine, Iterator
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -414,13 +415,25 @@ class _Motions:
       while the base comes to rest after one of this chat's motions ended.
     - The pose that was the newest when one of this chat's motions ended was sent before
       that end: it says nothing about what runs now.
+
+    Both exceptions are bounded in time (:data:`SETTLE_AT_MOST`, :data:`STALE_AT_MOST`), so
+    that odometry that never reads exactly zero, or poses that stopped coming, can never
+    make a key a command while the robot moves: in doubt, a key stops it.
     """
 
-    def __init__(self, client: RobotClient) -> None:
+    #: After this chat's motion ended, the base comes to rest within this (s); motion the
+    #: poses show later is someone else's.
+    SETTLE_AT_MOST = 1.0
+    #: The newest pose at a motion's end is taken as sent before it for this long (s).
+    STALE_AT_MOST = 0.3
+
+    def __init__(self, client: RobotClient, clock: Callable[[], float] = time.monotonic) -> None:
         self._client = client
+        self._clock = clock
         self._running = 0
         self._stale: PoseUpdate | None = None
         self._settling = False
+        self._ended_at = -math.inf
 
     def started(self) -> None:
         """One of this chat's motions was acknowledged: it runs."""
@@ -431,6 +444,7 @@ class _Motions:
         self._running -= 1
         self._stale = self._client.latest_pose.value
         self._settling = True
+        self._ended_at = self._clock()
 
     def on_pose(self, pose: PoseUpdate) -> None:
         """A pose came: once the base is at rest after this chat's motion, it has settled."""
@@ -446,12 +460,14 @@ class _Motions:
         """Whether a key now stops the robot."""
         if self._running:
             return True
+        since_end = self._clock() - self._ended_at
         pose = self._client.latest_pose.value
-        if pose is None or pose is self._stale:
+        if pose is None or (pose is self._stale and since_end < self.STALE_AT_MOST):
             return False
         if pose.goal is not None:  # a goal runs, and not one of ours
             return True
-        return not self._settling and not _at_rest(pose)
+        settling = self._settling and since_end < self.SETTLE_AT_MOST
+        return not settling and not _at_rest(pose)
 
 
 def _at_rest(pose: PoseUpdate) -> bool:
