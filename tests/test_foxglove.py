@@ -28,6 +28,7 @@ from telebot.apps.foxglove_bridge import (
     COMMANDS,
     GOAL_TOPIC,
     FoxgloveBridge,
+    _trigger_problem,
     goal_from_pose_stamped,
 )
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
@@ -606,3 +607,21 @@ async def test_the_foxglove_command_serves_until_stopped(tmp_path: Path) -> None
         assert await serving == 0
     _, messages = read_mcap(tmp_path / "also.mcap")  # --record beside the server
     assert messages.get("/pose")
+
+
+@pytest.mark.parametrize(
+    "payload",
+    [
+        b"[" * 100_000 + b"]" * 100_000,  # deeper than Python's JSON parser goes
+        b'{"pose": {"position": {"x": 1, "y": 2}, "orientation": [0, 0, 0, 1]}}',
+        b'{"pose": {"position": {"x": 1, "y": 2}, "orientation": 7}}',
+        b'{"pose": [1, 2]}',
+    ],
+    ids=["nested", "orientation-list", "orientation-number", "pose-list"],
+)
+def test_a_goal_or_service_request_of_the_wrong_shape_is_a_short_refusal(payload: bytes) -> None:
+    with pytest.raises(ValueError, match="not a JSON PoseStamped") as refused:
+        goal_from_pose_stamped(payload, "json")
+    assert len(str(refused.value)) < 400
+    problem = _trigger_problem(payload)
+    assert problem is not None and len(problem) < 600

@@ -184,8 +184,10 @@ def goal_from_pose_stamped(
             position, orientation = pose["position"], pose.get("orientation") or {}
             x, y = float(position["x"]), float(position["y"])
             q = [float(orientation.get(k, 0.0)) for k in ("x", "y", "z", "w")]
-        except (ValueError, KeyError, TypeError) as exc:
+        except (ValueError, KeyError, TypeError, AttributeError, RecursionError) as exc:
             # Quoted short: the exception may hold the whole (huge) value it choked on.
+            # (AttributeError: a list or number where an object belongs; RecursionError:
+            # JSON nested deeper than Python's parser goes.)
             raise ValueError(f"not a JSON PoseStamped ({excerpt(repr(exc))})") from None
     elif encoding == "cdr":
         from telebot.robot.ros2.types import TypeLibrary
@@ -729,7 +731,7 @@ def _trigger_problem(payload: bytes) -> str | None:
         return None
     try:
         request = json.loads(payload)
-    except ValueError:
+    except (ValueError, RecursionError):
         return f"the request is not JSON ({excerpt(repr(payload[:400]))}): send {{}}"
     if request != {}:
         return f"the request takes no fields ({excerpt(json.dumps(request))}): send {{}}"
