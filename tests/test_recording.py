@@ -321,6 +321,30 @@ def test_the_oldest_files_go_past_keep_bytes(tmp_path: Path) -> None:
     ]
 
 
+def test_a_file_deleted_by_someone_else_does_not_end_the_recording(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # An operator (or a cleanup job) deletes an old file between the listing and the size:
+    # the recorder prunes the rest and records on.
+    (tmp_path / "calls-000001.mcap").write_bytes(bytes(3000))
+    gone = tmp_path / "calls-000000.mcap"  # listed, then deleted before its size is read
+    with Recorder(tmp_path, keep_bytes=1000, streams=["chat"]) as recorder:
+        listing = recorder._existing
+        monkeypatch.setattr(recorder, "_existing", lambda: [(0, gone), *listing()])
+        for n in (1, 2):
+            call = _FakeCall()
+            service = recorder.service(None, cast(Call, call))
+            call.tap("chat", False, f'{{"id": {n}, "text": "where"}}')
+            service.close()
+    assert [path.name for path in files(tmp_path)] == ["calls-000003.mcap"]
+    assert "where" in {
+        data["text"]
+        for _, messages in finished(tmp_path).items()
+        for t, data in messages
+        if t.endswith("/chat/in")
+    }
+
+
 def test_only_the_configured_streams_are_kept_and_user_garbage_is_not(tmp_path: Path) -> None:
     with Recorder(tmp_path, streams=["chat"]) as recorder:
         call = _FakeCall()

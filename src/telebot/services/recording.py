@@ -292,8 +292,13 @@ class Recorder:
 
     def _prune(self) -> None:
         """Delete the oldest files (never the one just begun) down to ``keep`` and ``keep_bytes``."""
-        existing = [path for _, path in self._existing()]
-        sizes = [path.stat().st_size for path in existing]
+        existing, sizes = [], []
+        for _, path in self._existing():
+            try:
+                sizes.append(path.stat().st_size)
+            except FileNotFoundError:  # deleted meanwhile (by someone else): not ours to keep
+                continue
+            existing.append(path)
         count, total = len(existing), sum(sizes)
         for path, size in zip(existing, sizes, strict=True):
             if path == self.path or (count <= self.keep and total <= self.keep_bytes):
