@@ -566,3 +566,16 @@ def test_settings_are_validated() -> None:
         with pytest.raises(ValueError, match="video settings"):
             VideoSettings(**bad)  # type: ignore[arg-type]
     assert VideoSettings(min_scale=0.5).scales == (1.0, 0.75, 0.5)
+
+
+def test_the_probe_runs_from_the_first_frame_sent_not_from_creation() -> None:
+    # A user's camera slow to start (an encoder, a webcam) must not use the probe up: the
+    # sender keeps trying until its first picture goes out, then probes for ``probe`` s.
+    rc = VideoRateController(
+        VideoSettings(on_demand=True, probe=2.0), data_per_fragment=32_000, now=0.0
+    )
+    assert rc.watching(5.0)  # nothing sent yet, 5 s after creation
+    rc.frame_sent(5.0)
+    rc.frame_sent(6.0)  # later frames do not move the start
+    assert rc.watching(6.9)
+    assert not rc.watching(7.1)  # no report within the probe: the robot does not want it

@@ -482,6 +482,7 @@ class VideoSender:
             self.stats.fragments += 1
             self.stats.bytes += len(datagram)
         self.stats.frames += 1
+        self.controller.frame_sent(now)
         self._meter.tick(now)
 
     async def _send_coded(self, now: float, codec: int) -> None:
@@ -527,6 +528,7 @@ class VideoSender:
             self.stats.bytes += len(datagram)
         self.stats.frames += 1
         self.stats.keyframes += frame.keyframe
+        controller.frame_sent(now)
         self._meter.tick(now)
 
     @property

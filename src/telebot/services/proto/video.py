@@ -860,7 +860,9 @@ class VideoRateController:
         self.link = _LinkEstimate()
         self._last_report: Report | None = None
         self._last_report_at: float | None = None
-        self._created = now
+        # The probe (see VideoSettings.probe) runs from the first frame sent, not from
+        # creation: a camera or encoder slow to start must not use it up.
+        self._probe_from: float | None = None
         self._hold_until = -math.inf
         self._best_since: float | None = None
         self._bye = False
@@ -906,12 +908,16 @@ class VideoRateController:
 
     def watching(self, now: float) -> bool:
         """Whether a receiver reported within ``idle_after`` (always True if not on demand),
-        or, before any report, whether the ``probe`` time since creation runs."""
+        or, before any report, whether the ``probe`` time since the first frame sent runs
+        (:meth:`frame_sent`; until then it does)."""
         if not self.settings.on_demand:
             return True
         at = self._last_report_at
         if at is None:
-            return self.settings.probe > 0 and now - self._created <= self.settings.probe
+            probe_from = self._probe_from
+            return self.settings.probe > 0 and (
+                probe_from is None or now - probe_from <= self.settings.probe
+            )
         return not self._bye and now - at <= self.settings.idle_after
 
     # -- inputs
@@ -951,6 +957,11 @@ class VideoRateController:
         link.queue_delay = report.queue_delay_ms / 1000
         if self.settings.adaptive:
             self._adapt_rate(elapsed, now)
+
+    def frame_sent(self, now: float) -> None:
+        """A frame went out: the first one starts the ``probe`` time."""
+        if self._probe_from is None:
+            self._probe_from = now
 
     def on_encoded(self, size: int, now: float) -> bool:
         """Adapt to the size of the frame just encoded; True if it is worth encoding again.
