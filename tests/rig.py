@@ -47,7 +47,7 @@ from collections.abc import AsyncIterator, Mapping
 from pathlib import Path
 from typing import Any
 
-from telebot.channels.call import RobotEndpoint
+from telebot.channels.call import RobotEndpoint, UserEndpoint
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.config import AppConfig, CallSettings, ServiceSettings, SimSettings, ZenohSettings
 from telebot.identity import ContactBook, Identity, KnownRobots, Role, create_paired_homes
@@ -459,3 +459,19 @@ async def robot_on_hub(
                 runner.cancel()
                 await asyncio.gather(runner, return_exceptions=True)
     await asyncio.sleep(0.01)  # the server's call watchers see the calls end
+
+
+@contextlib.asynccontextmanager
+async def user_on_hub(base: Path, hub: MemoryHub) -> AsyncIterator[UserEndpoint]:
+    """The user of the homes :func:`robot_on_hub` made under ``base``, on ``hub`` as
+    "user", with the rig's generous call timeout."""
+    async with (
+        MemoryTransport(hub, "user") as transport,
+        UserEndpoint(
+            transport,
+            Identity.load(base / "user"),
+            KnownRobots.load(base / "user"),
+            settings=CallSettings(timeout=GENEROUS_TIMEOUT),
+        ) as user,
+    ):
+        yield user

@@ -12,11 +12,8 @@ from pathlib import Path
 
 from conftest import ROBOT, USER
 from follow_walk import TruthTracks
-from rig import FAST_SIM, GENEROUS_TIMEOUT, SLACK, robot_on_hub
-from telebot.channels.call import UserEndpoint
-from telebot.channels.transports.memory import MemoryHub, MemoryTransport
-from telebot.config import CallSettings
-from telebot.identity import Identity, KnownRobots
+from rig import FAST_SIM, GENEROUS_TIMEOUT, SLACK, robot_on_hub, user_on_hub
+from telebot.channels.transports.memory import MemoryHub
 from telebot.reasons import Reason
 from telebot.robot.nav import Velocity
 from telebot.robot.sim.people import Walker
@@ -78,13 +75,7 @@ async def test_a_dropped_call_ends_the_follow_and_stops_the_robot(tmp_path: Path
             server,
             _,
         ),
-        MemoryTransport(hub, "user") as transport,
-        UserEndpoint(
-            transport,
-            Identity.load(tmp_path / "user"),
-            KnownRobots.load(tmp_path / "user"),
-            settings=CallSettings(timeout=GENEROUS_TIMEOUT),
-        ) as user,
+        user_on_hub(tmp_path, hub) as user,
     ):
         server.follow.people = TruthTracks(nav)
         pose = nav.true_pose  # the start place: the corridor's west end, facing east

@@ -23,13 +23,10 @@ from pathlib import Path
 from typing import Any
 
 from conftest import ROBOT, wait_until
-from rig import FAST_SIM, GENEROUS_TIMEOUT, robot_on_hub
-from telebot.channels.call import UserEndpoint
+from rig import FAST_SIM, GENEROUS_TIMEOUT, robot_on_hub, user_on_hub
 from telebot.channels.channel import ReceivedDatagram
 from telebot.channels.transports import Lane
-from telebot.channels.transports.memory import MemoryHub, MemoryTransport
-from telebot.config import CallSettings
-from telebot.identity import Identity, KnownRobots
+from telebot.channels.transports.memory import MemoryHub
 from telebot.reasons import Reason
 from telebot.services.audio import MemorySink, ToneSource
 from telebot.services.client import RobotClient
@@ -151,13 +148,7 @@ async def test_section_13_lists_every_channel_a_call_gets(tmp_path: Path) -> Non
         media.attach(server)
         try:
             async with (
-                MemoryTransport(hub, "user") as transport,
-                UserEndpoint(
-                    transport,
-                    Identity.load(tmp_path / "user"),
-                    KnownRobots.load(tmp_path / "user"),
-                    settings=CallSettings(timeout=GENEROUS_TIMEOUT),
-                ) as user,
+                user_on_hub(tmp_path, hub) as user,
             ):
                 user_call = await user.call(ROBOT)
                 await wait_until(lambda: user_call.id in server.open)
@@ -208,13 +199,7 @@ async def test_the_robots_pose_telemetry_goals_and_plan_match_the_tables(tmp_pat
     hub = MemoryHub(seed=9)
     async with (
         robot_on_hub(tmp_path, hub, timeout=GENEROUS_TIMEOUT, sim=FAST_SIM) as (nav, _, _, _),
-        MemoryTransport(hub, "user") as transport,
-        UserEndpoint(
-            transport,
-            Identity.load(tmp_path / "user"),
-            KnownRobots.load(tmp_path / "user"),
-            settings=CallSettings(timeout=GENEROUS_TIMEOUT),
-        ) as user,
+        user_on_hub(tmp_path, hub) as user,
     ):
         call = await user.call(ROBOT)
         client = RobotClient(call)

@@ -13,13 +13,10 @@ from pathlib import Path
 from typing import Any
 
 from conftest import ROBOT, wait_until
-from rig import FAST_SIM, GENEROUS_TIMEOUT, SLACK, robot_on_hub
-from telebot.channels.call import UserEndpoint
+from rig import FAST_SIM, GENEROUS_TIMEOUT, SLACK, robot_on_hub, user_on_hub
 from telebot.channels.channel import ReceivedDatagram
 from telebot.channels.transports import Lane
-from telebot.channels.transports.memory import MemoryHub, MemoryTransport
-from telebot.config import CallSettings
-from telebot.identity import Identity, KnownRobots
+from telebot.channels.transports.memory import MemoryHub
 from telebot.reasons import Reason
 from telebot.robot.nav import Velocity
 from telebot.services.client import RobotClient
@@ -34,13 +31,7 @@ async def test_a_bad_safety_id_gets_an_error_line_and_a_bad_stop_still_stops(
     hub = MemoryHub(seed=5)
     async with (
         robot_on_hub(tmp_path, hub, timeout=GENEROUS_TIMEOUT, sim=FAST_SIM) as (nav, safety, _, _),
-        MemoryTransport(hub, "user") as transport,
-        UserEndpoint(
-            transport,
-            Identity.load(tmp_path / "user"),
-            KnownRobots.load(tmp_path / "user"),
-            settings=CallSettings(timeout=GENEROUS_TIMEOUT),
-        ) as user,
+        user_on_hub(tmp_path, hub) as user,
     ):
         call = await user.call(ROBOT)
         client = RobotClient(call)
