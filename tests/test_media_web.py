@@ -431,15 +431,30 @@ async def screen_shows(screen: Any, video: bool) -> None:
     assert not painted
 
 
+async def set_camera(page: Any, on: bool) -> None:
+    """Turn the page's camera on or off, whatever it is now (the button says what a click
+    does: "camera off" while it is on), and wait until the page's upload follows."""
+    if (await page.inner_text("#camera-off") == "camera off") != on:
+        await page.click("#camera-off")
+    if not on:
+        assert await goes_quiet(page, "sentVideo", within=15.0)
+        return
+    for _ in range(20):  # a loaded machine's encoder may take a while to start again
+        if await sent(page, "sentVideo") > 0:
+            return
+    raise AssertionError("the page's camera did not come back")
+
+
 async def test_the_robot_screen_says_when_the_users_camera_is_off(rig: MediaRig) -> None:
     screen = rig.screen_page
+    await set_camera(rig.page, on=True)
     await screen_shows(screen, video=True)
-    await rig.page.click("#camera-off")
+    await set_camera(rig.page, on=False)
     try:
         await screen_shows(screen, video=False)
         assert rig.media.state.video is False and rig.client.call.active
     finally:
-        await rig.page.click("#camera-off")
+        await set_camera(rig.page, on=True)
     await screen_shows(screen, video=True)
     # The camera stays on, but its pictures stop reaching the robot (a stalled uplink):
     # the screen must not freeze on the last one either.
