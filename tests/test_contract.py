@@ -300,42 +300,55 @@ async def test_forged_tampered_replayed_and_garbage_frames_are_dropped_and_count
         assert len(captured) == 1
         frame = captured[0]
         raw = user.transport.publisher(inbox, Lane.DATA)
-        raw.put(frame)  # replayed
+        handshake = user.transport.publisher(f"telebot/robot/{ROBOT}/in/{USER}", Lane.CONTROL)
         header_tampered = bytearray(frame)
         header_tampered[12] ^= 0x40  # counter changed: the associated data no longer matches
-        raw.put(bytes(header_tampered))
         # A fresh, valid frame that has not been sent: tampered first, then the original.
         from telebot.channels.proto.frames import encode_datagram
 
         fresh = call._session.seal(encode_datagram(b"chat", "sealed by hand"))
         tampered = bytearray(fresh)
         tampered[-1] ^= 0x01
-        raw.put(bytes(tampered))  # tampered ciphertext
-        raw.put(b"\x01\x03garbage!")  # truncated DATA
-        raw.put(os.urandom(200))  # noise
-        raw.put(b"")  # empty
         other_call = bytearray(fresh)
         other_call[2] ^= 0xFF  # another call's id on this call's key
-        raw.put(bytes(other_call))
-        # The same garbage on the handshake key is the endpoint's to count.
-        handshake = user.transport.publisher(f"telebot/robot/{ROBOT}/in/{USER}", Lane.CONTROL)
-        for junk in (fresh, os.urandom(200), b""):
-            handshake.put(junk)
-        handshake.close()
+
+        def send_garbage() -> None:
+            raw.put(frame)  # replayed
+            raw.put(bytes(header_tampered))
+            raw.put(bytes(tampered))  # tampered ciphertext
+            raw.put(b"\x01\x03garbage!")  # truncated DATA
+            raw.put(os.urandom(200))  # noise
+            raw.put(b"")  # empty
+            raw.put(bytes(other_call))  # another call's id
+            # The same garbage on the handshake key is the endpoint's to count.
+            for junk in (fresh, os.urandom(200), b""):
+                handshake.put(junk)
 
         def all_counted(stats: dict[str, Any]) -> bool:
+            rejected, endpoint = stats["rejected"], stats["endpoint_rejected"]
             return (
-                sum(stats["rejected"].values()) >= 7
-                and sum(stats["endpoint_rejected"].values()) >= 3
+                rejected.get("replayed", 0) >= 1
+                and rejected.get("forged", 0) >= 2
+                and rejected.get("malformed", 0) >= 3
+                and rejected.get("not_this_call", 0) >= 1
+                and endpoint.get("data_on_handshake_key", 0) >= 1
+                and sum(endpoint.values()) >= 3
             )
 
-        # Counted as the robot gets to them (a loaded machine takes its time): ask until all
-        # nine are in, then check how each was counted.
-        deadline = time.monotonic() + 5 + SLACK
+        # Counted as the robot gets to them (a loaded machine takes its time). Datagrams may be
+        # lost on the way (zenoh drops under congestion, by design), so what is not counted
+        # after a second is sent again: every copy is as bad as the first.
+        deadline = time.monotonic() + 10 + SLACK
+        send_garbage()
+        resent_at = time.monotonic()
         stats = await robot_stats(call)
         while not all_counted(stats) and time.monotonic() < deadline:
             await asyncio.sleep(0.05)
+            if time.monotonic() - resent_at > 1.0:
+                send_garbage()
+                resent_at = time.monotonic()
             stats = await robot_stats(call)
+        handshake.close()
         assert stats["rejected"].get("replayed", 0) >= 1
         assert stats["rejected"].get("forged", 0) >= 2
         assert stats["rejected"].get("malformed", 0) >= 3
