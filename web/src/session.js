@@ -123,6 +123,7 @@ export class RobotSession {
     this.stopTimers = [];
     /** Page messages that could not be read (the page was told by an `error`). */
     this.pageErrors = 0;
+    this.greeted = false;
     /** Datagrams dropped by the services of earlier calls, by service. */
     this.pastDrops = {};
   }
@@ -351,7 +352,7 @@ export class RobotSession {
   setRole(role) {
     if (role === this.role) return;
     this.role = role;
-    this.emit(this.hello()); // the page enables its driving controls on a hello
+    if (this.greeted) this.emit(this.hello()); // the page enables its driving controls on a hello
   }
 
   hello() {
@@ -364,6 +365,7 @@ export class RobotSession {
    * roster and the last 50 conference messages.
    */
   greet() {
+    this.greeted = true;
     this.emit(this.hello());
     const l = this.latest;
     for (const msg of [l.pose, l.safety, l.telemetry, l.goal, l.plan, l.places]) if (msg) this.emit(msg);
