@@ -139,11 +139,11 @@ export class Endpoint {
     const callBase = `${this.base}/call/${robot}/${idHex}`;
     /** @type {Uint8Array[]} */
     const early = [];
-    /** @type {Call|null} */
-    let call = null;
+    /** @type {Call|null} set once the early frames were handed over */
+    let live = null;
     /** @param {string} _key @param {Uint8Array} payload */
     const onCallFrame = (_key, payload) => {
-      if (call) call.receive(payload);
+      if (live) live.receive(payload);
       else if (early.length < EARLY_FRAMES) early.push(payload);
     };
     // The call's keys are listened on before the first HELLO goes out (§2.1).
@@ -190,7 +190,7 @@ export class Endpoint {
         };
         step();
       });
-      call = new Call(this, {
+      const call = new Call(this, {
         robot,
         robotKey: expected,
         callId,
@@ -207,7 +207,13 @@ export class Endpoint {
         callBase: `${this.ns}/robot/${robot}/call/${this.name}/${idHex}`,
       });
       this.calls.add(call);
-      call.start(early.splice(0));
+      call.start();
+      // Frames that came before the WELCOME are handed over once the caller has had its
+      // turn to set onmessage/onDatagram; until then new ones queue behind them.
+      setTimeout(() => {
+        live = call;
+        for (const frame of early.splice(0)) call.receive(frame);
+      }, 0);
       return call;
     } catch (error) {
       for (const s of subscriptions) s.close();
@@ -282,8 +288,8 @@ export class Call {
     return this.session.stats;
   }
 
-  /** @param {Uint8Array[]} early frames that came before the WELCOME was handled */
-  start(early) {
+  /** Watch the robot's presence token and start the heartbeats. */
+  start() {
     let seen = false;
     const key = `${this.endpoint.ns}/presence/robot/${this.robot}/${this.robotKey}`;
     this.presence = this.endpoint.link.watch(key, (/** @type {string} */ _key, /** @type {boolean} */ alive) => {
@@ -293,7 +299,6 @@ export class Call {
         if (end) this.finish(end);
       }
     });
-    for (const frame of early) this.receive(frame);
     this.tick();
   }
 
