@@ -169,10 +169,13 @@ test("seeded fuzz: every decoder raises only ProtocolError on garbage and mutati
       }
     }
     const text = [...keyText].map((c) => (random() < 0.05 ? String.fromCharCode(Math.floor(random() * 128)) : c)).join("");
-    try {
-      decodeKey(text.slice(0, 40 + Math.floor(random() * 6)));
-    } catch (error) {
-      assert.ok(error instanceof ProtocolError, `decodeKey threw ${error}`);
+    for (const parse of [decodeKey, parseContactLine]) {
+      try {
+        const cut = text.slice(0, 40 + Math.floor(random() * 6));
+        parse(parse === decodeKey ? cut : `telebot-x25519 ${cut} ${random() < 0.5 ? "alice" : "a/b"}`);
+      } catch (error) {
+        assert.ok(error instanceof ProtocolError, `${parse.name} threw ${error}`);
+      }
     }
   }
   assert.ok(decoded > 100); // the mutations do reach the decoders' insides

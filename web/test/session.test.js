@@ -200,3 +200,21 @@ test("hang-up both ways, and the robot going offline", () => {
   ({ user: u } = pair());
   assert.deepEqual(u.peerGone(), { kind: "dropped", byPeer: true, detail: "guiabot went offline" });
 });
+
+test("garbage on the inbox and on the call's keys never throws: it is counted", () => {
+  let seed = 5;
+  const random = () => ((seed = (seed * 1103515245 + 12345) % 2 ** 31) / 2 ** 31);
+  const s = setup();
+  const { user: u } = pair();
+  for (let i = 0; i < 3000; i++) {
+    const bytes = new Uint8Array(Math.floor(random() * 120));
+    for (let j = 0; j < bytes.length; j++) bytes[j] = Math.floor(random() * 256);
+    if (bytes.length > 10 && i % 2) bytes.set(CALL_ID, 2); // this call's id, to reach deeper
+    // Version 2 and a WELCOME, DATA or RETRY type on a third of them.
+    if (bytes.length > 1 && i % 3 === 0) bytes.set([2, [2, 3, 5][Math.floor(i / 3) % 3]], 0);
+    assert.equal(s.receive(bytes, "guiabot").kind, "ignored");
+    assert.deepEqual(u.receive(bytes, 1), { datagrams: [], ended: null });
+  }
+  assert.equal(s.outcome, null);
+  assert.ok(Object.values(u.stats.rejected).reduce((a, b) => a + b, 0) === 3000);
+});
