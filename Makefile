@@ -22,9 +22,15 @@ lint: install
 	$(BIN)/ruff format --check src tests bench
 	$(BIN)/mypy
 
-test: lint
+test: lint node_modules/.installed
+	npm test
 	.ci/install-debian
 	$(BIN)/pytest -n 2
+
+# The browser client's packages (package-lock.json): again only when the lockfile changed.
+node_modules/.installed: package-lock.json
+	npm ci --no-audit --no-fund
+	touch $@
 
 bench: install
 	$(BIN)/python bench/channels.py

@@ -49,7 +49,14 @@ from typing import Any
 
 from telebot.channels.call import RobotEndpoint, UserEndpoint
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
-from telebot.config import AppConfig, CallSettings, ServiceSettings, SimSettings, ZenohSettings
+from telebot.config import (
+    AppConfig,
+    CallSettings,
+    CipherChoice,
+    ServiceSettings,
+    SimSettings,
+    ZenohSettings,
+)
 from telebot.identity import ContactBook, Identity, KnownRobots, Role, create_paired_homes
 from telebot.robot.mapfile import places_path_for
 from telebot.robot.sim.stack import SimNavStack, resolve_map
@@ -411,12 +418,13 @@ async def robot_on_hub(
     sim: Mapping[str, Any] | None = None,
     services: ServiceSettings | None = None,
     video: VideoSettings | None = None,
+    cipher: CipherChoice = "auto",
 ) -> AsyncIterator[tuple[SimNavStack, SafetyDriver, RobotServer, RobotEndpoint]]:
     """A simulated robot (small map) with its safety supervisor, answering on ``hub`` as
     "robot"; paired homes for ``ROBOT`` and ``USER`` (a driver) are made under ``base``.
 
     ``timeout`` is the robot's call timeout and its deadman time; ``sim`` the simulator's
-    settings (a robot of 1 m/s by default).
+    settings (a robot of 1 m/s by default); ``cipher`` its ``[call] cipher``.
     """
     create_paired_homes(base, ROBOT, USER, role=Role.DRIVER)
     robot_home = base / "robot"
@@ -448,7 +456,7 @@ async def robot_on_hub(
                 transport,
                 Identity.load(robot_home),
                 ContactBook.load(robot_home),
-                settings=CallSettings(timeout=timeout),
+                settings=CallSettings(timeout=timeout, cipher=cipher),
             ) as endpoint,
         ):
             server.attach(endpoint)
