@@ -22,13 +22,12 @@ lint: install
 	$(BIN)/ruff format --check src tests bench
 	$(BIN)/mypy
 
-test: lint node_modules/.installed
+test: lint install-debian node_modules/.installed
 	npm test
-	.ci/install-debian
 	$(BIN)/pytest -n 2
 
 # The browser client's packages (package-lock.json): again only when the lockfile changed.
-node_modules/.installed: package-lock.json
+node_modules/.installed: package-lock.json | install-debian
 	npm ci --no-audit --no-fund
 	touch $@
 
