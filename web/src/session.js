@@ -5,6 +5,7 @@
  *     const session = new RobotSession({ connect: () => endpoint.call(name, key), emit, user });
  *     await session.start();          // the first call (throws: KEY MISMATCH, refused, …)
  *     session.send({ type: "stop", how: "key" });   // §19 page → client messages
+ *     session.send({ type: "video", header, data }); // the user's camera / mic (§19.1)
  *     // emit(msg) gets the §19 client → page messages; pictures and voice as
  *     // {type: "video"|"audio", header, data} (packMedia(header, data) makes today's
  *     // binary websocket message of them).
@@ -35,8 +36,11 @@ import {
 } from "./services/services.js";
 import { STOP_HOWS, sayText } from "./services/messages.js";
 import { CODEC_IDS, CODEC_NAMES, packMedia } from "./services/video.js";
+import { PAGE_CODECS, UserMediaService, chooseCodec, parseMediaMessage, unpackMedia } from "./services/uplink.js";
+import { RequestFailed } from "./services/util.js";
 
 export { packMedia };
+export { RelayRefused, TopicStream } from "./services/relay.js";
 
 /** Seconds between the services' ticks (the stop repeats every 50 ms). */
 export const TICK = 0.02;
@@ -126,6 +130,11 @@ export class RobotSession {
     this.greeted = false;
     /** Datagrams dropped by the services of earlier calls, by service. */
     this.pastDrops = {};
+    /** What the page encodes (its `media` message; null until it said). */
+    this.mediaEncode = null;
+    this.mediaTold = null;
+    /** The page's media messages dropped as malformed (the page got an `error` each). */
+    this.mediaErrors = 0;
   }
 
   // ---------------------------------------------------------------- lifecycle
@@ -211,6 +220,11 @@ export class RobotSession {
       }),
     });
     s.relay = new RelayService(theCall, { random });
+    s.userMedia = new UserMediaService(theCall, {
+      rtt: () => theCall.stats?.rtt ?? null,
+      onKeyframe: () => this.emit({ type: "keyframe_request" }),
+      onChange: () => this.tellMedia(),
+    });
     this.services = s;
     const now = this.clock.now();
     for (const service of Object.values(s)) service.tick(now);
@@ -219,6 +233,7 @@ export class RobotSession {
     this.waiting = [];
     for (const w of waiting) w.run();
     if (!this.latest.map || this.mapFetching) this.fetchMap();
+    this.tellMedia(); // a new call: the robot has not said which codecs it takes yet
     Promise.resolve(theCall.ended).then((end) => this.onEnded(theCall, end), () => this.onEnded(theCall, { kind: "dropped", detail: "" }));
   }
 
@@ -434,6 +449,7 @@ export class RobotSession {
    * cannot read is answered with an `error`.
    */
   send(msg) {
+    if (msg instanceof ArrayBuffer || msg instanceof Uint8Array) return this.sendBinary(msg);
     if (msg === null || typeof msg !== "object" || typeof msg.type !== "string") {
       return this.pageError("not a JSON message with a type");
     }
@@ -465,6 +481,9 @@ export class RobotSession {
         return;
       case "media":
         return this.onMedia(msg);
+      case "video":
+      case "audio":
+        return this.sendMedia(msg.header, msg.data, msg.type);
       case "keyframe":
         this.services?.video.requestKeyframe(this.clock.now());
         return;
@@ -589,15 +608,84 @@ export class RobotSession {
     );
   }
 
+  /**
+   * The page's `media` message (§19.1, on every open): what it decodes (the robot's
+   * codec list on `video`) and encodes. Answered with `{type: "media", send, codec, note}`,
+   * and again whenever the answer changes (the robot's codec list on `video/user`).
+   */
   onMedia(msg) {
     const names = Array.isArray(msg.decode) ? msg.decode.filter((c) => c === "h264" || c === "vp8" || c === "jpeg") : [];
     const ids = [...new Set(names.length ? names : ["jpeg"])].map((c) => CODEC_IDS[c]);
     this.videoCodecs = ids;
     this.services?.video.setCodecs(ids);
-    this.emit({
-      type: "media", send: false, codec: "",
-      note: "this page does not send your camera or microphone yet: the call goes on without them",
-    });
+    const encode = Array.isArray(msg.encode) ? msg.encode.filter((c) => PAGE_CODECS.includes(c)) : [];
+    this.mediaEncode = [...new Set(encode)];
+    this.mediaTold = null; // a page that (re)opened is told at once
+    this.tellMedia();
+  }
+
+  /** The `media` answer for the page now (the Python relay's, for its sending page). */
+  mediaMessage() {
+    const mine = (this.mediaEncode ?? []).map((c) => CODEC_IDS[c]);
+    if (!mine.length) {
+      return {
+        type: "media", send: false, codec: "",
+        note: "this browser cannot send your camera or microphone (it has no WebCodecs): the call goes on without them",
+      };
+    }
+    const robot = this.services?.userMedia.video.codecs ?? [];
+    const chosen = robot.length ? chooseCodec(robot, mine) : mine[0];
+    if (chosen === null) {
+      return { type: "media", send: false, codec: "", note: "the robot decodes none of the video codecs this browser encodes" };
+    }
+    return { type: "media", send: true, codec: CODEC_NAMES[chosen], note: "" };
+  }
+
+  /** Tell the page whether and in which codec to send, when that changed (or never told). */
+  tellMedia() {
+    if (this.mediaEncode === null) return; // the page has not said what it can do yet
+    const msg = this.mediaMessage();
+    const key = JSON.stringify(msg);
+    if (key === this.mediaTold) return;
+    this.mediaTold = key;
+    this.emit(msg);
+  }
+
+  /**
+   * One of the page's encoded pictures or Opus packets (§19.1: `header` as the websocket's,
+   * `data` the bytes) to the robot, on `video/user` or `audio/user`. Returns whether it
+   * went on the call (false: not asked for now, no call, malformed; a page makes its next
+   * picture a keyframe then). A malformed one is answered with an `error` naming the fault.
+   * @param {object} header @param {Uint8Array|ArrayBuffer} data @param {string} [type]
+   */
+  sendMedia(header, data, type = header?.kind) {
+    let media;
+    try {
+      if (header?.kind !== type) throw new Error(`a '${type}' message with a header of kind ${JSON.stringify(header?.kind ?? null)}`);
+      media = parseMediaMessage(header, data, this.mediaEncode ?? PAGE_CODECS);
+    } catch (err) {
+      this.mediaErrors += 1;
+      this.pageError(`media dropped: ${err.message}`);
+      return false;
+    }
+    if (!this.mediaEncode?.length) return false; // this page does not send (it never said it encodes)
+    const s = this.services;
+    if (!s) return false; // reconnecting: a picture now is a gap the robot sees
+    const now = this.clock.now();
+    return media.kind === "video" ? s.userMedia.sendPicture(media, now) : s.userMedia.sendPacket(media, now);
+  }
+
+  /** The page's binary websocket message of §19.1 (a page written for the local client). */
+  sendBinary(message) {
+    let unpacked;
+    try {
+      unpacked = unpackMedia(message);
+    } catch (err) {
+      this.mediaErrors += 1;
+      this.pageError(`media dropped: ${err.message}`);
+      return false;
+    }
+    return this.sendMedia(unpacked.header, unpacked.data);
   }
 
   /** Watch the robot's camera (true, the default) or not (false: a BYE). */
@@ -613,9 +701,33 @@ export class RobotSession {
   }
 
   /** The topics this user may relay (§17.5): [{name, type, schema, encoding}]. */
-  topics() {
+  topics({ timeout = 5 } = {}) {
     return new Promise((resolve, reject) => {
-      this.onCall(() => this.services.relay.topics({ now: this.clock.now() }).then(resolve, reject), (reason) => reject(new Error(reason)));
+      this.onCall(
+        () => this.services.relay.topics({ timeout, now: this.clock.now() }).then(resolve, reject),
+        (reason) => reject(new RequestFailed(reason, reason === "no answer" ? "timeout" : "call_ended")),
+        timeout,
+      );
+    });
+  }
+
+  /**
+   * Relay a robot topic (§17.5), as the Python client's `robot.relay(topic, rate=…,
+   * latest_only=…)`: resolves with a {@link TopicStream} (`onmessage({topic, type, data,
+   * stamp})` with the CDR bytes as on the robot, or `for await`; `close()` stops it). It
+   * ends (`onend(reason)`, `ended`) when the robot ends it or with the call it started on
+   * (a reconnection does not resume it). Rejects with {@link RelayRefused} (`code`:
+   * `unknown_topic` with `near`, `topic_not_allowed`, `too_many_relays`, `failed`) or
+   * RequestFailed (no answer in `timeout` s, the call ended); a bad `rate` is a RangeError.
+   * @param {string} topic @param {{rate?: number|null, latestOnly?: boolean, onMessage?: Function, timeout?: number}} [options]
+   */
+  relay(topic, { rate = null, latestOnly = false, onMessage = null, timeout = 5 } = {}) {
+    return new Promise((resolve, reject) => {
+      this.onCall(
+        () => this.services.relay.start(topic, { rate, latestOnly, onMessage, timeout, now: this.clock.now() }).then(resolve, reject),
+        (reason) => reject(new RequestFailed(reason, reason === "no answer" ? "timeout" : "call_ended")),
+        timeout,
+      );
     });
   }
 

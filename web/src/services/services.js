@@ -12,13 +12,16 @@
  * @module services/services
  */
 import {
+  CALL_ENDED,
   DecodeError,
   DropCounter,
+  RESEND_AFTER,
+  RequestFailed,
+  callSafely as call,
+  safeSend,
   encodeObject,
   idCounter,
   isFiniteNumber,
-  decodeObject,
-  requireInt,
   serialDiff,
 } from "./util.js";
 import {
@@ -45,41 +48,12 @@ import {
   parseAudio,
 } from "./video.js";
 
-/** Why a request failed when its call ended under it. */
-export const CALL_ENDED = "the call ended";
-export const RESEND_AFTER = 0.3;
+export { CALL_ENDED, RESEND_AFTER, RequestFailed };
 export const REFRESH_AFTER = 2.0;
 export const STOP_REPEAT = 0.05;
 /** Motion refused as `rtt_unmeasured` just after set-up: asked again this often, this many times. */
 export const UNMEASURED_WAIT = 0.1;
 export const UNMEASURED_RETRIES = 20;
-
-/** An error a request ends with: `code` "timeout" or "call_ended". */
-export class RequestFailed extends Error {
-  constructor(message, code) {
-    super(message);
-    this.name = "RequestFailed";
-    this.code = code;
-  }
-}
-
-function safeSend(channel, payload) {
-  try {
-    channel.send(payload);
-    return true;
-  } catch {
-    return false; // the call is over, or a transient failure: the next repeat tries again
-  }
-}
-
-/** Calls `fn`; a throwing listener never reaches the network callback. */
-function call(fn, ...args) {
-  try {
-    fn?.(...args);
-  } catch {
-    // the page's listener failed: the service goes on
-  }
-}
 
 // ---------------------------------------------------------------------------- chat §14
 
@@ -773,77 +747,8 @@ export class AudioService {
   }
 }
 
-// ------------------------------------------------------------------- relay list §17.5
+// ----------------------------------------------------------------------- relay §17.5
 
-/** The `relay` channel, listing only: the topics this caller may relay. */
-export class RelayService {
-  constructor(theCall, { random = Math.random } = {}) {
-    this.channel = theCall.channel("relay", { lane: "data" });
-    this.channel.onmessage = (payload) => this.onMessage(payload);
-    this.nextId = idCounter(random);
-    this.pending = new Map();
-    this.drops = new DropCounter();
-    this.now = 0;
-  }
-
-  /** Resolves with [{name, type, schema, encoding}] (every part of one answer). */
-  topics({ timeout = 5, now = this.now } = {}) {
-    return new Promise((resolve, reject) => {
-      const id = this.nextId();
-      const payload = encodeObject({ type: "list", id });
-      this.pending.set(id, { payload, resolve, reject, parts: null, due: now + RESEND_AFTER, deadline: now + timeout });
-      safeSend(this.channel, payload);
-    });
-  }
-
-  onMessage(payload) {
-    let msg;
-    try {
-      msg = decodeObject(payload, "relay");
-      if (msg.type !== "topics") throw new DecodeError("relay: not a topic list");
-      requireInt(msg, "id", "relay");
-      requireInt(msg, "parts", "relay", 1, 64);
-      requireInt(msg, "part", "relay", 0, msg.parts - 1);
-      if (!Array.isArray(msg.topics)) throw new DecodeError("relay: 'topics' must be a list");
-      for (const t of msg.topics) {
-        if (t === null || typeof t !== "object" || typeof t.name !== "string" || typeof t.type !== "string" ||
-          typeof (t.schema ?? "") !== "string" || typeof (t.encoding ?? "cdr") !== "string") {
-          throw new DecodeError("relay: a topic needs a name and a type");
-        }
-      }
-    } catch (err) {
-      if (!(err instanceof DecodeError)) throw err;
-      this.drops.add("malformed");
-      return;
-    }
-    const p = this.pending.get(msg.id);
-    if (!p) return;
-    if (!p.parts || p.parts.length !== msg.parts) p.parts = new Array(msg.parts).fill(null);
-    p.parts[msg.part] = msg.topics.map((t) => ({ name: t.name, type: t.type, schema: t.schema ?? "", encoding: t.encoding ?? "cdr" }));
-    if (p.parts.every((part) => part !== null)) {
-      this.pending.delete(msg.id);
-      p.resolve(p.parts.flat());
-    }
-  }
-
-  tick(now) {
-    this.now = now;
-    for (const [id, p] of this.pending) {
-      if (now >= p.deadline) {
-        this.pending.delete(id);
-        p.reject(new RequestFailed("no answer", "timeout"));
-      } else if (now >= p.due) {
-        p.due = now + RESEND_AFTER;
-        safeSend(this.channel, p.payload);
-      }
-    }
-  }
-
-  close() {
-    this.channel.onmessage = null;
-    for (const p of this.pending.values()) p.reject(new RequestFailed(CALL_ENDED, "call_ended"));
-    this.pending.clear();
-  }
-}
+export { RelayService } from "./relay.js";
 
 export { isFiniteNumber };

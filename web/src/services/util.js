@@ -198,3 +198,36 @@ export class DropCounter {
     this.total += 1;
   }
 }
+
+/** Why a request failed when its call ended under it. */
+export const CALL_ENDED = "the call ended";
+/** A request unanswered this long is sent again (s). */
+export const RESEND_AFTER = 0.3;
+
+/** An error a request ends with: `code` "timeout" or "call_ended". */
+export class RequestFailed extends Error {
+  constructor(message, code) {
+    super(message);
+    this.name = "RequestFailed";
+    this.code = code;
+  }
+}
+
+/** Send on a channel; false when it threw (the call is over, or a transient failure). */
+export function safeSend(channel, payload) {
+  try {
+    channel.send(payload);
+    return true;
+  } catch {
+    return false; // the next repeat tries again
+  }
+}
+
+/** Calls `fn`; a throwing listener never reaches the network callback. */
+export function callSafely(fn, ...args) {
+  try {
+    fn?.(...args);
+  } catch {
+    // the page's listener failed: the service goes on
+  }
+}

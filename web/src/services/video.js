@@ -40,6 +40,18 @@ export const MIN_KEYFRAME_GAP = 0.3;
 /** Reports go at once and then this often (s) while the user watches or listens. */
 export const REPORT_INTERVAL = 0.2;
 
+/**
+ * Microseconds of a Unix time in seconds, rounded as Python's round() does (half to
+ * even), so the bytes equal the Python sender's; at least 0, at most 2^53 - 1.
+ */
+export function captureMicros(seconds) {
+  const x = seconds * 1e6;
+  if (!(x > 0)) return 0;
+  let r = Math.round(x);
+  if (r - x === 0.5 && r % 2 !== 0) r -= 1;
+  return Math.min(r, Number.MAX_SAFE_INTEGER);
+}
+
 /** The byte range [start, end) of fragment `index` of a `size`-byte frame in `count` (§17.1). */
 export function fragmentSpan(size, count, index) {
   const q = Math.floor(size / count);
@@ -107,7 +119,7 @@ export function fragmentFrame({ frameId, camera, captureTime, data, seq = 0, int
   if (size < 1 || size > MAX_FRAME_BYTES) throw new RangeError(`a frame must be 1..${MAX_FRAME_BYTES} bytes`);
   const count = Math.ceil(size / room);
   if (count > MAX_FRAGMENTS) throw new RangeError("a frame of more than 64 fragments");
-  const captureUs = Math.max(0, Math.round(captureTime * 1e6));
+  const captureUs = captureMicros(captureTime);
   const intervalMs = Math.max(1, Math.min(Math.round(interval * 1000), 0xffff));
   const out = [];
   for (let index = 0; index < count; index++) {
@@ -401,7 +413,7 @@ export function encodeAudio(seq, captureTime, packet) {
   if (packet.length < 1 || packet.length > MAX_OPUS_PACKET) throw new RangeError("an audio packet must be 1..3825 bytes");
   const out = new Uint8Array(AUDIO_HEADER + packet.length);
   const dv = view(out);
-  const us = Math.max(0, Math.round(captureTime * 1e6));
+  const us = captureMicros(captureTime);
   out[0] = KIND_AUDIO;
   out[1] = CODEC_OPUS;
   dv.setUint32(2, seq % U32);
