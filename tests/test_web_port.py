@@ -50,83 +50,80 @@ async def sent(page: Any, kind: str) -> list[dict[str, Any]]:
 
 
 async def test_the_page_runs_on_a_port_object_messages_media_goals_and_stops() -> None:
-    async with start_page_server() as url:
-        async with phone_page("about:blank") as page:
-            await page.add_init_script(FAKE_PORT)  # before app.js runs
-            await page.goto(url + "call")
-            await page.wait_for_function("() => window.fake && window.fake.h")
-            # On open the page says what it decodes, as on a websocket.
-            assert (await sent(page, "media"))[0]["decode"]
-            the_map = {
-                "url": png_data_url(200, 100),
-                "resolution": 0.05,
-                "origin_x": 0.0,
-                "origin_y": 0.0,
-                "width": 200,
-                "height": 100,
-                "version": 0,
-            }
-            await feed(
-                page,
-                {
-                    "type": "hello",
-                    "robot": "guiabot",
-                    "user": "alice",
-                    "role": "driver",
-                    "may_drive": True,
-                    "map": the_map,
-                },
-            )
-            pose = {
-                "type": "pose",
-                "x": 1.0,
-                "y": 1.0,
-                "yaw": 0.0,
-                "v": 0.0,
-                "w": 0.0,
-                "state": "idle",
-                "detail": "",
-                "goal": None,
-                "t": 0,
-                "recv": 0,
-            }
-            await feed(page, pose)
-            await feed(
-                page,
-                {
-                    "type": "safety",
-                    "armed": True,
-                    "reason": "",
-                    "holder": "alice",
-                    "cap": 1.0,
-                    "blocked": False,
-                },
-            )
-            await page.wait_for_function("() => window.telebotUI.mapReady()")
-            assert await page.title() == "telebot · guiabot"
-            # A JPEG picture as {header, data}: shown.
-            await page.evaluate(
-                """(bytes) => window.fake.h.media(
+    async with start_page_server() as url, phone_page("about:blank") as page:
+        await page.add_init_script(FAKE_PORT)  # before app.js runs
+        await page.goto(url + "call")
+        await page.wait_for_function("() => window.fake && window.fake.h")
+        # On open the page says what it decodes, as on a websocket.
+        assert (await sent(page, "media"))[0]["decode"]
+        the_map = {
+            "url": png_data_url(200, 100),
+            "resolution": 0.05,
+            "origin_x": 0.0,
+            "origin_y": 0.0,
+            "width": 200,
+            "height": 100,
+            "version": 0,
+        }
+        await feed(
+            page,
+            {
+                "type": "hello",
+                "robot": "guiabot",
+                "user": "alice",
+                "role": "driver",
+                "may_drive": True,
+                "map": the_map,
+            },
+        )
+        pose = {
+            "type": "pose",
+            "x": 1.0,
+            "y": 1.0,
+            "yaw": 0.0,
+            "v": 0.0,
+            "w": 0.0,
+            "state": "idle",
+            "detail": "",
+            "goal": None,
+            "t": 0,
+            "recv": 0,
+        }
+        await feed(page, pose)
+        await feed(
+            page,
+            {
+                "type": "safety",
+                "armed": True,
+                "reason": "",
+                "holder": "alice",
+                "cap": 1.0,
+                "blocked": False,
+            },
+        )
+        await page.wait_for_function("() => window.telebotUI.mapReady()")
+        assert await page.title() == "telebot · guiabot"
+        # A JPEG picture as {header, data}: shown.
+        await page.evaluate(
+            """(bytes) => window.fake.h.media(
                      {kind: "video", codec: "jpeg", key: true, frame_id: 0, camera: "navcam",
                       capture_time: Date.now() / 1000}, new Uint8Array(bytes))""",
-                jpeg_bytes(64, 48),
-            )
-            await page.wait_for_function(
-                "() => document.getElementById('video').naturalWidth === 64"
-            )
-            assert await page.evaluate("() => window.telebotUI.state.camera") == "navcam"
-            # A tap on the map: the goal goes out through the port.
-            target = (6.0, 2.5)
-            sx, sy = await page.evaluate(f"() => window.telebotUI.worldToScreen{target}")
-            box = await page.locator("#map").bounding_box()
-            await page.touchscreen.tap(box["x"] + sx, box["y"] + sy)
-            await page.wait_for_function("() => window.fake.sent.some((m) => m.type === 'goal')")
-            goal = (await sent(page, "goal"))[0]
-            assert math.dist((goal["x"], goal["y"]), target) < 0.1 and goal["yaw"] is None
-            # Hidden while armed: the stop goes out through the port too.
-            await page.evaluate(
-                """() => { Object.defineProperty(document, 'visibilityState',
+            jpeg_bytes(64, 48),
+        )
+        await page.wait_for_function("() => document.getElementById('video').naturalWidth === 64")
+        assert await page.evaluate("() => window.telebotUI.state.camera") == "navcam"
+        # A tap on the map: the goal goes out through the port.
+        target = (6.0, 2.5)
+        sx, sy = await page.evaluate(f"() => window.telebotUI.worldToScreen{target}")
+        box = await page.locator("#map").bounding_box()
+        await page.touchscreen.tap(box["x"] + sx, box["y"] + sy)
+        await page.wait_for_function("() => window.fake.sent.some((m) => m.type === 'goal')")
+        goal = (await sent(page, "goal"))[0]
+        assert math.dist((goal["x"], goal["y"]), target) < 0.1 and goal["yaw"] is None
+        # Hidden while armed: the stop goes out through the port too.
+        await page.evaluate(
+            """() => { Object.defineProperty(document, 'visibilityState',
                      {value: 'hidden', configurable: true});
                    document.dispatchEvent(new Event('visibilitychange')); }"""
-            )
-            assert await sent(page, "stop") == [{"type": "stop", "how": "page_hidden"}]
+        )
+        assert await sent(page, "stop") == [{"type": "stop", "how": "page_hidden"}]
