@@ -433,6 +433,22 @@ async def test_closing_the_page_while_driving_stops_the_robot(rig: Rig) -> None:
         await drive_forward(rig)
         await page.close()
     await wait_for(lambda: rig.zeroed, timeout=3.0 + SLACK, what="the base stopped")
+    assert rig.nav.velocity().linear == 0.0
+    await wait_for(lambda: rig.stops(), timeout=3.0 + SLACK, what="the stop in the audit log")
+    # The page stops the robot itself as it goes (pagehide): the first stop is the page's.
+    assert rig.stops()[0] == (USER, "page_hidden")
+
+
+async def test_a_page_that_dies_while_driving_is_stopped_by_the_client(rig: Rig) -> None:
+    async with browser_page(rig.ui.url) as page:
+        await page_ready(page)
+        await drive_forward(rig)
+        # The renderer crashes: no pagehide, no last message; only its websocket goes.
+        cdp = await page.context.new_cdp_session(page)
+        # (Page.crash never answers: its page is gone.)
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(cdp.send("Page.crash"), timeout=1.0)
+        await wait_for(lambda: rig.zeroed, timeout=3.0 + SLACK, what="the base stopped")
     assert rig.ui.close_stops == 1
     assert rig.nav.velocity().linear == 0.0
     await wait_for(lambda: rig.stops(), timeout=3.0 + SLACK, what="the stop in the audit log")

@@ -9,7 +9,7 @@ streams video while at least one is.
 Websocket protocol (JSON text messages unless stated)::
 
     page → client
-      {"type": "stop", "how": "button" | "key"}         stop now (anyone, never refused)
+      {"type": "stop", "how": "button" | "key" | "touch" | "page_hidden"}   stop now (anyone)
       {"type": "arm"} | {"type": "take"} | {"type": "release"}
       {"type": "goal", "x": 1.0, "y": 2.0, "yaw": 0.5}   map frame; yaw may be null
       {"type": "chat", "id": 3, "text": "fwd 1"}         a Table I command ("say …": a say)

@@ -76,6 +76,8 @@ STOP_HOWS: dict[str, str] = {
     "button": "a STOP button (the web UI's)",
     "key": "a key pressed while the robot moved (the chat prompt, the web page)",
     "tab_closed": "the web page closed, or went silent, while the robot might move",
+    "page_hidden": "the web page was hidden or frozen (another tab, the phone locked) while the robot might move",
+    "touch": "touched the web page's video while the robot moved",
     "exit": "the user's client quit while the robot moved",
     "api": "a program through the client library",
 }

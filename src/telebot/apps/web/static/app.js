@@ -9,7 +9,7 @@
 
   const ui = {
     state: {
-      robot: "", role: "", mayDrive: false, map: null, pose: null, goal: null,
+      robot: "", user: "", role: "", mayDrive: false, map: null, pose: null, goal: null,
       safety: null, telemetry: null, link: null, connected: false, call: null,
       frames: 0, camera: "", fps: 0, chat: [], plan: null, places: [],
     },
@@ -17,7 +17,7 @@
     // and the names of the places labelled.
     drawn: { plan: 0, labels: [] },
     // Measurements for tests and benchmarks (wall-clock ms).
-    stats: { keyTimes: [], poseDraw: [], frameTimes: [] },
+    stats: { keyTimes: [], poseDraw: [], frameTimes: [], hides: [] },
   };
   ui.handlers = {};
   window.telebotUI = ui;
@@ -25,26 +25,56 @@
   // map draw (ctx, worldToScreen, pixels per metre).
   ui.hooks = { message: [], draw: [] };
 
-  // ------------------------------------------------------------------ websocket
-  let ws = null;
-  let chatId = 0;
-  function connect() {
-    // Relative to the page: it may live under a prefix (the fleet page's /robot/NAME/).
-    const url = new URL("ws", location.href);
-    url.protocol = location.protocol === "https:" ? "wss:" : "ws:";
-    ws = new WebSocket(url.href);
-    ws.binaryType = "arraybuffer";
-    ws.onopen = () => { ui.state.connected = true; showConn(); if (media) media.open(); };
-    ws.onclose = () => { ui.state.connected = false; showConn(); setTimeout(connect, 1000); };
-    ws.onmessage = (ev) => {
-      if (typeof ev.data === "string") onMessage(JSON.parse(ev.data));
-      else onFrame(ev.data);
+  // ------------------------------------------------------------------ the port
+  // The page talks to "a port": today's websocket to the user's own `telebot-user ui`
+  // (docs/protocol.md §19), or, when a gateway serves the page, the in-browser client
+  // (static/port.js sets window.telebotPort before this script runs). Both carry the same
+  // §19 messages as objects; media (video and audio, both ways) as a parsed header and its
+  // bytes. A port: connect(handlers) with handlers {open(), close(), message(obj),
+  // media(header, bytes)}; send(obj) -> bool; sendMedia(header, bytes, isVideo) -> bool.
+  function websocketPort() {
+    let ws = null;
+    return {
+      connect(h) {
+        // Relative to the page: it may live under a prefix (the fleet page's /robot/NAME/).
+        const url = new URL("ws", location.href);
+        url.protocol = location.protocol === "https:" ? "wss:" : "ws:";
+        ws = new WebSocket(url.href);
+        ws.binaryType = "arraybuffer";
+        ws.onopen = () => h.open();
+        ws.onclose = () => { h.close(); setTimeout(() => this.connect(h), 1000); };
+        ws.onmessage = (ev) => {
+          if (typeof ev.data === "string") { h.message(JSON.parse(ev.data)); return; }
+          const view = new DataView(ev.data);
+          const hlen = view.getUint32(0);
+          const header = JSON.parse(new TextDecoder().decode(new Uint8Array(ev.data, 4, hlen)));
+          h.media(header, new Uint8Array(ev.data, 4 + hlen));
+        };
+      },
+      send(msg) {
+        if (ws && ws.readyState === WebSocket.OPEN) { ws.send(JSON.stringify(msg)); return true; }
+        return false;
+      },
+      sendMedia(header, data, isVideo) {
+        // Video waits for nothing: a picture the socket cannot take now is skipped.
+        if (!ws || ws.readyState !== WebSocket.OPEN || (isVideo && ws.bufferedAmount > 256 * 1024)) return false;
+        ws.send(window.telebotMedia.pack(header, data));
+        return true;
+      },
     };
   }
-  function send(msg) {
-    if (ws && ws.readyState === WebSocket.OPEN) { ws.send(JSON.stringify(msg)); return true; }
-    return false;
+  const port = window.telebotPort || websocketPort();
+  ui.port = port;
+  let chatId = 0;
+  function connect() {
+    port.connect({
+      open: () => { ui.state.connected = true; showConn(); if (media) media.open(); },
+      close: () => { ui.state.connected = false; showConn(); },
+      message: (m) => onMessage(m),
+      media: (header, data) => onFrame(header, data),
+    });
   }
+  const send = (msg) => port.send(msg);
   ui.send = send;
   // Two links: this page to the local client (websocket), the client to the robot (the
   // call, which the client re-establishes by itself after a drop).
@@ -75,6 +105,7 @@
     switch (m.type) {
       case "hello":
         ui.state.robot = m.robot; ui.state.role = m.role; ui.state.mayDrive = m.may_drive;
+        ui.state.user = m.user;
         $("robot-name").textContent = m.robot;
         document.title = "telebot · " + m.robot;
         $("role").textContent = m.role + (m.may_drive ? "" : " (observer: watch and stop)");
@@ -170,7 +201,9 @@
   function loadMap(m) {
     ui.state.map = m;
     mapImg.onload = () => { mapReady = true; fit(); };
-    mapImg.src = m.url + "?t=" + Date.now();
+    // A served map is fetched afresh (same URL, new picture); a blob: or data: URL (the
+    // in-browser client's) is new each time already.
+    mapImg.src = /^(blob|data):/.test(m.url) ? m.url : m.url + "?t=" + Date.now();
   }
   // World (map frame, metres) <-> map image pixels <-> canvas CSS pixels.
   function worldToScreen(x, y) {
@@ -328,27 +361,36 @@
     return [ev.clientX - r.left, ev.clientY - r.top];
   }
   canvas.addEventListener("contextmenu", (ev) => ev.preventDefault());
-  canvas.addEventListener("mousedown", (ev) => {
+  // Pointer events: a mouse, a finger and a pen alike. A press (a tap on a phone) is a goal
+  // there, a drag from it gives the heading; right/middle drag (or a second finger) pans.
+  const fingers = new Set();
+  canvas.addEventListener("pointerdown", (ev) => {
     const [x, y] = local(ev);
-    if (ev.button === 0 && ui.state.mayDrive && ui.state.map) {
-      drag = { kind: "goal", x0: x, y0: y, x, y };
+    fingers.add(ev.pointerId);
+    canvas.setPointerCapture(ev.pointerId);
+    if (fingers.size > 1) {
+      drag = { kind: "pan", id: ev.pointerId, x0: x, y0: y, x, y, tx: view.tx, ty: view.ty };
+      view.follow = false;
+    } else if (ev.button === 0 && ui.state.mayDrive && ui.state.map) {
+      drag = { kind: "goal", id: ev.pointerId, x0: x, y0: y, x, y };
     } else if (ev.button === 1 || ev.button === 2 || ev.button === 0) {
-      drag = { kind: "pan", x0: x, y0: y, x, y, tx: view.tx, ty: view.ty };
+      drag = { kind: "pan", id: ev.pointerId, x0: x, y0: y, x, y, tx: view.tx, ty: view.ty };
       view.follow = false;
     }
     ev.preventDefault();
   });
-  window.addEventListener("mousemove", (ev) => {
-    if (!drag) return;
+  canvas.addEventListener("pointermove", (ev) => {
+    if (!drag || drag.id !== ev.pointerId) return;
     const [x, y] = local(ev);
     drag.x = x; drag.y = y;
     if (drag.kind === "pan") { view.tx = drag.tx + x - drag.x0; view.ty = drag.ty + y - drag.y0; }
     draw();
   });
-  window.addEventListener("mouseup", (ev) => {
-    if (!drag) return;
+  const pointerEnd = (ev) => {
+    fingers.delete(ev.pointerId);
+    if (!drag || drag.id !== ev.pointerId) return;
     const d = drag; drag = null;
-    if (d.kind === "goal") {
+    if (d.kind === "goal" && ev.type === "pointerup") {
       const [x, y] = local(ev);
       const [wx, wy] = screenToWorld(d.x0, d.y0);
       let yaw = null;
@@ -356,7 +398,9 @@
       sendGoal(wx, wy, yaw);
     }
     draw();
-  });
+  };
+  canvas.addEventListener("pointerup", pointerEnd);
+  canvas.addEventListener("pointercancel", pointerEnd);
   function sendGoal(x, y, yaw) {
     ui.state.goal = { type: "goal", x, y, yaw, status: "sent", progress: 0, reason: "" };
     showGoal();
@@ -385,7 +429,50 @@
     ev.preventDefault();
     stop("key " + ev.key, "key");
   }, true);
-  $("stop").onclick = () => stop("STOP button", "button");
+  // STOP acts on the press (a finger down), not on the click that follows its release;
+  // a click without a press (keyboard, assistive tools) stops too.
+  let pressedAt = -1e9;
+  $("stop").addEventListener("pointerdown", () => { pressedAt = now(); stop("STOP button", "button"); });
+  $("stop").onclick = () => { if (now() - pressedAt > 1000) stop("STOP button", "button"); };
+  // Whether the robot may be moving or about to (the local client's rule for a page that
+  // closes, server.py _page_closed): moving, a goal running, blocked, or armed.
+  function mightMove() {
+    const p = ui.state.pose, g = ui.state.goal, s = ui.state.safety;
+    return !!((p && (p.v || p.w || p.state === "moving" || p.state === "blocked")) ||
+      (g && (g.status === "sent" || g.status === "active")) || (s && s.armed));
+  }
+  ui.mightMove = mightMove;
+  // Whether this page's user drives: may drive, and holds the drive (or nobody does).
+  function driving() {
+    const s = ui.state.safety;
+    return ui.state.mayDrive && (!s || !s.holder || s.holder === ui.state.user);
+  }
+  // Touching the video (the picture a phone is mostly filled with) while the robot moves
+  // stops it: the quickest thing to hit when something looks wrong.
+  $("video-box").addEventListener("pointerdown", (ev) => {
+    if (ev.target.closest("button, label, input")) return;
+    const p = ui.state.pose;
+    if (p && (p.v || p.w || p.state === "moving")) stop("touched the video", "touch");
+  });
+  // Fail safe: a page hidden (another tab or app, the phone locked) or frozen cannot show
+  // what the robot does, so it stops a robot it drives that may move. The local client
+  // also stops it when this page's websocket closes (tab_closed); through a gateway this
+  // is the page's own job.
+  // Hiding fires visibilitychange and pagehide both: one stop until the page shows again.
+  let hideStopped = false;
+  function hidden(what) {
+    ui.stats.hides.push(what);
+    if (hideStopped || !driving() || !mightMove()) return;
+    hideStopped = true;
+    stop("page " + what, "page_hidden");
+  }
+  window.addEventListener("pagehide", () => hidden("hidden"));
+  window.addEventListener("pageshow", () => { hideStopped = false; });
+  document.addEventListener("visibilitychange", () => {
+    if (document.visibilityState === "hidden") hidden("hidden");
+    else hideStopped = false;
+  });
+  document.addEventListener("freeze", () => hidden("frozen"));
   $("arm").onclick = () => send({ type: "arm" });
   $("take").onclick = () => send({ type: "take" });
   $("release").onclick = () => send({ type: "release" });
@@ -395,20 +482,18 @@
   let videoUrl = null;
   // Codec video and audio go to media.js (static/media.js); JPEG is shown here.
   const media = window.telebotMedia ? window.telebotMedia.attachPage({
-    ws: () => ws, sendText: send, canvas: $("video-canvas"),
+    sendMedia: (header, data, isVideo) => port.sendMedia(header, data, isVideo),
+    sendText: send, canvas: $("video-canvas"),
     onNote: (text) => { $("media-note").textContent = text; },
     controls: { mute: $("mute"), camera: $("camera-off"), ptt: $("ptt"), pttMode: $("ptt-mode") },
   }) : null;
-  function onFrame(buf) {
-    let header = media ? media.binary(buf) : null;
-    if (header && header.kind === "audio") return;
-    video.hidden = !!header;
-    $("video-canvas").hidden = !header;
-    if (!header) {
-      const view8 = new DataView(buf);
-      const hlen = view8.getUint32(0);
-      header = JSON.parse(new TextDecoder().decode(new Uint8Array(buf, 4, hlen)));
-      const blob = new Blob([new Uint8Array(buf, 4 + hlen)], { type: "image/jpeg" });
+  function onFrame(header, data) {
+    const kind = media ? media.frame(header, data) : "";
+    if (kind === "audio") return;
+    video.hidden = kind === "video";
+    $("video-canvas").hidden = kind !== "video";
+    if (kind !== "video") {
+      const blob = new Blob([data], { type: "image/jpeg" });
       const url = URL.createObjectURL(blob);
       const old = videoUrl;
       videoUrl = url;

@@ -346,7 +346,7 @@
   // refused device leaves the call going, with a note (`onNote`).
   class Capture {
     constructor(send, opts) {
-      this.send = send; // (ArrayBuffer) -> bool (false: not sent, e.g. the link is busy)
+      this.send = send; // (header, bytes, isVideo) -> bool (false: not sent, e.g. the link is busy)
       this.opts = Object.assign({ codec: "vp8", bitrate: 600000, width: 640, height: 480, fps: 30 }, opts || {});
       this.muted = false;
       this.cameraOff = false;
@@ -438,7 +438,7 @@
       const key = chunk.type === "key";
       const header = { kind: "video", codec: this.opts.codec, key, frame_id: this.videoId, capture_time: capture / 1000 };
       // A frame not sent would break the chain of deltas: the next one is a keyframe.
-      if (this.send(pack(header, data), true)) {
+      if (this.send(header, data, true)) {
         this.videoId = (this.videoId + 1) >>> 0;
         M.stats.sentVideo += 1; M.stats.sentBytes += data.length;
         if (key) M.stats.sentVideoKeys += 1;
@@ -475,7 +475,7 @@
       // The packet's first sample was captured its duration (20 ms) before it was finished.
       const header = { kind: "audio", seq: this.audioSeq, capture_time: (now() - 20) / 1000 };
       this.audioSeq = (this.audioSeq + 1) >>> 0;
-      if (this.send(pack(header, data), false)) M.stats.sentAudio += 1;
+      if (this.send(header, data, false)) M.stats.sentAudio += 1;
     }
 
     stop() {
@@ -495,18 +495,12 @@
   // the handler of binary messages and text messages of the media kinds.
   M.attachPage = function (opts) {
     const sendText = opts.sendText; // (obj) -> bool
-    const ws = opts.ws; // () -> WebSocket | null
     const canvas = opts.canvas;
     const sink = new VideoSink(canvas, () => sendText({ type: "keyframe" }));
     M.video = sink;
     let audio = null;
-    const busy = () => { const s = ws(); return !s || s.readyState !== WebSocket.OPEN || s.bufferedAmount > 256 * 1024; };
-    const capture = new Capture((buf, isVideo) => {
-      const s = ws();
-      if (!s || s.readyState !== WebSocket.OPEN || (isVideo && busy())) return false;
-      s.send(buf);
-      return true;
-    }, opts.capture);
+    // (header, bytes, isVideo) -> bool: the page's port (websocket or in-browser client).
+    const capture = new Capture((header, data, isVideo) => opts.sendMedia(header, data, isVideo), opts.capture);
     M.capture = capture;
     // Two sources of notes, both shown: the devices (capture) and the call (the client).
     const notes = { devices: "", call: "" };
@@ -538,18 +532,17 @@
         const encode = typeof VideoEncoder === "undefined" ? [] : ["vp8", "h264"];
         sendText({ type: "media", decode: codecs, encode });
       },
-      // A binary message: codec video and audio are handled here (their header is
-      // returned); JPEG video is left to the caller (null).
-      binary(buf) {
-        const { header, data } = unpack(buf);
+      // A media message (parsed: its header and bytes): codec video and audio are handled
+      // here; returns "audio", "video" (decoded here) or "" (JPEG: the caller shows it).
+      frame(header, data) {
         if (header.kind === "audio") {
           if (!audio) { audio = new AudioSink(); M.audio = audio; }
           audio.push(header, data);
-          return header;
+          return "audio";
         }
-        if (!header.codec || header.codec === "jpeg") return null;
+        if (!header.codec || header.codec === "jpeg") return "";
         sink.push(header, data);
-        return header;
+        return "video";
       },
       // A text message of the media kinds; true when it was one.
       text(m) {

@@ -1,0 +1,75 @@
+/**
+ * The page's port to a robot through a gateway (static/app.js, "the port"): the same §19
+ * messages the local `telebot-user ui` exchanges with the page over its websocket, here
+ * produced in the browser by a RobotSession (session.js) on a call (call.js) over the
+ * gateway's WebSocket (gateway-link.js), with this browser's key (keys.js).
+ *
+ * No imports of those modules here: browser.js passes them in (`deps`), so this wiring is
+ * tested in node with stand-ins, and the bundle decides what it ships.
+ * @module page-port
+ */
+
+/**
+ * @typedef {object} PortHandlers   what app.js gives `connect`
+ * @property {() => void} open
+ * @property {() => void} close
+ * @property {(msg: object) => void} message          a §19 client → page message
+ * @property {(header: object, data: Uint8Array) => void} media   video or audio (§19.1)
+ */
+
+/**
+ * A port to pinned robot `robot`.
+ * @param {string} robot
+ * @param {object} deps
+ * @param {() => Promise<import("./keys.js").Keys>} deps.keys   the browser's keys
+ * @param {(me: {name: string, privateKey: Uint8Array, publicKey: Uint8Array}) => Promise<object>} deps.openLink
+ *   a link (BROWSER.md's link API) admitted by the gateway as `me`
+ * @param {new (opts: object) => {call: Function, close: Function}} deps.Endpoint  call.js's
+ * @param {new (opts: {connect: Function, emit: Function}) => {send: Function, close?: Function}} deps.RobotSession
+ */
+export function robotPort(robot, deps) {
+  let session = null;
+  return {
+    /** @param {PortHandlers} h */
+    connect(h) {
+      const fail = (text) => {
+        h.message({ type: "connection", state: "ended", detail: text, seconds: 0 });
+        h.message({ type: "error", text });
+      };
+      start(h, fail).catch((e) => fail(e.message));
+    },
+    send: (msg) => (session ? session.send(msg) !== false : false),
+    sendMedia(header, data, isVideo) {
+      if (!session) return false;
+      return session.send({ type: header.kind, header, data, video: isVideo }) !== false;
+    },
+  };
+
+  async function start(h, fail) {
+    const keys = await deps.keys();
+    const me = await keys.me();
+    if (!me) throw new Error("this browser has no key yet: make one on the start page");
+    const robotKey = await keys.robotKey(robot);
+    if (!robotKey) throw new Error(`robot ${robot} is not pinned in this browser: pin it on the start page`);
+    let link = null, endpoint = null;
+    session = new deps.RobotSession({
+      // (Again after a drop: the session reconnects as the Python client does.)
+      connect: async () => {
+        try {
+          if (!link) link = await deps.openLink(me);
+          if (!endpoint) endpoint = new deps.Endpoint({ link, name: me.name, privateKey: me.privateKey });
+          return await endpoint.call(robot, robotKey);
+        } catch (e) {
+          // KEY MISMATCH, refused, no answer: the call's own one line, on the page at once.
+          fail(e.message);
+          throw e;
+        }
+      },
+      emit: (msg) => {
+        if ((msg.type === "video" || msg.type === "audio") && msg.header && msg.data) h.media(msg.header, msg.data);
+        else h.message(msg);
+      },
+    });
+    h.open();
+  }
+}

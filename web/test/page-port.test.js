@@ -1,0 +1,66 @@
+import { test } from "node:test";
+import assert from "node:assert/strict";
+import { robotPort } from "../src/page-port.js";
+
+/** Stand-ins with the BROWSER.md shapes, recording what the port does with them. */
+function rig({ me = { name: "alice", privateKey: new Uint8Array(32), publicKey: new Uint8Array(32) }, pinned = new Uint8Array(32).fill(7), callError = null } = {}) {
+  const seen = { links: 0, calls: [], sent: [], sessions: [] };
+  const deps = {
+    keys: async () => ({ me: async () => me, robotKey: async (name) => (name === "guiabot" ? pinned : null) }),
+    openLink: async (who) => { seen.links += 1; seen.linkFor = who.name; return { fake: "link" }; },
+    Endpoint: class { constructor(o) { seen.endpoint = o; } async call(robot, key) { seen.calls.push([robot, key]); if (callError) throw callError; return { id: "c" }; } },
+    RobotSession: class { constructor(o) { this.o = o; seen.sessions.push(this); } send(m) { seen.sent.push(m); return true; } },
+  };
+  const got = { opened: 0, messages: [], media: [] };
+  const h = { open: () => { got.opened += 1; }, close: () => {}, message: (m) => got.messages.push(m), media: (hd, d) => got.media.push([hd, d]) };
+  return { deps, seen, got, h };
+}
+const settle = () => new Promise((r) => setTimeout(r, 0));
+
+test("the port opens a session, routes its messages and media, and sends the page's", async () => {
+  const { deps, seen, got, h } = rig();
+  const port = robotPort("guiabot", deps);
+  assert.equal(port.send({ type: "stop", how: "button" }), false); // nothing to send to yet
+  port.connect(h);
+  await settle();
+  assert.equal(got.opened, 1);
+  const session = seen.sessions[0];
+  const call = await session.o.connect();
+  assert.deepEqual(call, { id: "c" });
+  assert.equal(seen.calls[0][0], "guiabot");
+  assert.equal(seen.calls[0][1][0], 7); // the pinned key
+  assert.equal(seen.endpoint.name, "alice");
+  await session.o.connect(); // a reconnection reuses the link
+  assert.equal(seen.links, 1);
+  session.o.emit({ type: "pose", x: 1 });
+  const data = new Uint8Array([1, 2]);
+  session.o.emit({ type: "video", header: { kind: "video", codec: "jpeg" }, data });
+  assert.deepEqual(got.messages, [{ type: "pose", x: 1 }]);
+  assert.deepEqual(got.media, [[{ kind: "video", codec: "jpeg" }, data]]);
+  assert.equal(port.send({ type: "stop", how: "page_hidden" }), true);
+  assert.equal(port.sendMedia({ kind: "audio", seq: 1 }, data, false), true);
+  assert.deepEqual(seen.sent, [{ type: "stop", how: "page_hidden" }, { type: "audio", header: { kind: "audio", seq: 1 }, data, video: false }]);
+});
+
+test("a call's error (KEY MISMATCH) is on the page at once, as the call says it", async () => {
+  const text = "KEY MISMATCH: robot guiabot is online with key abc but known_robots has def";
+  const { deps, seen, got, h } = rig({ callError: new Error(text) });
+  robotPort("guiabot", deps).connect(h);
+  await settle();
+  await assert.rejects(seen.sessions[0].o.connect(), /KEY MISMATCH/);
+  assert.deepEqual(got.messages.map((m) => m.type), ["connection", "error"]);
+  assert.equal(got.messages[0].state, "ended");
+  assert.equal(got.messages[0].detail, text);
+  assert.equal(got.messages[1].text, text);
+});
+
+test("no key, or a robot not pinned: one line on the page, no session", async () => {
+  for (const [opts, robot, want] of [[{ me: null }, "guiabot", /no key yet/], [{}, "other", /robot other is not pinned/]]) {
+    const { deps, seen, got, h } = rig(opts);
+    robotPort(robot, deps).connect(h);
+    await settle(); await settle();
+    assert.equal(seen.sessions.length, 0);
+    assert.equal(got.opened, 0);
+    assert.match(got.messages.at(-1).text, want);
+  }
+});
