@@ -1,11 +1,41 @@
 /**
  * The browser bundle's entry (web/build.mjs): telebot's client API on `window.telebot`.
  * Pages extend it; keep this file to the exports.
+ *
+ * - the protocol core: Endpoint, Call, Channel, the identity helpers and the errors;
+ * - the page's session with a robot (docs/protocol.md §19): RobotSession, with
+ *   packMedia (a {type: "video"|"audio", header, data} message as today's binary
+ *   websocket message), backoffDelay and realClock;
+ * - what a page draws with: decodeMapPng / pngSize (the map's PNG), STOP_HOWS (a stop's
+ *   `how`), sayText (a chat line that is a `say`), CODEC_IDS / CODEC_NAMES (video codecs),
+ *   RequestFailed (what a service request rejects with: `code`, one-line `message`).
  * @module browser
  */
 import * as errors from "./errors.js";
 import * as identity from "./identity.js";
 import { Call, Channel, Endpoint } from "./call.js";
+import { RobotSession, backoffDelay, packMedia, realClock } from "./session.js";
+import { RequestFailed } from "./services/services.js";
+import { STOP_HOWS, sayText } from "./services/messages.js";
+import { decodeMapPng, pngSize } from "./services/map.js";
+import { CODEC_IDS, CODEC_NAMES } from "./services/video.js";
 
-export const telebot = { ...errors, ...identity, Endpoint, Call, Channel };
+export const telebot = {
+  ...errors,
+  ...identity,
+  Endpoint,
+  Call,
+  Channel,
+  RobotSession,
+  backoffDelay,
+  packMedia,
+  realClock,
+  RequestFailed,
+  STOP_HOWS,
+  sayText,
+  decodeMapPng,
+  pngSize,
+  CODEC_IDS,
+  CODEC_NAMES,
+};
 /** @type {any} */ (globalThis).telebot = telebot;

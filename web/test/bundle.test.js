@@ -31,8 +31,23 @@ test("the bundle gives the API on window.telebot", async () => {
   const text = readFileSync(committed, "utf8");
   const scope = /** @type {any} */ ({});
   new Function("globalThis", text)(scope);
-  for (const name of ["Endpoint", "encodeKey", "decodeKey", "contactLine", "fingerprint", "KeyMismatch", "ProtocolError"]) {
-    assert.ok(scope.telebot[name], name);
-  }
+  const names = [
+    "Endpoint", "encodeKey", "decodeKey", "contactLine", "fingerprint", "KeyMismatch", "ProtocolError",
+    "RobotSession", "packMedia", "realClock", "backoffDelay", "RequestFailed", "STOP_HOWS", "sayText",
+    "decodeMapPng", "pngSize", "CODEC_IDS", "CODEC_NAMES",
+  ];
+  for (const name of names) assert.ok(scope.telebot[name], name);
   assert.equal(scope.telebot.encodeKey(new Uint8Array(32)), "A".repeat(43));
+  assert.equal(scope.telebot.CODEC_NAMES[scope.telebot.CODEC_IDS.jpeg], "jpeg");
+  assert.equal(scope.telebot.sayText("say hello"), "hello");
+  // A RobotSession runs from the bundle: on a call that fails, start() rejects with its error.
+  /** @type {object[]} */
+  const emitted = [];
+  const session = new scope.telebot.RobotSession({
+    connect: async () => {
+      throw new scope.telebot.KeyMismatch("KEY MISMATCH: test");
+    },
+    emit: (msg) => emitted.push(msg),
+  });
+  await assert.rejects(session.start(), /KEY MISMATCH: test/);
 });
