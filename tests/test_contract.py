@@ -293,12 +293,18 @@ async def test_forged_tampered_replayed_and_garbage_frames_are_dropped_and_count
             )
 
         subscription = user.transport.subscribe(inbox, tap)
-        await asyncio.sleep(0.3)  # let the tap's declaration settle
-        assert await echo(chat, "original") == "original"
+        # Until the tap's declaration has reached the router (a loaded machine takes its
+        # time), echoes pass unseen: echo until one is captured.
+        deadline = time.monotonic() + 10 + SLACK
+        echoed = 0
+        while not captured and time.monotonic() < deadline:
+            echoed += 1
+            assert await echo(chat, "original") == "original"
+            await asyncio.sleep(0.1)
         subscription.close()
-        # Heartbeats travel on the call's CONTROL key: the one frame here is the datagram.
-        assert len(captured) == 1
-        frame = captured[0]
+        # Heartbeats travel on the call's CONTROL key: what is captured is datagrams only.
+        assert 1 <= len(captured) <= echoed
+        frame = captured[-1]
         raw = user.transport.publisher(inbox, Lane.DATA)
         handshake = user.transport.publisher(f"telebot/robot/{ROBOT}/in/{USER}", Lane.CONTROL)
         header_tampered = bytearray(frame)
@@ -356,7 +362,7 @@ async def test_forged_tampered_replayed_and_garbage_frames_are_dropped_and_count
         assert stats["endpoint_rejected"].get("data_on_handshake_key", 0) >= 1
         assert sum(stats["endpoint_rejected"].values()) >= 3
         # neither the replay nor the forgeries reached the channel
-        assert stats["channels"]["chat"]["received"] == 1
+        assert stats["channels"]["chat"]["received"] == echoed
         # tampering did not burn the counter: the genuine frame is still accepted
         raw.put(fresh)
         raw.close()

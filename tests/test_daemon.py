@@ -69,10 +69,14 @@ async def test_fwd_moves_the_robot_two_metres(robot: RobotClient) -> None:
     assert result.replies == ["Forward command received", "finished moving"]
     assert result.ok
     x1, y1, _ = await settled_pose(robot)
-    assert math.hypot(x1 - x0, y1 - y0) == pytest.approx(2.0, abs=0.1)
+    # The daemon's loop runs the simulator's controller: on a loaded machine a late control
+    # step lets the base run on with its last command, up to the base's watchdog (0.5 s at
+    # 0.5 m/s, by design: tests/test_sim_stack.py), so the bound is wider than the 2 cm the
+    # controller reaches on an idle machine, and still tells 2 m from 1.5 or 2.5.
+    assert math.hypot(x1 - x0, y1 - y0) == pytest.approx(2.0, abs=0.3)
     # Along the heading it had, not sideways.
     along = (x1 - x0) * math.cos(yaw0) + (y1 - y0) * math.sin(yaw0)
-    assert along == pytest.approx(2.0, abs=0.1)
+    assert along == pytest.approx(2.0, abs=0.3)
     back = await robot.chat("fwd -2", timeout=30)
     assert back.ok
 
