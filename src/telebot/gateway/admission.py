@@ -36,8 +36,8 @@ from telebot.gateway.core import Refusal
 from telebot.identity import ContactBook, Role, decode_key, encode_key
 
 __all__ = [
-    "INVITE_SECONDS",
     "INVITES_FILE",
+    "INVITE_SECONDS",
     "USERS_FILE",
     "Admitter",
     "ContactsAdmitter",

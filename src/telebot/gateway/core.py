@@ -185,7 +185,7 @@ def parse_admission(raw: str | bytes) -> Admit:
     invite = data.get("invite")
     if op == "redeem" and (not isinstance(invite, str) or not _TOKEN.fullmatch(invite)):
         raise _garbage("not an invite token", str(invite))
-    return Admit(name, user_key, user_proof, invite if op == "redeem" else None)
+    return Admit(name, user_key, user_proof, invite if isinstance(invite, str) else None)
 
 
 # --- key rules (§22.2, subject user:U) --------------------------------------------------
@@ -370,7 +370,7 @@ def parse_op(raw: str) -> Op:
     key = data.get("key")
     if op in _WITH_KEY and not isinstance(key, str):
         raise _garbage(f"a {op} message without a key", raw)
-    return Op(op, ident, key if isinstance(key, str) else None)  # type: ignore[arg-type]
+    return Op(op, ident, key if isinstance(key, str) else None)
 
 
 def parse_put(raw: bytes) -> Put:

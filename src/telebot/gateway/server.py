@@ -363,11 +363,12 @@ class _Browser:
                     ),
                 )
             case "unsub" | "untoken" | "unwatch":
-                table: dict[int, Any] = {
+                tables: dict[str, dict[int, Any]] = {
                     "unsub": self.subs,
                     "untoken": self.tokens,
                     "unwatch": self.watches,
-                }[op.op]
+                }
+                table = tables[op.op]
                 entity = table.pop(op.id, None)
                 if entity is None:
                     self._send_text(
@@ -459,7 +460,8 @@ class _Browser:
 
     def release(self) -> None:
         """Undeclare everything this browser declared; idempotent."""
-        for table in (self.subs, self.tokens, self.watches):
+        tables: tuple[dict[int, Any], ...] = (self.subs, self.tokens, self.watches)
+        for table in tables:
             entities = list(table.values())
             table.clear()
             for entity in entities:
