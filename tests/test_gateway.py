@@ -32,7 +32,8 @@ from telebot.apps import robot_cli, router_cli
 from telebot.channels.call import UserEndpoint
 from telebot.channels.transports.base import Sample
 from telebot.channels.transports.zenoh import ZenohTransport
-from telebot.config import CallSettings, ZenohSettings
+from telebot.config import CallSettings, RobotConfig, ZenohSettings, load_toml
+from telebot.errors import ConfigError
 from telebot.gateway.admission import ContactsAdmitter, create_invite
 from telebot.gateway.core import (
     MAX_PAYLOAD,
@@ -572,6 +573,22 @@ def test_a_bad_gateway_option_is_a_one_line_error(
     assert router_cli.main(["run", str(rig.dir), "--gateway", "nonsense"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--gateway nonsense" in err
+    assert router_cli.main(["run", str(rig.dir), "--gateway-cert", "x.pem"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--gateway-key" in err
+
+
+def test_a_robot_gateway_needs_both_cert_and_key(tmp_path: Path) -> None:
+    config = tmp_path / "robot.toml"
+    config.write_text('[gateway]\ncert = "a.pem"\n')
+    with pytest.raises(ConfigError, match=r"gateway: .*cert and key go together"):
+        load_toml(config, RobotConfig)
+    config.write_text("[gateway]\nport = 99999\n")
+    with pytest.raises(ConfigError, match=r"gateway\.port"):
+        load_toml(config, RobotConfig)
+    config.write_text("[gateway]\n")
+    gateway = load_toml(config, RobotConfig).gateway
+    assert gateway is not None and gateway.port == 8443 and gateway.enabled
 
 
 # --- the robot's own gateway: a call through it, and an invite redeemed on a live daemon ----
@@ -717,4 +734,3 @@ async def test_the_javascript_link_is_admitted_and_relays_both_ways(
             await proc.wait()
         sub.close()
         token.close()
-

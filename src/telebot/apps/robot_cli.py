@@ -1,8 +1,9 @@
 """``telebot-robot``: the robot's command line.
 
 ``telebot-robot run`` is the robot daemon (the robot adapter ``--robot`` or ``[robot] kind``
-names, ``sim`` by default, ``ros2`` for a ROS 2 / Nav2 robot; chat, map, pose, goals, telemetry); the other commands manage the robot's key and contact list, generate the
-default map, and run the echo robot, a network check.
+names, ``sim`` by default, ``ros2`` for a ROS 2 / Nav2 robot; chat, map, pose, goals, telemetry); it serves the browser gateway too when the config has ``[gateway]``. The other
+commands manage the robot's key and contact list, write one-time invites for browsers
+(``invite``), generate the default map, and run the echo robot, a network check.
 """
 
 from __future__ import annotations
@@ -93,8 +94,9 @@ def build_parser() -> Parser:
         "run",
         help="run the robot daemon: answer calls and serve chat, map, pose, goals, telemetry",
         description="Run the robot: start the robot adapter (the simulated robot on its map by "
-        "default), answer calls from the contacts and serve them. Stops the robot, hangs up "
-        "and exits on SIGINT/SIGTERM.",
+        "default), answer calls from the contacts and serve them; with [gateway] in the "
+        "config, also serve the web app and the browser gateway over HTTPS. Stops the robot, "
+        "hangs up and exits on SIGINT/SIGTERM.",
     )
     add_home_option(daemon, "robot")
     add_connection_options(daemon)

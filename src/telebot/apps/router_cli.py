@@ -2,9 +2,11 @@
 
 ``init`` makes a router directory (a CA and the router's certificate), ``cert`` issues a
 client certificate for a robot, a user or an admin (or imports one signed elsewhere by the
-same CA), ``revoke`` takes a name out of the access-control list, ``config`` prints the
-zenoh config (``zenohd -c`` runs the same router), and ``run`` runs the router in this
-process (zenoh-python, router mode) until SIGINT or SIGTERM.
+same CA), ``revoke`` takes a name out of the access-control list, ``gateway-user`` lists the users
+the browser gateway admits, ``config`` prints the zenoh config (``zenohd -c`` runs the
+same router), and ``run`` runs the router in this process (zenoh-python, router mode),
+with the browser gateway over HTTPS beside it (docs/protocol.md §26), until SIGINT or
+SIGTERM.
 """
 
 from __future__ import annotations
@@ -171,6 +173,17 @@ def build_parser() -> Parser:
         "'gateway-user add' has listed a user; 'off': never)",
     )
     runp.add_argument(
+        "--gateway-cert",
+        type=Path,
+        default=None,
+        metavar="PEM",
+        help="serve the gateway with this certificate (chain) instead of the router's, e.g. "
+        "a publicly trusted one for the router's DNS name; with --gateway-key",
+    )
+    runp.add_argument(
+        "--gateway-key", type=Path, default=None, metavar="PEM", help="its private key"
+    )
+    runp.add_argument(
         "--events",
         action="store_true",
         help="print a JSON 'ready' line on stdout when listening (docs/events.md)",
@@ -314,7 +327,10 @@ def gateway_address(option: str | None, directory: Path) -> tuple[str, int] | No
 
 
 async def _run_router(
-    plan: RouterPlan, events: bool, gateway: tuple[str, int] | None = None
+    plan: RouterPlan,
+    events: bool,
+    gateway: tuple[str, int] | None = None,
+    tls: tuple[Path, Path] | None = None,
 ) -> int:
     import zenoh  # only 'run' needs zenoh
 
@@ -328,7 +344,7 @@ async def _run_router(
         raise TransportError(f"cannot start the router: {reason_of(exc)}") from exc
     stop = asyncio.Event()
     try:
-        async with _router_gateway(session, plan, gateway) as gateway_url:
+        async with _router_gateway(session, plan, gateway, tls) as gateway_url:
             with stop_on_signals(stop):
                 ready: dict[str, Any] = {
                     "event": "ready",
@@ -355,9 +371,13 @@ async def _run_router(
 
 @contextlib.asynccontextmanager
 async def _router_gateway(
-    session: Any, plan: RouterPlan, address: tuple[str, int] | None
+    session: Any,
+    plan: RouterPlan,
+    address: tuple[str, int] | None,
+    tls: tuple[Path, Path] | None = None,
 ) -> AsyncIterator[str | None]:
-    """The browser gateway over the router's own session, with the router's certificate."""
+    """The browser gateway over the router's own session, with the router's certificate
+    (or ``tls``: another certificate and key)."""
     if address is None:
         yield None
         return
@@ -366,6 +386,8 @@ async def _router_gateway(
     from telebot.gateway.server import Gateway
     from telebot.gateway.tls import server_context
 
+    cert, key = tls if tls is not None else (Path(plan.cert), Path(plan.key))
+    context = server_context(cert, key)
     transport = ZenohTransport()
     await transport.adopt(session)
     gateway = Gateway(
@@ -374,7 +396,7 @@ async def _router_gateway(
         namespace=plan.namespace,
         host=address[0],
         port=address[1],
-        ssl_context=server_context(Path(plan.cert), Path(plan.key)),
+        ssl_context=context,
     )
     try:
         await gateway.start()
@@ -403,12 +425,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "run":
         try:
             plan, gateway = plan_of(args), gateway_address(args.gateway, args.dir)
+            if (args.gateway_cert is None) != (args.gateway_key is None):
+                raise ConfigError("--gateway-cert and --gateway-key go together")
+            tls = (args.gateway_cert, args.gateway_key) if args.gateway_cert else None
         except ConfigError as exc:
             print(f"{PROG}: error: {exc}", file=sys.stderr)
             return EXIT_USAGE
 
         async def main_run() -> int:
-            return await _run_router(plan, args.events, gateway)
+            return await _run_router(plan, args.events, gateway, tls)
 
         return run(PROG, main_run, args.log_level)
     try:
