@@ -25,12 +25,13 @@ import aiohttp
 import pytest
 
 from conftest import Homes, wait_until
-from gateway_client import GatewayTransport, admit, b64, parse_sample, put_frame
+from gateway_client import GatewayTransport, admit, b64, parse_sample, proof, put_frame
 from rig import ROBOT, USER, Process, free_port, write_config
 from router_rig import RouterRig
 from telebot.apps import robot_cli, router_cli
 from telebot.channels.call import UserEndpoint
 from telebot.channels.transports.base import Sample
+from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.channels.transports.zenoh import ZenohTransport
 from telebot.config import CallSettings, RobotConfig, ZenohSettings, load_toml
 from telebot.errors import ConfigError
@@ -42,6 +43,7 @@ from telebot.gateway.core import (
     Limits,
     Refusal,
     TokenBucket,
+    make_challenge,
     parse_op,
     parse_put,
 )
@@ -91,6 +93,20 @@ NS = "telebot"
 )
 def test_the_key_rules_are_the_routers_user_rules(method: str, key: str, allowed: bool) -> None:
     assert getattr(KeyRules(NS, USER), method)(key) is allowed
+
+
+def test_the_admission_proof_matches_the_documents_vector() -> None:
+    challenge = make_challenge(bytes(range(32, 64)), bytes(range(64, 96)))
+    user = Identity("alice", bytes(range(32)))
+    message = challenge.message(NS)
+    assert message["gateway"] == "NYBy1jZYgNGu6jKa35EhODhR7SGijjt16WXQ0s0WYlQ"
+    assert message["nonce"] == "QEFCQ0RFRkdISUpLTE1OT1BRUlNUVVZXWFlaW1xdXl8"
+    assert b64(user.public_key) == "j0DFrbaPJWJK5bIU6nZ6bslNgp09e14a0bpvPiE4KF8"
+    public, mac = proof(user.private_key, "alice", message)  # from the document's formula
+    assert b64(mac) == "fgtcjEgNPRuPt8WQX63N6uobseO_X3nZGlf-GzdXTek"
+    assert challenge.verify("alice", public, mac)
+    assert not challenge.verify("alicf", public, mac)
+    assert not challenge.verify("alice", bytes(32), mac)  # a low-order key proves nothing
 
 
 def test_a_token_bucket_refills_at_its_rate_up_to_its_burst() -> None:
@@ -435,6 +451,28 @@ async def test_more_than_64_subscriptions_cut_off(live: Live) -> None:
     assert code == 4008 and messages[-1]["code"] == "too_many"
 
 
+async def test_the_page_is_served_at_the_root_when_installed(tmp_path: Path) -> None:
+    static = tmp_path / "static"
+    static.mkdir()
+    async with (
+        MemoryTransport(MemoryHub(), "gateway") as transport,
+        Gateway(
+            transport, ContactsAdmitter(ContactBook.load(tmp_path), tmp_path), port=0, static=static
+        ) as gateway,
+        aiohttp.ClientSession() as http,
+    ):
+        async with http.get(gateway.url) as response:
+            assert response.status == 404  # no page installed: says so
+        (static / "gateway.html").write_text("<title>telebot</title>")
+        (static / "app.js").write_text("// app")
+        async with http.get(gateway.url) as response:
+            assert response.status == 200 and "telebot" in await response.text()
+        async with http.get(gateway.url + "static/app.js") as response:
+            assert response.status == 200 and await response.text() == "// app"
+    with pytest.raises(ValueError, match="loopback only"):
+        Gateway(transport, ContactsAdmitter(ContactBook.load(tmp_path), tmp_path), host="0.0.0.0")
+
+
 # --- invites ------------------------------------------------------------------------------
 
 
@@ -660,6 +698,8 @@ const inbox = `telebot/user/${name}/0123456789abcdef/in/${robot}`;
 link.subscribe(`telebot/user/${name}/**`, (key, payload) => {
   console.log(JSON.stringify({ sample: key, payload: new TextDecoder().decode(payload) }));
   link.close();
+  link.publish("telebot/robot/x/in/y", new Uint8Array(1));  // dropped and counted, no throw
+  console.log(JSON.stringify({ dropped: link.stats.dropped }));
 });
 link.watch("telebot/presence/robot/*/*", (key, alive) => console.log(JSON.stringify({ key, alive })));
 console.log(JSON.stringify({ admitted: name }));
@@ -689,9 +729,17 @@ async def test_the_javascript_link_is_admitted_and_relays_both_ways(
     token = live.network.declare_presence(f"{NS}/presence/robot/{ROBOT}/{b64(os.urandom(32))}")
     got: list[Sample] = []
     sub = live.network.subscribe(f"{NS}/robot/{ROBOT}/in/{USER}", lambda batch: got.extend(batch))
+    # node 22 has WebSocket; node 20 behind a flag.
+    has_websocket = (
+        subprocess.run(
+            [node, "-e", "process.exit(typeof WebSocket === 'function' ? 0 : 1)"]
+        ).returncode
+        == 0
+    )
+    flags = [] if has_websocket else ["--experimental-websocket"]
     proc = await asyncio.create_subprocess_exec(
         node,
-        "--experimental-websocket",
+        *flags,
         str(script),
         live.ws_url,
         USER,
@@ -725,6 +773,8 @@ async def test_the_javascript_link_is_admitted_and_relays_both_ways(
             publisher.put(b"to node")
             await asyncio.sleep(0.1)
         assert any(line.get("payload") == "to node" for line in lines), lines
+        await wait_until(lambda: any("dropped" in line for line in lines), timeout=60)
+        assert next(line for line in lines if "dropped" in line)["dropped"] >= 1
         await asyncio.wait_for(proc.wait(), 60)
         await reader
         assert proc.returncode == 0, (await proc.stderr.read()).decode() if proc.stderr else ""

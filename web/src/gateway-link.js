@@ -167,7 +167,9 @@ export function connectGateway(url, options) {
 /**
  * An admitted gateway connection: the link a Call reaches zenoh through (BROWSER.md).
  * Frames the gateway sends that are not its protocol are dropped and counted
- * (`stats.malformed`); the gateway's non-fatal errors go to `onerror`.
+ * (`stats.malformed`); the gateway's non-fatal errors go to `onerror`. Once closed (by
+ * `close()`, or the gateway: `onclose` says why), whatever is sent is dropped and counted
+ * (`stats.dropped`), as a lossy link drops frames: a call's timers need not know.
  */
 export class GatewayLink {
   /** @param {WebSocket} ws @param {string} name @param {object} admitted */
@@ -179,7 +181,7 @@ export class GatewayLink {
     this.onclose = () => {};
     /** @type {(message: string) => void} non-fatal errors the gateway reported */
     this.onerror = () => {};
-    this.stats = { received: 0, malformed: 0, sent: 0 };
+    this.stats = { received: 0, malformed: 0, sent: 0, dropped: 0 };
     this.closed = false;
     /** @type {Map<number, (key: string, payload: Uint8Array) => void>} */
     this.subs = new Map();
@@ -231,9 +233,14 @@ export class GatewayLink {
     throw new GatewayError(`no free ${kind} id`);
   }
 
+  /** Send, or drop and count once the link is closed (`onclose` has told why). */
   _send(message) {
-    if (this.closed) throw new GatewayError("the gateway link is closed", "closed");
+    if (this.closed) {
+      this.stats.dropped++;
+      return false;
+    }
     this.ws.send(message);
+    return true;
   }
 
   /**
@@ -263,8 +270,7 @@ export class GatewayLink {
     frame[2] = keyBytes.length & 0xff;
     frame.set(keyBytes, 3);
     frame.set(payload, 3 + keyBytes.length);
-    this._send(frame);
-    this.stats.sent++;
+    if (this._send(frame)) this.stats.sent++;
   }
 
   /** Declare a liveliness token on `key`. @param {string} key @returns {{close(): void}} */

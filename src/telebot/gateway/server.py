@@ -314,7 +314,11 @@ class _Browser:
         slot = (put.key, put.lane)
         publisher = self.publishers.get(slot)
         if publisher is None:
-            publisher = self.gateway.transport.publisher(put.key, _LANES[put.lane])
+            try:
+                publisher = self.gateway.transport.publisher(put.key, _LANES[put.lane])
+            except TransportError as exc:  # the gateway's session, not the browser's fault
+                self._send_text({"op": "error", "code": "zenoh", "text": excerpt(str(exc))})
+                return
             self.publishers[slot] = publisher
             if len(self.publishers) > MAX_PUBLISHERS:
                 _, oldest = self.publishers.popitem(last=False)
