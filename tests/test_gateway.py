@@ -730,12 +730,8 @@ async def test_the_javascript_link_is_admitted_and_relays_both_ways(
     got: list[Sample] = []
     sub = live.network.subscribe(f"{NS}/robot/{ROBOT}/in/{USER}", lambda batch: got.extend(batch))
     # node 22 has WebSocket; node 20 behind a flag.
-    has_websocket = (
-        subprocess.run(
-            [node, "-e", "process.exit(typeof WebSocket === 'function' ? 0 : 1)"]
-        ).returncode
-        == 0
-    )
+    probe = [node, "-e", "process.exit(typeof WebSocket === 'function' ? 0 : 1)"]
+    has_websocket = (await asyncio.to_thread(subprocess.run, probe)).returncode == 0
     flags = [] if has_websocket else ["--experimental-websocket"]
     proc = await asyncio.create_subprocess_exec(
         node,
