@@ -465,8 +465,11 @@ async def test_the_page_is_served_at_the_root_when_installed(tmp_path: Path) -> 
             assert response.status == 404  # no page installed: says so
         (static / "gateway.html").write_text("<title>telebot</title>")
         (static / "app.js").write_text("// app")
+        (static / "index.html").write_text("<title>robot page</title>")
         async with http.get(gateway.url) as response:
             assert response.status == 200 and "telebot" in await response.text()
+        async with http.get(gateway.url + "call?robot=guiabot") as response:
+            assert response.status == 200 and "robot page" in await response.text()
         async with http.get(gateway.url + "static/app.js") as response:
             assert response.status == 200 and await response.text() == "// app"
     with pytest.raises(ValueError, match="loopback only"):

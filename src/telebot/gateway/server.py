@@ -2,7 +2,7 @@
 
 One :class:`Gateway` holds one transport (the robot daemon's own zenoh session, or the
 router's) and relays for many websockets at ``/gateway``; it also serves the web app's
-static files (``/`` is ``static/gateway.html``) and its counters at ``/stats`` (JSON).
+static files (``/`` is ``static/gateway.html``, ``/call`` ``static/index.html``) and its counters at ``/stats`` (JSON).
 Every decision is :mod:`telebot.gateway.core`'s; this module only moves bytes:
 
 - admission: send the challenge, wait (bounded) for the answer, ask the core and the
@@ -24,7 +24,7 @@ import logging
 import os
 import ssl
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -142,7 +142,8 @@ class Gateway:
     async def start(self) -> None:
         """Listen (OSError if the address is taken)."""
         app = web.Application()
-        app.router.add_get("/", self._index)
+        app.router.add_get("/", self._page("gateway.html"))
+        app.router.add_get("/call", self._page("index.html"))
         app.router.add_get("/gateway", self._websocket)
         app.router.add_get("/stats", self._stats)
         if self.static.is_dir():
@@ -188,11 +189,17 @@ class Gateway:
 
     # --- HTTP ---------------------------------------------------------------------------
 
-    async def _index(self, request: web.Request) -> web.StreamResponse:
-        page = self.static / "gateway.html"
-        if page.is_file():
-            return web.FileResponse(page, headers={"Cache-Control": "no-cache"})
-        return web.Response(status=404, text="telebot gateway: the page is not installed\n")
+    def _page(self, name: str) -> Callable[[web.Request], Awaitable[web.StreamResponse]]:
+        """A handler serving ``static/NAME`` (``/``: the start page, ``/call?robot=R``: the
+        robot page, which calls R through this gateway)."""
+
+        async def serve(request: web.Request) -> web.StreamResponse:
+            page = self.static / name
+            if page.is_file():
+                return web.FileResponse(page, headers={"Cache-Control": "no-cache"})
+            return web.Response(status=404, text=f"telebot gateway: {name} is not installed\n")
+
+        return serve
 
     async def _stats(self, request: web.Request) -> web.StreamResponse:
         return web.json_response(self.stats_json())
