@@ -4,7 +4,7 @@ Layers, lowest first (a module may import from its own layer and those below)::
 
     errors < registry < config < channels.proto < identity < reasons, rights
            < router (certificates, router configs) < channels.transports
-           < channels (call, channel) < robot < safety < services < apps
+           < channels (call, channel) < robot < safety < services < gateway < apps
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ LAYERS = [
     "telebot.robot",
     "telebot.safety",
     "telebot.services",
+    "telebot.gateway",
     "telebot.apps",
 ]
 
@@ -120,6 +121,7 @@ SANS_IO_SOURCES = sorted(
         SRC / "reasons.py",
         SRC / "rights.py",
         SRC / "router" / "acl.py",
+        SRC / "gateway" / "core.py",
     ]
 )
 

@@ -468,6 +468,29 @@ class ScreenSettings(StrictModel):
     port: int = Field(default=8090, ge=0, le=65535)
 
 
+class GatewaySettings(StrictModel):
+    """The robot's own browser gateway (``[gateway]``, docs/protocol.md §26): off unless the
+    section is there.
+
+    ``telebot-robot run`` then serves the web app and the gateway at
+    ``https://LISTEN:PORT/`` and admits the robot's contacts (and invites). Without
+    ``cert``/``key`` it makes a self-signed certificate under the robot's home once.
+    """
+
+    enabled: bool = True
+    listen: str = "0.0.0.0"
+    port: int = Field(default=8443, ge=1, le=65535)
+    #: PEM certificate (its chain may follow) and private key; relative to the robot's home.
+    cert: Path | None = None
+    key: Path | None = None
+
+    @model_validator(mode="after")
+    def _cert_and_key(self) -> GatewaySettings:
+        if (self.cert is None) != (self.key is None):
+            raise ValueError("cert and key go together (or neither: a self-signed one)")
+        return self
+
+
 class RobotSettings(StrictModel):
     """Which robot adapter ``telebot-robot run`` drives (``kind``), python-can style.
 
@@ -627,3 +650,5 @@ class RobotConfig(AppConfig):
     follow: FollowSettings = Field(default_factory=FollowSettings)
     people: PeopleSettings = Field(default_factory=PeopleSettings)
     screen: ScreenSettings = Field(default_factory=ScreenSettings)
+    #: None (no ``[gateway]`` section): no browser gateway.
+    gateway: GatewaySettings | None = None

@@ -1,8 +1,9 @@
 """``telebot-robot``: the robot's command line.
 
 ``telebot-robot run`` is the robot daemon (the robot adapter ``--robot`` or ``[robot] kind``
-names, ``sim`` by default, ``ros2`` for a ROS 2 / Nav2 robot; chat, map, pose, goals, telemetry); the other commands manage the robot's key and contact list, generate the
-default map, and run the echo robot, a network check.
+names, ``sim`` by default, ``ros2`` for a ROS 2 / Nav2 robot; chat, map, pose, goals, telemetry); it serves the browser gateway too when the config has ``[gateway]``. The other
+commands manage the robot's key and contact list, write one-time invites for browsers
+(``invite``), generate the default map, and run the echo robot, a network check.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from telebot.apps.common import (
     run,
 )
 from telebot.config import RobotConfig
-from telebot.errors import RobotError
+from telebot.errors import RobotError, excerpt
 from telebot.identity import ContactBook, Identity, Role, encode_key, fingerprint, parse_public_key
 
 PROG = "telebot-robot"
@@ -63,12 +64,39 @@ def build_parser() -> Parser:
     for action in (listing, add, remove):
         add_home_option(action, "robot")
 
+    invite = commands.add_parser(
+        "invite",
+        help="print a one-time link (and QR code) that lets a browser become a contact",
+        description="Write a one-time invite for contact NAME with ROLE, valid 10 minutes, "
+        "where the running daemon's browser gateway ([gateway] in its config) reads it, and "
+        "print the link and its QR code. The browser that opens the link registers its own "
+        "key as NAME (the link carries the robot's key, which the browser pins); the invite "
+        "then is used up. 'contacts list/remove' show and remove the contact like any other.",
+    )
+    invite.add_argument("name", type=name_arg, help="the contact's name (e.g. nurse1)")
+    invite.add_argument(
+        "--role",
+        choices=[r.value for r in Role],
+        default=Role.OBSERVER.value,
+        help="what the contact may do (default: observer)",
+    )
+    invite.add_argument(
+        "--url",
+        default=None,
+        metavar="URL",
+        help="the robot gateway's address as the browser reaches it (default "
+        "https://HOSTNAME:8443/)",
+    )
+    invite.add_argument("--no-qr", action="store_true", help="print the link only")
+    add_home_option(invite, "robot")
+
     daemon = commands.add_parser(
         "run",
         help="run the robot daemon: answer calls and serve chat, map, pose, goals, telemetry",
         description="Run the robot: start the robot adapter (the simulated robot on its map by "
-        "default), answer calls from the contacts and serve them. Stops the robot, hangs up "
-        "and exits on SIGINT/SIGTERM.",
+        "default), answer calls from the contacts and serve them; with [gateway] in the "
+        "config, also serve the web app and the browser gateway over HTTPS. Stops the robot, "
+        "hangs up and exits on SIGINT/SIGTERM.",
     )
     add_home_option(daemon, "robot")
     add_connection_options(daemon)
@@ -142,6 +170,8 @@ def main(argv: list[str] | None = None) -> int:
             return EXIT_OK
         if args.command == "contacts":
             return _contacts(args, home)
+        if args.command == "invite":
+            return _invite(args, home)
         if args.command == "make-map":
             from telebot.robot.sim.building import main as make_map
 
@@ -203,6 +233,36 @@ async def _run_daemon(args: argparse.Namespace, home: Path) -> int:
         home=home,
         emit=_print_event if args.events else None,
     )
+    return EXIT_OK
+
+
+def _invite(args: argparse.Namespace, home: Path) -> int:
+    import socket
+    import time
+    from urllib.parse import urlsplit
+
+    from telebot.gateway.admission import create_invite
+
+    identity = Identity.load(home)
+    url = args.url or f"https://{socket.gethostname()}:8443/"
+    parts = urlsplit(url)
+    if parts.scheme != "https" or not parts.netloc or parts.fragment or parts.query:
+        print(
+            f"{PROG}: error: --url {excerpt(url)}: expected https://HOST[:PORT]/ "
+            "(browsers need HTTPS for the camera and the call)",
+            file=sys.stderr,
+        )
+        return EXIT_USAGE
+    token, invite = create_invite(home, args.name, Role(args.role), time.time())
+    base = url if url.endswith("/") else url + "/"
+    link = f"{base}#invite={token}&robot={identity.name}&key={encode_key(identity.public_key)}"
+    minutes = round((invite.expires - time.time()) / 60)
+    print(f"invite for {args.name} as {args.role}, valid {minutes} minutes, once:")
+    print(link)
+    if not args.no_qr:
+        import segno
+
+        segno.make(link, error="l").terminal(compact=True)
     return EXIT_OK
 
 

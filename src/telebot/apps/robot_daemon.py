@@ -19,6 +19,7 @@ from telebot.channels.call import RobotEndpoint
 from telebot.channels.transports import create_transport
 from telebot.config import RobotConfig
 from telebot.errors import RobotError
+from telebot.gateway.robot import robot_gateway
 from telebot.identity import ContactBook, Identity
 from telebot.robot import create_robot
 from telebot.services.media import install_robot_media, media_settings, media_video_settings
@@ -150,6 +151,14 @@ async def serve_robot(
                         settings=config.call,
                         namespace=config.namespace,
                     ) as endpoint,
+                    # After the endpoint: a browser's first HELLO finds the robot listening.
+                    robot_gateway(
+                        config.gateway,
+                        transport,
+                        contacts,
+                        home if home is not None else Path.cwd(),
+                        config.namespace,
+                    ),
                 ):
                     server.attach(endpoint)
                     runner = asyncio.create_task(server.run(), name="robot-loop")

@@ -2,17 +2,21 @@
 
 ``init`` makes a router directory (a CA and the router's certificate), ``cert`` issues a
 client certificate for a robot, a user or an admin (or imports one signed elsewhere by the
-same CA), ``revoke`` takes a name out of the access-control list, ``config`` prints the
-zenoh config (``zenohd -c`` runs the same router), and ``run`` runs the router in this
-process (zenoh-python, router mode) until SIGINT or SIGTERM.
+same CA), ``revoke`` takes a name out of the access-control list, ``gateway-user`` lists the users
+the browser gateway admits, ``config`` prints the zenoh config (``zenohd -c`` runs the
+same router), and ``run`` runs the router in this process (zenoh-python, router mode),
+with the browser gateway over HTTPS beside it (docs/protocol.md §26), until SIGINT or
+SIGTERM.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import sys
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +35,7 @@ from telebot.router.acl import DEFAULT_PORT, Member, RouterPlan, router_config
 
 PROG = "telebot-router"
 DEFAULT_LISTEN = f"tls/0.0.0.0:{DEFAULT_PORT}"
+DEFAULT_GATEWAY = "0.0.0.0:8443"
 
 
 def _add_who(parser: argparse.ArgumentParser) -> None:
@@ -138,8 +143,46 @@ def build_parser() -> Parser:
     )
     _add_router_options(config)
 
+    users = commands.add_parser(
+        "gateway-user",
+        help="list or edit the users the router's browser gateway admits",
+        description="The browser gateway ('run' serves it at https://HOST:8443/ once this "
+        "list has a user) admits a browser that proves it holds the key listed for its name. "
+        "Changes take effect at the next admission, without a restart.",
+    )
+    actions = users.add_subparsers(dest="action", metavar="ACTION", parser_class=Parser)
+    actions.required = True
+    add = actions.add_parser("add", help="add or replace a gateway user")
+    add.add_argument("dir", type=Path, help="the router directory")
+    add.add_argument("name", type=name_arg, help="the user's name")
+    add.add_argument("public_key", help="the user's public key (43 characters, or its .pub line)")
+    listing_users = actions.add_parser("list", help="list the gateway users")
+    listing_users.add_argument("dir", type=Path, help="the router directory")
+    remove = actions.add_parser("remove", help="remove a gateway user")
+    remove.add_argument("dir", type=Path, help="the router directory")
+    remove.add_argument("name", type=name_arg, help="the user's name")
+
     runp = commands.add_parser("run", help="run the router until SIGINT/SIGTERM")
     _add_router_options(runp)
+    runp.add_argument(
+        "--gateway",
+        default=None,
+        metavar="HOST:PORT|off",
+        help="serve the browser gateway and the web app over HTTPS with the router's "
+        f"certificate at https://HOST:PORT/ (default {DEFAULT_GATEWAY} once "
+        "'gateway-user add' has listed a user; 'off': never)",
+    )
+    runp.add_argument(
+        "--gateway-cert",
+        type=Path,
+        default=None,
+        metavar="PEM",
+        help="serve the gateway with this certificate (chain) instead of the router's, e.g. "
+        "a publicly trusted one for the router's DNS name; with --gateway-key",
+    )
+    runp.add_argument(
+        "--gateway-key", type=Path, default=None, metavar="PEM", help="its private key"
+    )
     runp.add_argument(
         "--events",
         action="store_true",
@@ -238,7 +281,57 @@ def _cmd_config(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-async def _run_router(plan: RouterPlan, events: bool) -> int:
+def _cmd_gateway_user(args: argparse.Namespace) -> int:
+    from telebot.gateway.admission import GatewayUsers
+    from telebot.identity import encode_key, fingerprint, parse_public_key
+
+    users = GatewayUsers.load(args.dir)
+    if args.action == "list":
+        for name, key in sorted(users.users.items()):
+            print(f"{name}\t{encode_key(key)}\t{fingerprint(key)}")
+        return EXIT_OK
+    if args.action == "add":
+        if not (args.dir / "ca.pem").is_file():
+            raise ConfigError(f"{args.dir}: not a router directory (run '{PROG} init' first)")
+        try:
+            key = parse_public_key(args.public_key)
+        except ValueError as exc:
+            raise ConfigError(f"bad public key for {args.name}: {exc}") from exc
+        users.users[args.name] = key
+        users.save()
+        print(f"{args.name} may use the browser gateway")
+        return EXIT_OK
+    if users.users.pop(args.name, None) is None:
+        raise ConfigError(f"no gateway user named {args.name!r}")
+    users.save()
+    print(f"{args.name} removed from the gateway users")
+    return EXIT_OK
+
+
+def gateway_address(option: str | None, directory: Path) -> tuple[str, int] | None:
+    """Where ``run`` serves the browser gateway: ``--gateway``, else the default once the
+    router directory lists a gateway user; None for none. ConfigError on a bad option."""
+    from telebot.gateway.admission import GatewayUsers
+
+    if option is None:
+        if not GatewayUsers.load(directory).users:
+            return None
+        option = DEFAULT_GATEWAY
+    if option == "off":
+        return None
+    host, sep, port = option.rpartition(":")
+    host = host.strip("[]")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ConfigError(f"--gateway {option}: expected HOST:PORT (e.g. {DEFAULT_GATEWAY}) or off")
+    return host, int(port)
+
+
+async def _run_router(
+    plan: RouterPlan,
+    events: bool,
+    gateway: tuple[str, int] | None = None,
+    tls: tuple[Path, Path] | None = None,
+) -> int:
     import zenoh  # only 'run' needs zenoh
 
     from telebot.channels.transports.zenoh import reason_of
@@ -251,26 +344,70 @@ async def _run_router(plan: RouterPlan, events: bool) -> int:
         raise TransportError(f"cannot start the router: {reason_of(exc)}") from exc
     stop = asyncio.Event()
     try:
-        with stop_on_signals(stop):
-            ready: dict[str, Any] = {
-                "event": "ready",
-                "zid": str(session.zid()),
-                "listen": [*plan.listen_tls, *plan.listen_tcp],
-                "members": [m.common_name for m in plan.members],
-                "acl": plan.acl,
-            }
-            if events:
-                print(json.dumps(ready), flush=True)
-            else:
-                print(
-                    f"{PROG}: listening on {', '.join(ready['listen'])}; "
-                    f"{len(plan.members)} certificate(s) allowed",
-                    flush=True,
-                )
-            await stop.wait()
+        async with _router_gateway(session, plan, gateway, tls) as gateway_url:
+            with stop_on_signals(stop):
+                ready: dict[str, Any] = {
+                    "event": "ready",
+                    "zid": str(session.zid()),
+                    "listen": [*plan.listen_tls, *plan.listen_tcp],
+                    "members": [m.common_name for m in plan.members],
+                    "acl": plan.acl,
+                }
+                if events:
+                    print(json.dumps(ready), flush=True)
+                else:
+                    print(
+                        f"{PROG}: listening on {', '.join(ready['listen'])}; "
+                        f"{len(plan.members)} certificate(s) allowed",
+                        flush=True,
+                    )
+                    if gateway_url:
+                        print(f"{PROG}: browser gateway at {gateway_url}", flush=True)
+                await stop.wait()
     finally:
         await asyncio.to_thread(session.close)
     return EXIT_OK
+
+
+@contextlib.asynccontextmanager
+async def _router_gateway(
+    session: Any,
+    plan: RouterPlan,
+    address: tuple[str, int] | None,
+    tls: tuple[Path, Path] | None = None,
+) -> AsyncIterator[str | None]:
+    """The browser gateway over the router's own session, with the router's certificate
+    (or ``tls``: another certificate and key)."""
+    if address is None:
+        yield None
+        return
+    from telebot.channels.transports.zenoh import ZenohTransport
+    from telebot.gateway.admission import UsersAdmitter
+    from telebot.gateway.server import Gateway
+    from telebot.gateway.tls import server_context
+
+    cert, key = tls if tls is not None else (Path(plan.cert), Path(plan.key))
+    context = server_context(cert, key)
+    transport = ZenohTransport()
+    await transport.adopt(session)
+    gateway = Gateway(
+        transport,
+        UsersAdmitter(Path(plan.cert).parent),
+        namespace=plan.namespace,
+        host=address[0],
+        port=address[1],
+        ssl_context=context,
+    )
+    try:
+        await gateway.start()
+    except OSError as exc:
+        await transport.close()
+        raise ConfigError(f"--gateway {address[0]}:{address[1]}: cannot listen: {exc}") from exc
+    try:
+        yield gateway.url
+    finally:
+        await gateway.close()
+        await transport.close()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -283,11 +420,20 @@ def main(argv: list[str] | None = None) -> int:
         "revoke": _cmd_revoke,
         "list": _cmd_list,
         "config": _cmd_config,
+        "gateway-user": _cmd_gateway_user,
     }
     if args.command == "run":
+        try:
+            plan, gateway = plan_of(args), gateway_address(args.gateway, args.dir)
+            if (args.gateway_cert is None) != (args.gateway_key is None):
+                raise ConfigError("--gateway-cert and --gateway-key go together")
+            tls = (args.gateway_cert, args.gateway_key) if args.gateway_cert else None
+        except ConfigError as exc:
+            print(f"{PROG}: error: {exc}", file=sys.stderr)
+            return EXIT_USAGE
 
         async def main_run() -> int:
-            return await _run_router(plan_of(args), args.events)
+            return await _run_router(plan, args.events, gateway, tls)
 
         return run(PROG, main_run, args.log_level)
     try:

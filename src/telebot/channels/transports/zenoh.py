@@ -658,6 +658,7 @@ class ZenohTransport(Transport):
         # Strong references to everything declared: tokens and publishers die with
         # their Python object, and close() must reach every subscriber.
         self._entities: dict[int, _Entity] = {}
+        self._owns_session = True
         if self.settings.mode == "client" and self.settings.tls.cert is not None:
             # A router's ACL drops what it does not allow without a word to the sender.
             self.unanswered_hint = (
@@ -722,6 +723,17 @@ class ZenohTransport(Transport):
         self._session_id = str(session.zid())
         logger.debug("zenoh session %s open (%s)", self._session_id, self.settings.mode)
 
+    async def adopt(self, session: zenoh.Session) -> None:
+        """Use an open session of someone else's (the router's, for its browser gateway)
+        instead of opening one: :meth:`close` undeclares what this transport declared and
+        leaves the session open."""
+        if self._closed or self._session is not None or self._opening:
+            raise TransportError("zenoh transport is already open or closed")
+        self._loop = asyncio.get_running_loop()
+        self._session = session
+        self._session_id = str(session.zid())
+        self._owns_session = False
+
     async def close(self) -> None:
         """Undeclare everything and close the session within ``settings.close_timeout``.
 
@@ -744,7 +756,8 @@ class ZenohTransport(Transport):
         def shutdown() -> None:
             for entity in entities:
                 entity._undeclare()
-            _close_session(session)
+            if self._owns_session:
+                _close_session(session)
 
         timeout = self.settings.close_timeout
         try:

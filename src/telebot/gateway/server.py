@@ -1,0 +1,485 @@
+"""The gateway's I/O: HTTPS + WebSocket (aiohttp) on one side, one transport on the other.
+
+One :class:`Gateway` holds one transport (the robot daemon's own zenoh session, or the
+router's) and relays for many websockets at ``/gateway``; it also serves the web app's
+static files (``/`` is ``static/gateway.html``, ``/call`` ``static/index.html``) and its counters at ``/stats`` (JSON).
+Every decision is :mod:`telebot.gateway.core`'s; this module only moves bytes:
+
+- admission: send the challenge, wait (bounded) for the answer, ask the core and the
+  :class:`~telebot.gateway.admission.Admitter`, answer ``admitted`` or ``refused`` + 4001;
+- then each message is counted against the connection's budget and parsed; a key the
+  user may not use, garbage, or a flood ends the connection (``cut`` + 4008), counted and
+  logged in one line, before anything of that message is forwarded;
+- towards the browser, samples and presence changes go through a bounded queue per
+  connection (the oldest dropped and counted), so a slow browser only loses its own.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import json
+import logging
+import os
+import ssl
+import time
+from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Self
+
+from aiohttp import WSMsgType, web
+
+from telebot.channels.transports.base import (
+    Lane,
+    Presence,
+    Publisher,
+    ReceiveLimits,
+    Sample,
+    Subscription,
+    Transport,
+)
+from telebot.errors import TransportError, excerpt
+from telebot.gateway.admission import Admitter
+from telebot.gateway.core import (
+    CLOSE_CUT,
+    CLOSE_REFUSED,
+    MAX_KEY_BYTES,
+    MAX_PAYLOAD,
+    Budget,
+    KeyRules,
+    Limits,
+    Op,
+    Refusal,
+    make_challenge,
+    pack_sample,
+    parse_admission,
+    parse_op,
+    parse_put,
+)
+
+__all__ = ["STATIC", "Gateway", "GatewayStats"]
+
+log = logging.getLogger("telebot.gateway")
+
+#: The web app's files (``telebot.apps.web``'s, found by path: the gateway sits below the apps).
+STATIC = Path(__file__).resolve().parent.parent / "apps" / "web" / "static"
+#: Larger websocket messages are refused by aiohttp itself (close 1009), and counted.
+MAX_MESSAGE = 3 + MAX_KEY_BYTES + MAX_PAYLOAD + 1024
+#: Publishers kept per connection (by key and lane), the least recently used closed first.
+MAX_PUBLISHERS = 32
+_LANES = {"control": Lane.CONTROL, "data": Lane.DATA, "bulk": Lane.BULK}
+_RECEIVE = ReceiveLimits(max_samples=512, max_bytes=4_000_000, max_payload=MAX_PAYLOAD)
+
+
+@dataclass(slots=True)
+class GatewayStats:
+    """What the gateway counted (``/stats``)."""
+
+    connections: int = 0
+    admitted: int = 0
+    active: int = 0
+    refused: dict[str, int] = field(default_factory=dict)
+    cut: dict[str, int] = field(default_factory=dict)
+    frames_in: int = 0
+    bytes_in: int = 0
+    published: int = 0
+    frames_out: int = 0
+    bytes_out: int = 0
+    dropped_out: int = 0
+
+    def count(self, table: dict[str, int], code: str) -> None:
+        """One more ``code`` in ``refused`` or ``cut``."""
+        table[code] = table.get(code, 0) + 1
+
+
+class Gateway:
+    """``async with Gateway(transport, admitter, ...) as gw:`` serves until closed.
+
+    ``ssl_context`` None serves plain HTTP, allowed on a loopback host only (tests).
+    ``port`` 0 picks a free port (see :attr:`url`).
+    """
+
+    def __init__(
+        self,
+        transport: Transport,
+        admitter: Admitter,
+        *,
+        namespace: str = "telebot",
+        host: str = "127.0.0.1",
+        port: int = 8443,
+        ssl_context: ssl.SSLContext | None = None,
+        limits: Limits | None = None,
+        static: Path = STATIC,
+        clock: Callable[[], float] = time.monotonic,
+        wall_clock: Callable[[], float] = time.time,
+    ) -> None:
+        if ssl_context is None and host not in ("127.0.0.1", "::1", "localhost"):
+            raise ValueError(f"the gateway serves plain HTTP on loopback only, not on {host}")
+        self.transport = transport
+        self.admitter = admitter
+        self.namespace = namespace
+        self.host = host
+        self.port = port
+        self.ssl_context = ssl_context
+        self.limits = limits or Limits()
+        self.static = static
+        self.clock = clock
+        self.wall_clock = wall_clock
+        self.stats = GatewayStats()
+        self._browsers: set[_Browser] = set()
+        self._runner: web.AppRunner | None = None
+
+    @property
+    def url(self) -> str:
+        """The page's address (``https://HOST:PORT/``)."""
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        scheme = "https" if self.ssl_context is not None else "http"
+        return f"{scheme}://{host}:{self.port}/"
+
+    async def start(self) -> None:
+        """Listen (OSError if the address is taken)."""
+        app = web.Application()
+        app.router.add_get("/", self._page("gateway.html"))
+        app.router.add_get("/call", self._page("index.html"))
+        app.router.add_get("/gateway", self._websocket)
+        app.router.add_get("/stats", self._stats)
+        if self.static.is_dir():
+            app.router.add_static("/static/", self.static, show_index=False)
+        self._runner = web.AppRunner(app, handle_signals=False, access_log=None)
+        await self._runner.setup()
+        site = web.TCPSite(self._runner, self.host, self.port, ssl_context=self.ssl_context)
+        try:
+            await site.start()
+        except OSError:
+            await self._runner.cleanup()
+            self._runner = None
+            raise
+        if self.port == 0:
+            sockets = getattr(site._server, "sockets", None) or []
+            self.port = int(sockets[0].getsockname()[1])
+        log.info("browser gateway at %s", self.url)
+
+    async def close(self) -> None:
+        """Close every websocket and the server; idempotent."""
+        for browser in list(self._browsers):
+            with contextlib.suppress(Exception):
+                await browser.ws.close(code=1001, message=b"gateway shutting down")
+        if self._runner is not None:
+            runner, self._runner = self._runner, None
+            await runner.cleanup()
+
+    async def __aenter__(self) -> Self:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+    def stats_json(self) -> dict[str, Any]:
+        """The counters as JSON-ready data."""
+        return asdict(self.stats)
+
+    # --- HTTP ---------------------------------------------------------------------------
+
+    def _page(self, name: str) -> Callable[[web.Request], Awaitable[web.StreamResponse]]:
+        """A handler serving ``static/NAME`` (``/``: the start page, ``/call?robot=R``: the
+        robot page, which calls R through this gateway)."""
+
+        async def serve(request: web.Request) -> web.StreamResponse:
+            page = self.static / name
+            if page.is_file():
+                return web.FileResponse(page, headers={"Cache-Control": "no-cache"})
+            return web.Response(status=404, text=f"telebot gateway: {name} is not installed\n")
+
+        return serve
+
+    async def _stats(self, request: web.Request) -> web.StreamResponse:
+        return web.json_response(self.stats_json())
+
+    async def _websocket(self, request: web.Request) -> web.StreamResponse:
+        ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE, heartbeat=30.0)
+        await ws.prepare(request)
+        self.stats.connections += 1
+        peer = str(request.remote)
+        name = await self._admit(ws, peer)
+        if name is None:
+            return ws
+        browser = _Browser(self, ws, name, peer)
+        self._browsers.add(browser)
+        self.stats.admitted += 1
+        self.stats.active += 1
+        try:
+            await browser.serve()
+        finally:
+            self._browsers.discard(browser)
+            self.stats.active -= 1
+            browser.release()
+        return ws
+
+    # --- admission ----------------------------------------------------------------------
+
+    async def _admit(self, ws: web.WebSocketResponse, peer: str) -> str | None:
+        challenge = make_challenge(os.urandom(32), os.urandom(32))
+        try:
+            await ws.send_str(json.dumps(challenge.message(self.namespace)))
+            try:
+                msg = await asyncio.wait_for(ws.receive(), self.limits.admission_timeout)
+            except TimeoutError:
+                raise Refusal("timeout", "no answer to the challenge in time") from None
+            if msg.type in (WSMsgType.CLOSE, WSMsgType.CLOSING, WSMsgType.CLOSED):
+                return None
+            if msg.type == WSMsgType.ERROR:
+                raise Refusal("too_large", f"a message the websocket refused: {msg.data}")
+            admit = parse_admission(msg.data)
+            if not challenge.verify(admit.name, admit.key, admit.proof):
+                raise Refusal("bad_proof", f"the proof for {admit.name} does not verify")
+            if admit.invite is not None:
+                self.admitter.redeem(admit.invite, admit.name, admit.key, self.wall_clock())
+                log.info("gateway: invite redeemed by %s from %s", admit.name, peer)
+            else:
+                known = self.admitter.key_of(admit.name)
+                if known is None:
+                    raise Refusal("unknown_name", f"{admit.name} is not admitted here")
+                if known != admit.key:
+                    raise Refusal("wrong_key", f"{admit.name} is admitted with another key")
+            await ws.send_str(json.dumps({"op": "admitted", "name": admit.name}))
+            return admit.name
+        except Refusal as refusal:
+            self.stats.count(self.stats.refused, refusal.code)
+            log.info("gateway: refused %s: %s", peer, excerpt(str(refusal)))
+            with contextlib.suppress(Exception):
+                await ws.send_str(
+                    json.dumps({"op": "refused", "code": refusal.code, "text": refusal.text})
+                )
+            with contextlib.suppress(Exception):
+                await ws.close(code=CLOSE_REFUSED, message=refusal.code.encode())
+            return None
+        except (ConnectionError, RuntimeError):  # the browser went away mid-admission
+            return None
+
+
+class _Browser:
+    """One admitted websocket: its budget, subscriptions, tokens, watches, out queue."""
+
+    def __init__(self, gateway: Gateway, ws: web.WebSocketResponse, name: str, peer: str) -> None:
+        self.gateway = gateway
+        self.ws = ws
+        self.name = name
+        self.peer = peer
+        self.rules = KeyRules(gateway.namespace, name)
+        self.budget = Budget.of(gateway.limits)
+        self.subs: dict[int, Subscription] = {}
+        self.tokens: dict[int, Presence] = {}
+        self.watches: dict[int, Subscription] = {}
+        self.publishers: collections.OrderedDict[tuple[str, str], Publisher] = (
+            collections.OrderedDict()
+        )
+        self._out: collections.deque[str | bytes] = collections.deque()
+        self._out_bytes = 0
+        self._wake = asyncio.Event()
+        self._cut = False
+
+    async def serve(self) -> None:
+        """Relay until the browser closes or is cut off."""
+        writer = asyncio.create_task(self._write(), name=f"gateway writer {self.name}")
+        stats = self.gateway.stats
+        try:
+            async for msg in self.ws:
+                if msg.type == WSMsgType.ERROR:
+                    raise Refusal("too_large", f"a message the websocket refused: {msg.data}")
+                if msg.type not in (WSMsgType.TEXT, WSMsgType.BINARY):
+                    continue
+                data: str | bytes = msg.data
+                stats.frames_in += 1
+                stats.bytes_in += len(data)
+                self.budget.spend(len(data), self.gateway.clock())
+                if isinstance(data, str):
+                    self._handle(parse_op(data))
+                else:
+                    self._put(data)
+        except Refusal as refusal:
+            await self._cut_off(refusal)
+        finally:
+            writer.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await writer
+
+    # --- browser -> zenoh ----------------------------------------------------------------
+
+    def _put(self, data: bytes) -> None:
+        put = parse_put(data)
+        if not self.rules.may_put(put.key):
+            raise Refusal("key", f"{self.name} may not publish on {excerpt(put.key, 120)}")
+        slot = (put.key, put.lane)
+        publisher = self.publishers.get(slot)
+        if publisher is None:
+            try:
+                publisher = self.gateway.transport.publisher(put.key, _LANES[put.lane])
+            except TransportError as exc:  # the gateway's session, not the browser's fault
+                self._send_text({"op": "error", "code": "zenoh", "text": excerpt(str(exc))})
+                return
+            self.publishers[slot] = publisher
+            if len(self.publishers) > MAX_PUBLISHERS:
+                _, oldest = self.publishers.popitem(last=False)
+                oldest.close()
+        else:
+            self.publishers.move_to_end(slot)
+        try:
+            publisher.put(put.payload)
+        except TransportError as exc:
+            log.debug("gateway: put on %s failed: %s", put.key, exc)
+            return
+        self.gateway.stats.published += 1
+
+    def _handle(self, op: Op) -> None:
+        limits = self.gateway.limits
+        key = op.key or ""
+        transport = self.gateway.transport
+        match op.op:
+            case "sub":
+                self._check(key, self.rules.may_subscribe, "subscribe to")
+                if self._taken(op, self.subs, limits.max_subscriptions, "subscriptions"):
+                    return
+                sub_id = op.id
+                self._declare(
+                    self.subs,
+                    op,
+                    lambda: transport.subscribe(
+                        key, lambda batch: self._samples(sub_id, batch), limits=_RECEIVE
+                    ),
+                )
+            case "token":
+                self._check(key, self.rules.may_declare_token, "declare the token")
+                if self._taken(op, self.tokens, limits.max_tokens, "tokens"):
+                    return
+                self._declare(self.tokens, op, lambda: transport.declare_presence(key))
+            case "watch":
+                self._check(key, self.rules.may_watch, "watch")
+                if self._taken(op, self.watches, limits.max_watches, "watches"):
+                    return
+                watch_id = op.id
+                self._declare(
+                    self.watches,
+                    op,
+                    lambda: transport.watch_presence(
+                        key, lambda k, alive: self._alive(watch_id, k, alive)
+                    ),
+                )
+            case "unsub" | "untoken" | "unwatch":
+                tables: dict[str, dict[int, Any]] = {
+                    "unsub": self.subs,
+                    "untoken": self.tokens,
+                    "unwatch": self.watches,
+                }
+                table = tables[op.op]
+                entity = table.pop(op.id, None)
+                if entity is None:
+                    self._send_text(
+                        {"op": "error", "code": "unknown_id", "text": f"{op.op} {op.id}"}
+                    )
+                else:
+                    entity.close()
+
+    def _check(self, key: str, rule: Callable[[str], bool], what: str) -> None:
+        if not rule(key):
+            raise Refusal("key", f"{self.name} may not {what} {excerpt(key, 120)}")
+
+    def _taken(self, op: Op, table: dict[int, Any], most: int, what: str) -> bool:
+        if op.id in table:
+            self._send_text({"op": "error", "code": "id_in_use", "text": f"{op.op} {op.id}"})
+            return True
+        if len(table) >= most:
+            raise Refusal("too_many", f"more than {most} {what}")
+        return False
+
+    def _declare(self, table: dict[int, Any], op: Op, declare: Callable[[], Any]) -> None:
+        try:
+            table[op.id] = declare()
+        except TransportError as exc:
+            # The rules let only plain keys through, so zenoh refusing one is the gateway's
+            # trouble (its session closing), not the browser's: an error, not a cut.
+            self._send_text({"op": "error", "code": "zenoh", "text": excerpt(str(exc))})
+
+    # --- zenoh -> browser ----------------------------------------------------------------
+
+    def _samples(self, sub_id: int, batch: Sequence[Sample]) -> None:
+        if sub_id not in self.subs:
+            return
+        for sample in batch:
+            self._enqueue(pack_sample(sub_id, sample.key, sample.payload))
+
+    def _alive(self, watch_id: int, key: str, alive: bool) -> None:
+        if watch_id in self.watches:
+            self._send_text({"op": "alive", "id": watch_id, "key": key, "alive": alive})
+
+    def _send_text(self, message: dict[str, Any]) -> None:
+        self._enqueue(json.dumps(message))
+
+    def _enqueue(self, item: str | bytes) -> None:
+        if self._cut:
+            return
+        limits, stats = self.gateway.limits, self.gateway.stats
+        self._out.append(item)
+        self._out_bytes += len(item)
+        while len(self._out) > limits.out_frames or self._out_bytes > limits.out_bytes:
+            dropped = self._out.popleft()
+            self._out_bytes -= len(dropped)
+            stats.dropped_out += 1
+        self._wake.set()
+
+    async def _write(self) -> None:
+        stats = self.gateway.stats
+        try:
+            while True:
+                await self._wake.wait()
+                self._wake.clear()
+                while self._out:
+                    item = self._out.popleft()
+                    self._out_bytes -= len(item)
+                    if isinstance(item, bytes):
+                        await self.ws.send_bytes(item)
+                    else:
+                        await self.ws.send_str(item)
+                    stats.frames_out += 1
+                    stats.bytes_out += len(item)
+        except (ConnectionError, RuntimeError):
+            return  # the browser is gone; serve() sees the close
+
+    # --- the end -------------------------------------------------------------------------
+
+    async def _cut_off(self, refusal: Refusal) -> None:
+        self._cut = True
+        self._out.clear()
+        self.release()  # nothing more in or out for it, before any await
+        stats = self.gateway.stats
+        stats.count(stats.cut, refusal.code)
+        log.warning("gateway: cut off %s from %s: %s", self.name, self.peer, excerpt(str(refusal)))
+        with contextlib.suppress(Exception):
+            await self.ws.send_str(
+                json.dumps({"op": "cut", "code": refusal.code, "text": refusal.text})
+            )
+        with contextlib.suppress(Exception):
+            await self.ws.close(code=CLOSE_CUT, message=refusal.code.encode())
+
+    def release(self) -> None:
+        """Undeclare everything this browser declared; idempotent."""
+        tables: tuple[dict[int, Any], ...] = (self.subs, self.tokens, self.watches)
+        for table in tables:
+            entities = list(table.values())
+            table.clear()
+            for entity in entities:
+                with contextlib.suppress(Exception):
+                    entity.close()
+        publishers = list(self.publishers.values())
+        self.publishers.clear()
+        for publisher in publishers:
+            with contextlib.suppress(Exception):
+                publisher.close()

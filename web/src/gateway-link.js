@@ -1,0 +1,302 @@
+// The browser's link to zenoh: the gateway's WebSocket (docs/protocol.md §26).
+//
+// A link moves sealed frames by key; it holds the user's key only to answer the
+// gateway's admission challenge (an X25519 + HMAC-SHA256 proof, §26.1). Everything the
+// protocol seals is sealed above this module (call.js), never here.
+//
+//   const link = await connectGateway("wss://router:8443/gateway", { name, privateKey, publicKey });
+//   const sub = link.subscribe("telebot/user/alice/**", (key, payload) => { ... });
+//   link.publish("telebot/robot/guiabot/in/alice", hello, "control");
+//   const token = link.declareToken("telebot/presence/user/alice/0123456789abcdef");
+//   const watch = link.watch("telebot/presence/robot/*/*", (key, alive) => { ... });
+//   link.onclose = ({ code, text }) => { ... };   // cut off, refused later, or closed
+//   link.close();
+
+import { x25519 } from "@noble/curves/ed25519";
+import { hmac } from "@noble/hashes/hmac";
+import { sha256 } from "@noble/hashes/sha2";
+
+/** Why the gateway refused, cut off or could not be reached: one line for people. */
+export class GatewayError extends Error {
+  /**
+   * @param {string} message one line
+   * @param {string} [code] the gateway's code ("wrong_key", "flood", ...), if it gave one
+   */
+  constructor(message, code = "") {
+    super(message);
+    this.name = "GatewayError";
+    this.code = code;
+  }
+}
+
+const LABEL = new TextEncoder().encode("telebot-gateway-v1");
+const LANES = { control: 0, data: 1, bulk: 2 };
+const MAX_ID = 0xffff;
+/** The largest payload the gateway takes (a DATA frame with a 32 KB datagram). */
+export const MAX_PAYLOAD = 33060;
+const encoder = new TextEncoder();
+const decoder = new TextDecoder();
+
+/** @param {string} text at most a few hundred characters of it, on one line */
+function excerpt(text, limit = 200) {
+  const line = String(text).replace(/\s+/g, " ").trim();
+  return line.length <= limit ? line : `${line.slice(0, limit - 1)}… (${line.length} characters)`;
+}
+
+/**
+ * A 32-byte key as 43 URL-safe base64 characters without padding (§3.1).
+ * @param {Uint8Array} bytes
+ */
+export function encodeKey(bytes) {
+  let binary = "";
+  for (const b of bytes) binary += String.fromCharCode(b);
+  return btoa(binary).replace(/\+/g, "-").replace(/\//g, "_").replace(/=+$/, "");
+}
+
+/**
+ * The 32 bytes of a key in the form of {@link encodeKey}; GatewayError if it is not one.
+ * @param {string} text
+ */
+export function decodeKey(text) {
+  if (typeof text !== "string" || !/^[A-Za-z0-9_-]{43}$/.test(text)) {
+    throw new GatewayError(`not a 43-character key: ${excerpt(String(text), 60)}`);
+  }
+  const binary = atob(text.replace(/-/g, "+").replace(/_/g, "/") + "=");
+  const bytes = Uint8Array.from(binary, (c) => c.charCodeAt(0));
+  if (encodeKey(bytes) !== text) throw new GatewayError("not a key in canonical base64");
+  return bytes;
+}
+
+/**
+ * The admission proof (§26.1): HMAC-SHA256(X25519(user private, gateway ephemeral),
+ * label ‖ nonce ‖ gateway ephemeral ‖ user public ‖ UTF-8(name)).
+ * @param {Uint8Array} privateKey @param {Uint8Array} publicKey @param {string} name
+ * @param {Uint8Array} gateway @param {Uint8Array} nonce
+ */
+export function admissionProof(privateKey, publicKey, name, gateway, nonce) {
+  const shared = x25519.getSharedSecret(privateKey, gateway);
+  const nameBytes = encoder.encode(name);
+  const message = new Uint8Array(LABEL.length + 96 + nameBytes.length);
+  message.set(LABEL, 0);
+  message.set(nonce, LABEL.length);
+  message.set(gateway, LABEL.length + 32);
+  message.set(publicKey, LABEL.length + 64);
+  message.set(nameBytes, LABEL.length + 96);
+  return hmac(sha256, shared, message);
+}
+
+/** `https://host:port/` (the page's own address) or `wss://…/gateway` -> the websocket URL. */
+function websocketUrl(url) {
+  const parsed = new URL(url);
+  if (parsed.protocol === "https:") parsed.protocol = "wss:";
+  else if (parsed.protocol === "http:") parsed.protocol = "ws:";
+  if (parsed.protocol !== "wss:" && parsed.protocol !== "ws:") {
+    throw new GatewayError(`not a gateway address: ${excerpt(url, 120)}`);
+  }
+  if (!parsed.pathname.endsWith("/gateway")) parsed.pathname = parsed.pathname.replace(/\/?$/, "/gateway");
+  parsed.hash = "";
+  return parsed.toString();
+}
+
+/**
+ * Open the gateway's websocket and be admitted (or redeem an invite, then be admitted).
+ *
+ * @param {string} url `wss://HOST:PORT/gateway`, or the page's `https://HOST:PORT/`
+ * @param {{name: string, privateKey: Uint8Array, publicKey: Uint8Array, invite?: string,
+ *          WebSocket?: typeof WebSocket, timeout?: number}} options
+ *   `timeout`: seconds to wait for admission (default 10)
+ * @returns {Promise<GatewayLink>} rejects with a GatewayError (one line) when refused
+ */
+export function connectGateway(url, options) {
+  const { name, privateKey, publicKey, invite, timeout = 10 } = options;
+  const Impl = options.WebSocket ?? globalThis.WebSocket;
+  if (!Impl) return Promise.reject(new GatewayError("this JavaScript runtime has no WebSocket"));
+  let ws;
+  try {
+    ws = new Impl(websocketUrl(url));
+  } catch (err) {
+    return Promise.reject(err instanceof GatewayError ? err : new GatewayError(`cannot open ${excerpt(url, 120)}: ${excerpt(err?.message ?? err)}`));
+  }
+  ws.binaryType = "arraybuffer";
+  return new Promise((resolve, reject) => {
+    let stage = "challenge";
+    const timer = setTimeout(() => fail(new GatewayError(`no admission by ${url} within ${timeout} s`, "timeout")), timeout * 1000);
+    const fail = (error) => {
+      if (stage === "done") return;
+      stage = "done";
+      clearTimeout(timer);
+      try { ws.close(); } catch { /* closing anyway */ }
+      reject(error);
+    };
+    ws.onerror = () => fail(new GatewayError(`cannot reach the gateway at ${excerpt(url, 120)}`, "unreachable"));
+    ws.onclose = (event) => fail(new GatewayError(`the gateway closed the connection (${event.code})${event.reason ? `: ${excerpt(event.reason)}` : ""}`, event.reason || "closed"));
+    ws.onmessage = (event) => {
+      let message;
+      try {
+        if (typeof event.data !== "string") throw new Error("binary");
+        message = JSON.parse(event.data);
+      } catch {
+        fail(new GatewayError("the gateway sent something that is not its protocol", "garbage"));
+        return;
+      }
+      if (stage === "challenge" && message.op === "challenge") {
+        let proof;
+        try {
+          proof = admissionProof(privateKey, publicKey, name, decodeKey(message.gateway), decodeKey(message.nonce));
+        } catch (err) {
+          fail(err instanceof GatewayError ? err : new GatewayError(`bad challenge: ${excerpt(err?.message ?? err)}`));
+          return;
+        }
+        const answer = { op: invite ? "redeem" : "admit", name, key: encodeKey(publicKey), proof: encodeKey(proof) };
+        if (invite) answer.invite = invite;
+        ws.send(JSON.stringify(answer));
+        stage = "answer";
+      } else if (stage === "answer" && message.op === "admitted") {
+        stage = "done";
+        clearTimeout(timer);
+        resolve(new GatewayLink(ws, name, message));
+      } else if (message.op === "refused") {
+        fail(new GatewayError(`gateway refused ${name}: ${excerpt(message.code)}: ${excerpt(message.text)}`, String(message.code)));
+      } else {
+        fail(new GatewayError(`unexpected ${excerpt(String(message.op), 40)} during admission`, "garbage"));
+      }
+    };
+  });
+}
+
+/**
+ * An admitted gateway connection: the link a Call reaches zenoh through (BROWSER.md).
+ * Frames the gateway sends that are not its protocol are dropped and counted
+ * (`stats.malformed`); the gateway's non-fatal errors go to `onerror`. Once closed (by
+ * `close()`, or the gateway: `onclose` says why), whatever is sent is dropped and counted
+ * (`stats.dropped`), as a lossy link drops frames: a call's timers need not know.
+ */
+export class GatewayLink {
+  /** @param {WebSocket} ws @param {string} name @param {object} admitted */
+  constructor(ws, name, admitted) {
+    this.ws = ws;
+    this.name = name;
+    this.admitted = admitted;
+    /** @type {(info: {code: string, text: string, message: string}) => void} */
+    this.onclose = () => {};
+    /** @type {(message: string) => void} non-fatal errors the gateway reported */
+    this.onerror = () => {};
+    this.stats = { received: 0, malformed: 0, sent: 0, dropped: 0 };
+    this.closed = false;
+    /** @type {Map<number, (key: string, payload: Uint8Array) => void>} */
+    this.subs = new Map();
+    /** @type {Map<number, (key: string, alive: boolean) => void>} */
+    this.watches = new Map();
+    this.tokens = new Set();
+    this.nextId = { sub: 0, token: 0, watch: 0 };
+    let cut = null;
+    ws.onmessage = (event) => {
+      if (typeof event.data === "string") {
+        let message;
+        try { message = JSON.parse(event.data); } catch { this.stats.malformed++; return; }
+        if (message.op === "alive") {
+          const cb = this.watches.get(message.id);
+          if (cb && typeof message.key === "string") cb(message.key, message.alive === true);
+        } else if (message.op === "cut") {
+          cut = message;
+        } else if (message.op === "error") {
+          this.onerror(`gateway: ${excerpt(message.code)}: ${excerpt(message.text)}`);
+        } else {
+          this.stats.malformed++;
+        }
+        return;
+      }
+      const bytes = new Uint8Array(event.data);
+      if (bytes.length < 4) { this.stats.malformed++; return; }
+      const view = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
+      const id = view.getUint16(0), length = view.getUint16(2);
+      const cb = this.subs.get(id);
+      if (bytes.length < 4 + length || !cb) { this.stats.malformed++; return; }
+      this.stats.received++;
+      cb(decoder.decode(bytes.subarray(4, 4 + length)), bytes.subarray(4 + length));
+    };
+    ws.onerror = () => {};
+    ws.onclose = (event) => {
+      this.closed = true;
+      const code = cut?.code ?? (event.reason || String(event.code));
+      const text = cut?.text ?? "connection closed";
+      this.onclose({ code, text, message: `gateway: ${excerpt(code)}: ${excerpt(text)}` });
+    };
+  }
+
+  _id(kind, table) {
+    for (let i = 0; i <= MAX_ID; i++) {
+      const id = this.nextId[kind];
+      this.nextId[kind] = (id + 1) & MAX_ID;
+      if (!table.has(id)) return id;
+    }
+    throw new GatewayError(`no free ${kind} id`);
+  }
+
+  /** Send, or drop and count once the link is closed (`onclose` has told why). */
+  _send(message) {
+    if (this.closed) {
+      this.stats.dropped++;
+      return false;
+    }
+    this.ws.send(message);
+    return true;
+  }
+
+  /**
+   * Deliver samples on keys matching `keyExpr` to `cb(key, payload)`.
+   * @param {string} keyExpr @param {(key: string, payload: Uint8Array) => void} cb
+   * @returns {{close(): void}}
+   */
+  subscribe(keyExpr, cb) {
+    const id = this._id("sub", this.subs);
+    this.subs.set(id, cb);
+    this._send(JSON.stringify({ op: "sub", id, key: keyExpr }));
+    return { close: () => { if (this.subs.delete(id) && !this.closed) this._send(JSON.stringify({ op: "unsub", id })); } };
+  }
+
+  /**
+   * Publish `payload` on `key` with the QoS of `lane`.
+   * @param {string} key @param {Uint8Array} payload @param {"control"|"data"|"bulk"} [lane]
+   */
+  publish(key, payload, lane = "data") {
+    const laneNumber = LANES[lane];
+    if (laneNumber === undefined) throw new GatewayError(`unknown lane ${excerpt(String(lane), 40)}`);
+    if (payload.length > MAX_PAYLOAD) throw new GatewayError(`a payload of ${payload.length} bytes (at most ${MAX_PAYLOAD})`);
+    const keyBytes = encoder.encode(key);
+    const frame = new Uint8Array(3 + keyBytes.length + payload.length);
+    frame[0] = laneNumber;
+    frame[1] = keyBytes.length >> 8;
+    frame[2] = keyBytes.length & 0xff;
+    frame.set(keyBytes, 3);
+    frame.set(payload, 3 + keyBytes.length);
+    if (this._send(frame)) this.stats.sent++;
+  }
+
+  /** Declare a liveliness token on `key`. @param {string} key @returns {{close(): void}} */
+  declareToken(key) {
+    const id = this._id("token", this.tokens);
+    this.tokens.add(id);
+    this._send(JSON.stringify({ op: "token", id, key }));
+    return { close: () => { if (this.tokens.delete(id) && !this.closed) this._send(JSON.stringify({ op: "untoken", id })); } };
+  }
+
+  /**
+   * Report liveliness tokens matching `keyExpr` (existing ones at once, then changes).
+   * @param {string} keyExpr @param {(key: string, alive: boolean) => void} cb
+   * @returns {{close(): void}}
+   */
+  watch(keyExpr, cb) {
+    const id = this._id("watch", this.watches);
+    this.watches.set(id, cb);
+    this._send(JSON.stringify({ op: "watch", id, key: keyExpr }));
+    return { close: () => { if (this.watches.delete(id) && !this.closed) this._send(JSON.stringify({ op: "unwatch", id })); } };
+  }
+
+  /** Close the link (the gateway withdraws this browser's tokens and subscriptions). */
+  close() {
+    if (this.closed) return;
+    this.closed = true;
+    this.ws.close(1000);
+  }
+}
