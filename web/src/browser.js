@@ -8,7 +8,9 @@
  *   websocket message), backoffDelay and realClock;
  * - what a page draws with: decodeMapPng / pngSize (the map's PNG), STOP_HOWS (a stop's
  *   `how`), sayText (a chat line that is a `say`), CODEC_IDS / CODEC_NAMES (video codecs),
- *   RequestFailed (what a service request rejects with: `code`, one-line `message`).
+ *   RequestFailed (what a service request rejects with: `code`, one-line `message`);
+ * - the gateway (docs/protocol.md §26): connectGateway, GatewayError, and the pages'
+ *   entry points startPage / robotPort (page-entry.js).
  * @module browser
  */
 import * as errors from "./errors.js";
@@ -19,6 +21,8 @@ import { RequestFailed } from "./services/services.js";
 import { STOP_HOWS, sayText } from "./services/messages.js";
 import { decodeMapPng, pngSize } from "./services/map.js";
 import { CODEC_IDS, CODEC_NAMES } from "./services/video.js";
+import { GatewayError, connectGateway } from "./gateway-link.js";
+import { pageApi } from "./page-entry.js";
 
 export const telebot = {
   ...errors,
@@ -37,5 +41,10 @@ export const telebot = {
   pngSize,
   CODEC_IDS,
   CODEC_NAMES,
+  GatewayError,
+  connectGateway,
+  // The pages served by a gateway: the start page (gateway.html) and the robot page's
+  // port (static/port.js), each through an admitted link to the gateway beside the page.
+  ...pageApi({ Endpoint, RobotSession, openLink: (a) => connectGateway(a.url, a) }),
 };
 /** @type {any} */ (globalThis).telebot = telebot;
