@@ -42,6 +42,7 @@ bench: install
 	.ci/install-debian
 	$(BIN)/python bench/ui.py
 	$(BIN)/python bench/media.py
+	$(BIN)/python bench/browser.py
 
 install-debian:
 	.ci/install-debian

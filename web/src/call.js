@@ -158,6 +158,8 @@ export class Endpoint {
     /** @type {ReturnType<typeof setTimeout>|undefined} */
     let timer;
     let sent = 0;
+    /** performance.now() when the first HELLO went out (the handshake's start) */
+    let helloAt = 0;
     try {
       const accepted = await new Promise((resolve, reject) => {
         /** @param {Error} error */
@@ -183,6 +185,7 @@ export class Endpoint {
           const { send, expired } = setup.poll(monotonic());
           if (expired) return reject(expired);
           if (send) {
+            if (sent === 0) helloAt = performance.now();
             link.publish(helloKey, send, "control");
             sent += 1;
           }
@@ -206,6 +209,9 @@ export class Endpoint {
         subscriptions,
         callBase: `${this.ns}/robot/${robot}/call/${this.name}/${idHex}`,
       });
+      // The handshake's time in this page: first HELLO out -> WELCOME checked and the
+      // keys derived (ms; repeated HELLOs included). Read as call.stats.handshakeMs.
+      call.session.stats.handshakeMs = performance.now() - helloAt;
       this.calls.add(call);
       call.start();
       // Frames that came before the WELCOME are handed over once the caller has had its
@@ -283,7 +289,8 @@ export class Call {
     this.presence = null;
   }
 
-  /** {rtt (s or null), loss (0..1), rejected: {reason: count}, framesSent, framesReceived, unrouted} */
+  /** {rtt (s or null), loss (0..1), rejected: {reason: count}, framesSent, framesReceived,
+   * unrouted, handshakeMs (first HELLO sent -> WELCOME accepted, ms)} */
   get stats() {
     return this.session.stats;
   }

@@ -155,6 +155,9 @@ test("a call: keys, lanes, early frames, echo, heartbeats with rtt, hang-up copi
   assert.ok(sent.some((e) => e.key.endsWith("/ctl") && e.lane === "control" && e.payload?.length === 59)); // heartbeats
   await until(() => call.stats.rtt !== null, "an rtt");
   assert.ok(/** @type {number} */ (call.stats.rtt) >= 0);
+  // The handshake's time (first HELLO -> WELCOME accepted) is on the stats (bench/browser.py).
+  assert.equal(typeof call.stats.handshakeMs, "number");
+  assert.ok(call.stats.handshakeMs >= 0 && Number.isFinite(call.stats.handshakeMs));
   await call.hangup("bye");
   assert.deepEqual(await call.ended, { kind: "hung_up", detail: "bye", byPeer: false });
   const hangups = link.log.filter((e) => e.op === "pub" && e.key.endsWith("/ctl") && e.payload?.length === 34 + 4);
