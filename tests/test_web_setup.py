@@ -4,8 +4,9 @@ MISMATCH for a second key, and the call button opening the robot page.
 
 The page is served here as a gateway serves it (``/`` the start page, ``/static/`` the
 files, ``/call`` the robot page); it runs the committed bundle (static/telebot-client.js).
-Nothing here reaches a gateway: an invite accepted here fails and pins nothing (the
-redeemed invite: tests/test_browser_e2e.py).
+There is no gateway behind it: an invite accepted here cannot be redeemed, and the page
+must then pin nothing. An invite redeemed through a real robot's gateway is
+tests/test_browser_e2e.py's.
 """
 
 from __future__ import annotations
@@ -93,8 +94,6 @@ async def test_a_key_is_made_shown_and_kept_and_robots_are_pinned() -> None:
 
 
 async def test_an_invite_that_cannot_be_redeemed_pins_nothing() -> None:
-    # No gateway behind this server: accepting the invite fails to register the key, and
-    # the robot must not stay pinned (the redeemed path: tests/test_browser_e2e.py).
     async with start_page_server() as url:
         link = f"{url}#invite=tok_1&robot=wardbot&key={ROBOT_KEY}"
         async with phone_page(link) as page:
@@ -106,10 +105,15 @@ async def test_an_invite_that_cannot_be_redeemed_pins_nothing() -> None:
             await page.tap("#create-key")
             await page.wait_for_function("() => !document.getElementById('accept-invite').disabled")
             await page.tap("#accept-invite")
+            # No gateway answers: one line says so, the robot pinned for it is unpinned,
+            # and the invite stays (in the address too) to be tried again.
             await page.wait_for_function("() => window.telebotSetup.error.length > 0")
             state = await setup_state(page)
-            assert "gateway" in state["error"] and "\n" not in state["error"]
+            assert "gateway" in state["error"] and "\n" not in state["error"], state["error"]
             assert state["robots"] == []
-            assert state["invite"] is not None  # still there to try again
+            assert state["invite"] is not None and state["invite"]["robot"] == "wardbot"
+            assert "invite=tok_1" in page.url
+            assert await page.is_enabled("#accept-invite")
             await page.goto(f"{url}#invite=x&robot=wardbot&key=short")
-            await page.wait_for_function("() => window.telebotSetup.error.includes('invite link')")
+            await page.wait_for_function("() => window.telebotSetup.error.startsWith('the invite')")
+            assert "invite link" in (await setup_state(page))["error"]

@@ -53,23 +53,29 @@ export function robotPort(robot, deps) {
     if (!robotKey) throw new Error(`robot ${robot} is not pinned in this browser: pin it on the start page`);
     let link = null, endpoint = null;
     session = new deps.RobotSession({
-      // (Again after a drop: the session reconnects as the Python client does.)
+      user: me.name,
+      robot,
+      // The first call, and again after a drop (the session redials as the Python client
+      // does: a failed attempt is its business, not the page's).
       connect: async () => {
-        try {
-          if (!link) link = await deps.openLink(me);
-          if (!endpoint) endpoint = new deps.Endpoint({ link, name: me.name, privateKey: me.privateKey });
-          return await endpoint.call(robot, robotKey);
-        } catch (e) {
-          // KEY MISMATCH, refused, no answer: the call's own one line, on the page at once.
-          fail(e.message);
-          throw e;
-        }
+        if (!link) link = await deps.openLink(me);
+        if (!endpoint) endpoint = new deps.Endpoint({ link, name: me.name, privateKey: me.privateKey });
+        return endpoint.call(robot, robotKey);
       },
       emit: (msg) => {
         if ((msg.type === "video" || msg.type === "audio") && msg.header && msg.data) h.media(msg.header, msg.data);
         else h.message(msg);
       },
     });
+    try {
+      await session.start(); // the call, its services, the page's greeting (hello first)
+    } catch (e) {
+      // KEY MISMATCH, refused, no answer: the call's own one line, on the page at once.
+      session = null;
+      if (endpoint) endpoint.close();
+      if (link && link.close) link.close();
+      throw e;
+    }
     h.open();
   }
 }

@@ -4,12 +4,16 @@ import { robotPort } from "../src/page-port.js";
 
 /** Stand-ins with the BROWSER.md shapes, recording what the port does with them. */
 function rig({ me = { name: "alice", privateKey: new Uint8Array(32), publicKey: new Uint8Array(32) }, pinned = new Uint8Array(32).fill(7), callError = null } = {}) {
-  const seen = { links: 0, calls: [], sent: [], sessions: [] };
+  const seen = { links: 0, calls: [], sent: [], sessions: [], closed: [] };
   const deps = {
     keys: async () => ({ me: async () => me, robotKey: async (name) => (name === "guiabot" ? pinned : null) }),
-    openLink: async (who) => { seen.links += 1; seen.linkFor = who.name; return { fake: "link" }; },
-    Endpoint: class { constructor(o) { seen.endpoint = o; } async call(robot, key) { seen.calls.push([robot, key]); if (callError) throw callError; return { id: "c" }; } },
-    RobotSession: class { constructor(o) { this.o = o; seen.sessions.push(this); } send(m) { seen.sent.push(m); return true; } },
+    openLink: async (who) => { seen.links += 1; seen.linkFor = who.name; return { fake: "link", close: () => seen.closed.push("link") }; },
+    Endpoint: class { constructor(o) { seen.endpoint = o; } async call(robot, key) { seen.calls.push([robot, key]); if (callError) throw callError; return { id: "c" }; } close() { seen.closed.push("endpoint"); } },
+    RobotSession: class {
+      constructor(o) { this.o = o; seen.sessions.push(this); }
+      async start() { seen.started = (seen.started || 0) + 1; await this.o.connect(); }
+      send(m) { seen.sent.push(m); return true; }
+    },
   };
   const got = { opened: 0, messages: [], media: [] };
   const h = { open: () => { got.opened += 1; }, close: () => {}, message: (m) => got.messages.push(m), media: (hd, d) => got.media.push([hd, d]) };
@@ -25,6 +29,11 @@ test("the port opens a session, routes its messages and media, and sends the pag
   await settle();
   assert.equal(got.opened, 1);
   const session = seen.sessions[0];
+  // Started (the first call made) before the page hears it is open; the hello's user.
+  assert.equal(seen.started, 1);
+  assert.equal(seen.calls.length, 1);
+  assert.equal(session.o.user, "alice");
+  assert.equal(session.o.robot, "guiabot");
   const call = await session.o.connect();
   assert.deepEqual(call, { id: "c" });
   assert.equal(seen.calls[0][0], "guiabot");
@@ -45,9 +54,12 @@ test("the port opens a session, routes its messages and media, and sends the pag
 test("a call's error (KEY MISMATCH) is on the page at once, as the call says it", async () => {
   const text = "KEY MISMATCH: robot guiabot is online with key abc but known_robots has def";
   const { deps, seen, got, h } = rig({ callError: new Error(text) });
-  robotPort("guiabot", deps).connect(h);
-  await settle();
-  await assert.rejects(seen.sessions[0].o.connect(), /KEY MISMATCH/);
+  const port = robotPort("guiabot", deps);
+  port.connect(h);
+  await settle(); await settle();
+  assert.equal(got.opened, 0);
+  assert.equal(port.send({ type: "stop", how: "button" }), false); // no session to send to
+  assert.deepEqual(seen.closed, ["endpoint", "link"]); // nothing left open behind the error
   assert.deepEqual(got.messages.map((m) => m.type), ["connection", "error"]);
   assert.equal(got.messages[0].state, "ended");
   assert.equal(got.messages[0].detail, text);

@@ -3,7 +3,9 @@
 // reconnection after a drop, and seeded fuzz of every decoder (never a throw).
 import { test } from "node:test";
 import assert from "node:assert/strict";
+import { readFileSync } from "node:fs";
 import { RobotSession } from "../src/session.js";
+import { STOP_HOWS } from "../src/services/messages.js";
 import { fragmentFrame } from "../src/services/video.js";
 import { FakeCall, ManualClock, seeded } from "./services-fake.js";
 
@@ -89,6 +91,20 @@ test("hello, then the robot's streams in the page's shapes", async () => {
   assert.deepEqual(ofType(out, "msg"), [{ type: "msg", seq: 1, from: "guiabot", kind: "robot", text: "alice joined (driver)" }]);
   const link = ofType(out, "link")[0];
   assert.deepEqual(link, { type: "link", rtt: 0.01, loss: 0 });
+});
+
+test("every stop `how` of §18's table reaches the robot as the page said it", async () => {
+  // The table in docs/protocol.md, between its header row and the blank line after it.
+  const doc = readFileSync(new URL("../../docs/protocol.md", import.meta.url), "utf8");
+  const table = doc.split("| `how` | the user… |")[1].split("\n\n")[0];
+  const documented = [...table.matchAll(/^\| `([a-z_]+)` \|/gm)].map((m) => m[1]);
+  assert.ok(documented.includes("page_hidden") && documented.includes("touch"), documented.join());
+  assert.deepEqual([...STOP_HOWS].sort(), [...documented].sort());
+  const { clock, session, call } = await started();
+  for (const how of documented) session.send({ type: "stop", how });
+  await clock.advance(0.2);
+  const hows = new Set(call().sent("safety").filter((m) => m.type === "stop").map((s) => s.how));
+  assert.deepEqual([...hows].sort(), [...documented].sort());
 });
 
 test("page → client: stop, arm, chat, camera, say, goal, ping and bad messages", async () => {

@@ -158,8 +158,11 @@ export function decodeTelemetry(payload) {
 
 // -------------------------------------------------------------------------- safety §18
 
-/** The stop `how`s of §18 (another value from the page becomes `button`). */
-export const STOP_HOWS = ["button", "key", "tab_closed", "exit", "api"];
+/**
+ * The stop `how`s of §18's table (another value from the page becomes `button`): the
+ * page's own `touch` (its video touched) and `page_hidden` (hidden or frozen) among them.
+ */
+export const STOP_HOWS = ["button", "key", "tab_closed", "page_hidden", "touch", "exit", "api"];
 
 /** A user → robot safety request. */
 export function encodeSafetyRequest(type, id, how = "") {
