@@ -25,7 +25,7 @@ import json
 import os
 import secrets
 import tomllib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Final, Protocol
@@ -207,19 +207,35 @@ def create_invite(home: Path, name: str, role: Role, now: float) -> tuple[str, I
 
 
 class ContactsAdmitter:
-    """The robot's admission: its contacts, and invites that add one.
+    """The robot's admission: its contacts (``contacts.toml``, read again at every
+    admission, so ``telebot-robot contacts remove`` takes effect at once), and invites
+    that add one.
 
     ``contacts`` is the book the robot answers calls from: a redeemed invite is added to
-    it (and to ``contacts.toml``), so the new contact can call at once, without a restart.
+    ``contacts.toml`` and then to that book through ``hand_over`` (which runs a function
+    on the thread that owns the book: the robot's gateway runs on a thread of its own, so
+    it never touches the daemon's book itself), so the new contact can call at once,
+    without a restart. ``hand_over`` None runs it here (a gateway on the book's own thread).
     """
 
-    def __init__(self, contacts: ContactBook, home: Path) -> None:
+    def __init__(
+        self,
+        contacts: ContactBook,
+        home: Path,
+        *,
+        hand_over: Callable[[Callable[[], None]], None] | None = None,
+    ) -> None:
         self.contacts = contacts
         self.home = home
+        self.hand_over = hand_over if hand_over is not None else (lambda fn: fn())
 
     def key_of(self, name: str) -> bytes | None:
-        """The key of contact ``name``."""
-        for contact in self.contacts:
+        """The key of contact ``name`` in ``contacts.toml``; an unreadable book admits nobody."""
+        try:
+            book = ContactBook.load(self.home)
+        except ConfigError:
+            return None
+        for contact in book:
             if contact.name == name:
                 return contact.public_key
         return None
@@ -238,14 +254,17 @@ class ContactsAdmitter:
                 raise Refusal("invite_expired", "this invite has expired (ask for a new link)")
             if invite.name != name:
                 raise Refusal("invite_name", f"this invite is for {invite.name!r}, not {name!r}")
-            owner = self.contacts.by_key(key)
+            # The file, read afresh (it may have changed since the daemon started), is the
+            # authority; then the daemon's own book, which its calls are answered from.
+            book = ContactBook.load(self.home)
+            owner = book.by_key(key)
             if owner is not None and owner.name != name:
                 raise Refusal("key_in_use", f"this key is contact {owner.name!r} already")
-            # The file first, read afresh (it may have changed since the daemon started),
-            # then the daemon's own book, which its calls are answered from.
-            book = ContactBook.load(self.home)
             book.add(name, key, invite.role)
             book.save()
-            self.contacts.add(name, key, invite.role)
+            role, contacts = invite.role, self.contacts
+            # Handed over before the browser hears "admitted": its first HELLO reaches the
+            # book's thread after this (call_soon_threadsafe keeps the order).
+            self.hand_over(lambda: contacts.add(name, key, role))
             invites[digest] = Invite(invite.name, invite.role, invite.expires, used=True)
             _write_invites(self.home, invites, now)
