@@ -12,8 +12,11 @@ process), the browser opens the printed link, which registers its key with the r
 pins the robot's; the call button opens the robot page (``/call?robot=…``), whose client
 (the bundle) calls the robot through the gateway. alice drives: a tap on the map is a goal
 the robot reaches, STOP stops it, and so do a touch on the video while it moves and the
-page hidden while it moves. bob, invited as an
-observer in a second browser context, sees who drives, cannot drive, and may stop.
+page hidden while it moves. When the network goes while alice drives (her page's
+websockets closed, new ones failing, until it comes back), the robot's deadman stops it,
+her page says so at once, and once the call is back shows it latched with re-arm as the
+one action. bob, invited as an observer in a second browser context, sees who drives,
+cannot drive, and may stop.
 
 What the robot did is read from the robot, not from the page: olga (an observer in this
 process, over zenoh) follows its pose and safety state, and its audit log says who stopped
@@ -54,6 +57,27 @@ NEAR_GOAL = (4.0, 1.2)
 #: Generous: a loaded 2-core machine runs a robot, a video encoder and two browsers.
 PAGE_MS = int((30 + 10 * SLACK) * 1000)
 ROBOT_S = 30.0 + 10 * SLACK
+
+
+#: In every page, before its scripts: ``window.testNetwork.cut()`` closes the page's
+#: websockets (its gateway link) and makes new ones fail at once, as with the network gone,
+#: until ``restore()``.
+NETWORK_SWITCH = """
+(() => {
+  const Real = window.WebSocket;
+  const net = { offline: false, sockets: [] };
+  net.cut = () => { net.offline = true; for (const s of net.sockets.splice(0)) s.close(); };
+  net.restore = () => { net.offline = false; };
+  window.testNetwork = net;
+  window.WebSocket = class extends Real {
+    constructor(...args) {
+      if (net.offline) throw new DOMException("the network is gone (a test)", "NetworkError");
+      super(...args);
+      net.sockets.push(this);
+    }
+  };
+})();
+"""
 
 
 @dataclass
@@ -131,6 +155,7 @@ async def join(e2e: E2E, name: str, role: str) -> User:
         device_scale_factor=2,
         ignore_https_errors=True,  # the robot's self-signed certificate; still https
     )
+    await context.add_init_script(NETWORK_SWITCH)
     page = await context.new_page()
     page.on("pageerror", lambda error: e2e.page_errors.append(f"{name}: {error}"))
     user = User(name, context, page)
@@ -370,6 +395,56 @@ async def test_a_page_hidden_while_driving_stops_the_robot(e2e: E2E) -> None:
     await page.evaluate("() => window.dispatchEvent(new PageTransitionEvent('pagehide'))")
     await stopped_by(e2e, "alice", "page_hidden")
     await page.evaluate("() => window.dispatchEvent(new PageTransitionEvent('pageshow'))")
+
+
+async def test_when_the_network_goes_the_deadman_stops_the_robot_and_the_page_says_so(
+    e2e: E2E,
+) -> None:
+    page = e2e.users["alice"].page
+    await drive_far(e2e, page)
+    before = len(e2e.daemon.audit())
+    await page.evaluate("() => window.testNetwork.cut()")
+    # The page says at once what happens, while it calls again.
+    await page.wait_for_function(
+        "() => !document.getElementById('alert').hidden"
+        " && document.getElementById('alert-text').textContent.includes("
+        "'connection lost — the robot stopped itself (deadman)')",
+        timeout=PAGE_MS,
+    )
+    assert await page.evaluate("() => window.telebotUI.state.call.state") == "reconnecting"
+    assert await page.is_hidden("#alert-arm")
+    await poll(lambda: at_rest(e2e), "the robot at rest")
+    await poll(lambda: armed(e2e) is False, "the robot latched stopped")
+
+    # Its deadman, or its call's own (the call dropped first): alice's silence stopped it.
+    def stopped_itself() -> list[dict[str, Any]]:
+        records = e2e.daemon.audit()[before:]
+        return [
+            r for r in records if r["what"] in ("deadman", "drop") and r["outcome"] == "stopped"
+        ]
+
+    try:
+        (record,) = await poll(stopped_itself, "the robot stopping itself in its audit log")
+    except AssertionError as error:
+        raise AssertionError(f"{error}: {e2e.daemon.audit()[before:]}") from None
+    assert record["who"] == "alice", record
+    # The network is back: the call comes back, the robot is latched, re-arm is the action.
+    await page.evaluate("() => window.testNetwork.restore()")
+    await page.wait_for_function(
+        "() => window.telebotUI.state.call.state === 'reconnected'"
+        " && !document.getElementById('alert-arm').hidden",
+        timeout=PAGE_MS,
+    )
+    text = await page.inner_text("#alert-text")
+    assert "stopped" in text and "re-arm" in text, text
+    assert await page.inner_text("#safety") == "stopped"
+    assert await page.is_enabled("#alert-arm")
+    assert armed(e2e) is False  # nothing re-armed it behind alice's back
+    await page.tap("#alert-arm")
+    await poll(lambda: armed(e2e), "the robot armed again")
+    await page.wait_for_function("() => document.getElementById('alert').hidden", timeout=PAGE_MS)
+    await page.tap("#stop")
+    await poll(lambda: armed(e2e) is False, "the robot stopped again")
 
 
 async def test_an_observer_sees_who_drives_cannot_drive_and_may_stop(e2e: E2E) -> None:

@@ -167,7 +167,7 @@ export function connectGateway(url, options) {
 /**
  * An admitted gateway connection: the link a Call reaches zenoh through (BROWSER.md).
  * Frames the gateway sends that are not its protocol are dropped and counted
- * (`stats.malformed`); the gateway's non-fatal errors go to `onerror`. Once closed (by
+ * (`stats.malformed`), samples for a subscription closed meanwhile too (`stats.late`); the gateway's non-fatal errors go to `onerror`. Once closed (by
  * `close()`, or the gateway: `onclose` says why), whatever is sent is dropped and counted
  * (`stats.dropped`), as a lossy link drops frames: a call's timers need not know.
  */
@@ -181,7 +181,7 @@ export class GatewayLink {
     this.onclose = () => {};
     /** @type {(message: string) => void} non-fatal errors the gateway reported */
     this.onerror = () => {};
-    this.stats = { received: 0, malformed: 0, sent: 0, dropped: 0 };
+    this.stats = { received: 0, malformed: 0, late: 0, sent: 0, dropped: 0 };
     this.closed = false;
     /** @type {Map<number, (key: string, payload: Uint8Array) => void>} */
     this.subs = new Map();
@@ -210,8 +210,10 @@ export class GatewayLink {
       if (bytes.length < 4) { this.stats.malformed++; return; }
       const view = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
       const id = view.getUint16(0), length = view.getUint16(2);
+      if (bytes.length < 4 + length) { this.stats.malformed++; return; }
       const cb = this.subs.get(id);
-      if (bytes.length < 4 + length || !cb) { this.stats.malformed++; return; }
+      // A sample still on its way when its subscription was closed: late, not malformed.
+      if (!cb) { this.stats.late++; return; }
       this.stats.received++;
       cb(decoder.decode(bytes.subarray(4, 4 + length)), bytes.subarray(4 + length));
     };

@@ -57,7 +57,17 @@ export function robotPort(robot, deps) {
       robot,
       // The first call, and again after a drop (the session redials as the Python client
       // does: a failed attempt is its business, not the page's).
+      // A link the gateway (or the network) closed is opened again, with a new endpoint:
+      // the old one's inbox and presence went with it.
       connect: async () => {
+        if (link && link.closed) {
+          try {
+            endpoint?.close();
+          } catch {
+            // its hang-ups go nowhere anyway
+          }
+          link = endpoint = null;
+        }
         if (!link) link = await deps.openLink(me);
         if (!endpoint) endpoint = new deps.Endpoint({ link, name: me.name, privateKey: me.privateKey });
         return endpoint.call(robot, robotKey);

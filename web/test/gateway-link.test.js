@@ -4,7 +4,7 @@
 import { test } from "node:test";
 import assert from "node:assert/strict";
 import { x25519 } from "@noble/curves/ed25519";
-import { admissionProof, connectGateway, decodeKey, encodeKey, GatewayError } from "../src/gateway-link.js";
+import { admissionProof, connectGateway, decodeKey, encodeKey, GatewayError, GatewayLink } from "../src/gateway-link.js";
 
 const range = (from) => Uint8Array.from({ length: 32 }, (_, i) => from + i);
 
@@ -35,4 +35,22 @@ test("an address that is not http(s) or ws(s) is refused before any connection",
     connectGateway("ftp://robot/", { name: "alice", privateKey: range(0), publicKey: range(0), WebSocket: class {} }),
     (err) => err instanceof GatewayError && /not a gateway address/.test(err.message),
   );
+});
+
+test("a sample for a subscription closed meanwhile is late, a short one malformed", () => {
+  const sent = [];
+  const ws = { send: (m) => sent.push(m), close() {} };
+  const link = new GatewayLink(ws, "alice", { op: "admitted", name: "alice" });
+  const got = [];
+  const sub = link.subscribe("telebot/user/alice/**", (key, payload) => got.push([key, [...payload]]));
+  const { id } = JSON.parse(sent[0]);
+  const key = new TextEncoder().encode("telebot/user/alice/x");
+  const sample = new Uint8Array([id >> 8, id & 0xff, 0, key.length, ...key, 7, 8]);
+  ws.onmessage({ data: sample.buffer });
+  assert.deepEqual(got, [["telebot/user/alice/x", [7, 8]]]);
+  sub.close();
+  ws.onmessage({ data: sample.buffer });
+  ws.onmessage({ data: sample.slice(0, 6).buffer });
+  assert.equal(got.length, 1);
+  assert.deepEqual([link.stats.received, link.stats.late, link.stats.malformed], [1, 1, 1]);
 });

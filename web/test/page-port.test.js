@@ -76,3 +76,26 @@ test("no key, or a robot not pinned: one line on the page, no session", async ()
     assert.match(got.messages.at(-1).text, want);
   }
 });
+
+test("a link the gateway closed is opened again on the session's redial, with a new endpoint", async () => {
+  const { deps, seen, h } = rig();
+  const links = [];
+  deps.openLink = async () => {
+    seen.links += 1;
+    const link = { closed: false, close() { this.closed = true; } };
+    links.push(link);
+    return link;
+  };
+  robotPort("guiabot", deps).connect(h);
+  await settle();
+  const session = seen.sessions[0];
+  const first = seen.endpoint;
+  links[0].closed = true; // the websocket went (network gone, or the gateway cut it)
+  await session.o.connect();
+  assert.equal(seen.links, 2);
+  assert.notEqual(seen.endpoint, first);
+  assert.equal(seen.endpoint.link, links[1]);
+  assert.deepEqual(seen.closed, ["endpoint"]); // the old endpoint closed, nothing else
+  await session.o.connect(); // while the new link is open, it is reused
+  assert.equal(seen.links, 2);
+});

@@ -68,8 +68,8 @@
   let chatId = 0;
   function connect() {
     port.connect({
-      open: () => { ui.state.connected = true; showConn(); if (media) media.open(); },
-      close: () => { ui.state.connected = false; showConn(); },
+      open: () => { ui.state.connected = true; showConn(); linkBack(); if (media) media.open(); },
+      close: () => { if (ui.state.connected) linkLost(); ui.state.connected = false; showConn(); },
       message: (m) => onMessage(m),
       media: (header, data) => onFrame(header, data),
     });
@@ -122,11 +122,14 @@
         break;
       }
       case "telemetry": ui.state.telemetry = m; showTelemetry(); break;
-      case "safety": ui.state.safety = m; showSafety(); break;
+      case "safety": ui.state.safety = m; showSafety(); safetyAfterLoss(); break;
       case "link": ui.state.link = m; showLink(); break;
       case "connection":
+        if (m.state === "reconnecting" || m.state === "ended") linkLost();
         ui.state.call = m;
+        if (m.state === "reconnected") linkBack();
         showConn();
+        showAlert();
         if (m.state !== "connected") addChat("[" + (m.state === "reconnected" ? "reconnected after " + m.seconds.toFixed(1) + " s" : m.detail || m.state) + "]", m.state === "reconnected" ? "" : "fail");
         break;
       case "goal": ui.state.goal = m; showGoal(); draw(); break;
@@ -473,6 +476,43 @@
     else hideStopped = false;
   });
   document.addEventListener("freeze", () => hidden("frozen"));
+  // The link lost while this page drove a robot that might move (the call dropped, or the
+  // page lost its local client): the robot's deadman stops it whatever the page does (its
+  // driver's call went silent), and the page says so at once. Once the call is back, the
+  // robot's state shows; latched, re-arm is the one action offered. Phases: "down" (lost),
+  // "back" (called again, waiting for the robot's safety state), "latched" (stopped).
+  let lost = null;
+  const LOST_TEXT = "connection lost — the robot stopped itself (deadman); re-arm when back";
+  function linkLost() {
+    if (!lost && !(driving() && mightMove())) return;
+    if (lost !== "down") addChat("[" + LOST_TEXT + "]", "fail");
+    lost = "down";
+    showAlert();
+  }
+  function linkBack() {
+    if (lost === "down") { lost = "back"; showAlert(); }
+  }
+  function safetyAfterLoss() {
+    if (lost !== "back" && lost !== "latched") return;
+    lost = ui.state.safety.armed ? null : "latched";
+    showAlert();
+  }
+  function showAlert() {
+    const box = $("alert");
+    box.hidden = !lost;
+    $("alert-arm").hidden = lost !== "latched";
+    $("alert-arm").disabled = !ui.state.mayDrive;
+    if (!lost) return;
+    const ended = ui.state.call && ui.state.call.state === "ended";
+    box.className = lost === "down" ? "" : "back";
+    $("alert-text").textContent =
+      lost === "latched" ? "connection back — the robot is stopped (latched since the link was lost): re-arm to drive on" :
+      lost === "back" ? "connection back — waiting for the robot's state…" :
+      ended ? "connection lost — the robot stopped itself (deadman); the call ended: reload the page to call again" :
+      LOST_TEXT;
+  }
+  ui.lost = () => lost;
+  $("alert-arm").onclick = () => send({ type: "arm" });
   $("arm").onclick = () => send({ type: "arm" });
   $("take").onclick = () => send({ type: "take" });
   $("release").onclick = () => send({ type: "release" });
