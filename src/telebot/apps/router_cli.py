@@ -377,37 +377,39 @@ async def _router_gateway(
     tls: tuple[Path, Path] | None = None,
 ) -> AsyncIterator[str | None]:
     """The browser gateway over the router's own session, with the router's certificate
-    (or ``tls``: another certificate and key)."""
+    (or ``tls``: another certificate and key), on a thread of its own (its own loop and
+    transport, as on the robot: :class:`~telebot.gateway.thread.GatewayThread`)."""
     if address is None:
         yield None
         return
-    from telebot.channels.transports.zenoh import ZenohTransport
+    from telebot.channels.transports.base import Transport
     from telebot.gateway.admission import UsersAdmitter
     from telebot.gateway.server import Gateway
+    from telebot.gateway.thread import GatewayThread
     from telebot.gateway.tls import server_context
 
     cert, key = tls if tls is not None else (Path(plan.cert), Path(plan.key))
     context = server_context(cert, key)
-    transport = ZenohTransport()
-    await transport.adopt(session)
-    gateway = Gateway(
-        transport,
-        UsersAdmitter(Path(plan.cert).parent),
-        namespace=plan.namespace,
-        host=address[0],
-        port=address[1],
-        ssl_context=context,
-    )
+
+    def make(transport: Transport) -> Gateway:
+        return Gateway(
+            transport,
+            UsersAdmitter(Path(plan.cert).parent),
+            namespace=plan.namespace,
+            host=address[0],
+            port=address[1],
+            ssl_context=context,
+        )
+
+    thread = GatewayThread(session, make)
     try:
-        await gateway.start()
+        gateway = await thread.start()
     except OSError as exc:
-        await transport.close()
         raise ConfigError(f"--gateway {address[0]}:{address[1]}: cannot listen: {exc}") from exc
     try:
         yield gateway.url
     finally:
-        await gateway.close()
-        await transport.close()
+        await thread.stop()
 
 
 def main(argv: list[str] | None = None) -> int:
