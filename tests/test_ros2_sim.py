@@ -415,8 +415,12 @@ def test_help_describes_the_two_ways_to_reach_zenoh() -> None:
         (["--router", f"tcp/127.0.0.1:{free_port()}"], "no zenoh router at"),
     ],
 )
-def test_bad_input_is_one_line_and_exit_2(args: list[str], words: str) -> None:
-    done = run_sim("--map", "small", *args)
+def test_bad_input_is_one_line_and_exit_2(args: list[str], words: str, tmp_path: Path) -> None:
+    # A short wait for the router that is not there (the default is 5 s): how long it
+    # waits is not what this test is about.
+    config = write_config(tmp_path / "robot.toml")
+    config.write_text(config.read_text() + "[ros2]\nconnect_timeout = 1.0\n")
+    done = run_sim("--config", str(config), "--map", "small", *args)
     assert done.returncode == 2, done.stderr
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("telebot-sim: error:"), done.stderr
