@@ -22,6 +22,7 @@ from typing import Any
 
 import aiohttp
 import pytest
+import pytest_asyncio
 
 from conftest import ROBOT, USER
 from rig import GENEROUS_TIMEOUT, SLACK
@@ -45,6 +46,14 @@ import playwright.async_api as playwright_api  # noqa: E402
 # No silent skip: `make test` installs the browser first (.ci/install-browser), so a
 # missing browser is a broken set-up and fails loudly here.
 assert Path(CHROMIUM).exists(), "chromium missing: run .ci/install-browser"
+
+#: The module's async tests share one event loop and one chromium (each page in a context
+#: of its own): a browser started per test cost about a second each.
+in_module_loop = pytest.mark.asyncio(loop_scope="module")
+
+#: The module's chromium and the loop it runs in, while the module's tests run
+#: (:func:`browser_page` starts one of its own anywhere else).
+_shared: tuple[Any, asyncio.AbstractEventLoop] | None = None
 
 
 @dataclass
@@ -150,12 +159,52 @@ async def robot_rig(
                 await asyncio.gather(runner, return_exceptions=True)
 
 
+async def _launch(pw: Any) -> Any:
+    args = ["--no-sandbox"] if os.geteuid() == 0 else []
+    return await pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=args)
+
+
+@pytest_asyncio.fixture(scope="module", loop_scope="module", autouse=True)
+async def _chromium() -> AsyncIterator[None]:
+    """One chromium for this module's tests (see :data:`_shared`)."""
+    global _shared
+    async with playwright_api.async_playwright() as pw:
+        browser = await _launch(pw)
+        _shared = (browser, asyncio.get_running_loop())
+        try:
+            yield
+        finally:
+            _shared = None
+            await browser.close()
+
+
+@pytest_asyncio.fixture(autouse=True, loop_scope="module")
+async def _no_leaked_tasks() -> AsyncIterator[None]:
+    """conftest's check, in the module's loop: no test leaves asyncio tasks behind it."""
+    before = asyncio.all_tasks()
+    yield
+    await asyncio.sleep(0)
+    leaked = [
+        t for t in asyncio.all_tasks() - before if t is not asyncio.current_task() and not t.done()
+    ]
+    assert not leaked, f"test leaked tasks: {leaked}"
+
+
 @contextlib.asynccontextmanager
 async def browser_page(url: str) -> AsyncIterator[Any]:
-    """A headless chromium page at ``url`` (Debian's chromium: never a downloaded one)."""
+    """A headless chromium page at ``url`` (Debian's chromium: never a downloaded one), in
+    a context of its own (so nothing is shared with another test's page)."""
+    if _shared is not None and _shared[1] is asyncio.get_running_loop():
+        context = await _shared[0].new_context(viewport={"width": 1280, "height": 800})
+        try:
+            page = await context.new_page()
+            await page.goto(url)
+            yield page
+        finally:
+            await context.close()
+        return
     async with playwright_api.async_playwright() as pw:
-        args = ["--no-sandbox"] if os.geteuid() == 0 else []
-        browser = await pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=args)
+        browser = await _launch(pw)
         try:
             page = await browser.new_page(viewport={"width": 1280, "height": 800})
             await page.goto(url)
@@ -199,12 +248,13 @@ async def drive_forward(rig: Rig) -> None:
     await wait_for(lambda: rig.nav.velocity().linear > 0.3, what="the robot moving")
 
 
-@pytest.fixture
+@pytest_asyncio.fixture(loop_scope="module")
 async def rig(tmp_path: Path) -> AsyncIterator[Rig]:
     async with robot_rig(tmp_path) as value:
         yield value
 
 
+@in_module_loop
 async def test_the_page_loads_and_shows_the_map(rig: Rig) -> None:
     async with browser_page(rig.ui.url) as page:
         await page_ready(page)
@@ -240,6 +290,7 @@ async def test_the_page_loads_and_shows_the_map(rig: Rig) -> None:
         await page.screenshot(path=str(ARTIFACTS / "web_ui.png"))
 
 
+@in_module_loop
 async def test_the_page_follows_a_map_that_changes(rig: Rig) -> None:
     async with browser_page(rig.ui.url) as page:
         await page_ready(page)
@@ -263,6 +314,7 @@ async def test_the_page_follows_a_map_that_changes(rig: Rig) -> None:
             assert await response.read() == new.png
 
 
+@in_module_loop
 async def test_a_click_moves_the_robot_there(rig: Rig) -> None:
     await arm(rig)
     async with browser_page(rig.ui.url) as page:
@@ -294,6 +346,7 @@ async def test_a_click_moves_the_robot_there(rig: Rig) -> None:
         assert f"{real.x:.2f}"[:-1] in await page.inner_text("#pose-text")
 
 
+@in_module_loop
 async def test_a_click_to_goal_draws_the_planned_path_and_places_are_labelled(rig: Rig) -> None:
     await arm(rig)
     async with browser_page(rig.ui.url) as page:
@@ -360,6 +413,7 @@ async def test_a_click_to_goal_draws_the_planned_path_and_places_are_labelled(ri
         )
 
 
+@in_module_loop
 async def test_a_key_press_stops_the_robot(rig: Rig) -> None:
     async with browser_page(rig.ui.url) as page:
         await page_ready(page)
@@ -384,6 +438,7 @@ async def test_a_key_press_stops_the_robot(rig: Rig) -> None:
         await page.wait_for_function("() => window.telebotUI.state.safety?.armed === true")
 
 
+@in_module_loop
 async def test_escape_in_the_chat_input_stops_but_typing_does_not(rig: Rig) -> None:
     async with browser_page(rig.ui.url) as page:
         await page_ready(page)
@@ -397,6 +452,7 @@ async def test_escape_in_the_chat_input_stops_but_typing_does_not(rig: Rig) -> N
         assert rig.stops() == [(USER, "key")]
 
 
+@in_module_loop
 async def test_a_chat_command_round_trip(rig: Rig) -> None:
     async with browser_page(rig.ui.url) as page:
         await page_ready(page)
@@ -411,6 +467,7 @@ async def test_a_chat_command_round_trip(rig: Rig) -> None:
         assert "> where" in log_text and replies[-1]["text"] in log_text
 
 
+@in_module_loop
 async def test_video_frames_arrive_and_the_camera_switches(rig: Rig) -> None:
     async with browser_page(rig.ui.url) as page:
         await page_ready(page)
@@ -430,6 +487,7 @@ async def test_video_frames_arrive_and_the_camera_switches(rig: Rig) -> None:
         assert int(await page.inner_text("#fps")) > 0
 
 
+@in_module_loop
 async def test_closing_the_page_while_driving_stops_the_robot(rig: Rig) -> None:
     async with browser_page(rig.ui.url) as page:
         await page_ready(page)
@@ -442,6 +500,7 @@ async def test_closing_the_page_while_driving_stops_the_robot(rig: Rig) -> None:
     assert rig.stops()[0] == (USER, "page_hidden")
 
 
+@in_module_loop
 async def test_a_page_that_dies_while_driving_is_stopped_by_the_client(rig: Rig) -> None:
     async with browser_page(rig.ui.url) as page:
         await page_ready(page)
@@ -458,6 +517,7 @@ async def test_a_page_that_dies_while_driving_is_stopped_by_the_client(rig: Rig)
     assert rig.stops() == [(USER, "tab_closed")]
 
 
+@in_module_loop
 async def test_an_observer_sees_the_page_with_driving_disabled_and_may_stop(
     tmp_path: Path,
 ) -> None:
