@@ -159,7 +159,8 @@ async def robot_rig(
                 await asyncio.gather(runner, return_exceptions=True)
 
 
-async def _launch(pw: Any) -> Any:
+async def launch_chromium(pw: Any) -> Any:
+    """Debian's chromium, headless."""
     args = ["--no-sandbox"] if os.geteuid() == 0 else []
     return await pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=args)
 
@@ -169,7 +170,7 @@ async def _chromium() -> AsyncIterator[None]:
     """One chromium for this module's tests (see :data:`_shared`)."""
     global _shared
     async with playwright_api.async_playwright() as pw:
-        browser = await _launch(pw)
+        browser = await launch_chromium(pw)
         _shared = (browser, asyncio.get_running_loop())
         try:
             yield
@@ -190,12 +191,21 @@ async def _no_leaked_tasks() -> AsyncIterator[None]:
     assert not leaked, f"test leaked tasks: {leaked}"
 
 
+def shared_browser() -> Any | None:
+    """The module's chromium (:func:`_chromium`, also imported by other modules) if this
+    test runs in its loop, else None."""
+    if _shared is not None and _shared[1] is asyncio.get_running_loop():
+        return _shared[0]
+    return None
+
+
 @contextlib.asynccontextmanager
 async def browser_page(url: str) -> AsyncIterator[Any]:
     """A headless chromium page at ``url`` (Debian's chromium: never a downloaded one), in
     a context of its own (so nothing is shared with another test's page)."""
-    if _shared is not None and _shared[1] is asyncio.get_running_loop():
-        context = await _shared[0].new_context(viewport={"width": 1280, "height": 800})
+    browser = shared_browser()
+    if browser is not None:
+        context = await browser.new_context(viewport={"width": 1280, "height": 800})
         try:
             page = await context.new_page()
             await page.goto(url)
@@ -204,7 +214,7 @@ async def browser_page(url: str) -> AsyncIterator[Any]:
             await context.close()
         return
     async with playwright_api.async_playwright() as pw:
-        browser = await _launch(pw)
+        browser = await launch_chromium(pw)
         try:
             page = await browser.new_page(viewport={"width": 1280, "height": 800})
             await page.goto(url)
