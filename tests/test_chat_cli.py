@@ -117,13 +117,14 @@ async def test_a_paced_piped_script_keeps_its_call_and_shows_the_conference_whil
 async def test_the_timeout_fires_while_a_piped_chat_waits_for_input(
     daemon: Daemon, processes: list[Process]
 ) -> None:
-    waiting = chat(daemon, "--timeout", "3")
+    # (--timeout runs from the call's set-up on: a second is as good as three here.)
+    waiting = chat(daemon, "--timeout", "1")
     processes.append(waiting)
     # Nothing is written and the pipe stays open: the chat waits for a line that never comes.
     code = await asyncio.to_thread(waiting.popen.wait, 40)
     errors = waiting.stderr().splitlines()
     assert code == 2, errors
-    assert errors[-1] == "telebot-user: error: chat did not finish within 3 s (--timeout)"
+    assert errors[-1] == "telebot-user: error: chat did not finish within 1 s (--timeout)"
     assert not any("Traceback" in line for line in errors)
 
 

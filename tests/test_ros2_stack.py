@@ -30,6 +30,7 @@ from telebot.config import RobotConfig
 from telebot.errors import InvalidCommand, RobotUnreachable
 from telebot.reasons import Reason, Refusal
 from telebot.robot import create_robot
+from telebot.robot.mapfile import places_path_for
 from telebot.robot.nav import GoalStatus, NavState, PoseNotifier
 from telebot.robot.perception.tracks import PersonTrack
 from telebot.robot.ros2 import stack as stack_module
@@ -37,6 +38,7 @@ from telebot.robot.ros2.convert import quaternion_fields
 from telebot.robot.ros2.keys import QoS
 from telebot.robot.ros2.node import Ros2Node
 from telebot.robot.ros2.stack import Ros2NavStack
+from telebot.robot.sim.building import resolve_map
 from telebot.services.follow import FollowService
 
 pytestmark = pytest.mark.zenoh
@@ -714,9 +716,16 @@ def test_telebot_robot_run_without_a_router_exits_2_with_one_line(
 async def test_table_i_commands_drive_telebot_sim_across_processes(tmp_path: Path) -> None:
     """telebot-sim (its own router) and telebot-robot run --robot ros2, a user chatting."""
     daemon = Daemon(tmp_path)
+    # The small map's places and one a short way along the corridor: a goto there takes a
+    # second or two, where room-b, round the walls, is a 9 m drive.
+    places = tmp_path / "places.toml"
+    places.write_text(
+        places_path_for(resolve_map("small")).read_text()
+        + "\n[places.corridor-west]\nx = 3.5\ny = 1.2\nyaw_deg = 90.0\n"
+    )
     sim, _ = start_telebot_sim(
         daemon,
-        ros2={"max_linear_speed": 1.5, "max_angular_speed": 3.0},
+        ros2={"max_linear_speed": 1.5, "max_angular_speed": 3.0, "places_file": str(places)},
         tables='[ros2.cameras]\nnavcam = "navcam/image/compressed"\n'
         'usercam = "usercam/image/compressed"\n',
     )
@@ -735,10 +744,10 @@ async def test_table_i_commands_drive_telebot_sim_across_processes(tmp_path: Pat
             turned = await robot.pose()
             change = math.degrees((turned.yaw - moved.yaw + math.pi) % (2 * math.pi) - math.pi)
             assert change == pytest.approx(-90.0, abs=5.0)
-            goto = await robot.chat("goto room-b", timeout=90)
+            goto = await robot.chat("goto corridor-west", timeout=90)
             assert goto.ok and goto.replies[-1] == "finished moving", goto.replies
             there = await robot.pose()
-            assert math.hypot(there.x - 9.5, there.y - 4.0) < 0.3
+            assert math.hypot(there.x - 3.5, there.y - 1.2) < 0.3
             # A click on the map: a goal on the goals channel, with progress.
             updates: list[float] = []
             planned: list[int] = []
@@ -748,14 +757,14 @@ async def test_table_i_commands_drive_telebot_sim_across_processes(tmp_path: Pat
                 plan = robot.plan
                 planned.append(len(plan.points) if plan is not None else 0)
 
-            final = await robot.goto(10.5, 1.2, timeout=90, on_update=on_update)
+            final = await robot.goto(6.0, 1.2, timeout=90, on_update=on_update)
             assert final.status == "succeeded", final
             assert updates and max(updates) > 0.0
             # Nav2's /plan reaches the user as the planned path; the places too.
             assert max(planned) >= 2
             assert "room-b" in robot.places
             there = await robot.pose()
-            assert math.hypot(there.x - 10.5, there.y - 1.2) < 0.3
+            assert math.hypot(there.x - 6.0, there.y - 1.2) < 0.3
             # stop while it drives: the goal ends "stopped" and the base comes to rest.
             replies = robot.chat_replies("goto start", timeout=90)
             async for reply in replies:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -20,14 +19,20 @@ import playwright.async_api as playwright_api
 
 from conftest import USER
 from rig import SLACK
+
+# _chromium: one chromium for the module; _no_leaked_tasks: the leak check in its loop.
 from test_web_ui import (
     ARTIFACTS,
-    CHROMIUM,
     Rig,
+    _chromium,  # noqa: F401
+    _no_leaked_tasks,  # noqa: F401
     arm,
     drive_forward,
+    in_module_loop,
+    launch_chromium,
     page_ready,
     robot_rig,
+    shared_browser,
     wait_for,
 )
 
@@ -37,10 +42,22 @@ LANDSCAPE = {"width": 844, "height": 390}
 
 @contextlib.asynccontextmanager
 async def phone_page(url: str) -> AsyncIterator[Any]:
-    """A headless chromium page at ``url`` that is a phone: 390 × 844, touch, mobile."""
+    """A headless chromium page at ``url`` that is a phone: 390 × 844, touch, mobile (in
+    the module's chromium when the test runs in its loop, else in one of its own)."""
+    browser = shared_browser()
+    if browser is not None:
+        context = await browser.new_context(
+            viewport=PORTRAIT, has_touch=True, is_mobile=True, device_scale_factor=2
+        )
+        try:
+            page = await context.new_page()
+            await page.goto(url)
+            yield page
+        finally:
+            await context.close()
+        return
     async with playwright_api.async_playwright() as pw:
-        args = ["--no-sandbox"] if os.geteuid() == 0 else []
-        browser = await pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=args)
+        browser = await launch_chromium(pw)
         try:
             context = await browser.new_context(
                 viewport=PORTRAIT, has_touch=True, is_mobile=True, device_scale_factor=2
@@ -76,6 +93,7 @@ def overlap(a: dict[str, float], b: dict[str, float]) -> bool:
     )
 
 
+@in_module_loop
 async def test_map_video_and_stop_are_in_view_in_portrait_and_landscape(tmp_path: Path) -> None:
     async with robot_rig(tmp_path) as rig, phone_page(rig.ui.url) as page:
         await page_ready(page)
@@ -109,6 +127,7 @@ async def test_map_video_and_stop_are_in_view_in_portrait_and_landscape(tmp_path
             await page.screenshot(path=str(ARTIFACTS / f"web_phone_{name}.png"))
 
 
+@in_module_loop
 async def test_a_tap_on_the_map_is_a_goal_the_robot_reaches(tmp_path: Path) -> None:
     async with robot_rig(tmp_path) as rig, phone_page(rig.ui.url) as page:
         await arm(rig)
@@ -139,6 +158,7 @@ async def stopped_by(rig: Rig, how: str) -> None:
     assert rig.stops()[-1] == (USER, how), rig.stops()
 
 
+@in_module_loop
 async def test_touching_the_video_or_stop_while_moving_stops_the_robot(tmp_path: Path) -> None:
     async with robot_rig(tmp_path) as rig, phone_page(rig.ui.url) as page:
         await page_ready(page)
@@ -169,6 +189,7 @@ SHOW = """() => {
 }"""
 
 
+@in_module_loop
 async def test_a_page_hidden_or_frozen_while_driving_stops_the_robot(tmp_path: Path) -> None:
     async with robot_rig(tmp_path) as rig, phone_page(rig.ui.url) as page:
         await page_ready(page)
