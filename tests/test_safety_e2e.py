@@ -298,6 +298,16 @@ async def test_a_thawed_driver_finds_the_robot_stopped_until_it_is_re_armed(
         await next_pose(observer, lambda p: p.t > armed_at, timeout=2 + SLACK)
         await assert_at_rest(observer, 0.5, armed=True)
         moved = await alice.chat("fwd 0.3", timeout=30)
+        # This rig keeps the real 0.5 s deadman: on a loaded machine alice's own heartbeats
+        # may fall silent mid-drive, and the deadman stops her drive (its job, recorded as
+        # such), which is not the cancelled goto coming back. Then re-arm and drive again.
+        for _ in range(2):
+            tripped = [r for r in daemon.audit() if r["what"] == "deadman" and r["t"] >= armed_at]
+            if moved.ok or not tripped:
+                break
+            await arm(alice)
+            armed_at = time.monotonic()
+            moved = await alice.chat("fwd 0.3", timeout=30)
         assert moved.ok, moved.replies
         assert (await alice.stop()).ok
 
