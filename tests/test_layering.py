@@ -211,3 +211,66 @@ def test_no_project_file_reads_beside_the_checkout() -> None:
     assert offenders == [], (
         f"these files read beside the checkout, which users do not have: {offenders}"
     )
+
+
+# What a client that only chats and reads poses must not load (issue 25): PyAV and OpenCV
+# (video, audio, people), numpy (maps, plans, pictures) and YAML (map files).
+HEAVY_FOR_A_CLIENT = ("av", "cv2", "numpy", "yaml")
+
+_LIGHT_CLIENT = """
+import asyncio, sys, tempfile
+from pathlib import Path
+
+import telebot
+telebot.connect, telebot.RobotClient
+import telebot.apps.user_cli, telebot.apps.user_client
+from telebot.channels.call import RobotEndpoint, UserEndpoint
+from telebot.channels.transports.memory import MemoryHub, MemoryTransport
+from telebot.identity import ContactBook, KnownRobots, create_paired_homes
+from telebot.services.client import RobotClient
+
+HEAVY = {heavy!r}
+
+
+async def main(base: Path) -> None:
+    robot_id, user_id = create_paired_homes(base, "robot", "alice")
+    hub = MemoryHub()
+    async with (
+        MemoryTransport(hub, "robot") as robot_transport,
+        MemoryTransport(hub, "user") as user_transport,
+        RobotEndpoint(robot_transport, robot_id, ContactBook.load(base / "robot")),
+        UserEndpoint(user_transport, user_id, KnownRobots.load(base / "user")) as user,
+    ):
+        call = await user.call("robot")
+        client = RobotClient(call)  # every default service opened on the call
+        assert set(client.services.names()) >= {{"core", "video", "media", "people"}}
+        client.services.tick(0.0)
+        loaded = sorted(name for name in HEAVY if name in sys.modules)
+        assert loaded == [], f"a client loaded {{loaded}}"
+        # The guard sees a heavy import when one happens: video decoding loads PyAV.
+        from telebot.errors import ProtocolError
+        from telebot.services.codecs import VideoDecoder
+        from telebot.services.proto.media import CODEC_H264
+        try:
+            VideoDecoder().decode(b"not h264", CODEC_H264)
+        except ProtocolError:
+            pass
+        assert "av" in sys.modules, "decoding H.264 did not load PyAV"
+        await client.aclose()
+        await call.hangup()
+
+
+with tempfile.TemporaryDirectory() as tmp:
+    asyncio.run(main(Path(tmp)))
+"""
+
+
+def test_a_chatting_client_loads_no_video_audio_or_map_libraries() -> None:
+    # `import telebot`, `telebot.connect`, the user CLI and a client on a call (its services
+    # open) stay light: PyAV, OpenCV, numpy and YAML load when video, audio, people, a plan
+    # or a map is used (`telebot-user send` would otherwise spend ~0.6 s importing them).
+    code = _LIGHT_CLIENT.format(heavy=HEAVY_FOR_A_CLIENT)
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 0, result.stderr

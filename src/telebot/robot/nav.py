@@ -41,13 +41,15 @@ import enum
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
-
-import numpy as np
-import numpy.typing as npt
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 from telebot.errors import InvalidCommand
-from telebot.robot.grid import OccupancyGrid
+
+if TYPE_CHECKING:
+    import numpy as np
+    import numpy.typing as npt
+
+    from telebot.robot.grid import OccupancyGrid
 
 __all__ = [
     "Battery",

@@ -32,7 +32,7 @@ import secrets
 from collections.abc import AsyncGenerator, AsyncIterator, Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Generic, Literal, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar
 
 from telebot.channels.call import Call, CallEnd, UserEndpoint
 from telebot.channels.channel import Channel, ReceivedDatagram
@@ -53,7 +53,6 @@ from telebot.identity import Identity, KnownRobots
 from telebot.reasons import Reason
 from telebot.services.base import CLIENT_TICK, OpenServices, ServiceRegistry
 from telebot.services.conference import ConferenceReceiver, ConferenceState
-from telebot.services.mapxfer import MapDownload, fetch_map
 from telebot.services.media import AudioReceiver, UserMedia, open_user_media
 from telebot.services.people import PeopleReceiver
 from telebot.services.plan import PlanReceiver
@@ -90,6 +89,9 @@ from telebot.services.proto.status import (
 )
 from telebot.services.relay import RelayReceiver, TopicStream
 from telebot.services.video import VideoFeed, VideoFeedService, VideoReceiver, video_channel
+
+if TYPE_CHECKING:
+    from telebot.services.mapxfer import MapDownload
 
 __all__ = [
     "ChatResult",
@@ -788,6 +790,9 @@ class RobotClient:
         self, *, timeout: float = 30.0, progress: Callable[[int, int], None] | None = None
     ) -> MapDownload:
         """Download the robot's map (cropped PNG with its georeference)."""
+        # Imported here: the map transfer needs numpy, OpenCV and YAML, chat and poses don't.
+        from telebot.services.mapxfer import fetch_map
+
         async with asyncio.timeout(timeout):
             core = await self._core()
         return await fetch_map(core.map, timeout=timeout, progress=progress)

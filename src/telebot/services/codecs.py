@@ -17,12 +17,7 @@ import asyncio
 import concurrent.futures
 import logging
 from fractions import Fraction
-from typing import Any, Final, cast
-
-import av
-import cv2
-import numpy as np
-import numpy.typing as npt
+from typing import TYPE_CHECKING, Any, Final, cast
 
 from telebot.channels.proto.frames import MAX_DATAGRAM
 from telebot.errors import ProtocolError
@@ -35,6 +30,10 @@ from telebot.services.proto.media import (
     SAMPLE_RATE,
 )
 from telebot.services.proto.video import MAX_PIXELS, decode_jpeg, encode_jpeg
+
+if TYPE_CHECKING:
+    import numpy as np
+    import numpy.typing as npt
 
 __all__ = [
     "STAMP_BITS",
@@ -109,6 +108,8 @@ class VideoEncoder:
         """
         if self.codec == CODEC_JPEG:
             return EncodedFrame(encode_jpeg(image, quality), CODEC_JPEG, True)
+        import av  # here, not at the top: JPEG-only users never load PyAV
+
         image = image[: image.shape[0] & ~1, : image.shape[1] & ~1]  # 4:2:0 needs even sizes
         size = (int(image.shape[1]), int(image.shape[0]))
         rate = max(50_000, int(bitrate))
@@ -131,6 +132,8 @@ class VideoEncoder:
         return EncodedFrame(data, self.codec, keyframe or _is_key(self.codec, data))
 
     def _open(self, size: tuple[int, int], rate: int, now: float) -> None:
+        import av
+
         ctx: Any = av.CodecContext.create(_ENCODERS[self.codec], "w")
         ctx.width, ctx.height = size
         ctx.pix_fmt = "yuv420p"
@@ -177,11 +180,15 @@ class VideoEncoder:
 def _to_i420(image: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
     """BGR → planar YUV 4:2:0 (BT.601) with OpenCV: ~53 dB luma PSNR on a round trip where
     FFmpeg's default conversion gives ~42 dB, a loss the codec would add to its own."""
+    import cv2
+
     return cast("npt.NDArray[np.uint8]", cv2.cvtColor(image, cv2.COLOR_BGR2YUV_I420))
 
 
 def _to_bgr(frame: Any) -> npt.NDArray[np.uint8]:
     """A decoded frame as BGR (OpenCV's conversion for 4:2:0 of even size, else FFmpeg's)."""
+    import cv2
+
     if frame.format.name == "yuv420p" and frame.width % 2 == 0 and frame.height % 2 == 0:
         i420 = frame.to_ndarray(format="yuv420p")
         return cast("npt.NDArray[np.uint8]", cv2.cvtColor(i420, cv2.COLOR_YUV2BGR_I420))
@@ -245,6 +252,8 @@ class VideoDecoder:
             except ProtocolError:
                 self.errors += 1
                 raise
+        import av  # here, not at the top: JPEG-only users never load PyAV
+
         if not data:  # an empty packet would flush (end) the decoder
             self.errors += 1
             raise ProtocolError("video frame: empty")
@@ -276,6 +285,8 @@ class OpusEncoder:
     """48 kHz mono int16 samples in 20 ms blocks → Opus packets (in-band FEC on)."""
 
     def __init__(self, *, bitrate: int = 32_000, expected_loss: int = 10) -> None:
+        import av
+
         ctx: Any = av.CodecContext.create("libopus", "w")
         ctx.sample_rate = SAMPLE_RATE
         ctx.layout = "mono"
@@ -293,6 +304,9 @@ class OpusEncoder:
 
     def encode(self, samples: npt.NDArray[np.int16]) -> bytes:
         """One 20 ms block (960 int16 samples) → one Opus packet."""
+        import av
+        import numpy as np
+
         if samples.shape != (FRAME_SAMPLES,):
             raise ValueError(f"an Opus block is {FRAME_SAMPLES} mono samples, got {samples.shape}")
         frame = av.AudioFrame.from_ndarray(
@@ -317,6 +331,8 @@ class OpusDecoder:
         self.errors = 0
 
     def _reset(self) -> None:
+        import av
+
         ctx: Any = av.CodecContext.create("libopus", "r")
         ctx.sample_rate = SAMPLE_RATE
         ctx.layout = "mono"
@@ -327,6 +343,9 @@ class OpusDecoder:
 
         ProtocolError for a packet that does not decode.
         """
+        import av
+        import numpy as np
+
         if packet is None:
             return np.zeros(FRAME_SAMPLES, dtype=np.int16)
         try:

@@ -59,21 +59,10 @@ from dataclasses import dataclass, field
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Self, cast
 
-import numpy as np
-import numpy.typing as npt
-
 from telebot.channels.channel import Channel, ReceivedDatagram
 from telebot.channels.transports.base import Lane
 from telebot.errors import CallEnded, ProtocolError, TelebotError
 from telebot.robot.nav import CameraFrame
-from telebot.services.audio import (
-    AudioSink,
-    AudioSource,
-    MixSource,
-    open_sink,
-    open_source,
-    resample,
-)
 from telebot.services.codecs import OpusDecoder, OpusEncoder, VideoDecoder
 from telebot.services.proto.media import (
     AUDIO,
@@ -100,8 +89,12 @@ from telebot.services.video import (
 )
 
 if TYPE_CHECKING:
+    import numpy as np
+    import numpy.typing as npt
+
     from telebot.channels.call import Call
     from telebot.config import MediaConfig
+    from telebot.services.audio import AudioSink, AudioSource
     from telebot.services.client import RobotClient
     from telebot.services.proto.chat import ChatReply
     from telebot.services.robot import RobotServer
@@ -367,6 +360,10 @@ def _wav_bytes(data: bytes) -> npt.NDArray[np.int16]:
     import io
     import wave
 
+    import numpy as np
+
+    from telebot.services.audio import resample
+
     try:
         with wave.open(io.BytesIO(data), "rb") as wav:
             rate, channels = wav.getframerate(), wav.getnchannels()
@@ -394,6 +391,8 @@ class RobotMedia:
         speaker: AudioSink | None = None,
         clock: Callable[[], float] = time.time,
     ) -> None:
+        from telebot.services.audio import MixSource, open_sink, open_source
+
         self.settings = settings if settings is not None else MediaSettings()
         #: The microphone, with spoken replies mixed in.
         self.mic = MixSource(mic if mic is not None else open_source(self.settings.mic))
@@ -778,12 +777,16 @@ class TestPattern:
     __test__ = False  # not a pytest class
 
     def __init__(self, width: int = 640, height: int = 480) -> None:
+        import numpy as np
+
         y, x = np.mgrid[0:height, 0:width]
         self._base = np.stack([x * 255 // width, y * 255 // height, (x + y) % 256], axis=-1)
         self._n = 0
 
     def __call__(self) -> npt.NDArray[np.uint8]:
         """The next picture."""
+        import numpy as np
+
         self._n += 1
         return cast(
             "npt.NDArray[np.uint8]", np.roll(self._base, self._n * 4, axis=1).astype(np.uint8)
@@ -848,6 +851,8 @@ class UserMedia:
     ) -> None:
         """Send ``mic`` (a source or a spec such as ``wav:hello.wav``, ``default``) and
         ``camera`` (pictures) to the robot while it asks for them; None stops either."""
+        from telebot.services.audio import open_source
+
         old = self.sources.mic
         self.sources.mic = open_source(mic) if isinstance(mic, str) else mic
         if old is not None and old is not self.sources.mic:

@@ -59,10 +59,6 @@ from dataclasses import dataclass, field
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Self, cast
 
-import cv2
-import numpy as np
-import numpy.typing as npt
-
 from telebot.channels.channel import Channel, ReceivedDatagram
 from telebot.channels.transports.base import Lane
 from telebot.errors import CallEnded, ProtocolError, TelebotError
@@ -95,6 +91,9 @@ from telebot.services.proto.video import (
 )
 
 if TYPE_CHECKING:
+    import numpy as np
+    import numpy.typing as npt
+
     from telebot.channels.call import Call
     from telebot.channels.proto.session import CallStats
 
@@ -541,6 +540,8 @@ class VideoSender:
         return int(max(settings.min_bitrate, min(settings.max_bitrate, target, frag_cap)))
 
     def _scaled(self, shot: _Shot) -> npt.NDArray[np.uint8]:
+        import cv2
+
         scale = self.controller.scale
         # Even sizes: video writers downstream (MPEG-4, H.264) need them.
         width = max(2, round(self.settings.width * scale / 2) * 2)

@@ -20,9 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-
-import numpy as np
-import numpy.typing as npt
+from typing import TYPE_CHECKING
 
 from telebot.errors import ProtocolError
 from telebot.services.proto.messages import (
@@ -31,6 +29,10 @@ from telebot.services.proto.messages import (
     encode_object,
     require_int,
 )
+
+if TYPE_CHECKING:
+    import numpy as np
+    import numpy.typing as npt
 
 __all__ = [
     "MAX_PLACES_TEXT",
@@ -180,6 +182,8 @@ def simplify_path(
     A path of more than :data:`MAX_INPUT_POINTS` is thinned evenly first, so the work
     stays bounded. The first and last points are always kept; non-finite ones dropped.
     """
+    import numpy as np
+
     if max_points < 2:
         raise ValueError("max_points must be at least 2")
     array = np.asarray(list(points) if not isinstance(points, np.ndarray) else points, float)
@@ -201,11 +205,15 @@ def simplify_path(
 
 def _evenly(count: int, wanted: int) -> npt.NDArray[np.intp]:
     """``wanted`` indices spread evenly over ``range(count)``, the first and last included."""
+    import numpy as np
+
     return np.unique(np.linspace(0, count - 1, wanted).round().astype(np.intp))
 
 
 def _douglas_peucker(points: npt.NDArray[np.float64], tolerance: float) -> npt.NDArray[np.intp]:
     """Indices of the points Douglas–Peucker keeps (iterative: long paths need no recursion)."""
+    import numpy as np
+
     keep = np.zeros(len(points), dtype=bool)
     keep[0] = keep[-1] = True
     stack = [(0, len(points) - 1)]

@@ -38,14 +38,14 @@ import math
 import struct
 from collections import OrderedDict, deque
 from dataclasses import dataclass
-from typing import Final, cast
-
-import cv2
-import numpy as np
-import numpy.typing as npt
+from typing import TYPE_CHECKING, Final, cast
 
 from telebot.channels.proto.frames import MAX_DATAGRAM
 from telebot.errors import ProtocolError
+
+if TYPE_CHECKING:
+    import numpy as np
+    import numpy.typing as npt
 
 __all__ = [
     "CODEC_CDR",
@@ -660,6 +660,8 @@ class Reassembler:
 
 def encode_jpeg(image: npt.NDArray[np.uint8], quality: int) -> bytes:
     """``image`` (BGR uint8) as JPEG at ``quality`` (1..100)."""
+    import cv2
+
     ok, buffer = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:
         raise ValueError("OpenCV could not encode the frame as JPEG")
@@ -699,6 +701,9 @@ def jpeg_size(data: bytes) -> tuple[int, int]:
 
 def decode_jpeg(data: bytes, *, max_pixels: int = MAX_PIXELS) -> npt.NDArray[np.uint8]:
     """A JPEG as a BGR uint8 image; ProtocolError for a corrupt or oversized one."""
+    import cv2
+    import numpy as np
+
     width, height = jpeg_size(data)
     if not 0 < width * height <= max_pixels:
         raise ProtocolError(f"video frame: a {width} × {height} picture is out of bounds")
