@@ -54,10 +54,10 @@ from telebot.gateway.core import (
     Op,
     Refusal,
     make_challenge,
-    pack_sample,
     parse_admission,
     parse_op,
     parse_put,
+    sample_header,
 )
 
 __all__ = ["STATIC", "Gateway", "GatewayStats"]
@@ -70,6 +70,8 @@ STATIC = Path(__file__).resolve().parent.parent / "apps" / "web" / "static"
 MAX_MESSAGE = 3 + MAX_KEY_BYTES + MAX_PAYLOAD + 1024
 #: Publishers kept per connection (by key and lane), the least recently used closed first.
 MAX_PUBLISHERS = 32
+#: SAMPLE headers kept per connection (by sub id and key); all are dropped beyond it.
+MAX_HEADERS = 256
 _LANES = {"control": Lane.CONTROL, "data": Lane.DATA, "bulk": Lane.BULK}
 _RECEIVE = ReceiveLimits(max_samples=512, max_bytes=4_000_000, max_payload=MAX_PAYLOAD)
 
@@ -284,29 +286,33 @@ class _Browser:
         self.publishers: collections.OrderedDict[tuple[str, str], Publisher] = (
             collections.OrderedDict()
         )
+        self._headers: dict[tuple[int, str], bytes] = {}
         self._out: collections.deque[str | bytes] = collections.deque()
         self._out_bytes = 0
-        self._wake = asyncio.Event()
+        # The writer's wake-up while it waits for something to send (one future per wait,
+        # cheaper than an Event's set/clear/wait for every frame).
+        self._waiting: asyncio.Future[None] | None = None
         self._cut = False
 
     async def serve(self) -> None:
         """Relay until the browser closes or is cut off."""
         writer = asyncio.create_task(self._write(), name=f"gateway writer {self.name}")
-        stats = self.gateway.stats
+        stats, spend, clock = self.gateway.stats, self.budget.spend, self.gateway.clock
         try:
             async for msg in self.ws:
-                if msg.type == WSMsgType.ERROR:
+                kind = msg.type
+                if kind is WSMsgType.BINARY or kind is WSMsgType.TEXT:
+                    data = msg.data  # bytes (BINARY) or str (TEXT)
+                    size = len(data)
+                    stats.frames_in += 1
+                    stats.bytes_in += size
+                    spend(size, clock())
+                    if kind is WSMsgType.BINARY:
+                        self._put(data)
+                    else:
+                        self._handle(parse_op(data))
+                elif kind is WSMsgType.ERROR:
                     raise Refusal("too_large", f"a message the websocket refused: {msg.data}")
-                if msg.type not in (WSMsgType.TEXT, WSMsgType.BINARY):
-                    continue
-                data: str | bytes = msg.data
-                stats.frames_in += 1
-                stats.bytes_in += len(data)
-                self.budget.spend(len(data), self.gateway.clock())
-                if isinstance(data, str):
-                    self._handle(parse_op(data))
-                else:
-                    self._put(data)
         except Refusal as refusal:
             await self._cut_off(refusal)
         finally:
@@ -318,11 +324,13 @@ class _Browser:
 
     def _put(self, data: bytes) -> None:
         put = parse_put(data)
-        if not self.rules.may_put(put.key):
-            raise Refusal("key", f"{self.name} may not publish on {excerpt(put.key, 120)}")
         slot = (put.key, put.lane)
         publisher = self.publishers.get(slot)
         if publisher is None:
+            # The rules are checked here only: a publisher is kept for a key they allowed,
+            # and they do not change during a connection, so a kept one needs no second look.
+            if not self.rules.may_put(put.key):
+                raise Refusal("key", f"{self.name} may not publish on {excerpt(put.key, 120)}")
             try:
                 publisher = self.gateway.transport.publisher(put.key, _LANES[put.lane])
             except TransportError as exc:  # the gateway's session, not the browser's fault
@@ -415,8 +423,15 @@ class _Browser:
     def _samples(self, sub_id: int, batch: Sequence[Sample]) -> None:
         if sub_id not in self.subs:
             return
+        headers = self._headers
         for sample in batch:
-            self._enqueue(pack_sample(sub_id, sample.key, sample.payload))
+            slot = (sub_id, sample.key)
+            header = headers.get(slot)
+            if header is None:
+                if len(headers) >= MAX_HEADERS:
+                    headers.clear()
+                header = headers[slot] = sample_header(sub_id, sample.key)
+            self._enqueue(header + sample.payload)
 
     def _alive(self, watch_id: int, key: str, alive: bool) -> None:
         if watch_id in self.watches:
@@ -435,23 +450,30 @@ class _Browser:
             dropped = self._out.popleft()
             self._out_bytes -= len(dropped)
             stats.dropped_out += 1
-        self._wake.set()
+        waiting = self._waiting
+        if waiting is not None:
+            self._waiting = None
+            if not waiting.done():
+                waiting.set_result(None)
 
     async def _write(self) -> None:
-        stats = self.gateway.stats
+        stats, out, ws = self.gateway.stats, self._out, self.ws
+        loop = asyncio.get_running_loop()
         try:
             while True:
-                await self._wake.wait()
-                self._wake.clear()
-                while self._out:
-                    item = self._out.popleft()
-                    self._out_bytes -= len(item)
-                    if isinstance(item, bytes):
-                        await self.ws.send_bytes(item)
-                    else:
-                        await self.ws.send_str(item)
-                    stats.frames_out += 1
-                    stats.bytes_out += len(item)
+                if not out:
+                    self._waiting = waiting = loop.create_future()
+                    await waiting
+                    continue
+                item = out.popleft()
+                size = len(item)
+                self._out_bytes -= size
+                if isinstance(item, bytes):
+                    await ws.send_bytes(item)
+                else:
+                    await ws.send_str(item)
+                stats.frames_out += 1
+                stats.bytes_out += size
         except (ConnectionError, RuntimeError):
             return  # the browser is gone; serve() sees the close
 
