@@ -318,9 +318,12 @@ export class Call {
     this.timer = setTimeout(() => this.tick(), Math.max(0, (this.session.nextDeadline() - monotonic()) * 1000));
   }
 
-  /** @param {Uint8Array} frame @param {string} lane */
+  /**
+   * @param {Uint8Array} frame @param {string} lane
+   * @returns {boolean} false when the link said it dropped the frame (closed, congested)
+   */
   publish(frame, lane) {
-    this.endpoint.link.publish(`${this.callBase}/${lane === "control" ? "ctl" : "data"}`, frame, lane);
+    return this.endpoint.link.publish(`${this.callBase}/${lane === "control" ? "ctl" : "data"}`, frame, lane);
   }
 
   /** @param {Uint8Array} payload a frame from one of the call's keys */
@@ -400,15 +403,19 @@ export class Channel {
 
   /**
    * Send one datagram: a string goes as text (TEXT flag), a Uint8Array as bytes; at most
-   * 32,768 bytes. CallEnded once the call is over (nothing is sent).
+   * 32,768 bytes. CallEnded once the call is over (nothing is sent). Returns false when
+   * the link dropped it (closed, or its websocket congested: gateway-link.js), as a lossy
+   * network may; the sender may then send less (a picture's rest, deltas until a keyframe).
    * @param {string|Uint8Array} payload
+   * @returns {boolean}
    */
   send(payload) {
     if (this.call.session.ended) {
       throw new CallEnded(`the call with ${this.call.robot} ${describeEnd(this.call.session.ended)}`);
     }
-    this.call.publish(this.call.session.sealDatagram(this.name, payload), this.lane);
+    if (this.call.publish(this.call.session.sealDatagram(this.name, payload), this.lane) === false) return false;
     this.sent += 1;
+    return true;
   }
 
   /** @param {string|Uint8Array} payload */

@@ -32,6 +32,12 @@ export class GatewayError extends Error {
 const LABEL = new TextEncoder().encode("telebot-gateway-v1");
 const LANES = { control: 0, data: 1, bulk: 2 };
 const MAX_ID = 0xffff;
+/**
+ * Bytes the websocket may hold unsent before DATA and BULK frames are dropped (the local
+ * port's bound for pictures, src/telebot/apps/web/static/app.js): a STOP on CONTROL then
+ * waits behind at most this much in the one TCP stream.
+ */
+export const MAX_BUFFERED = 256 * 1024;
 /** The largest payload the gateway takes (a DATA frame with a 32 KB datagram). */
 export const MAX_PAYLOAD = 33060;
 const encoder = new TextEncoder();
@@ -103,12 +109,12 @@ function websocketUrl(url) {
  *
  * @param {string} url `wss://HOST:PORT/gateway`, or the page's `https://HOST:PORT/`
  * @param {{name: string, privateKey: Uint8Array, publicKey: Uint8Array, invite?: string,
- *          WebSocket?: typeof WebSocket, timeout?: number}} options
- *   `timeout`: seconds to wait for admission (default 10)
+ *          WebSocket?: typeof WebSocket, timeout?: number, maxBuffered?: number}} options
+ *   `timeout`: seconds to wait for admission (default 10); `maxBuffered`: see {@link GatewayLink}
  * @returns {Promise<GatewayLink>} rejects with a GatewayError (one line) when refused
  */
 export function connectGateway(url, options) {
-  const { name, privateKey, publicKey, invite, timeout = 10 } = options;
+  const { name, privateKey, publicKey, invite, timeout = 10, maxBuffered = MAX_BUFFERED } = options;
   const Impl = options.WebSocket ?? globalThis.WebSocket;
   if (!Impl) return Promise.reject(new GatewayError("this JavaScript runtime has no WebSocket"));
   let ws;
@@ -154,7 +160,7 @@ export function connectGateway(url, options) {
       } else if (stage === "answer" && message.op === "admitted") {
         stage = "done";
         clearTimeout(timer);
-        resolve(new GatewayLink(ws, name, message));
+        resolve(new GatewayLink(ws, name, message, { maxBuffered }));
       } else if (message.op === "refused") {
         fail(new GatewayError(`gateway refused ${name}: ${excerpt(message.code)}: ${excerpt(message.text)}`, String(message.code)));
       } else {
@@ -170,10 +176,20 @@ export function connectGateway(url, options) {
  * (`stats.malformed`), samples for a subscription closed meanwhile too (`stats.late`); the gateway's non-fatal errors go to `onerror`. Once closed (by
  * `close()`, or the gateway: `onclose` says why), whatever is sent is dropped and counted
  * (`stats.dropped`), as a lossy link drops frames: a call's timers need not know.
+ *
+ * Congestion: a DATA or BULK frame published while the websocket holds more than
+ * `maxBuffered` bytes unsent (`ws.bufferedAmount`, default {@link MAX_BUFFERED}) is dropped
+ * and counted (`stats.congested`), so the user's camera cannot queue without limit ahead
+ * of a STOP; CONTROL frames are always sent. The amount is read at the first such frame of
+ * a turn of the event loop and holds for the turn, so the fragments of one picture (sent in
+ * one go) all go or none does, even a picture larger than the bound.
  */
 export class GatewayLink {
-  /** @param {WebSocket} ws @param {string} name @param {object} admitted */
-  constructor(ws, name, admitted) {
+  /**
+   * @param {WebSocket} ws @param {string} name @param {object} admitted
+   * @param {{maxBuffered?: number}} [options]
+   */
+  constructor(ws, name, admitted, { maxBuffered = MAX_BUFFERED } = {}) {
     this.ws = ws;
     this.name = name;
     this.admitted = admitted;
@@ -181,7 +197,10 @@ export class GatewayLink {
     this.onclose = () => {};
     /** @type {(message: string) => void} non-fatal errors the gateway reported */
     this.onerror = () => {};
-    this.stats = { received: 0, malformed: 0, late: 0, sent: 0, dropped: 0 };
+    this.stats = { received: 0, malformed: 0, late: 0, sent: 0, dropped: 0, congested: 0 };
+    this.maxBuffered = maxBuffered;
+    /** @type {boolean|null} whether this turn's DATA/BULK frames are dropped (null: not read yet) */
+    this.congestedTurn = null;
     this.closed = false;
     /** @type {Map<number, (key: string, payload: Uint8Array) => void>} */
     this.subs = new Map();
@@ -257,9 +276,20 @@ export class GatewayLink {
     return { close: () => { if (this.subs.delete(id) && !this.closed) this._send(JSON.stringify({ op: "unsub", id })); } };
   }
 
+  /** Whether DATA/BULK frames are dropped in this turn of the event loop (see the class). */
+  _congested() {
+    if (this.congestedTurn === null) {
+      this.congestedTurn = (this.ws.bufferedAmount ?? 0) > this.maxBuffered;
+      queueMicrotask(() => { this.congestedTurn = null; });
+    }
+    return this.congestedTurn;
+  }
+
   /**
-   * Publish `payload` on `key` with the QoS of `lane`.
+   * Publish `payload` on `key` with the QoS of `lane`. Returns whether it was sent (false:
+   * dropped, the link closed or, DATA/BULK only, the websocket congested).
    * @param {string} key @param {Uint8Array} payload @param {"control"|"data"|"bulk"} [lane]
+   * @returns {boolean}
    */
   publish(key, payload, lane = "data") {
     const laneNumber = LANES[lane];
@@ -272,7 +302,13 @@ export class GatewayLink {
     frame[2] = keyBytes.length & 0xff;
     frame.set(keyBytes, 3);
     frame.set(payload, 3 + keyBytes.length);
-    if (this._send(frame)) this.stats.sent++;
+    if (laneNumber !== LANES.control && !this.closed && this._congested()) {
+      this.stats.congested++;
+      return false;
+    }
+    if (!this._send(frame)) return false;
+    this.stats.sent++;
+    return true;
   }
 
   /** Declare a liveliness token on `key`. @param {string} key @returns {{close(): void}} */

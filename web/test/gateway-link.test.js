@@ -54,3 +54,60 @@ test("a sample for a subscription closed meanwhile is late, a short one malforme
   assert.equal(got.length, 1);
   assert.deepEqual([link.stats.received, link.stats.late, link.stats.malformed], [1, 1, 1]);
 });
+
+/** A websocket whose unsent bytes grow with each send, as a browser's do, until `drain()`. */
+function congestibleSocket() {
+  const ws = { sent: [], bufferedAmount: 0, close() {} };
+  ws.send = (m) => {
+    ws.sent.push(m);
+    ws.bufferedAmount += typeof m === "string" ? m.length : m.byteLength;
+  };
+  ws.drain = () => { ws.bufferedAmount = 0; };
+  return ws;
+}
+const lanesSent = (ws) => ws.sent.filter((m) => typeof m !== "string").map((m) => m[0]);
+const nextTurn = () => new Promise((resolve) => setTimeout(resolve, 0));
+
+test("over the bound DATA and BULK frames are dropped and counted, CONTROL frames always sent", async () => {
+  const ws = congestibleSocket();
+  const link = new GatewayLink(ws, "alice", { op: "admitted", name: "alice" }, { maxBuffered: 1000 });
+  const key = "telebot/robot/guiabot/call/alice/0123456789abcdef/data";
+  const ctl = "telebot/robot/guiabot/call/alice/0123456789abcdef/ctl";
+  const chunk = new Uint8Array(400);
+  // One turn: read once (0 bytes waiting), so all of a picture's fragments go, past the bound.
+  for (let i = 0; i < 5; i++) assert.equal(link.publish(key, chunk, "bulk"), true);
+  assert.ok(ws.bufferedAmount > 2000);
+  await nextTurn();
+  // Still over the bound next turn: DATA and BULK dropped, CONTROL (a STOP, a HANGUP) sent.
+  assert.equal(link.publish(key, chunk, "bulk"), false);
+  assert.equal(link.publish(key, chunk, "data"), false);
+  assert.equal(link.publish(ctl, chunk, "control"), true);
+  assert.equal(link.publish(key, chunk, "data"), false);
+  assert.deepEqual(lanesSent(ws), [2, 2, 2, 2, 2, 0]);
+  assert.deepEqual([link.stats.sent, link.stats.congested, link.stats.dropped], [6, 3, 0]);
+  // Drained: data goes again.
+  ws.drain();
+  await nextTurn();
+  assert.equal(link.publish(key, chunk, "data"), true);
+  assert.deepEqual(lanesSent(ws), [2, 2, 2, 2, 2, 0, 1]);
+  // Exactly at the bound is not over it; one byte more is.
+  ws.bufferedAmount = 1000;
+  await nextTurn();
+  assert.equal(link.publish(key, chunk, "data"), true);
+  ws.bufferedAmount = 1001;
+  await nextTurn();
+  assert.equal(link.publish(key, chunk, "data"), false);
+  assert.deepEqual([link.stats.sent, link.stats.congested], [8, 4]);
+});
+
+test("the default bound is 256 KB, and a closed link drops every lane as before", async () => {
+  const ws = congestibleSocket();
+  const link = new GatewayLink(ws, "alice", { op: "admitted", name: "alice" });
+  assert.equal(link.maxBuffered, 256 * 1024);
+  ws.bufferedAmount = 256 * 1024 + 1;
+  assert.equal(link.publish("telebot/robot/r/in/alice", new Uint8Array(1), "data"), false);
+  assert.equal(link.publish("telebot/robot/r/in/alice", new Uint8Array(1), "control"), true);
+  link.close();
+  assert.equal(link.publish("telebot/robot/r/in/alice", new Uint8Array(1), "control"), false);
+  assert.deepEqual([link.stats.sent, link.stats.congested, link.stats.dropped], [1, 1, 1]);
+});

@@ -24,12 +24,18 @@ class FakeChannel {
   send(payload) {
     if (this.call.over) throw new Error("the call ended");
     if (typeof payload !== "string" && !(payload instanceof Uint8Array)) throw new TypeError("payload");
+    // A congested link (gateway-link.js) drops DATA/BULK datagrams and says so.
+    if (this.call.congested && this.lane !== "control") {
+      this.call.refused += 1;
+      return false;
+    }
     const copy = typeof payload === "string" ? payload : payload.slice();
     this.call.sentLog.push([this.name, copy]);
-    if (this.call.lose(this.call.upLoss)) return;
+    if (this.call.lose(this.call.upLoss)) return true;
     queueMicrotask(() => {
       if (!this.call.over) this.call.robotHandlers.get(this.name)?.(copy);
     });
+    return true;
   }
 }
 
@@ -47,6 +53,9 @@ export class FakeCall {
     this.channels = new Map();
     this.robotHandlers = new Map();
     this.sentLog = [];
+    /** Set to make the link refuse DATA/BULK datagrams, as a congested websocket does. */
+    this.congested = false;
+    this.refused = 0;
     this.over = false;
     this.ended = new Promise((resolve) => {
       this.endWith = (kind, detail = "", byPeer = true) => {

@@ -103,6 +103,25 @@ test("audio packets: the page's Opus as §25.3 AUDIO, numbered by the uplink", a
   assert.equal(call().sent("audio/user").length, 2);
 });
 
+test("a congested link: the picture's rest and the audio packet are not sent, counted, and the page told false", async () => {
+  const { session, call } = await started();
+  const big = new Uint8Array(70000).fill(5); // three fragments
+  call().congested = true;
+  assert.equal(session.send(picture(0, true, big)), false, "false: the page makes its next picture a keyframe");
+  assert.equal(call().refused, 1, "the rest of the picture was not even tried");
+  assert.equal(session.send({ type: "audio", header: { kind: "audio", seq: 0, capture_time: CAPTURE }, data: Uint8Array.of(1) }), false);
+  const { userMedia } = session.services;
+  assert.deepEqual([userMedia.video.dropped, userMedia.video.sent, userMedia.audio.dropped, userMedia.audio.sent], [1, 0, 1, 0]);
+  assert.equal(call().sent("video/user").length, 0);
+  // Drained: the page's keyframe goes whole, with the next frame id (the robot sees the gap).
+  call().congested = false;
+  assert.equal(session.send(picture(1, true, big)), true);
+  const sent = call().sent("video/user");
+  assert.equal(sent.length, 3);
+  assert.deepEqual(sent.map((d) => new DataView(d.buffer).getUint32(6)), [1, 1, 1]);
+  assert.deepEqual([userMedia.video.dropped, userMedia.video.sent], [1, 1]);
+});
+
 test("unasked for 2 s from the first picture; then only while the robot's reports come", async () => {
   const { clock, session, call } = await started();
   const one = Uint8Array.of(1);

@@ -219,6 +219,7 @@ export class AudioUplink {
     this.subscription = new Subscription();
     this.seq = 0;
     this.sent = 0;
+    this.dropped = 0;
   }
 
   wanted(now) {
@@ -283,12 +284,21 @@ export class UserMediaService {
     }
   }
 
-  /** Send one checked picture ({@link parseMediaMessage}); whether all of it went. */
+  /**
+   * Send one checked picture ({@link parseMediaMessage}); whether all of it went. False
+   * also when the link dropped a fragment (its websocket congested: the rest is not sent,
+   * `video.dropped` counts it): the page makes its next picture a keyframe then.
+   */
   sendPicture(msg, now = this.now) {
     const datagrams = this.video.picture(msg, now);
     if (!datagrams) return false;
     try {
-      for (const d of datagrams) this.videoChannel.send(d);
+      for (const d of datagrams) {
+        if (this.videoChannel.send(d) === false) {
+          this.video.dropped += 1; // the rest of the frame is a gap the robot sees
+          return false;
+        }
+      }
     } catch {
       this.video.dropped += 1; // the rest of the frame is a gap the robot sees
       return false;
@@ -297,12 +307,15 @@ export class UserMediaService {
     return true;
   }
 
-  /** Send one checked Opus packet; whether it went. */
+  /** Send one checked Opus packet; whether it went (`audio.dropped` counts the link's drops). */
   sendPacket(msg, now = this.now) {
     const datagram = this.audio.packet(msg, now);
     if (!datagram) return false;
     try {
-      this.audioChannel.send(datagram);
+      if (this.audioChannel.send(datagram) === false) {
+        this.audio.dropped += 1;
+        return false;
+      }
     } catch {
       return false;
     }
