@@ -30,7 +30,7 @@ from rig import ROBOT, USER, Process, free_port, write_config
 from router_rig import RouterRig
 from telebot.apps import robot_cli, router_cli
 from telebot.channels.call import UserEndpoint
-from telebot.channels.transports.base import Sample
+from telebot.channels.transports.base import Lane, Sample
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.channels.transports.zenoh import ZenohTransport
 from telebot.config import CallSettings, RobotConfig, ZenohSettings, load_toml
@@ -41,6 +41,7 @@ from telebot.gateway.core import (
     Budget,
     KeyRules,
     Limits,
+    OutQueue,
     Refusal,
     TokenBucket,
     make_challenge,
@@ -48,6 +49,7 @@ from telebot.gateway.core import (
     parse_put,
 )
 from telebot.gateway.server import Gateway
+from telebot.gateway.tls import self_signed, server_context
 from telebot.identity import ContactBook, Identity, KnownRobots, Role
 from telebot.services.client import RobotClient
 
@@ -153,6 +155,35 @@ def test_parsing_refuses_garbage_in_one_short_line() -> None:
         and "\n" not in str(caught.value)
     )
     assert parse_put(put_frame("a/b", b"x" * MAX_PAYLOAD)).payload == b"x" * MAX_PAYLOAD
+
+
+def test_sub_token_and_watch_have_a_budget_of_their_own() -> None:
+    budget = Budget.of(Limits(declarations_per_s=10, declarations_burst=64))
+    for _ in range(64):
+        budget.declare(0.0)
+        budget.spend(100, 0.0)  # PUTs do not spend it, nor it theirs
+    with pytest.raises(Refusal, match="sub/token/watch") as caught:
+        budget.declare(0.0)
+    assert caught.value.code == "flood"
+    budget.declare(0.1)  # one more after a tenth of a second
+    budget.spend(100, 0.0)
+
+
+def test_the_out_queue_sends_control_first_and_drops_only_data_behind_data() -> None:
+    queue = OutQueue(Limits(out_frames=1024, out_bytes=1000, out_control_frames=3))
+    assert queue.push(b"d" * 400, control=False) == 0
+    assert queue.push(b"CTL1", control=True) == 0
+    assert queue.push("alive", control=True) == 0
+    dropped = sum(queue.push(bytes([n]) * 400, control=False) for n in range(5))
+    assert dropped == 4 and queue.dropped_data == 4 and queue.dropped_control == 0
+    assert queue.data_bytes <= 1000
+    # control first, in order; then the newest data that fit, oldest first
+    assert [queue.pop(), queue.pop()] == [b"CTL1", "alive"]
+    assert queue.pop() == bytes([3]) * 400 and queue.pop() == bytes([4]) * 400
+    assert queue.pop() is None and len(queue) == 0
+    # control frames are dropped only behind control frames, beyond their own bounds
+    assert sum(queue.push(f"c{n}", control=True) for n in range(5)) == 2
+    assert queue.dropped_control == 2 and queue.pop() == "c2"
 
 
 # --- a live gateway in this process --------------------------------------------------------
@@ -441,14 +472,188 @@ async def test_garbage_after_admission_cuts_off(live: Live, frame: str | bytes, 
     assert live.gateway.stats.cut == {code: 1} and live.gateway.stats.published == 0
 
 
-async def test_more_than_64_subscriptions_cut_off(live: Live) -> None:
+async def test_more_than_16_subscriptions_cut_off(live: Live) -> None:
     ws = await live.admitted(live.alice)
-    for ident in range(65):
+    for ident in range(17):
         await ws.send_str(
             json.dumps({"op": "sub", "id": ident, "key": f"{NS}/user/{USER}/{ident}"})
         )
     messages, code = await _closed(ws)
     assert code == 4008 and messages[-1]["code"] == "too_many"
+
+
+async def test_sub_token_watch_churn_is_cut_off_apart_from_puts(live: Live) -> None:
+    ws = await live.admitted(live.alice)
+    key = f"{NS}/user/{USER}/churn"
+    with contextlib.suppress(ConnectionError):
+        for ident in range(100):  # 200 messages: within 400 at once, far over 64 subs at once
+            await ws.send_str(json.dumps({"op": "sub", "id": ident, "key": key}))
+            await ws.send_str(json.dumps({"op": "unsub", "id": ident}))
+    messages, code = await _closed(ws)
+    assert code == 4008 and messages[-1]["code"] == "flood", messages[-1:]
+    assert "sub/token/watch" in messages[-1]["text"]
+    assert live.gateway.stats.cut == {"flood": 1}
+
+
+async def test_a_second_sub_on_the_same_key_is_an_error_and_not_declared(live: Live) -> None:
+    ws = await live.admitted(live.alice)
+    key = f"{NS}/user/{USER}/0123456789abcdef/in/{ROBOT}"
+    await ws.send_str(json.dumps({"op": "sub", "id": 1, "key": key}))
+    await ws.send_str(json.dumps({"op": "sub", "id": 2, "key": key}))
+    error = json.loads((await ws.receive(timeout=30)).data)
+    assert error["op"] == "error" and error["code"] == "duplicate", error
+    publisher = live.network.publisher(key)
+    ids: list[int] = []
+    for _ in range(300):
+        publisher.put(b"WELCOME")
+        with contextlib.suppress(TimeoutError):
+            ids.append(parse_sample((await ws.receive(timeout=0.2)).data)[0])
+            break
+    publisher.put(b"again")  # a second sample: were sub 2 declared, it would come twice
+    while len(ids) < 3:
+        try:
+            ids.append(parse_sample((await ws.receive(timeout=2)).data)[0])
+        except TimeoutError:
+            break
+    assert ids and set(ids) == {1}, ids
+    # Once unsubscribed, the key may be subscribed again.
+    await ws.send_str(json.dumps({"op": "unsub", "id": 1}))
+    await ws.send_str(json.dumps({"op": "sub", "id": 3, "key": key}))
+    for _ in range(300):
+        publisher.put(b"third")
+        with contextlib.suppress(TimeoutError):
+            msg = await ws.receive(timeout=0.2)
+            assert msg.type == aiohttp.WSMsgType.BINARY, msg.data
+            if parse_sample(msg.data)[0] == 3:
+                break
+    else:
+        raise AssertionError("no SAMPLE for the new subscription")
+    assert live.gateway.stats.cut == {}
+
+
+@contextlib.asynccontextmanager
+async def _another_gateway(live: Live, limits: Limits, **options: Any) -> AsyncIterator[Gateway]:
+    admitter = ContactsAdmitter(live.contacts, live.home)
+    async with Gateway(live.gateway.transport, admitter, port=0, limits=limits, **options) as gw:
+        yield gw
+
+
+async def test_connections_are_capped_in_all_and_per_address_before_the_websocket(
+    live: Live,
+) -> None:
+    async with _another_gateway(live, Limits(max_connections=3, max_pending_per_address=2)) as gw:
+        url = gw.url + "gateway"
+        pending = [await live.http.ws_connect(url) for _ in range(2)]  # challenged, silent
+        with pytest.raises(aiohttp.WSServerHandshakeError) as caught:
+            await live.http.ws_connect(url)
+        assert caught.value.status == 503
+        assert gw.stats.refused == {"busy": 1}
+        assert gw.stats.connections == 2  # the third never became a websocket
+        # One answers: no longer pending, so the address may open another.
+        assert (await admit(pending[0], live.alice))["op"] == "admitted"
+        third = await live.http.ws_connect(url)
+        async with live.http.get(url) as response:  # 3 websockets: full, for anyone
+            body = await response.text()
+            assert response.status == 503
+        assert body.count("\n") == 1 and "3 connections" in body
+        assert gw.stats.refused == {"busy": 1, "full": 1}
+        # Closing one frees its place.
+        await third.close()
+        await wait_until(lambda: len(gw._sockets) < 3, timeout=30)
+        fourth = await live.http.ws_connect(url)
+        assert json.loads((await fourth.receive(timeout=30)).data)["op"] == "challenge"
+        for ws in [*pending, fourth]:
+            await ws.close()
+
+
+async def test_an_admitted_name_has_at_most_its_connections(live: Live) -> None:
+    async with _another_gateway(live, Limits(max_per_name=2)) as gw:
+        url = gw.url + "gateway"
+        first, second, third = [await live.http.ws_connect(url) for _ in range(3)]
+        assert (await admit(first, live.alice))["op"] == "admitted"
+        assert (await admit(second, live.alice))["op"] == "admitted"
+        refused = await admit(third, live.alice)
+        assert refused["op"] == "refused" and refused["code"] == "too_many", refused
+        _, code = await _closed(third)
+        assert code == 4001
+        bob = await live.http.ws_connect(url)
+        assert (await admit(bob, live.bob))["op"] == "admitted"  # other names go on
+        await first.close()
+        await wait_until(lambda: gw.stats.active == 2, timeout=30)
+        again = await live.http.ws_connect(url)
+        assert (await admit(again, live.alice))["op"] == "admitted"
+        assert gw.stats.refused == {"too_many": 1}
+        for ws in (second, bob, again):
+            await ws.close()
+
+
+async def test_a_tls_client_that_never_finishes_its_handshake_is_dropped(live: Live) -> None:
+    cert, key, _ = self_signed(live.home / "tls", ["127.0.0.1"])
+    limits = Limits(tls_handshake_timeout=1.0)  # asyncio's own default: 60 s
+    async with _another_gateway(live, limits, ssl_context=server_context(cert, key)) as gw:
+        reader, writer = await asyncio.open_connection("127.0.0.1", gw.port)
+        try:
+            # Connected, silent: the gateway ends it long before asyncio's 60 s.
+            assert await asyncio.wait_for(reader.read(), timeout=30) == b""
+        finally:
+            writer.close()
+            with contextlib.suppress(ConnectionError):
+                await writer.wait_closed()
+
+
+async def test_control_frames_and_presence_pass_a_stalled_browsers_data(live: Live) -> None:
+    async with _another_gateway(live, Limits(out_bytes=100_000)) as gw:
+        ws = await live.http.ws_connect(gw.url + "gateway", max_msg_size=0)
+        assert (await admit(ws, live.alice))["op"] == "admitted"
+        base = f"{NS}/user/{USER}/0123456789abcdef"
+        await ws.send_str(json.dumps({"op": "sub", "id": 1, "key": f"{NS}/user/{USER}/**"}))
+        await ws.send_str(json.dumps({"op": "watch", "id": 2, "key": f"{NS}/presence/robot/*/*"}))
+        data = live.network.publisher(f"{base}/in/{ROBOT}")
+        ctl_key = f"{base}/call/{ROBOT}/0011223344556677/ctl"
+        ctl = live.network.publisher(ctl_key, Lane.CONTROL)
+        for _ in range(300):  # until the two sessions are connected
+            data.put(b"probe")
+            with contextlib.suppress(TimeoutError):
+                await ws.receive(timeout=0.2)
+                break
+        seq = 0
+
+        async def flood_until(dropped: int) -> None:
+            nonlocal seq
+            deadline = asyncio.get_running_loop().time() + 120
+            while gw.stats.dropped_out < dropped:
+                assert asyncio.get_running_loop().time() < deadline, gw.stats
+                for _ in range(20):
+                    seq += 1
+                    data.put(seq.to_bytes(4, "big") + bytes(30_000))
+                await asyncio.sleep(0.01)  # the gateway runs on this loop
+
+        # The browser reads nothing: its socket fills, then the data queue drops.
+        await flood_until(1)
+        before = seq
+        ctl.put(b"HEARTBEAT")
+        token_key = f"{NS}/presence/robot/{ROBOT}/{b64(os.urandom(32))}"
+        token = live.network.declare_presence(token_key)
+        await flood_until(gw.stats.dropped_out + 200)  # far more than the queue holds
+        got: list[Any] = []
+        deadline = asyncio.get_running_loop().time() + 120
+        while not (any(g == "ctl" for g in got) and any(g == "alive" for g in got)):
+            assert asyncio.get_running_loop().time() < deadline, got[-5:]
+            msg = await ws.receive(timeout=60)
+            if msg.type == aiohttp.WSMsgType.TEXT:
+                text = json.loads(msg.data)
+                if text.get("op") == "alive" and text["key"] == token_key:
+                    got.append("alive")
+            else:
+                _, key, payload = parse_sample(msg.data)
+                got.append("ctl" if key == ctl_key and payload == b"HEARTBEAT" else payload[:4])
+        token.close()
+        await ws.close()
+        # The heartbeat went out before every data frame published after it (all queued
+        # behind it, the writer stalled), and was never dropped for them.
+        after = [g for g in got[: got.index("ctl")] if isinstance(g, bytes) and len(g) == 4]
+        assert all(int.from_bytes(g, "big") <= before for g in after), (before, after[-3:])
+        assert gw.stats.dropped_control == 0 and gw.stats.dropped_out > 200
 
 
 async def test_the_page_is_served_at_the_root_when_installed(tmp_path: Path) -> None:

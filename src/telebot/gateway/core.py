@@ -12,6 +12,7 @@ this module what to do.
 
 from __future__ import annotations
 
+import collections
 import hashlib
 import hmac
 import json
@@ -38,6 +39,7 @@ __all__ = [
     "KeyRules",
     "Limits",
     "Op",
+    "OutQueue",
     "Put",
     "Refusal",
     "TokenBucket",
@@ -267,20 +269,35 @@ class KeyRules:
 
 @dataclass(frozen=True, slots=True)
 class Limits:
-    """Per-connection bounds (§26.3)."""
+    """The gateway's bounds (§26.3): per connection, per source address, per name, in all."""
 
     frames_per_s: float = 1000.0
     frames_burst: float = 2000.0
     bytes_per_s: float = 4_000_000.0
     bytes_burst: float = 8_000_000.0
-    max_subscriptions: int = 64
+    #: ``sub``/``token``/``watch`` messages (each a zenoh declaration), apart from PUTs.
+    declarations_per_s: float = 10.0
+    declarations_burst: float = 64.0
+    max_subscriptions: int = 16
     max_tokens: int = 64
     max_watches: int = 64
-    #: Frames and bytes queued towards one browser; the oldest is dropped beyond either.
+    #: Data frames and bytes queued towards one browser; the oldest is dropped beyond either.
     out_frames: int = 1024
-    out_bytes: int = 8_000_000
+    out_bytes: int = 512_000
+    #: Control frames (samples on ``…/ctl`` keys, text messages) queued towards one browser,
+    #: sent before any data frame and dropped (the oldest) only beyond these.
+    out_control_frames: int = 256
+    out_control_bytes: int = 256_000
     #: Seconds a browser has to answer the challenge.
     admission_timeout: float = 10.0
+    #: Websockets at once (admitted or not), and not yet admitted ones per source address;
+    #: beyond either a websocket request is answered HTTP 503.
+    max_connections: int = 32
+    max_pending_per_address: int = 4
+    #: Admitted websockets per name; beyond it the admission is refused (``too_many``).
+    max_per_name: int = 4
+    #: Seconds a client has to complete its TLS handshake (the listener's).
+    tls_handshake_timeout: float = 5.0
 
 
 @dataclass(slots=True)
@@ -314,10 +331,11 @@ class TokenBucket:
 
 @dataclass(slots=True)
 class Budget:
-    """One connection's frame and byte buckets."""
+    """One connection's frame and byte buckets, and its declarations' bucket."""
 
     frames: TokenBucket
     bytes: TokenBucket
+    declarations: TokenBucket
 
     @classmethod
     def of(cls, limits: Limits) -> Budget:
@@ -325,6 +343,7 @@ class Budget:
         return cls(
             TokenBucket(limits.frames_per_s, limits.frames_burst),
             TokenBucket(limits.bytes_per_s, limits.bytes_burst),
+            TokenBucket(limits.declarations_per_s, limits.declarations_burst),
         )
 
     def spend(self, size: int, now: float) -> None:
@@ -333,6 +352,89 @@ class Budget:
             raise Refusal("flood", f"over {self.frames.rate:g} messages/s")
         if not self.bytes.take(size, now):
             raise Refusal("flood", f"over {self.bytes.rate:g} bytes/s")
+
+    def declare(self, now: float) -> None:
+        """Count one ``sub``/``token``/``watch``; Refusal ``flood`` when over its budget."""
+        if not self.declarations.take(1, now):
+            raise Refusal("flood", f"over {self.declarations.rate:g} sub/token/watch messages/s")
+
+
+class OutQueue:
+    """What waits to go to one browser: control frames first, then data frames.
+
+    Two bounded queues: a control frame (a sample on a ``…/ctl`` key: heartbeats, safety
+    acknowledgements; a text message: presence changes, errors) is sent before every data
+    frame and is dropped only behind other control frames; each queue drops its oldest
+    beyond its bounds, and :attr:`dropped_control` / :attr:`dropped_data` count them.
+    """
+
+    __slots__ = (
+        "_control",
+        "_control_bytes",
+        "_data",
+        "_data_bytes",
+        "dropped_control",
+        "dropped_data",
+        "limits",
+    )
+
+    def __init__(self, limits: Limits) -> None:
+        self.limits = limits
+        self._control: collections.deque[str | bytes] = collections.deque()
+        self._data: collections.deque[str | bytes] = collections.deque()
+        self._control_bytes = 0
+        self._data_bytes = 0
+        self.dropped_control = 0
+        self.dropped_data = 0
+
+    def __len__(self) -> int:
+        return len(self._control) + len(self._data)
+
+    @property
+    def data_bytes(self) -> int:
+        """Bytes of data frames waiting."""
+        return self._data_bytes
+
+    def push(self, item: str | bytes, control: bool) -> int:
+        """Queue ``item``; how many older items of its kind were dropped to make room."""
+        dropped = 0
+        if control:
+            queue = self._control
+            queue.append(item)
+            self._control_bytes += len(item)
+            most, most_bytes = self.limits.out_control_frames, self.limits.out_control_bytes
+            while len(queue) > most or self._control_bytes > most_bytes:
+                self._control_bytes -= len(queue.popleft())
+                dropped += 1
+            self.dropped_control += dropped
+        else:
+            queue = self._data
+            queue.append(item)
+            self._data_bytes += len(item)
+            most, most_bytes = self.limits.out_frames, self.limits.out_bytes
+            while len(queue) > most or self._data_bytes > most_bytes:
+                self._data_bytes -= len(queue.popleft())
+                dropped += 1
+            self.dropped_data += dropped
+        return dropped
+
+    def pop(self) -> str | bytes | None:
+        """The next item to send (a control one if any), or None if nothing waits."""
+        if self._control:
+            item = self._control.popleft()
+            self._control_bytes -= len(item)
+            return item
+        if self._data:
+            item = self._data.popleft()
+            self._data_bytes -= len(item)
+            return item
+        return None
+
+    def clear(self) -> None:
+        """Forget everything waiting (not counted as dropped)."""
+        self._control.clear()
+        self._data.clear()
+        self._control_bytes = self._data_bytes = 0
 
 
 # --- messages after admission ------------------------------------------------------------

@@ -10,8 +10,12 @@ Every decision is :mod:`telebot.gateway.core`'s; this module only moves bytes:
 - then each message is counted against the connection's budget and parsed; a key the
   user may not use, garbage, or a flood ends the connection (``cut`` + 4008), counted and
   logged in one line, before anything of that message is forwarded;
-- towards the browser, samples and presence changes go through a bounded queue per
-  connection (the oldest dropped and counted), so a slow browser only loses its own.
+- towards the browser, samples and presence changes go through two bounded queues per
+  connection (:class:`~telebot.gateway.core.OutQueue`: control frames first, the oldest of
+  a kind dropped and counted), so a slow browser only loses its own, and data first;
+- connections are bounded in all, per source address before admission (HTTP 503 before
+  the websocket is accepted) and per admitted name (refused ``too_many``), and the TLS
+  handshake by :attr:`Limits.tls_handshake_timeout`.
 """
 
 from __future__ import annotations
@@ -52,6 +56,7 @@ from telebot.gateway.core import (
     KeyRules,
     Limits,
     Op,
+    OutQueue,
     Refusal,
     make_challenge,
     parse_admission,
@@ -91,6 +96,7 @@ class GatewayStats:
     frames_out: int = 0
     bytes_out: int = 0
     dropped_out: int = 0
+    dropped_control: int = 0
 
     def count(self, table: dict[str, int], code: str) -> None:
         """One more ``code`` in ``refused`` or ``cut``."""
@@ -133,6 +139,11 @@ class Gateway:
         self.stats = GatewayStats()
         self._browsers: set[_Browser] = set()
         self._runner: web.AppRunner | None = None
+        #: Websockets being served (admitted or not), not yet admitted ones by source
+        #: address, admitted ones (and admissions being answered) by name.
+        self._sockets: set[web.WebSocketResponse] = set()
+        self._pending: dict[str, int] = {}
+        self._names: dict[str, int] = {}
 
     @property
     def url(self) -> str:
@@ -152,7 +163,13 @@ class Gateway:
             app.router.add_static("/static/", self.static, show_index=False)
         self._runner = web.AppRunner(app, handle_signals=False, access_log=None)
         await self._runner.setup()
-        site = web.TCPSite(self._runner, self.host, self.port, ssl_context=self.ssl_context)
+        site = _Site(
+            self._runner,
+            self.host,
+            self.port,
+            ssl_context=self.ssl_context,
+            handshake_timeout=self.limits.tls_handshake_timeout,
+        )
         try:
             await site.start()
         except OSError:
@@ -166,9 +183,9 @@ class Gateway:
 
     async def close(self) -> None:
         """Close every websocket and the server; idempotent."""
-        for browser in list(self._browsers):
+        for ws in list(self._sockets):  # admitted or still being challenged
             with contextlib.suppress(Exception):
-                await browser.ws.close(code=1001, message=b"gateway shutting down")
+                await ws.close(code=1001, message=b"gateway shutting down")
         if self._runner is not None:
             runner, self._runner = self._runner, None
             await runner.cleanup()
@@ -207,26 +224,66 @@ class Gateway:
         return web.json_response(self.stats_json())
 
     async def _websocket(self, request: web.Request) -> web.StreamResponse:
+        peer = str(request.remote)
+        limits = self.limits
+        # Checked before the websocket is accepted, and counted before any await.
+        if len(self._sockets) >= limits.max_connections:
+            return self._busy("full", f"the gateway serves {limits.max_connections} connections")
+        if self._pending.get(peer, 0) >= limits.max_pending_per_address:
+            return self._busy(
+                "busy",
+                f"{peer} has {limits.max_pending_per_address} connections not yet admitted",
+            )
         # No permessage-deflate: the frames are sealed (ciphertext does not compress), so
         # deflating them only burns CPU on both ends, 30 pictures a second.
         ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE, heartbeat=30.0, compress=False)
-        await ws.prepare(request)
-        self.stats.connections += 1
-        peer = str(request.remote)
-        name = await self._admit(ws, peer)
-        if name is None:
-            return ws
-        browser = _Browser(self, ws, name, peer)
-        self._browsers.add(browser)
-        self.stats.admitted += 1
-        self.stats.active += 1
+        self._sockets.add(ws)
+        self._pending[peer] = self._pending.get(peer, 0) + 1
+        pending, name = True, None
         try:
-            await browser.serve()
+            await ws.prepare(request)
+            self.stats.connections += 1
+            name = await self._admit(ws, peer)  # counted in _names if admitted
+            pending = False
+            self._release_pending(peer)
+            if name is None:
+                return ws
+            browser = _Browser(self, ws, name, peer)
+            self._browsers.add(browser)
+            self.stats.admitted += 1
+            self.stats.active += 1
+            try:
+                await browser.serve()
+            finally:
+                self._browsers.discard(browser)
+                self.stats.active -= 1
+                browser.release()
+            return ws
         finally:
-            self._browsers.discard(browser)
-            self.stats.active -= 1
-            browser.release()
-        return ws
+            self._sockets.discard(ws)
+            if pending:
+                self._release_pending(peer)
+            if name is not None:
+                self._release_name(name)
+
+    def _busy(self, code: str, text: str) -> web.StreamResponse:
+        self.stats.count(self.stats.refused, code)
+        log.info("gateway: refused a connection: %s", text)
+        return web.Response(status=503, text=f"telebot gateway: {text}\n")
+
+    def _release_pending(self, peer: str) -> None:
+        left = self._pending.get(peer, 0) - 1
+        if left > 0:
+            self._pending[peer] = left
+        else:
+            self._pending.pop(peer, None)
+
+    def _release_name(self, name: str) -> None:
+        left = self._names.get(name, 0) - 1
+        if left > 0:
+            self._names[name] = left
+        else:
+            self._names.pop(name, None)
 
     # --- admission ----------------------------------------------------------------------
 
@@ -245,6 +302,12 @@ class Gateway:
             admit = parse_admission(msg.data)
             if not challenge.verify(admit.name, admit.key, admit.proof):
                 raise Refusal("bad_proof", f"the proof for {admit.name} does not verify")
+            # After the proof: only the key's holder can use up its name's connections.
+            if self._names.get(admit.name, 0) >= self.limits.max_per_name:
+                raise Refusal(
+                    "too_many",
+                    f"{admit.name} has {self.limits.max_per_name} connections here already",
+                )
             if admit.invite is not None:
                 self.admitter.redeem(admit.invite, admit.name, admit.key, self.wall_clock())
                 log.info("gateway: invite redeemed by %s from %s", admit.name, peer)
@@ -254,7 +317,12 @@ class Gateway:
                     raise Refusal("unknown_name", f"{admit.name} is not admitted here")
                 if known != admit.key:
                     raise Refusal("wrong_key", f"{admit.name} is admitted with another key")
-            await ws.send_str(json.dumps({"op": "admitted", "name": admit.name}))
+            self._names[admit.name] = self._names.get(admit.name, 0) + 1
+            try:
+                await ws.send_str(json.dumps({"op": "admitted", "name": admit.name}))
+            except BaseException:
+                self._release_name(admit.name)
+                raise
             return admit.name
         except Refusal as refusal:
             self.stats.count(self.stats.refused, refusal.code)
@@ -281,14 +349,15 @@ class _Browser:
         self.rules = KeyRules(gateway.namespace, name)
         self.budget = Budget.of(gateway.limits)
         self.subs: dict[int, Subscription] = {}
+        self.sub_keys: dict[int, str] = {}
         self.tokens: dict[int, Presence] = {}
         self.watches: dict[int, Subscription] = {}
         self.publishers: collections.OrderedDict[tuple[str, str], Publisher] = (
             collections.OrderedDict()
         )
-        self._headers: dict[tuple[int, str], bytes] = {}
-        self._out: collections.deque[str | bytes] = collections.deque()
-        self._out_bytes = 0
+        # SAMPLE header and whether the key is a call's control key, by (sub id, key).
+        self._headers: dict[tuple[int, str], tuple[bytes, bool]] = {}
+        self._out = OutQueue(gateway.limits)
         # The writer's wake-up while it waits for something to send (one future per wait,
         # cheaper than an Event's set/clear/wait for every frame).
         self._waiting: asyncio.Future[None] | None = None
@@ -353,12 +422,24 @@ class _Browser:
         limits = self.gateway.limits
         key = op.key or ""
         transport = self.gateway.transport
+        if op.key is not None:  # sub, token, watch: a zenoh declaration each
+            self.budget.declare(self.gateway.clock())
         match op.op:
             case "sub":
                 self._check(key, self.rules.may_subscribe, "subscribe to")
                 if self._taken(op, self.subs, limits.max_subscriptions, "subscriptions"):
                     return
                 sub_id = op.id
+                held = next((i for i, k in self.sub_keys.items() if k == key), None)
+                if held is not None:  # the same samples twice would only double the traffic
+                    self._send_text(
+                        {
+                            "op": "error",
+                            "code": "duplicate",
+                            "text": f"sub {sub_id}: {excerpt(key, 120)} is subscribed as {held}",
+                        }
+                    )
+                    return
                 self._declare(
                     self.subs,
                     op,
@@ -366,6 +447,8 @@ class _Browser:
                         key, lambda batch: self._samples(sub_id, batch), limits=_RECEIVE
                     ),
                 )
+                if sub_id in self.subs:
+                    self.sub_keys[sub_id] = key
             case "token":
                 self._check(key, self.rules.may_declare_token, "declare the token")
                 if self._taken(op, self.tokens, limits.max_tokens, "tokens"):
@@ -391,6 +474,8 @@ class _Browser:
                 }
                 table = tables[op.op]
                 entity = table.pop(op.id, None)
+                if op.op == "unsub":
+                    self.sub_keys.pop(op.id, None)
                 if entity is None:
                     self._send_text(
                         {"op": "error", "code": "unknown_id", "text": f"{op.op} {op.id}"}
@@ -426,30 +511,33 @@ class _Browser:
         headers = self._headers
         for sample in batch:
             slot = (sub_id, sample.key)
-            header = headers.get(slot)
-            if header is None:
+            known = headers.get(slot)
+            if known is None:
                 if len(headers) >= MAX_HEADERS:
                     headers.clear()
-                header = headers[slot] = sample_header(sub_id, sample.key)
-            self._enqueue(header + sample.payload)
+                known = headers[slot] = (
+                    sample_header(sub_id, sample.key),
+                    sample.key.endswith("/ctl"),
+                )
+            self._enqueue(known[0] + sample.payload, known[1])
 
     def _alive(self, watch_id: int, key: str, alive: bool) -> None:
         if watch_id in self.watches:
             self._send_text({"op": "alive", "id": watch_id, "key": key, "alive": alive})
 
     def _send_text(self, message: dict[str, Any]) -> None:
-        self._enqueue(json.dumps(message))
+        self._enqueue(json.dumps(message), True)  # presence changes, errors: control
 
-    def _enqueue(self, item: str | bytes) -> None:
+    def _enqueue(self, item: str | bytes, control: bool) -> None:
         if self._cut:
             return
-        limits, stats = self.gateway.limits, self.gateway.stats
-        self._out.append(item)
-        self._out_bytes += len(item)
-        while len(self._out) > limits.out_frames or self._out_bytes > limits.out_bytes:
-            dropped = self._out.popleft()
-            self._out_bytes -= len(dropped)
-            stats.dropped_out += 1
+        dropped = self._out.push(item, control)
+        if dropped:
+            stats = self.gateway.stats
+            if control:
+                stats.dropped_control += dropped
+            else:
+                stats.dropped_out += dropped
         waiting = self._waiting
         if waiting is not None:
             self._waiting = None
@@ -461,13 +549,12 @@ class _Browser:
         loop = asyncio.get_running_loop()
         try:
             while True:
-                if not out:
+                item = out.pop()
+                if item is None:
                     self._waiting = waiting = loop.create_future()
                     await waiting
                     continue
-                item = out.popleft()
                 size = len(item)
-                self._out_bytes -= size
                 if isinstance(item, bytes):
                     await ws.send_bytes(item)
                 else:
@@ -495,6 +582,7 @@ class _Browser:
 
     def release(self) -> None:
         """Undeclare everything this browser declared; idempotent."""
+        self.sub_keys.clear()
         tables: tuple[dict[int, Any], ...] = (self.subs, self.tokens, self.watches)
         for table in tables:
             entities = list(table.values())
@@ -507,3 +595,36 @@ class _Browser:
         for publisher in publishers:
             with contextlib.suppress(Exception):
                 publisher.close()
+
+
+class _Site(web.TCPSite):
+    """aiohttp's TCP site with a bound on the TLS handshake (``ssl_handshake_timeout``,
+    which ``web.TCPSite`` does not pass to ``loop.create_server``)."""
+
+    def __init__(
+        self,
+        runner: web.BaseRunner,
+        host: str,
+        port: int,
+        *,
+        ssl_context: ssl.SSLContext | None,
+        handshake_timeout: float,
+    ) -> None:
+        super().__init__(runner, host, port, ssl_context=ssl_context)
+        self._handshake_timeout = handshake_timeout
+
+    async def start(self) -> None:
+        if self._ssl_context is None:  # plain HTTP (loopback, tests): no handshake to bound
+            await super().start()
+            return
+        await web.BaseSite.start(self)  # registers the site with its runner
+        server = self._runner.server
+        assert server is not None
+        self._server = await asyncio.get_running_loop().create_server(
+            server,
+            self._host,
+            self._port,
+            ssl=self._ssl_context,
+            backlog=self._backlog,
+            ssl_handshake_timeout=self._handshake_timeout,
+        )
