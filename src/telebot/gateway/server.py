@@ -312,9 +312,11 @@ class Gateway:
                 if browser.name not in keys:
                     try:
                         keys[browser.name] = self.admitter.key_of(browser.name)
-                    except (Refusal, ConfigError, OSError):
+                    except (Refusal, ConfigError, OSError, ValueError):  # fails closed
                         keys[browser.name] = None
                 if keys[browser.name] != browser.key:
+                    # Cut from this task while the browser's own waits on its websocket:
+                    # aiohttp then closes the TCP connection right after the close frame.
                     refusal = Refusal("revoked", f"{browser.name} is no longer admitted here")
                     task = asyncio.create_task(browser._cut_off(refusal))
                     self._cutting.add(task)
