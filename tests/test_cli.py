@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import fcntl
+import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -11,7 +14,9 @@ import pytest
 from conftest import ROBOT, Homes, free_port, write_config
 from rig import GENEROUS_TIMEOUT
 from telebot import __version__
-from telebot.identity import ContactBook, KnownRobots
+from telebot.apps import robot_cli
+from telebot.gateway.admission import ContactsAdmitter
+from telebot.identity import ContactBook, Identity, KnownRobots, Role
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -130,6 +135,78 @@ def test_contacts_and_known_robots_are_edited_on_disk(tmp_path: Path) -> None:
     assert listing.stdout.startswith("alice\tdriver\t")
     assert run("robot", "contacts", "remove", "alice", "--home", str(robot_home)).returncode == 0
     assert len(ContactBook.load(robot_home)) == 0
+
+
+def test_invite_refuses_a_name_that_is_a_contact_unless_replace(tmp_path: Path) -> None:
+    home = str(tmp_path / "robot")
+    run("robot", "keygen", "guiabot", "--home", home)
+    alice = Identity.generate("alice")
+    assert (
+        run("robot", "contacts", "add", "alice", alice.public_line(), "--home", home).returncode
+        == 0
+    )
+    invite = ("robot", "invite", "alice", "--url", "https://robot:8443/", "--no-qr", "--home", home)
+    one_line_error(run(*invite), "alice is a contact already", "--replace")
+    assert not (tmp_path / "robot" / "invites.json").exists()  # nothing written
+    replacing = run(*invite, "--replace", "--role", "driver")
+    assert replacing.returncode == 0, replacing.stderr
+    token = replacing.stdout.split("#invite=", 1)[1].split("&", 1)[0]
+    # The invite written with --replace may replace alice (her key and role) when redeemed.
+    browser = Identity.generate("alice")
+    robot_book = ContactBook.load(tmp_path / "robot")
+    ContactsAdmitter(robot_book, tmp_path / "robot").redeem(
+        token, "alice", browser.public_key, time.time()
+    )
+    contact = ContactBook.load(tmp_path / "robot").by_key(browser.public_key)
+    assert contact is not None and contact.name == "alice" and contact.role is Role.DRIVER
+
+
+@pytest.mark.parametrize("action", ["add", "remove"])
+def test_contacts_add_and_remove_hold_the_lock_an_invite_redemption_holds(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, action: str
+) -> None:
+    home = tmp_path / "robot"
+    bob = Identity.generate("bob")
+    book = ContactBook.load(home)
+    book.add("bob", bob.public_key, Role.OBSERVER)
+    book.save()
+    held: list[bool] = []
+
+    def lock_is_held() -> None:  # another open file cannot take it while the command holds it
+        fd = os.open(home / "invites.lock", os.O_RDWR | os.O_CREAT, 0o600)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            held.append(False)
+        except BlockingIOError:
+            held.append(True)
+        finally:
+            os.close(fd)
+
+    load, save = ContactBook.load, ContactBook.save
+
+    def probed_load(cls: type[ContactBook], where: Path) -> ContactBook:
+        lock_is_held()
+        return load(where)
+
+    def probed_save(self: ContactBook) -> None:
+        lock_is_held()
+        save(self)
+
+    monkeypatch.setattr(ContactBook, "load", classmethod(probed_load))
+    monkeypatch.setattr(ContactBook, "save", probed_save)
+    args = (
+        ["add", "carol", Identity.generate("carol").public_line()]
+        if action == "add"
+        else [
+            "remove",
+            "bob",
+        ]
+    )
+    assert robot_cli.main(["contacts", *args, "--home", str(home)]) == 0
+    assert held == [True, True]  # read and written back under the lock: no lost update
+    monkeypatch.undo()
+    names = [c.name for c in ContactBook.load(home)]
+    assert names == (["bob", "carol"] if action == "add" else [])
 
 
 @pytest.mark.parametrize(

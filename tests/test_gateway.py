@@ -12,10 +12,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 import os
 import shutil
 import ssl
 import subprocess
+import sys
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,7 +37,15 @@ from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.channels.transports.zenoh import ZenohTransport
 from telebot.config import CallSettings, RobotConfig, ZenohSettings, load_toml
 from telebot.errors import ConfigError
-from telebot.gateway.admission import ContactsAdmitter, create_invite
+from telebot.gateway.admission import (
+    USERS_FILE,
+    ContactsAdmitter,
+    GatewayUsers,
+    UsersAdmitter,
+    contact_key,
+    create_invite,
+    read_invites,
+)
 from telebot.gateway.core import (
     MAX_PAYLOAD,
     Budget,
@@ -248,22 +258,25 @@ async def live(tmp_path: Path) -> AsyncIterator[Live]:
     async with (
         ZenohTransport(listen) as session,
         ZenohTransport(connect) as network,
-        Gateway(session, ContactsAdmitter(contacts, home), port=0, limits=limits) as gateway,
+        Gateway(
+            session, ContactsAdmitter(contacts, home), port=0, limits=limits, recheck=0.2
+        ) as gateway,
         aiohttp.ClientSession() as http,
     ):
         yield Live(gateway, network, home, contacts, alice, bob, http)
 
 
 async def _closed(ws: aiohttp.ClientWebSocketResponse) -> tuple[list[Any], int | None]:
-    """Every message until the gateway closes the websocket, and its close code."""
+    """Every message until the gateway closes the websocket, and its close code: the one
+    in the gateway's close frame (a browser reports that one; aiohttp's client says 1006
+    instead when the gateway has closed the connection before its reply got out, as when
+    a connection is cut from outside its own task, on being revoked)."""
     messages = []
     while True:
         msg = await ws.receive(timeout=30)
-        if msg.type in (
-            aiohttp.WSMsgType.CLOSE,
-            aiohttp.WSMsgType.CLOSED,
-            aiohttp.WSMsgType.CLOSING,
-        ):
+        if msg.type is aiohttp.WSMsgType.CLOSE:
+            return messages, int(msg.data)
+        if msg.type in (aiohttp.WSMsgType.CLOSED, aiohttp.WSMsgType.CLOSING):
             return messages, ws.close_code
         messages.append(json.loads(msg.data) if msg.type == aiohttp.WSMsgType.TEXT else msg.data)
 
@@ -757,6 +770,131 @@ def test_the_invite_command_prints_a_link_a_browser_can_redeem(
     assert contact is not None and contact.role is Role.DRIVER
     bad = robot_cli.main(["invite", "x", "--url", "http://robot/", "--home", str(home)])
     assert bad == 2 and "https" in capsys.readouterr().err
+
+
+async def test_an_invite_for_a_contact_is_refused_unless_it_may_replace_it(live: Live) -> None:
+    bob_ws = await live.admitted(live.bob)
+    token, _ = create_invite(live.home, "bob", Role.DRIVER, now=live.gateway.wall_clock())
+    mallory = Identity.generate("bob")
+    answer = await _redeem(live, mallory, token)
+    assert answer["op"] == "refused" and answer["code"] == "name_in_use", answer
+    # bob keeps his key and role, on disk and in the daemon's book.
+    assert contact_key(ContactBook.load(live.home), "bob") == live.bob.public_key
+    assert live.contacts.by_key(mallory.public_key) is None
+    assert live.contacts.by_key(live.bob.public_key) is not None
+    # An invite written with --replace may: the new key replaces bob's, with its role, and
+    # the open connection of the old key, which no longer holds, is cut.
+    token, _ = create_invite(
+        live.home, "bob", Role.DRIVER, now=live.gateway.wall_clock(), replace=True
+    )
+    assert await _redeem(live, mallory, token) == {"op": "admitted", "name": "bob"}
+    stored = ContactBook.load(live.home).by_key(mallory.public_key)
+    assert stored is not None and stored.name == "bob" and stored.role is Role.DRIVER
+    messages, code = await _closed(bob_ws)
+    assert code == 4008 and messages[-1]["op"] == "cut" and messages[-1]["code"] == "revoked"
+    assert live.gateway.stats.cut == {"revoked": 1}
+
+
+async def test_a_removed_contact_is_cut_off_and_the_others_do_not_notice(live: Live) -> None:
+    alice_ws, bob_ws = await live.admitted(live.alice), await live.admitted(live.bob)
+    remove = [sys.executable, "-m", "telebot.apps.robot_cli", "contacts", "remove", "bob"]
+    done = await asyncio.to_thread(
+        subprocess.run, [*remove, "--home", str(live.home)], capture_output=True, timeout=60
+    )
+    assert done.returncode == 0, done.stderr
+    messages, code = await _closed(bob_ws)
+    assert code == 4008 and messages == [
+        {"op": "cut", "code": "revoked", "text": "bob is no longer admitted here"}
+    ]
+    assert live.gateway.stats.cut == {"revoked": 1}
+    # alice is still served (an unknown id is answered, not cut), and bob is refused now.
+    await alice_ws.send_str(json.dumps({"op": "unsub", "id": 9}))
+    reply = json.loads((await alice_ws.receive(timeout=30)).data)
+    assert reply["op"] == "error" and reply["code"] == "unknown_id"
+    refused = await admit(await live.connect(), live.bob)
+    assert refused["op"] == "refused" and refused["code"] == "unknown_name"
+
+
+@pytest.mark.parametrize("case", ["invites", "contacts", "write"])
+async def test_a_gateway_file_that_fails_refuses_a_redemption_in_one_logged_line(
+    live: Live, case: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO)
+    token, _ = create_invite(live.home, "nurse1", Role.OBSERVER, now=live.gateway.wall_clock())
+    if case == "invites":
+        (live.home / "invites.json").write_text("{not json")
+    elif case == "contacts":
+        (live.home / "contacts.toml").write_text("[[[")
+    else:  # writing contacts.toml fails (its temporary file cannot be made)
+        (live.home / "contacts.toml.tmp").mkdir()
+    ws = await live.connect()
+    nurse = Identity.generate("nurse1")
+    answer = await admit(ws, nurse, invite=token)
+    assert answer["op"] == "refused" and answer["code"] == "gateway_error", answer
+    assert str(live.home) not in answer["text"]  # the details are for the log, not the browser
+    _, code = await _closed(ws)
+    assert code == 4001
+    assert live.gateway.stats.refused == {"gateway_error": 1}
+    assert not any(r.exc_info for r in caplog.records), "a traceback was logged"
+    said = [r for r in caplog.records if "gateway_error" in r.getMessage()]
+    assert len(said) == 1 and said[0].levelno == logging.WARNING
+    assert "\n" not in said[0].getMessage()
+    assert live.contacts.by_key(nurse.public_key) is None
+    if case == "write":
+        # Undone: the invite is unused again, and once the trouble is gone it works, once.
+        assert not any(i.used for i in read_invites(live.home).values())
+        (live.home / "contacts.toml.tmp").rmdir()
+        assert await _redeem(live, nurse, token) == {"op": "admitted", "name": "nurse1"}
+        again = await _redeem(live, Identity.generate("nurse1"), token)
+        assert again["code"] == "invite_used"
+
+
+def test_a_redemption_marks_the_invite_used_before_it_saves_the_contact(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    token, _ = create_invite(tmp_path, "nurse1", Role.OBSERVER, now=1000.0)
+    admitter = ContactsAdmitter(ContactBook.load(tmp_path), tmp_path)
+    used_when_saved: list[bool] = []
+
+    def save_fails(self: ContactBook) -> None:
+        used_when_saved.extend(i.used for i in read_invites(tmp_path).values())
+        raise OSError("disk full")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(ContactBook, "save", save_fails)
+        with pytest.raises(OSError, match="disk full"):
+            admitter.redeem(token, "nurse1", Identity.generate("nurse1").public_key, 1001.0)
+    assert used_when_saved == [True]  # a crash while saving can never leave it redeemable
+    assert [i.used for i in read_invites(tmp_path).values()] == [False]  # the failure undone
+    admitter.redeem(token, "nurse1", Identity.generate("nurse1").public_key, 1002.0)
+    assert [i.used for i in read_invites(tmp_path).values()] == [True]
+
+
+async def test_a_revoked_or_removed_gateway_user_is_refused_and_cut_off(tmp_path: Path) -> None:
+    directory = tmp_path / "router"
+    alice, bob = Identity.generate(USER), Identity.generate("bob")
+    GatewayUsers(directory / USERS_FILE, {USER: alice.public_key, "bob": bob.public_key}).save()
+    async with (
+        MemoryTransport(MemoryHub(), "gateway") as transport,
+        Gateway(transport, UsersAdmitter(directory), port=0, recheck=0.2) as gateway,
+        aiohttp.ClientSession() as http,
+    ):
+        url = gateway.url + "gateway"
+        alice_ws, bob_ws = await http.ws_connect(url), await http.ws_connect(url)
+        assert await admit(alice_ws, alice) == {"op": "admitted", "name": USER}
+        assert await admit(bob_ws, bob) == {"op": "admitted", "name": "bob"}
+        revoke = ["revoke", str(directory), "--user", USER]
+        assert await asyncio.to_thread(router_cli.main, revoke) == 0
+        messages, code = await _closed(alice_ws)
+        assert code == 4008 and messages[-1]["code"] == "revoked"
+        refused = await admit(await http.ws_connect(url), alice)
+        assert refused["op"] == "refused" and refused["code"] == "revoked"
+        remove = ["gateway-user", "remove", str(directory), "bob"]
+        assert await asyncio.to_thread(router_cli.main, remove) == 0
+        messages, code = await _closed(bob_ws)
+        assert code == 4008 and messages[-1]["code"] == "revoked"
+        assert gateway.stats.cut == {"revoked": 2}
+        assert gateway.stats.refused == {"revoked": 1}
 
 
 # --- the router's gateway over HTTPS ---------------------------------------------------------

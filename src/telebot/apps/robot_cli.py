@@ -71,7 +71,8 @@ def build_parser() -> Parser:
         "where the running daemon's browser gateway ([gateway] in its config) reads it, and "
         "print the link and its QR code. The browser that opens the link registers its own "
         "key as NAME (the link carries the robot's key, which the browser pins); the invite "
-        "then is used up. 'contacts list/remove' show and remove the contact like any other.",
+        "then is used up. 'contacts list/remove' show and remove the contact like any other. "
+        "A NAME that is a contact already is refused unless --replace is given.",
     )
     invite.add_argument("name", type=name_arg, help="the contact's name (e.g. nurse1)")
     invite.add_argument(
@@ -86,6 +87,11 @@ def build_parser() -> Parser:
         metavar="URL",
         help="the robot gateway's address as the browser reaches it (default "
         "https://HOSTNAME:8443/)",
+    )
+    invite.add_argument(
+        "--replace",
+        action="store_true",
+        help="let the browser replace the key and role of contact NAME if there is one",
     )
     invite.add_argument("--no-qr", action="store_true", help="print the link only")
     add_home_option(invite, "robot")
@@ -241,7 +247,7 @@ def _invite(args: argparse.Namespace, home: Path) -> int:
     import time
     from urllib.parse import urlsplit
 
-    from telebot.gateway.admission import create_invite
+    from telebot.gateway.admission import contact_key, create_invite
 
     identity = Identity.load(home)
     url = args.url or f"https://{socket.gethostname()}:8443/"
@@ -253,7 +259,16 @@ def _invite(args: argparse.Namespace, home: Path) -> int:
             file=sys.stderr,
         )
         return EXIT_USAGE
-    token, invite = create_invite(home, args.name, Role(args.role), time.time())
+    if not args.replace and contact_key(ContactBook.load(home), args.name) is not None:
+        print(
+            f"{PROG}: error: {args.name} is a contact already; --replace lets the invite "
+            "replace its key and role",
+            file=sys.stderr,
+        )
+        return EXIT_USAGE
+    token, invite = create_invite(
+        home, args.name, Role(args.role), time.time(), replace=args.replace
+    )
     base = url if url.endswith("/") else url + "/"
     link = f"{base}#invite={token}&robot={identity.name}&key={encode_key(identity.public_key)}"
     minutes = round((invite.expires - time.time()) / 60)
@@ -266,14 +281,21 @@ def _invite(args: argparse.Namespace, home: Path) -> int:
     return EXIT_OK
 
 
-def _contacts(args: argparse.Namespace, home: Any) -> int:
-    book = ContactBook.load(home)
+def _contacts(args: argparse.Namespace, home: Path) -> int:
     if args.action == "list":
-        for contact in book:
+        for contact in ContactBook.load(home):
             print(
                 f"{contact.name}\t{contact.role.value}\t{encode_key(contact.public_key)}\t{fingerprint(contact.public_key)}"
             )
         return EXIT_OK
+    from telebot.gateway.admission import locked
+
+    # The lock a browser gateway's invite redemption holds: neither loses the other's change.
+    with locked(home):
+        return _edit_contacts(args, ContactBook.load(home))
+
+
+def _edit_contacts(args: argparse.Namespace, book: ContactBook) -> int:
     if args.action == "add":
         try:
             key = parse_public_key(args.public_key)

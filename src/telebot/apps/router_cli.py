@@ -130,7 +130,9 @@ def build_parser() -> Parser:
     cert.add_argument("--force", action="store_true", help="replace an existing certificate")
 
     revoke = commands.add_parser(
-        "revoke", help="take a name out of the ACL (takes effect when the router restarts)"
+        "revoke",
+        help="take a name out of the ACL (takes effect when the router restarts; the browser "
+        "gateway refuses a revoked user at once and cuts its open connections within 5 s)",
     )
     revoke.add_argument("dir", type=Path, help="the router directory")
     _add_who(revoke)
@@ -147,8 +149,9 @@ def build_parser() -> Parser:
         "gateway-user",
         help="list or edit the users the router's browser gateway admits",
         description="The browser gateway ('run' serves it at https://HOST:8443/ once this "
-        "list has a user) admits a browser that proves it holds the key listed for its name. "
-        "Changes take effect at the next admission, without a restart.",
+        "list has a user) admits a browser that proves it holds the key listed for its name "
+        "(and is not revoked). Changes take effect at the next admission, without a restart; "
+        "an open connection whose user was removed is cut within 5 s.",
     )
     actions = users.add_subparsers(dest="action", metavar="ACTION", parser_class=Parser)
     actions.required = True
@@ -265,6 +268,8 @@ def _cmd_revoke(args: argparse.Namespace) -> int:
     kind, name = _who(args)
     cn = certs.revoke(args.dir, kind, name)
     print(f"{cn} revoked: the router's ACL lets it do nothing once the router restarts")
+    if kind == "user":
+        print(f"the browser gateway refuses {name} now (an open connection within 5 s)")
     return EXIT_OK
 
 

@@ -4,7 +4,8 @@ Router (``telebot-router gateway-user add DIR NAME KEY``)::
 
     DIR/gateway-users.toml     [users.alice] public_key = "..."
 
-read again at every admission, so adding or removing a user needs no restart.
+read again at every admission, so adding or removing a user needs no restart; a name
+``telebot-router revoke DIR --user NAME`` put in ``DIR/revoked.txt`` is refused (``revoked``).
 
 Robot: its contacts (``<home>/contacts.toml``, the same book the robot answers calls from),
 and one-time invites written by ``telebot-robot invite``::
@@ -12,8 +13,13 @@ and one-time invites written by ``telebot-robot invite``::
     <home>/invites.json        {"<sha256 of the token, hex>": {"name", "role", "expires", "used"}}
 
 The token itself is only in the link; a redeemed invite is marked used and kept until it
-expires. Reading and rewriting the file holds an ``flock`` on ``invites.lock`` beside it,
-so the command line and the running daemon never overwrite each other's changes.
+expires. Every change of ``invites.json`` or ``contacts.toml`` (an invite written or
+redeemed, ``telebot-robot contacts add/remove``) holds an ``flock`` on ``invites.lock``
+beside them (:func:`locked`), so the command line and the running daemon never overwrite
+each other's changes.
+
+Both admitters say what their answers depend on (:meth:`Admitter.stamp`: the files' size,
+mtime and inode), so a gateway re-checks its open connections only when that changed.
 """
 
 from __future__ import annotations
@@ -33,7 +39,8 @@ from typing import Final, Protocol
 from telebot.channels.proto.frames import validate_name
 from telebot.errors import ConfigError
 from telebot.gateway.core import Refusal
-from telebot.identity import ContactBook, Role, decode_key, encode_key
+from telebot.identity import CONTACTS_FILE, ContactBook, Role, decode_key, encode_key
+from telebot.router.certs import common_name, read_revoked
 
 __all__ = [
     "INVITES_FILE",
@@ -44,7 +51,9 @@ __all__ = [
     "GatewayUsers",
     "Invite",
     "UsersAdmitter",
+    "contact_key",
     "create_invite",
+    "locked",
     "read_invites",
 ]
 
@@ -57,10 +66,16 @@ class Admitter(Protocol):
     """What a gateway asks about a browser's claimed identity."""
 
     def key_of(self, name: str) -> bytes | None:
-        """The key ``name`` is admitted with, or None."""
+        """The key ``name`` is admitted with, or None; Refusal for a name barred outright
+        (``revoked``)."""
+
+    def stamp(self) -> object:
+        """Something that changes whenever :meth:`key_of`'s answers may have (cheap: the
+        files' ``stat``), so open connections are re-checked only then."""
 
     def redeem(self, token: str, name: str, key: bytes, now: float) -> None:
-        """Register ``key`` as ``name`` with invite ``token`` (wall-clock ``now``); Refusal if not."""
+        """Register ``key`` as ``name`` with invite ``token`` (wall-clock ``now``); Refusal if
+        not; ConfigError or OSError if the files cannot be read or written."""
 
 
 def _write_atomically(path: Path, text: str, mode: int = 0o600) -> None:
@@ -71,6 +86,14 @@ def _write_atomically(path: Path, text: str, mode: int = 0o600) -> None:
     with os.fdopen(fd, "w", encoding="utf-8") as handle:
         handle.write(text)
     os.replace(tmp, path)
+
+
+def _stat(path: Path) -> tuple[int, int, int] | None:
+    try:
+        info = path.stat()
+    except OSError:
+        return None
+    return (info.st_ino, info.st_mtime_ns, info.st_size)
 
 
 # --- the router's user list -------------------------------------------------------------
@@ -116,17 +139,27 @@ class GatewayUsers:
 
 
 class UsersAdmitter:
-    """The router's admission: ``gateway-users.toml``, read again at every admission."""
+    """The router's admission: ``gateway-users.toml``, read again at every admission, less
+    the users ``revoked.txt`` names (``user:NAME``, as ``telebot-router revoke`` writes)."""
 
     def __init__(self, directory: Path) -> None:
         self.directory = directory
 
     def key_of(self, name: str) -> bytes | None:
-        """The key of gateway user ``name``; an unreadable list admits nobody."""
+        """The key of gateway user ``name``; an unreadable list admits nobody; Refusal
+        (``revoked``) for a revoked user."""
         try:
-            return GatewayUsers.load(self.directory).users.get(name)
-        except ConfigError:
+            key = GatewayUsers.load(self.directory).users.get(name)
+            revoked = key is not None and common_name("user", name) in read_revoked(self.directory)
+        except (ConfigError, OSError, UnicodeDecodeError):
             return None
+        if revoked:
+            raise Refusal("revoked", f"{name} was revoked on this router")
+        return key
+
+    def stamp(self) -> object:
+        """The user list's and the revocation list's ``stat``."""
+        return (_stat(self.directory / USERS_FILE), _stat(self.directory / "revoked.txt"))
 
     def redeem(self, token: str, name: str, key: bytes, now: float) -> None:
         """A router has no invites."""
@@ -144,6 +177,8 @@ class Invite:
     role: Role
     expires: float
     used: bool = False
+    #: Whether redeeming it may replace an existing contact of that name (``--replace``).
+    replace: bool = False
 
 
 def _token_hash(token: str) -> str:
@@ -151,7 +186,8 @@ def _token_hash(token: str) -> str:
 
 
 @contextlib.contextmanager
-def _locked(home: Path) -> Iterator[None]:
+def locked(home: Path) -> Iterator[None]:
+    """Hold the lock on ``home``'s ``invites.json`` and ``contacts.toml`` (``invites.lock``)."""
     home.mkdir(parents=True, exist_ok=True)
     fd = os.open(home / "invites.lock", os.O_RDWR | os.O_CREAT, 0o600)
     try:
@@ -172,6 +208,7 @@ def read_invites(home: Path) -> dict[str, Invite]:
                 Role(entry["role"]),
                 float(entry["expires"]),
                 bool(entry["used"]),
+                bool(entry.get("replace", False)),
             )
             for digest, entry in data.items()
         }
@@ -184,26 +221,43 @@ def read_invites(home: Path) -> dict[str, Invite]:
 def _write_invites(home: Path, invites: dict[str, Invite], now: float) -> None:
     # Expired invites are of no use to anyone: they go at the next write.
     data = {
-        digest: {"name": i.name, "role": i.role.value, "expires": i.expires, "used": i.used}
+        digest: {
+            "name": i.name,
+            "role": i.role.value,
+            "expires": i.expires,
+            "used": i.used,
+            "replace": i.replace,
+        }
         for digest, i in invites.items()
         if i.expires > now
     }
     _write_atomically(home / INVITES_FILE, json.dumps(data, indent=1) + "\n")
 
 
-def create_invite(home: Path, name: str, role: Role, now: float) -> tuple[str, Invite]:
-    """A new one-time invite for ``name`` as ``role``, valid :data:`INVITE_SECONDS`.
+def create_invite(
+    home: Path, name: str, role: Role, now: float, *, replace: bool = False
+) -> tuple[str, Invite]:
+    """A new one-time invite for ``name`` as ``role``, valid :data:`INVITE_SECONDS`;
+    ``replace``: its redemption may replace an existing contact ``name`` (else refused).
 
     Returns the token (for the link only: the file keeps its SHA-256) and the invite.
     """
     validate_name(name, "contact name")
     token = secrets.token_urlsafe(32)
-    invite = Invite(name, role, now + INVITE_SECONDS)
-    with _locked(home):
+    invite = Invite(name, role, now + INVITE_SECONDS, replace=replace)
+    with locked(home):
         invites = read_invites(home)
         invites[_token_hash(token)] = invite
         _write_invites(home, invites, now)
     return token, invite
+
+
+def contact_key(book: ContactBook, name: str) -> bytes | None:
+    """The key of contact ``name`` in ``book``, or None."""
+    for contact in book:
+        if contact.name == name:
+            return contact.public_key
+    return None
 
 
 class ContactsAdmitter:
@@ -232,18 +286,21 @@ class ContactsAdmitter:
     def key_of(self, name: str) -> bytes | None:
         """The key of contact ``name`` in ``contacts.toml``; an unreadable book admits nobody."""
         try:
-            book = ContactBook.load(self.home)
+            return contact_key(ContactBook.load(self.home), name)
         except ConfigError:
             return None
-        for contact in book:
-            if contact.name == name:
-                return contact.public_key
-        return None
+
+    def stamp(self) -> object:
+        """``contacts.toml``'s ``stat``."""
+        return _stat(self.home / CONTACTS_FILE)
 
     def redeem(self, token: str, name: str, key: bytes, now: float) -> None:
-        """Add ``key`` as contact ``name`` with the invite's role; mark the invite used."""
+        """Add ``key`` as contact ``name`` with the invite's role; mark the invite used.
+
+        The invite is marked used before the contact is saved, and marked unused again if
+        that fails: a token admits one browser at most, whatever fails when."""
         digest = _token_hash(token)
-        with _locked(self.home):
+        with locked(self.home):
             invites = read_invites(self.home)
             invite = invites.get(digest)
             if invite is None:
@@ -260,11 +317,24 @@ class ContactsAdmitter:
             owner = book.by_key(key)
             if owner is not None and owner.name != name:
                 raise Refusal("key_in_use", f"this key is contact {owner.name!r} already")
-            book.add(name, key, invite.role)
-            book.save()
+            if not invite.replace and contact_key(book, name) is not None:
+                raise Refusal(
+                    "name_in_use",
+                    f"{name!r} is a contact already and this invite may not replace it",
+                )
+            invites[digest] = Invite(
+                invite.name, invite.role, invite.expires, used=True, replace=invite.replace
+            )
+            _write_invites(self.home, invites, now)
+            try:
+                book.add(name, key, invite.role)
+                book.save()
+            except BaseException:
+                invites[digest] = invite
+                with contextlib.suppress(OSError):  # then it stays used: never twice
+                    _write_invites(self.home, invites, now)
+                raise
             role, contacts = invite.role, self.contacts
             # Handed over before the browser hears "admitted": its first HELLO reaches the
             # book's thread after this (call_soon_threadsafe keeps the order).
             self.hand_over(lambda: contacts.add(name, key, role))
-            invites[digest] = Invite(invite.name, invite.role, invite.expires, used=True)
-            _write_invites(self.home, invites, now)

@@ -7,6 +7,8 @@ Every decision is :mod:`telebot.gateway.core`'s; this module only moves bytes:
 
 - admission: send the challenge, wait (bounded) for the answer, ask the core and the
   :class:`~telebot.gateway.admission.Admitter`, answer ``admitted`` or ``refused`` + 4001;
+- every :data:`RECHECK` seconds, when the admitter's files changed, each open connection
+  whose name no longer holds its key (removed, revoked, another key) is cut (``revoked``);
 - then each message is counted against the connection's budget and parsed; a key the
   user may not use, garbage, or a flood ends the connection (``cut`` + 4008), counted and
   logged in one line, before anything of that message is forwarded;
@@ -45,7 +47,7 @@ from telebot.channels.transports.base import (
     Subscription,
     Transport,
 )
-from telebot.errors import TransportError, excerpt
+from telebot.errors import ConfigError, TransportError, excerpt
 from telebot.gateway.admission import Admitter
 from telebot.gateway.core import (
     CLOSE_CUT,
@@ -79,6 +81,8 @@ MAX_PUBLISHERS = 32
 MAX_HEADERS = 256
 _LANES = {"control": Lane.CONTROL, "data": Lane.DATA, "bulk": Lane.BULK}
 _RECEIVE = ReceiveLimits(max_samples=512, max_bytes=4_000_000, max_payload=MAX_PAYLOAD)
+#: How often (seconds) open connections are checked against the admitter's files, if changed.
+RECHECK = 5.0
 
 
 @dataclass(slots=True)
@@ -123,6 +127,7 @@ class Gateway:
         static: Path = STATIC,
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], float] = time.time,
+        recheck: float = RECHECK,
     ) -> None:
         if ssl_context is None and host not in ("127.0.0.1", "::1", "localhost"):
             raise ValueError(f"the gateway serves plain HTTP on loopback only, not on {host}")
@@ -136,6 +141,7 @@ class Gateway:
         self.static = static
         self.clock = clock
         self.wall_clock = wall_clock
+        self.recheck = recheck
         self.stats = GatewayStats()
         self._browsers: set[_Browser] = set()
         self._runner: web.AppRunner | None = None
@@ -144,6 +150,8 @@ class Gateway:
         self._sockets: set[web.WebSocketResponse] = set()
         self._pending: dict[str, int] = {}
         self._names: dict[str, int] = {}
+        self._rechecking: asyncio.Task[None] | None = None
+        self._cutting: set[asyncio.Task[None]] = set()
 
     @property
     def url(self) -> str:
@@ -179,10 +187,16 @@ class Gateway:
         if self.port == 0:
             sockets = getattr(site._server, "sockets", None) or []
             self.port = int(sockets[0].getsockname()[1])
+        self._rechecking = asyncio.create_task(self._recheck(), name="gateway recheck")
         log.info("browser gateway at %s", self.url)
 
     async def close(self) -> None:
         """Close every websocket and the server; idempotent."""
+        if self._rechecking is not None:
+            self._rechecking.cancel()
+            self._rechecking = None
+        for task in list(self._cutting):
+            task.cancel()
         for ws in list(self._sockets):  # admitted or still being challenged
             with contextlib.suppress(Exception):
                 await ws.close(code=1001, message=b"gateway shutting down")
@@ -243,12 +257,13 @@ class Gateway:
         try:
             await ws.prepare(request)
             self.stats.connections += 1
-            name = await self._admit(ws, peer)  # counted in _names if admitted
+            admitted = await self._admit(ws, peer)  # its name counted in _names if admitted
             pending = False
             self._release_pending(peer)
-            if name is None:
+            if admitted is None:
                 return ws
-            browser = _Browser(self, ws, name, peer)
+            name, key = admitted
+            browser = _Browser(self, ws, name, peer, key)
             self._browsers.add(browser)
             self.stats.admitted += 1
             self.stats.active += 1
@@ -287,7 +302,7 @@ class Gateway:
 
     # --- admission ----------------------------------------------------------------------
 
-    async def _admit(self, ws: web.WebSocketResponse, peer: str) -> str | None:
+    async def _admit(self, ws: web.WebSocketResponse, peer: str) -> tuple[str, bytes] | None:
         challenge = make_challenge(os.urandom(32), os.urandom(32))
         try:
             await ws.send_str(json.dumps(challenge.message(self.namespace)))
@@ -308,25 +323,37 @@ class Gateway:
                     "too_many",
                     f"{admit.name} has {self.limits.max_per_name} connections here already",
                 )
-            if admit.invite is not None:
-                self.admitter.redeem(admit.invite, admit.name, admit.key, self.wall_clock())
-                log.info("gateway: invite redeemed by %s from %s", admit.name, peer)
-            else:
-                known = self.admitter.key_of(admit.name)
-                if known is None:
-                    raise Refusal("unknown_name", f"{admit.name} is not admitted here")
-                if known != admit.key:
-                    raise Refusal("wrong_key", f"{admit.name} is admitted with another key")
+            try:
+                if admit.invite is not None:
+                    self.admitter.redeem(admit.invite, admit.name, admit.key, self.wall_clock())
+                    log.info("gateway: invite redeemed by %s from %s", admit.name, peer)
+                else:
+                    known = self.admitter.key_of(admit.name)
+                    if known is None:
+                        raise Refusal("unknown_name", f"{admit.name} is not admitted here")
+                    if known != admit.key:
+                        raise Refusal("wrong_key", f"{admit.name} is admitted with another key")
+            except (ConfigError, OSError) as exc:  # the gateway's files: its trouble, said once
+                text = "the gateway cannot read or write its lists (its log says why)"
+                raise Refusal("gateway_error", text) from exc
             self._names[admit.name] = self._names.get(admit.name, 0) + 1
             try:
                 await ws.send_str(json.dumps({"op": "admitted", "name": admit.name}))
             except BaseException:
                 self._release_name(admit.name)
                 raise
-            return admit.name
+            return admit.name, admit.key
         except Refusal as refusal:
             self.stats.count(self.stats.refused, refusal.code)
-            log.info("gateway: refused %s: %s", peer, excerpt(str(refusal)))
+            if isinstance(refusal.__cause__, (ConfigError, OSError)):
+                log.warning(
+                    "gateway: refused %s: %s: %s",
+                    peer,
+                    refusal.code,
+                    excerpt(str(refusal.__cause__)),
+                )
+            else:
+                log.info("gateway: refused %s: %s", peer, excerpt(str(refusal)))
             with contextlib.suppress(Exception):
                 await ws.send_str(
                     json.dumps({"op": "refused", "code": refusal.code, "text": refusal.text})
@@ -337,15 +364,46 @@ class Gateway:
         except (ConnectionError, RuntimeError):  # the browser went away mid-admission
             return None
 
+    # --- re-checking open connections ---------------------------------------------------
+
+    async def _recheck(self) -> None:
+        """Cut each open connection whose name no longer holds its key: checked when the
+        admitter's files changed since that connection was last checked (or never was)."""
+        while True:
+            await asyncio.sleep(self.recheck)
+            stamp = self.admitter.stamp()  # before reading: a later change is seen next time
+            keys: dict[str, bytes | None] = {}
+            for browser in list(self._browsers):
+                if browser.stamp == stamp or browser._cut:
+                    continue
+                browser.stamp = stamp
+                if browser.name not in keys:
+                    try:
+                        keys[browser.name] = self.admitter.key_of(browser.name)
+                    except (Refusal, ConfigError, OSError, ValueError):  # fails closed
+                        keys[browser.name] = None
+                if keys[browser.name] != browser.key:
+                    # Cut from this task while the browser's own waits on its websocket:
+                    # aiohttp then closes the TCP connection right after the close frame.
+                    refusal = Refusal("revoked", f"{browser.name} is no longer admitted here")
+                    task = asyncio.create_task(browser._cut_off(refusal))
+                    self._cutting.add(task)
+                    task.add_done_callback(self._cutting.discard)
+
 
 class _Browser:
     """One admitted websocket: its budget, subscriptions, tokens, watches, out queue."""
 
-    def __init__(self, gateway: Gateway, ws: web.WebSocketResponse, name: str, peer: str) -> None:
+    def __init__(
+        self, gateway: Gateway, ws: web.WebSocketResponse, name: str, peer: str, key: bytes
+    ) -> None:
         self.gateway = gateway
         self.ws = ws
         self.name = name
         self.peer = peer
+        self.key = key
+        #: The admitter's stamp when last re-checked (never yet: matches no stamp).
+        self.stamp: object = object()
         self.rules = KeyRules(gateway.namespace, name)
         self.budget = Budget.of(gateway.limits)
         self.subs: dict[int, Subscription] = {}
@@ -370,6 +428,8 @@ class _Browser:
         try:
             async for msg in self.ws:
                 kind = msg.type
+                if self._cut:  # cut off from outside (revoked): nothing more goes anywhere
+                    break
                 if kind is WSMsgType.BINARY or kind is WSMsgType.TEXT:
                     data = msg.data  # bytes (BINARY) or str (TEXT)
                     size = len(data)
