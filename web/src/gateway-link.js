@@ -15,6 +15,7 @@
 import { x25519 } from "@noble/curves/ed25519";
 import { hmac } from "@noble/hashes/hmac";
 import { sha256 } from "@noble/hashes/sha2";
+import { decodeKey as decodeIdentityKey, encodeKey } from "./identity.js";
 
 /** Why the gateway refused, cut off or could not be reached: one line for people. */
 export class GatewayError extends Error {
@@ -49,28 +50,19 @@ function excerpt(text, limit = 200) {
   return line.length <= limit ? line : `${line.slice(0, limit - 1)}… (${line.length} characters)`;
 }
 
-/**
- * A 32-byte key as 43 URL-safe base64 characters without padding (§3.1).
- * @param {Uint8Array} bytes
- */
-export function encodeKey(bytes) {
-  let binary = "";
-  for (const b of bytes) binary += String.fromCharCode(b);
-  return btoa(binary).replace(/\+/g, "-").replace(/\//g, "_").replace(/=+$/, "");
-}
+/** A 32-byte key as 43 URL-safe base64 characters without padding (§3.1). */
+export { encodeKey };
 
 /**
  * The 32 bytes of a key in the form of {@link encodeKey}; GatewayError if it is not one.
  * @param {string} text
  */
 export function decodeKey(text) {
-  if (typeof text !== "string" || !/^[A-Za-z0-9_-]{43}$/.test(text)) {
-    throw new GatewayError(`not a 43-character key: ${excerpt(String(text), 60)}`);
+  try {
+    return decodeIdentityKey(text);
+  } catch (err) {
+    throw new GatewayError(excerpt(err?.message ?? err));
   }
-  const binary = atob(text.replace(/-/g, "+").replace(/_/g, "/") + "=");
-  const bytes = Uint8Array.from(binary, (c) => c.charCodeAt(0));
-  if (encodeKey(bytes) !== text) throw new GatewayError("not a key in canonical base64");
-  return bytes;
 }
 
 /**

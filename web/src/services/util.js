@@ -6,6 +6,8 @@
  * @module services/util
  */
 
+import { concat, toHex } from "../bytes.js";
+
 /** A datagram from the robot that is not what its channel carries (dropped and counted). */
 export class DecodeError extends Error {
   /** @param {string} message one line, never a dump of the input */
@@ -164,24 +166,9 @@ export function idCounter(random = Math.random) {
 }
 
 /** Concatenate byte arrays. @param {Uint8Array[]} parts */
-export function concatBytes(parts) {
-  let size = 0;
-  for (const part of parts) size += part.length;
-  const out = new Uint8Array(size);
-  let at = 0;
-  for (const part of parts) {
-    out.set(part, at);
-    at += part.length;
-  }
-  return out;
-}
+export const concatBytes = (parts) => concat(...parts);
 
-/** Lowercase hex of bytes. @param {Uint8Array} bytes */
-export function toHex(bytes) {
-  let out = "";
-  for (const b of bytes) out += b.toString(16).padStart(2, "0");
-  return out;
-}
+export { toHex };
 
 /**
  * Counters of dropped input by reason: `counts.malformed`, `counts.total`.
