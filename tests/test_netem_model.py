@@ -74,16 +74,16 @@ def test_changing_the_delay_does_not_change_which_packets_are_lost() -> None:
 @pytest.mark.parametrize("name", ["wifi", "4g", "intercontinental", "bad"])
 def test_the_loss_rate_over_many_packets_is_the_profiles(name: str) -> None:
     model = LinkModel(quiet(name), seed=1)
-    arrived = fates(model, 200_000)
+    arrived = fates(model, 80_000)
     rate = arrived.count(False) / len(arrived)
-    assert rate == pytest.approx(profile(name).mean_loss, rel=0.2)
+    assert rate == pytest.approx(profile(name).mean_loss, rel=0.25)
     assert model.stats.lost == arrived.count(False)
     assert 0 < model.stats.burst_lost < model.stats.lost  # some in bursts, some random
 
 
 def test_bursts_lose_runs_of_packets_and_random_loss_single_ones() -> None:
-    bursty = fates(LinkModel(quiet("bad", loss=0.0, burst=Burst.of(0.05, length=8)), 2), 100_000)
-    random = fates(LinkModel(quiet("bad", loss=0.05, burst=None), 2), 100_000)
+    bursty = fates(LinkModel(quiet("bad", loss=0.0, burst=Burst.of(0.05, length=8)), 2), 50_000)
+    random = fates(LinkModel(quiet("bad", loss=0.05, burst=None), 2), 50_000)
     for arrived in (bursty, random):  # the same share of packets lost...
         assert arrived.count(False) / len(arrived) == pytest.approx(0.05, rel=0.2)
     bursts, singles = runs_of_losses(bursty), runs_of_losses(random)

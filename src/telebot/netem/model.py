@@ -375,6 +375,11 @@ class LinkModel:
             cls(profile, seed, "down", ordered=ordered, schedule=schedule),
         )
 
+    @property
+    def last_arrival(self) -> float:
+        """When the last packet of an ``ordered`` stream arrives (-inf before any)."""
+        return self._last_arrival
+
     def backlog(self, now: float) -> float:
         """Seconds of traffic waiting in the bandwidth queue at ``now``.
 
