@@ -35,7 +35,8 @@ anyway): then the proxy resets every connection and refuses new ones until the g
 ends, so zenoh has to reconnect, as after a real network change.
 
 The proxy runs on its own thread with its own event loop, so it works the same under
-synchronous and asynchronous callers; :meth:`close` leaves no thread nor socket behind.
+synchronous and asynchronous callers (``with`` or ``async with``, or :meth:`start` and
+:meth:`close`); :meth:`close` leaves no thread nor socket behind.
 """
 
 from __future__ import annotations
@@ -594,6 +595,17 @@ class NetemProxy:
         tb: TracebackType | None,
     ) -> None:
         self.close()
+
+    async def __aenter__(self) -> Self:
+        return await asyncio.to_thread(self.start)
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await asyncio.to_thread(self.close)
 
     # -- the proxy's thread
 
