@@ -43,7 +43,7 @@ def test_the_named_profiles_have_the_issues_figures() -> None:
     assert (g4.rate_down, g4.rate_up) == (5e6, 2e6)
     assert (ocean.delay, ocean.jitter, ocean.mean_loss) == pytest.approx((0.16, 0.01, 0.005))
     assert (bad.delay, bad.jitter, bad.mean_loss) == pytest.approx((0.08, 0.04, 0.05))
-    assert (bad.rate_down, bad.rate_up) == (1e6, 1e6)
+    assert (bad.rate_down, bad.rate_up, bad.reorder) == (1e6, 1e6, 0.01)
     assert profile("lan").mean_loss == 0 and profile("lan").delay == 0
 
 
@@ -116,16 +116,20 @@ def test_the_bandwidth_cap_spaces_packets_and_drops_beyond_the_queue() -> None:
     assert LinkModel(link, direction="down").transmit(1250, 0.0) == pytest.approx(0.05)
 
 
-def test_jitter_reorders_datagrams_but_never_a_stream() -> None:
+def test_jitter_spreads_delays_and_only_the_reorder_share_overtakes() -> None:
     wifi = quiet("wifi", loss=0.0, burst=None)
-    for ordered in (False, True):
-        model = LinkModel(wifi, seed=5, ordered=ordered)
+    for reorder, ordered in ((0.0, False), (0.05, False), (0.05, True)):
+        link = dataclasses.replace(wifi, reorder=reorder)
+        model = LinkModel(link, seed=5, ordered=ordered)
         sent = [i * 0.001 for i in range(2000)]
         arrivals = [model.transmit(100, t) for t in sent]
         delays = [a - s for a, s in zip(arrivals, sent, strict=True)]  # type: ignore[operator]
+        # 5 +- 3 ms; waiting for the datagram ahead never adds more than the spread.
         assert min(delays) >= 0.002 - 1e-9 and max(delays) <= 0.008 + 1e-9
+        assert max(delays) - min(delays) > 0.005  # the jitter is there
         inversions = sum(b < a for a, b in itertools.pairwise(arrivals))  # type: ignore[operator]
-        assert (inversions > 100) if not ordered else (inversions == 0)
+        # Datagrams keep their order but for the reorder share; a stream always does.
+        assert (20 < inversions < 150) if reorder and not ordered else (inversions == 0)
 
 
 def test_a_lost_stream_chunk_arrives_after_a_retransmission_and_holds_up_the_rest() -> None:

@@ -438,6 +438,11 @@ class _TcpRelay(_Relay):
                 _Stream(self, "down", models["down"], up_reader, writer),
             )
             await asyncio.gather(*(s.pump() for s in streams))
+        except asyncio.CancelledError:
+            # close() cancels: end quietly (asyncio's server logs a cancelled handler).
+            for w in (writer, self.connections.get(writer)):
+                if w is not None:
+                    w.transport.abort()
         finally:
             self.tasks.discard(task)
 
