@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import itertools
+from pathlib import Path
 
 import pytest
 
@@ -202,3 +203,18 @@ async def test_the_memory_hub_plays_a_profile_and_forced_outages() -> None:
         assert got[-1].payload == b"after"
     with pytest.raises(ConfigError, match="unknown network profile"):
         hub.set_profile("robot", "user", "dialup")
+
+
+def test_the_readme_table_lists_every_profile_with_its_figures() -> None:
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    section = readme.split("### Network emulator", 1)[1].split("\n### ", 1)[0]
+    rows = {
+        cells[0].strip("` "): cells[1:]
+        for line in section.splitlines()
+        if line.startswith("| `") and (cells := [c.strip() for c in line.strip("|").split("|")])
+    }
+    assert set(rows) == set(PROFILES)
+    for name, (delay, loss, _rate, _outages) in rows.items():
+        p = profile(name)
+        assert delay == ("0" if not p.delay else f"{p.delay * 1e3:g} ± {p.jitter * 1e3:g} ms")
+        assert loss.split(",")[0] == ("0" if not p.mean_loss else f"{p.mean_loss * 100:g} %")
