@@ -358,6 +358,7 @@ class _Stream:
                 while self.pending > WINDOW:
                     self.drained.clear()
                     await self.drained.wait()
+                await self.writer.drain()  # and a receiver that does not read holds it too
                 data = await self.reader.read(1 << 16)
                 if not data:
                     break
