@@ -196,6 +196,26 @@ async def test_a_tcp_stream_loses_nothing_but_lost_segments_stall_it() -> None:
     assert elapsed >= 0.2 + 2 * lossy.delay - 2 * lossy.jitter
 
 
+async def test_a_tcp_half_close_passes_on_after_the_data() -> None:
+    async def count(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        received = len(await reader.read())  # until the client's EOF
+        writer.write(str(received).encode())
+        writer.close()
+
+    server = await asyncio.start_server(count, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    try:
+        with NetemProxy(LOSSY, "tcp/127.0.0.1:0", f"tcp/127.0.0.1:{port}") as proxy:
+            reader, writer = await asyncio.open_connection("127.0.0.1", port_of(proxy))
+            writer.write(bytes(100_000))
+            writer.write_eof()
+            # The EOF reached the server after all the data; its answer came back.
+            assert await asyncio.wait_for(reader.read(), 30 + SLACK) == b"100000"
+            writer.close()
+    finally:
+        server.close()
+
+
 async def test_a_tcp_bandwidth_cap_paces_the_stream() -> None:
     capped = Profile("capped", rate_up=4e6, queue=0.05)
     async with tcp_echo() as port:
