@@ -169,11 +169,16 @@ class _Timeline:
 
     def at(self, due: float, fn: Callable[[], None]) -> None:
         heapq.heappush(self._heap, (due, next(self._seq), fn))
-        if due < self._armed_at:
-            if self._handle is not None:
-                self._handle.cancel()
-            self._armed_at = due
-            self._handle = self._loop.call_at(due, self._run)
+        self._arm()
+
+    def _arm(self) -> None:
+        """Have the timer fire at the earliest due time (one timer at most)."""
+        if not self._heap or self._heap[0][0] >= self._armed_at:
+            return
+        if self._handle is not None:
+            self._handle.cancel()
+        self._armed_at = self._heap[0][0]
+        self._handle = self._loop.call_at(self._armed_at, self._run)
 
     def _run(self) -> None:
         # The loop may fire a timer a hair early: what it was armed for is due.
@@ -182,12 +187,10 @@ class _Timeline:
         while self._heap and self._heap[0][0] <= limit:
             _, _, fn = heapq.heappop(self._heap)
             try:
-                fn()
+                fn()  # may schedule more (through at(), which arms the timer)
             except Exception:  # one broken delivery must not stop the others
                 _log.exception("netem delivery failed")
-        if self._heap:
-            self._armed_at = self._heap[0][0]
-            self._handle = self._loop.call_at(self._armed_at, self._run)
+        self._arm()
 
     def close(self) -> None:
         if self._handle is not None:
