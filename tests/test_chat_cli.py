@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import asyncio
 import io
+import math
 import os
+import re
 import subprocess
 import time
 from collections.abc import Iterator
@@ -22,7 +24,16 @@ import pytest
 from conftest import wait_until
 from rig import ROBOT, SLACK, Daemon, Process
 from telebot.apps.user_cli import main
-from telebot.apps.user_client import SHOWN_CHARS, _Motions, chat_session, where
+from telebot.apps.user_client import (
+    DRIVE_BACK,
+    DRIVE_FORWARD,
+    DRIVE_TURN,
+    SHOWN_CHARS,
+    _Motions,
+    chat_session,
+    drive_keys,
+    where,
+)
 from telebot.services.proto.chat import MAX_REQUEST_TEXT
 from telebot.services.proto.conference import MAX_TEXT
 from telebot.services.proto.safety import LATCHED
@@ -181,6 +192,87 @@ async def test_on_a_terminal_a_key_stops_a_motion_after_its_end_is_a_command_and
     said = capsys.readouterr().out
     assert said.startswith("x ")
     assert said.endswith(f"; {LATCHED}: stop requested by {daemon.driver} (key)\n"), said
+
+
+def parse_xy(line: str) -> tuple[float, float]:
+    """x and y (m) of a pose line: "… x 2.50 m, y 4.40 m, heading 90° …"."""
+    match = re.search(r"x (-?[0-9.]+) m, y (-?[0-9.]+) m", line)
+    assert match is not None, line
+    return float(match.group(1)), float(match.group(2))
+
+
+async def test_on_a_terminal_tab_drives_with_the_arrow_keys_and_any_other_key_stops(
+    daemon: Daemon, processes: list[Process]
+) -> None:
+    keyboard, terminal = os.openpty()
+    try:
+        alice = chat(daemon, stdin=terminal)
+    finally:
+        os.close(terminal)
+    processes.append(alice)
+    try:
+        os.write(keyboard, b"arm\r")
+        await until_line(alice, "armed:", 60)
+        os.write(keyboard, b"where?\r")
+        before = parse_xy((await until_line(alice, "heading"))[-1])
+        # Tab: drive mode. The up arrow, as a held key's auto-repeat sends it.
+        os.write(keyboard, b"\t")
+        await until_line(alice, "[drive mode:")
+        moved = 0.0
+        deadline = time.monotonic() + 60 + SLACK
+        while moved < 0.2:
+            assert time.monotonic() < deadline, "the robot did not move"
+            for _ in range(10):
+                os.write(keyboard, b"\x1b[A")
+                await asyncio.sleep(0.05)
+            # Escape leaves drive mode (a release: the robot stops, stays armed) …
+            os.write(keyboard, b"\x1b")
+            await until_line(alice, "[drive mode off]")
+            os.write(keyboard, b"where?\r")
+            after = parse_xy((await until_line(alice, "heading"))[-1])
+            moved = math.dist(before, after)
+            os.write(keyboard, b"\t")
+            await until_line(alice, "[drive mode:")
+        # … and any other key in drive mode is a safety stop (it latches).
+        os.write(keyboard, b"\x1b[A")
+        os.write(keyboard, b"x")
+        await until_line(alice, "[key pressed: stopping; drive mode off]")
+        os.write(keyboard, b"status\r")
+        await until_line(alice, "latched")
+        os.write(keyboard, b"\x04")  # Ctrl-D on an empty line: leave
+        assert await asyncio.to_thread(alice.popen.wait, 30) == 0, alice.stderr()
+    finally:
+        os.close(keyboard)
+    records = daemon.audit()
+    assert any(r["what"] == "motion: drive by hand" and r["outcome"] == "allowed" for r in records)
+    ends = [r["detail"] for r in records if r["what"] == "drive by hand: end"]
+    assert any(d.startswith("released") for d in ends), ends
+    assert any(r["what"] == "stop" and r.get("how") == "key" for r in records)
+
+
+def test_chat_help_tells_how_to_drive_by_hand(capsys: pytest.CaptureFixture[str]) -> None:
+    promise = chat_help(capsys)
+    assert "Tab turns drive mode on" in promise and "arrow keys or WASD" in promise
+    assert "Escape or Enter leaves drive mode" in promise
+
+
+def test_drive_mode_keys() -> None:
+    assert drive_keys("\x1b[A\x1bOA") == [("drive", DRIVE_FORWARD, 0.0)] * 2
+    assert drive_keys("wasd") == [
+        ("drive", DRIVE_FORWARD, 0.0),
+        ("drive", 0.0, DRIVE_TURN),
+        ("drive", -DRIVE_BACK, 0.0),
+        ("drive", 0.0, -DRIVE_TURN),
+    ]
+    assert drive_keys("\x1b[D\x1b[C\x1b[B") == [
+        ("drive", 0.0, DRIVE_TURN),
+        ("drive", 0.0, -DRIVE_TURN),
+        ("drive", -DRIVE_BACK, 0.0),
+    ]
+    assert drive_keys("\x1b") == [("leave", 0.0, 0.0)]
+    assert drive_keys("\r") == [("leave", 0.0, 0.0)]
+    for other in (" ", "x", "\x1b[15~", "\x04", "1"):
+        assert drive_keys(other) == [("stop", 0.0, 0.0)], other
 
 
 async def test_a_line_too_long_gets_one_short_line_and_the_script_goes_on(

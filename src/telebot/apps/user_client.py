@@ -24,7 +24,76 @@ from telebot.services.proto.people import PeopleAlertMessage
 from telebot.services.proto.safety import latched_text
 from telebot.services.proto.status import PoseUpdate
 
-__all__ = ["chat_session", "format_pose", "get_map", "read_lines", "send_command", "where"]
+__all__ = [
+    "DRIVE_HOLD",
+    "DRIVE_MODE_KEY",
+    "chat_session",
+    "drive_keys",
+    "format_pose",
+    "get_map",
+    "read_lines",
+    "send_command",
+    "where",
+]
+
+#: The key that turns the terminal chat's drive mode on (Tab).
+DRIVE_MODE_KEY = "\t"
+#: How long one key event drives (s): longer than a terminal's key-repeat delay (about
+#: 0.25 … 0.5 s), so a held key drives without a gap; a key let go stops the robot this
+#: long plus ``[drive] stale_after`` later (a terminal says nothing when a key is let go).
+DRIVE_HOLD = 0.6
+#: Velocities of the drive keys: forward and back (m/s), turning (rad/s); the robot caps them.
+DRIVE_FORWARD = 0.3
+DRIVE_BACK = 0.15
+DRIVE_TURN = 0.8
+#: Each drive key's velocity (linear, angular): arrows (their last escape byte) and WASD.
+_ARROWS = {
+    "A": (DRIVE_FORWARD, 0.0),
+    "B": (-DRIVE_BACK, 0.0),
+    "C": (0.0, -DRIVE_TURN),
+    "D": (0.0, DRIVE_TURN),
+}
+_WASD = {"w": _ARROWS["A"], "s": _ARROWS["B"], "d": _ARROWS["C"], "a": _ARROWS["D"]}
+_DRIVE_HELP = (
+    "[drive mode: hold the arrow keys or WASD to drive; space (any other key) stops "
+    "the robot; Escape or Enter leaves drive mode]"
+)
+
+
+def drive_keys(chunk: str) -> list[tuple[str, float, float]]:
+    """What the keys read in drive mode mean: ``("drive", linear, angular)`` for an arrow
+    key or WASD, ``("leave", 0, 0)`` for Escape or Enter, ``("stop", 0, 0)`` for any
+    other key (space, a letter, a function key …)."""
+    events: list[tuple[str, float, float]] = []
+    i = 0
+    while i < len(chunk):
+        char = chunk[i]
+        if char == "\x1b" and i + 1 < len(chunk) and chunk[i + 1] in "[O":
+            # An escape sequence: CSI/SS3 parameters, then one final byte (@ … ~).
+            j = i + 2
+            while j < len(chunk) and not "@" <= chunk[j] <= "~":
+                j += 1
+            final = chunk[j] if j < len(chunk) else ""
+            if final in _ARROWS and final:
+                events.append(("drive", *_ARROWS[final]))
+            else:
+                events.append(("stop", 0.0, 0.0))
+            i = j + 1
+            continue
+        if char in ("\x1b", "\r", "\n"):
+            events.append(("leave", 0.0, 0.0))
+        elif char.lower() in _WASD:
+            events.append(("drive", *_WASD[char.lower()]))
+        else:
+            events.append(("stop", 0.0, 0.0))
+        i += 1
+    return events
+
+
+def _is_arrow(chunk: str) -> bool:
+    """Whether ``chunk`` is only arrow keys (in line mode: a hint, not a stop)."""
+    events = drive_keys(chunk)
+    return bool(events) and chunk.startswith("\x1b") and all(e[0] == "drive" for e in events)
 
 
 def format_pose(x: float, y: float, yaw: float) -> str:
@@ -479,13 +548,15 @@ async def _edit_lines(client: RobotClient, map_dir: Path, keys: asyncio.Queue[st
     print(prompt, end="", flush=True)
     finished = asyncio.ensure_future(client.wait_finished())
     motions = _Motions(client)
+    driving = _DriveMode(client, motions)
     watch = asyncio.ensure_future(motions.watch())
+    drive_watch = asyncio.ensure_future(driving.watch())
     try:
-        return await _read_keys(client, map_dir, keys, prompt, finished, motions)
+        return await _read_keys(client, map_dir, keys, prompt, finished, motions, driving)
     finally:
-        for future in (finished, watch):
+        for future in (finished, watch, drive_watch):
             future.cancel()
-        await asyncio.gather(finished, watch, return_exceptions=True)
+        await asyncio.gather(finished, watch, drive_watch, return_exceptions=True)
 
 
 async def _read_keys(
@@ -495,6 +566,7 @@ async def _read_keys(
     prompt: str,
     finished: asyncio.Future[Any],
     motions: _Motions,
+    driving: _DriveMode,
 ) -> int:
     line = ""
     async with asyncio.TaskGroup() as tasks:
@@ -508,6 +580,10 @@ async def _read_keys(
             chunk = key.result()
             if not chunk:
                 break
+            if driving.on:
+                if driving.keys(chunk, tasks):
+                    print(prompt + line, end="", flush=True)
+                continue
             if motions.moving():
                 # The paper's rule: any key while the robot moves stops it, at once.
                 tasks.create_task(client.stop(how="key"))
@@ -515,7 +591,15 @@ async def _read_keys(
                 line = ""
                 print(prompt, end="", flush=True)
                 continue
-            for char in chunk:
+            if _is_arrow(chunk):  # the robot is at rest: say how to drive, stop nothing
+                print(f"\r\033[K[to drive with the arrow keys, press Tab]\n{prompt}{line}", end="")
+                continue
+            for index, char in enumerate(chunk):
+                if char == DRIVE_MODE_KEY:
+                    driving.enter()
+                    if driving.keys(chunk[index + 1 :], tasks):
+                        print(prompt + line, end="", flush=True)
+                    break
                 if char in ("\x04",) and not line:  # Ctrl-D on an empty line: leave
                     print()
                     return EXIT_OK
@@ -542,6 +626,68 @@ async def _read_keys(
                     line += char
                     print(char, end="", flush=True)
     return EXIT_OK
+
+
+class _DriveMode:
+    """The terminal chat's drive mode (Tab): arrow keys and WASD drive the robot by hand.
+
+    Each drive key event calls :meth:`RobotClient.drive` with :data:`DRIVE_HOLD`; a held
+    key's auto-repeat keeps it driving, and a key let go stops the robot within
+    ``DRIVE_HOLD`` plus the robot's ``stale_after``. Any other key stops the robot (a safety
+    stop, ``how`` ``key``: it latches) and leaves drive mode; Escape or Enter releases (the
+    robot stops at once, armed) and leaves it. What the robot makes of it (refusals, an
+    obstacle, a takeover) is printed as it changes.
+    """
+
+    def __init__(self, client: RobotClient, motions: _Motions) -> None:
+        self.client = client
+        # Drive mode counts as one of this chat's motions: keys typed just after it ends
+        # (the robot at rest, the poses not yet saying so) are commands, not stops.
+        self._motions = motions
+        self.on = False
+        self._said: tuple[bool, str] | None = None
+
+    def enter(self) -> None:
+        """Turn drive mode on."""
+        self.on = True
+        self._said = None
+        self._motions.started()
+        print(f"\r\033[K{_DRIVE_HELP}", flush=True)
+
+    def leave(self, text: str) -> None:
+        """Turn drive mode off, saying why."""
+        self.on = False
+        self._motions.ended()
+        print(f"\r\033[K[{text}]", flush=True)
+
+    def keys(self, chunk: str, tasks: asyncio.TaskGroup) -> bool:
+        """Act on keys read in drive mode; True when drive mode ended (show the prompt)."""
+        for kind, linear, angular in drive_keys(chunk):
+            if kind == "drive":
+                self.client.drive(linear, angular, hold=DRIVE_HOLD)
+            elif kind == "leave":
+                self.client.drive(0.0, 0.0)
+                self.leave("drive mode off")
+                return True
+            else:
+                tasks.create_task(self.client.stop(how="key"))
+                self.leave("key pressed: stopping; drive mode off")
+                return True
+        return False
+
+    async def watch(self) -> None:
+        """Say what the robot makes of the driving while in drive mode (until cancelled)."""
+        while True:
+            state = await self.client.latest_drive.next()
+            said = (state.active, state.reason)
+            if not self.on or said == self._said:
+                continue
+            self._said = said
+            if state.active and state.reason == "ok":
+                text = f"driving (speed cap {state.cap:.2f} m/s)"
+            else:
+                text = state.reason + (f": {state.text}" if state.text else "")
+            print(f"\r\033[K[drive: {text}]", flush=True)
 
 
 async def get_map(
