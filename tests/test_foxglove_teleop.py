@@ -212,6 +212,23 @@ async def test_another_teleop_topic_and_an_observer(tmp_path: Path) -> None:
         assert bridge.teleop_received == received + 1
 
 
+async def test_a_panel_publishing_slower_than_the_hold_is_told_to_speed_up(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.WARNING, logger="telebot.foxglove")
+    async with teleop_rig(tmp_path) as (_nav, _, _, bridge, fox):
+        await fox.advertise(9, TELEOP_TOPIC, "json", PANEL_SCHEMA)
+        holding = asyncio.ensure_future(hold(fox, 9, twist(0.3), 3))  # 3 Hz, hold 0.15 s
+        try:
+            await wait_until(lambda: any("publish rate" in r.getMessage() for r in caplog.records))
+        finally:
+            holding.cancel()
+            await asyncio.gather(holding, return_exceptions=True)
+        (line,) = [r.getMessage() for r in caplog.records if "publish rate" in r.getMessage()]
+        assert "to 10 Hz" in line and TELEOP_TOPIC in line
+        assert bridge.teleop_refused == 0
+
+
 def test_twist_decoding() -> None:
     from telebot.robot.ros2.types import TypeLibrary
 

@@ -158,6 +158,10 @@ _TWIST_STAMPED = frozenset({"geometry_msgs/TwistStamped", "geometry_msgs/msg/Twi
 #: At most one log line per this many seconds for bad teleop messages (a panel publishes
 #: at 10 Hz: one a message would flood the log); each is counted all the same.
 _TELEOP_LOG_EVERY = 5.0
+#: A held direction repeated after its hold ran out, but within this (s): a panel
+#: publishing too slowly (not a new press); said once after a few in a row.
+_SLOW_GAP = 1.6
+_SLOW_WARN_AFTER = 3
 #: The frame of the map, the pose and the plan.
 MAP_FRAME = "map"
 #: The robot's body frame (``/tf`` carries map → base_link).
@@ -372,6 +376,11 @@ class FoxgloveBridge:
         self.teleop_refused = 0
         self._driving = False
         self._teleop_logged = -math.inf
+        #: The last Teleop command and when it came; how often one came too late.
+        self._teleop_last = -math.inf
+        self._teleop_command = (0.0, 0.0)
+        self._teleop_slow = 0
+        self._teleop_warned = False
         self.map: MapDownload | None = None
         self._server: WebSocketServer | None = None
         self._writer: foxglove.MCAPWriter | None = None
@@ -777,10 +786,34 @@ class FoxgloveBridge:
         if linear == 0.0 and angular == 0.0:
             self._release()
             return
+        self._check_rate((linear, angular))
         # The robot clamps to its limits and its speed cap, and says why it does not move
         # (not armed, not the holder, ...) in its drive_state.
         self.client.drive(linear, angular, hold=self.teleop_hold)
         self._driving = True
+
+    def _check_rate(self, command: tuple[float, float]) -> None:
+        """Say once if the panel publishes slower than the hold: a held direction arriving
+        again after its hold ran out (the robot lurches and stops between messages; the
+        panel's own default rate is 1 Hz)."""
+        now = time.monotonic()
+        gap = now - self._teleop_last
+        if command != self._teleop_command or gap > _SLOW_GAP:
+            pass  # a new press, not a repeat
+        elif gap <= self.teleop_hold:
+            self._teleop_slow = 0  # in time: a late one now and then is jitter
+        else:
+            self._teleop_slow += 1
+            if self._teleop_slow == _SLOW_WARN_AFTER and not self._teleop_warned:
+                self._teleop_warned = True
+                log.warning(
+                    "Teleop messages on %s arrive every %.1f s: set the panel's publish rate "
+                    "to %g Hz (or pass --teleop-rate), or the robot stops between them",
+                    self.teleop_topic,
+                    gap,
+                    round(1.5 / self.teleop_hold),
+                )
+        self._teleop_last, self._teleop_command = now, command
 
     def _release(self) -> None:
         self._driving = False
