@@ -463,11 +463,9 @@ def test_driving_into_an_obstacle_stops_before_it_and_turning_stays_allowed() ->
     rig.join("c1")
     rig.arm()
     rig.nav.add_obstacle(Obstacle(4.5, 5.0, 0.2))
-    codes = []
-    for _ in range(100):
+    for _ in range(60):
         rig.send(0.5)
         rig.step()
-        codes.append(rig.last().reason)
     pose = rig.nav.true_pose
     assert pose.x < 4.5 - 0.2 - 0.25  # never touched it
     assert rig.nav.collisions == 0
@@ -475,6 +473,88 @@ def test_driving_into_an_obstacle_stops_before_it_and_turning_stays_allowed() ->
     assert rig.nav.velocity().linear == 0.0
     rig.hold(0.0, 1.0, seconds=0.5)  # turning on the spot away from it
     assert rig.last().reason == Reason.OK and rig.nav.velocity().angular > 0.3
+
+
+@dataclass
+class Scan:
+    angles: Any
+    ranges: Any
+    range_max: float = 10.0
+
+
+class LaserBase:
+    """A base with a laser and no obstacle guard of its own: what the drive service does
+    is all that keeps it off an obstacle."""
+
+    def __init__(self, ahead: float, rear_view: bool = True) -> None:
+        angles = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+        ranges = np.full(360, np.inf)
+        ranges[np.abs(angles) < 0.05] = ahead  # a wall straight ahead at ``ahead`` m
+        behind = np.abs(angles) > np.pi - 0.3
+        # A wall 5 m behind, or a masked-off sector that brings nothing back.
+        ranges[behind] = 5.0 if rear_view else np.nan
+        self.scan = Scan(angles, ranges)
+        self.speed_limit = 0.5
+        self.commands: list[tuple[float, float]] = []
+
+    def laser_scan(self) -> Scan:
+        return self.scan
+
+    def drive(self, linear: float, angular: float) -> None:
+        self.commands.append((linear, angular))
+
+    def stop(self) -> None:
+        self.commands.append((0.0, 0.0))
+
+    def current_goal(self) -> None:
+        return None
+
+    def status(self) -> Any:
+        from telebot.robot.nav import NavState, NavStatus
+
+        return NavStatus(NavState.IDLE)
+
+
+@pytest.mark.parametrize(
+    ("ahead", "code"),
+    [
+        (5.0, Reason.OK),  # far: the speed asked for
+        (0.45, Reason.OK),  # near: only what it can brake from in the room left
+        (0.3, Reason.OBSTACLE),  # within the braking margin: no driving ahead
+    ],
+)
+def test_with_a_laser_it_brakes_before_what_it_sees(ahead: float, code: str) -> None:
+    nav = LaserBase(ahead)
+
+    class Server:
+        def __init__(self) -> None:
+            self.drive = DriveService(nav)  # type: ignore[arg-type]
+
+        def now(self) -> float:
+            return 0.0
+
+    server = Server()
+    call = FakeCall("c1", "alice", Role.DRIVER)
+    CallDrive(server, call)  # type: ignore[arg-type]
+    call.channels["drive"].receive(DriveCommand(1, 0.4, 0.5).encode())
+    sent, turn = nav.commands[-1]
+    if ahead > 1:
+        assert sent == pytest.approx(0.4)
+    elif code == Reason.OK:
+        assert 0.0 < sent < 0.4  # slowed down
+    else:
+        assert sent == 0.0
+    assert turn == 0.5  # turning stays allowed
+    state = decode_drive_state(call.channels["drive"].sent[-1])
+    assert state.active and state.reason == code
+    # Reversing: allowed where the laser sees free space behind, never blind.
+    call.channels["drive"].receive(DriveCommand(2, -0.2, 0.0).encode())
+    assert nav.commands[-1][0] == pytest.approx(-0.2)
+    blind = LaserBase(5.0, rear_view=False)
+    server.drive.nav = blind  # type: ignore[assignment]
+    call.channels["drive"].receive(DriveCommand(3, -0.2, 0.0).encode())
+    assert blind.commands[-1][0] == 0.0
+    assert decode_drive_state(call.channels["drive"].sent[-1]).reason == Reason.OBSTACLE
 
 
 def test_without_a_supervisor_observers_are_refused_by_role() -> None:

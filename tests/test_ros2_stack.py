@@ -18,6 +18,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import cv2
@@ -29,6 +30,7 @@ from conftest import SLACK, Homes, free_port, wait_until
 from rig import Daemon, start_telebot_sim
 from telebot.config import RobotConfig
 from telebot.errors import InvalidCommand, RobotUnreachable
+from telebot.identity import Role
 from telebot.reasons import Reason, Refusal
 from telebot.robot import create_robot
 from telebot.robot.mapfile import places_path_for
@@ -40,7 +42,10 @@ from telebot.robot.ros2.keys import QoS
 from telebot.robot.ros2.node import Ros2Node
 from telebot.robot.ros2.stack import Ros2NavStack
 from telebot.robot.sim.building import resolve_map
+from telebot.services.drive import CallDrive, DriveService
 from telebot.services.follow import FollowService
+from telebot.services.proto.drive import DriveCommand, decode_drive_state
+from test_drive import FakeCall
 
 pytestmark = pytest.mark.zenoh
 
@@ -874,6 +879,50 @@ async def test_follow_me_drives_a_ros2_robot_on_cmd_vel_once_its_laser_sees_the_
     assert max(linear()) <= stack.speed_limit + 1e-9
     follow.unfollow()  # the robot stops: zero velocity streams
     assert stack._zero.streaming
+
+
+async def test_driving_by_hand_publishes_cmd_vel_within_the_cap_and_the_laser_s_room(
+    stack: Ros2NavStack, nav2: FakeNav2
+) -> None:
+    """The ``drive`` service on a ROS 2 robot: cmd_vel, capped, braking before what the
+    laser sees (no scan: no driving ahead), and a release streams zeros."""
+    server = SimpleNamespace(drive=DriveService(stack), now=lambda: 0.0)
+    call = FakeCall("c1", "alice", Role.DRIVER)
+    CallDrive(server, call)  # type: ignore[arg-type]
+    channel = call.channels["drive"]
+
+    def linear() -> list[float]:
+        return [getattr(m, "twist", m).linear.x for _, m in list(nav2.cmd_vel)]
+
+    channel.receive(DriveCommand(1, 0.4, 0.5).encode())  # no scan yet
+    assert decode_drive_state(channel.sent[-1]).reason == Reason.OBSTACLE
+    await wait_until(lambda: len(nav2.cmd_vel) >= 1)
+    twist = getattr(nav2.cmd_vel[-1][1], "twist", nav2.cmd_vel[-1][1])
+    assert (twist.linear.x, twist.angular.z) == (0.0, pytest.approx(0.5))
+    ranges = np.full(360, 5.0, dtype=np.float32)
+    ranges[178:183] = 0.4  # a wall 0.4 m straight ahead
+    scan = nav2.node.publisher("scan", nav2.m("sensor_msgs/msg/LaserScan"))
+    scan.publish(
+        nav2.m("sensor_msgs/msg/LaserScan").make(
+            angle_min=-math.pi,
+            angle_increment=math.pi / 180,
+            range_min=0.1,
+            range_max=10.0,
+            ranges=ranges,
+        )
+    )
+    await wait_until(lambda: stack.laser_scan() is not None)
+    nav2.cmd_vel.clear()
+    stack.set_speed_limit(0.3)
+    channel.receive(DriveCommand(2, 0.4, 0.0).encode())
+    await wait_until(lambda: len(nav2.cmd_vel) >= 1)
+    assert 0.0 < linear()[-1] < 0.3  # under the cap, and slowed for the wall
+    assert decode_drive_state(channel.sent[-1]).active
+    channel.receive(DriveCommand(3, -0.2, 0.0).encode())  # reversing: it sees 5 m free
+    await wait_until(lambda: linear()[-1] == pytest.approx(-0.2))
+    channel.receive(DriveCommand(4, 0.0, 0.0).encode())  # let go
+    assert stack._zero.streaming
+    assert decode_drive_state(channel.sent[-1]).reason == Reason.RELEASED
 
 
 async def test_a_scan_that_stopped_coming_is_no_scan(
