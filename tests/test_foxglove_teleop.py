@@ -256,3 +256,27 @@ def test_twist_decoding() -> None:
     # The hold: 1.5 periods of the panel's rate, at least 0.1 s.
     assert teleop_hold(10) == pytest.approx(0.15) and teleop_hold(50) == 0.1
     assert teleop_hold(2) == pytest.approx(0.75)
+
+
+@pytest.mark.parametrize(
+    ("flag", "value", "says"),
+    [
+        ("--teleop-rate", "1", "2 to 50 Hz"),
+        ("--teleop-rate", "nan", "2 to 50 Hz"),
+        ("--teleop-rate", "fast", "invalid"),
+        ("--teleop-topic", "cmd_vel", "a topic like /cmd_vel"),
+        ("--teleop-topic", "/goal_pose", "the goal topic"),
+    ],
+)
+def test_bad_teleop_flags_are_one_line_errors(
+    flag: str, value: str, says: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from telebot.apps import user_cli
+
+    with pytest.raises(SystemExit) as ended:
+        user_cli.build_parser().parse_args(["foxglove", ROBOT, flag, value])
+    assert ended.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and flag in err[0] and says in err[0], err
+    args = user_cli.build_parser().parse_args(["foxglove", ROBOT])  # the bridge's defaults
+    assert (args.teleop_rate, args.teleop_topic) == (TELEOP_RATE, TELEOP_TOPIC)
