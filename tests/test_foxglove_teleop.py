@@ -229,6 +229,14 @@ async def test_a_panel_publishing_slower_than_the_hold_is_told_to_speed_up(
         assert bridge.teleop_refused == 0
 
 
+def test_an_integer_too_big_for_a_float_is_a_refused_goal_too() -> None:
+    from telebot.apps.foxglove_bridge import goal_from_pose_stamped
+
+    huge = b'{"pose": {"position": {"x": 1%s, "y": 0}}}' % (b"0" * 400)
+    with pytest.raises(ValueError, match="PoseStamped"):
+        goal_from_pose_stamped(huge, "json")
+
+
 def test_twist_decoding() -> None:
     from telebot.robot.ros2.types import TypeLibrary
 
@@ -245,6 +253,7 @@ def test_twist_decoding() -> None:
         (b"{}", "json", PANEL_SCHEMA),
         (b'{"linear": {"x": true}, "angular": {}}', "json", PANEL_SCHEMA),
         (b'{"linear": {"x": Infinity}, "angular": {}}', "json", PANEL_SCHEMA),
+        (b'{"linear": {"x": 1%s}, "angular": {}}' % (b"0" * 400), "json", PANEL_SCHEMA),
         (twist(), "json", "geometry_msgs/msg/TwistStamped"),
         (twist(), "json", "geometry_msgs/msg/PoseStamped"),
         (twist(), "ros1", PANEL_SCHEMA),

@@ -214,10 +214,18 @@ def goal_from_pose_stamped(
             position, orientation = pose["position"], pose.get("orientation") or {}
             x, y = float(position["x"]), float(position["y"])
             q = [float(orientation.get(k, 0.0)) for k in ("x", "y", "z", "w")]
-        except (ValueError, KeyError, TypeError, AttributeError, RecursionError) as exc:
+        except (
+            ValueError,
+            KeyError,
+            TypeError,
+            AttributeError,
+            OverflowError,
+            RecursionError,
+        ) as exc:
             # Quoted short: the exception may hold the whole (huge) value it choked on.
-            # (AttributeError: a list or number where an object belongs; RecursionError:
-            # JSON nested deeper than Python's parser goes.)
+            # (AttributeError: a list or number where an object belongs; OverflowError: an
+            # integer too big for a float; RecursionError: JSON nested deeper than Python's
+            # parser goes.)
             raise ValueError(f"not a JSON PoseStamped ({excerpt(repr(exc))})") from None
     elif encoding == "cdr":
         from telebot.robot.ros2.types import TypeLibrary
@@ -278,8 +286,9 @@ def velocity_from_twist(data: bytes, encoding: str, schema_name: str = "") -> tu
                 raise ValueError("twist is not an object")
             linear = _vector(twist["linear"], "linear")
             angular = _vector(twist["angular"], "angular")
-        except (ValueError, KeyError, TypeError, RecursionError) as exc:
+        except (ValueError, KeyError, TypeError, OverflowError, RecursionError) as exc:
             # Quoted short: the exception may hold the whole (huge) value it choked on.
+            # (OverflowError: an integer too big for a float.)
             raise ValueError(f"not a JSON Twist ({excerpt(repr(exc))})") from None
         x, z = linear[0], angular[2]
     elif encoding == "cdr":
@@ -338,7 +347,9 @@ class FoxgloveBridge:
     None: no server (0: any free port, :attr:`port` says which); ``mcap`` None: no file.
     ``topics`` are robot topics to relay (needs the robot's relay service).
     ``teleop_topic`` is where a Twist drives the robot, ``teleop_rate`` (Hz) the Teleop
-    panel's publish rate its hold is matched to. Opening the sinks raises OSError (port taken, file not writable) before anything else starts.
+    panel's publish rate its hold is matched to (ValueError outside :data:`TELEOP_RATES`).
+    Opening the sinks raises OSError (port taken, file not writable) before anything else
+    starts.
     """
 
     def __init__(
