@@ -382,6 +382,18 @@ def test_a_goal_ends_driving_and_driving_cancels_a_goal() -> None:
     assert rig.last().active
 
 
+def test_a_release_just_after_a_goal_leaves_the_goal_running() -> None:
+    rig = Rig()
+    rig.join("c1")
+    rig.arm()
+    rig.hold(0.3, seconds=0.5)
+    goal = rig.nav.navigate_to(8.0, 5.0)  # before the next control cycle …
+    rig.send(0.0)  # … the key is let go
+    assert rig.last().reason == Reason.REPLACED
+    rig.step()
+    assert goal.status is GoalStatus.ACTIVE
+
+
 def test_a_follow_ends_driving_and_driving_ends_a_follow() -> None:
     rig = Rig()
     rig.join("c1")

@@ -381,6 +381,7 @@ async def test_a_registered_service_opens_ticks_closes_and_reopens_with_the_call
             "relay",
             "conference",
             "people",
+            "drive",
             "toy",
         ]
         new_toy = r.client.services["toy"]

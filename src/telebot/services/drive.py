@@ -224,7 +224,7 @@ class DriveService:
             call.wait_for_release = False
             call.refused = None
             if self.driver is call:
-                self.end(Reason.RELEASED, "released", now)
+                self._end_unless_taken_over(Reason.RELEASED, "released", now)
             else:
                 self._tell(call, Reason.RELEASED, "", now)
             return
@@ -269,7 +269,7 @@ class DriveService:
         """``call`` sent a command that does not decode: stop its driving, answer it."""
         log.debug("call %s: invalid drive command: %s", call.call_id, text)
         if self.driver is call:
-            self.end(Reason.INVALID, text, now)
+            self._end_unless_taken_over(Reason.INVALID, text, now)
         state = DriveState(call.seq or 0, False, Reason.INVALID, text, 0.0, 0.0, self._cap())
         call.report(state, now, force=True)
 
@@ -320,14 +320,9 @@ class DriveService:
             if (why := self._safety_refusal(state, driver)) is not None:
                 self.end(Reason.STOPPED, f"stopped: {why}", now)
                 return
-        if not starting:
-            if self.follow is not None and self.follow.goal is not None:
-                self.end(Reason.REPLACED, "replaced by a follow", now, stop=False)
-                return
-            goal = self.nav.current_goal()
-            if goal is not None and not goal.status.done:
-                self.end(Reason.REPLACED, "replaced by a goal", now, stop=False)
-                return
+        if not starting and (took_over := self._taken_over()) is not None:
+            self.end(Reason.REPLACED, took_over, now, stop=False)
+            return
         if now - self._last > self.settings.stale_after:
             text = f"no command for {self.settings.stale_after:g} s: stopped"
             self.end(Reason.STALE, text, now)
@@ -355,6 +350,24 @@ class DriveService:
         self.commanded = (linear, angular)
         self._code = code
         driver.report(self.state_of(driver), now)
+
+    def _taken_over(self) -> str | None:
+        """Why another motion (a goal, a follow) has replaced driving, if one has."""
+        if self.follow is not None and self.follow.goal is not None:
+            return "replaced by a follow"
+        goal = self.nav.current_goal()
+        if goal is not None and not goal.status.done:
+            return "replaced by a goal"
+        return None
+
+    def _end_unless_taken_over(self, code: Reason, text: str, now: float) -> None:
+        """End driving with ``code`` and stop, unless a goal or follow took over since the
+        last cycle: then it ends ``replaced`` and the new motion is left running."""
+        took_over = self._taken_over()
+        if took_over is not None:
+            self.end(Reason.REPLACED, took_over, now, stop=False)
+        else:
+            self.end(code, text, now)
 
     def _may_start(self, call: CallDrive) -> Refusal | None:
         if self.safety is not None:
