@@ -20,10 +20,14 @@ __all__ = ["RouterRig"]
 class RouterRig:
     """A router directory under ``base`` (CA, router certificate) and its process."""
 
-    def __init__(self, base: Path, *, create: bool = True) -> None:
+    def __init__(self, base: Path, *, create: bool = True, ca: RouterRig | None = None) -> None:
+        """``ca``: share that router's CA (a second router to link to it, §22.5)."""
         self.dir = base / "router"
         if create:
-            certs.init_ca(self.dir)
+            if ca is None:
+                certs.init_ca(self.dir)
+            else:
+                certs.init_ca(self.dir, ca=ca.dir / "ca.pem", ca_key=ca.dir / "ca.key")
         self.port = 0
         self.process: Process | None = None
 

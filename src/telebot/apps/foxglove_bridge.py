@@ -36,6 +36,16 @@ tool; ``geometry_msgs/msg/PoseStamped`` in ``json`` or ``cdr``) drives the robot
 :meth:`RobotClient.goto`, the normal goal path, so the robot's supervisor rules hold (a
 driver only, armed, within its speed cap).
 
+Driving by hand from Foxglove: a client that advertises the teleop topic (``/cmd_vel`` by
+default; ``--teleop-topic``) with ``geometry_msgs/Twist`` (the Teleop panel's schema name;
+also ``geometry_msgs/msg/Twist`` and the ``TwistStamped`` types, ``json`` or ``cdr``)
+drives the robot through :meth:`RobotClient.drive` (docs/protocol.md §27): ``linear.x``
+and ``angular.z`` of each message, held for 1.5 periods of the panel's publish rate
+(``--teleop-rate``, default 10 Hz), so that the robot drives smoothly while a direction
+is held and stops within that hold plus the robot's ``[drive] stale_after`` once the
+panel goes quiet (the panel sends nothing on release unless its "stop on release" is on;
+a zero Twist releases at once).
+
 Commands from Foxglove: the server advertises the services ``/telebot/arm``,
 ``/telebot/stop``, ``/telebot/take``, ``/telebot/release`` and ``/telebot/cancel`` (the
 app's Service Call panel calls them; request ``{}``, response ``{"ok", "text", "code"}``,
@@ -119,6 +129,8 @@ from telebot.services.schemas import BRIDGE_SCHEMAS, TRIGGER_REQUEST, TRIGGER_RE
 __all__ = [
     "COMMANDS",
     "GOAL_TOPIC",
+    "TELEOP_RATE",
+    "TELEOP_TOPIC",
     "FoxgloveBridge",
     "check_output_file",
     "check_port",
@@ -126,12 +138,30 @@ __all__ = [
     "record_session",
     "recording",
     "serve_foxglove",
+    "teleop_hold",
+    "velocity_from_twist",
 ]
 
 log = logging.getLogger("telebot.foxglove")
 
 #: The topic Foxglove's 3D panel publishes goals on (as RViz's "2D Goal Pose").
 GOAL_TOPIC = "/goal_pose"
+#: The topic Foxglove's Teleop panel publishes on, unless ``--teleop-topic`` says another.
+TELEOP_TOPIC = "/cmd_vel"
+#: The Teleop panel's publish rate (Hz) the hold of each message is matched to
+#: (``--teleop-rate``; the panel's own default is 1 Hz: set it to this).
+TELEOP_RATE = 10.0
+#: The rates ``--teleop-rate`` takes: below 2 Hz a release would take over a second to stop.
+TELEOP_RATES = (2.0, 50.0)
+_TWIST = frozenset({"geometry_msgs/Twist", "geometry_msgs/msg/Twist"})
+_TWIST_STAMPED = frozenset({"geometry_msgs/TwistStamped", "geometry_msgs/msg/TwistStamped"})
+#: At most one log line per this many seconds for bad teleop messages (a panel publishes
+#: at 10 Hz: one a message would flood the log); each is counted all the same.
+_TELEOP_LOG_EVERY = 5.0
+#: A held direction repeated after its hold ran out, but within this (s): a panel
+#: publishing too slowly (not a new press); said once after a few in a row.
+_SLOW_GAP = 1.6
+_SLOW_WARN_AFTER = 3
 #: The frame of the map, the pose and the plan.
 MAP_FRAME = "map"
 #: The robot's body frame (``/tf`` carries map → base_link).
@@ -184,10 +214,18 @@ def goal_from_pose_stamped(
             position, orientation = pose["position"], pose.get("orientation") or {}
             x, y = float(position["x"]), float(position["y"])
             q = [float(orientation.get(k, 0.0)) for k in ("x", "y", "z", "w")]
-        except (ValueError, KeyError, TypeError, AttributeError, RecursionError) as exc:
+        except (
+            ValueError,
+            KeyError,
+            TypeError,
+            AttributeError,
+            OverflowError,
+            RecursionError,
+        ) as exc:
             # Quoted short: the exception may hold the whole (huge) value it choked on.
-            # (AttributeError: a list or number where an object belongs; RecursionError:
-            # JSON nested deeper than Python's parser goes.)
+            # (AttributeError: a list or number where an object belongs; OverflowError: an
+            # integer too big for a float; RecursionError: JSON nested deeper than Python's
+            # parser goes.)
             raise ValueError(f"not a JSON PoseStamped ({excerpt(repr(exc))})") from None
     elif encoding == "cdr":
         from telebot.robot.ros2.types import TypeLibrary
@@ -206,6 +244,68 @@ def goal_from_pose_stamped(
     if not any(q):
         return x, y, None
     return x, y, _yaw_of(*q)
+
+
+def teleop_hold(rate: float) -> float:
+    """How long one Teleop message drives (s): 1.5 periods of the panel's publish ``rate``
+    (Hz), so one late message is no stutter, and at least 0.1 s."""
+    return max(0.1, 1.5 / rate)
+
+
+def _vector(value: Any, what: str) -> tuple[float, float, float]:
+    if not isinstance(value, dict):
+        raise ValueError(f"{what} is not an object")
+    numbers = []
+    for axis in ("x", "y", "z"):
+        number = value.get(axis, 0.0)
+        if isinstance(number, bool) or not isinstance(number, int | float):
+            raise ValueError(f"{what}.{axis} is not a number")
+        numbers.append(float(number))
+    return numbers[0], numbers[1], numbers[2]
+
+
+def velocity_from_twist(data: bytes, encoding: str, schema_name: str = "") -> tuple[float, float]:
+    """``(linear.x, angular.z)`` of a ``geometry_msgs/Twist`` (or ``TwistStamped``) as a
+    Foxglove client publishes it (``json`` or ``cdr``); ValueError naming what was wrong
+    otherwise (a short line whatever the input). The other components are ignored: the
+    robot drives forward and turns."""
+    stamped = schema_name in _TWIST_STAMPED
+    if schema_name and not stamped and schema_name not in _TWIST:
+        raise ValueError(
+            f"schema {excerpt(repr(schema_name), 40)} is not geometry_msgs/Twist "
+            "or geometry_msgs/TwistStamped"
+        )
+    if encoding == "json":
+        try:
+            msg = json.loads(data)
+            if not isinstance(msg, dict):
+                raise ValueError("not an object")
+            # The schema name says which; without one, the shape does.
+            twist = msg["twist"] if stamped or (not schema_name and "twist" in msg) else msg
+            if not isinstance(twist, dict):
+                raise ValueError("twist is not an object")
+            linear = _vector(twist["linear"], "linear")
+            angular = _vector(twist["angular"], "angular")
+        except (ValueError, KeyError, TypeError, OverflowError, RecursionError) as exc:
+            # Quoted short: the exception may hold the whole (huge) value it choked on.
+            # (OverflowError: an integer too big for a float.)
+            raise ValueError(f"not a JSON Twist ({excerpt(repr(exc))})") from None
+        x, z = linear[0], angular[2]
+    elif encoding == "cdr":
+        from telebot.robot.ros2.types import TypeLibrary
+
+        name = "geometry_msgs/msg/TwistStamped" if stamped else "geometry_msgs/msg/Twist"
+        try:
+            msg = TypeLibrary().message(name).deserialize(data)
+        except TelebotError as exc:
+            raise ValueError(f"not a CDR {name} ({excerpt(str(exc))})") from None
+        twist = msg.twist if stamped else msg
+        x, z = float(twist.linear.x), float(twist.angular.z)
+    else:
+        raise ValueError(f"unsupported encoding {excerpt(repr(encoding), 40)} (use json or cdr)")
+    if not (math.isfinite(x) and math.isfinite(z)):
+        raise ValueError("a Twist needs finite numbers")
+    return x, z
 
 
 class _Listener(ServerListener):
@@ -245,8 +345,11 @@ class FoxgloveBridge:
 
     ``async with FoxgloveBridge(client, port=8765, mcap=Path("s.mcap")) as bridge:``. ``port``
     None: no server (0: any free port, :attr:`port` says which); ``mcap`` None: no file.
-    ``topics`` are robot topics to relay (needs the robot's relay service). Opening the
-    sinks raises OSError (port taken, file not writable) before anything else starts.
+    ``topics`` are robot topics to relay (needs the robot's relay service).
+    ``teleop_topic`` is where a Twist drives the robot, ``teleop_rate`` (Hz) the Teleop
+    panel's publish rate its hold is matched to (ValueError outside :data:`TELEOP_RATES`).
+    Opening the sinks raises OSError (port taken, file not writable) before anything else
+    starts.
     """
 
     def __init__(
@@ -258,7 +361,12 @@ class FoxgloveBridge:
         mcap: Path | None = None,
         topics: Sequence[str] = (),
         map_timeout: float = 120.0,
+        teleop_topic: str = TELEOP_TOPIC,
+        teleop_rate: float = TELEOP_RATE,
     ) -> None:
+        low, high = TELEOP_RATES
+        if not low <= teleop_rate <= high:
+            raise ValueError(f"teleop rate must be {low:g} to {high:g} Hz, not {teleop_rate!r}")
         self.client = client
         self.host = host
         self.port = port
@@ -271,6 +379,19 @@ class FoxgloveBridge:
         #: Goals received from Foxglove clients, and those refused (bad data, observer).
         self.goals_received = 0
         self.goals_refused = 0
+        #: Where the Teleop panel publishes, and how long each of its messages drives.
+        self.teleop_topic = teleop_topic
+        self.teleop_hold = teleop_hold(teleop_rate)
+        #: Teleop (Twist) messages received, and those refused (bad data, observer).
+        self.teleop_received = 0
+        self.teleop_refused = 0
+        self._driving = False
+        self._teleop_logged = -math.inf
+        #: The last Teleop command and when it came; how often one came too late.
+        self._teleop_last = -math.inf
+        self._teleop_command = (0.0, 0.0)
+        self._teleop_slow = 0
+        self._teleop_warned = False
         self.map: MapDownload | None = None
         self._server: WebSocketServer | None = None
         self._writer: foxglove.MCAPWriter | None = None
@@ -361,6 +482,8 @@ class FoxgloveBridge:
         if self._closing:
             return
         self._closing = True
+        if self._driving:  # no more Teleop messages will come: stop now, not on staleness
+            self._release()
         with contextlib.suppress(ValueError):
             self.client.on_activity.remove(self._on_activity)
         with contextlib.suppress(ValueError):
@@ -631,8 +754,14 @@ class FoxgloveBridge:
             self._log_plan(plan)
 
     def _on_client_message(self, topic: str, encoding: str, schema_name: str, data: bytes) -> None:
-        if self._closing or topic != GOAL_TOPIC:
+        if self._closing:
             return
+        if topic == self.teleop_topic:
+            self._on_teleop(encoding, schema_name, data)
+        elif topic == GOAL_TOPIC:
+            self._on_goal(encoding, schema_name, data)
+
+    def _on_goal(self, encoding: str, schema_name: str, data: bytes) -> None:
         self.goals_received += 1
         try:
             x, y, yaw = goal_from_pose_stamped(data, encoding, schema_name)
@@ -652,6 +781,63 @@ class FoxgloveBridge:
         self.goals_refused += 1
         log.warning("a goal from Foxglove was refused: %s", text)
         self._log_json("goal", {"kind": "refused", "text": text})
+
+    # -- driving by hand from Foxglove (the Teleop panel) ---------------------------------
+
+    def _on_teleop(self, encoding: str, schema_name: str, data: bytes) -> None:
+        self.teleop_received += 1
+        try:
+            linear, angular = velocity_from_twist(data, encoding, schema_name)
+        except ValueError as exc:
+            self._refuse_teleop(f"a Twist on {self.teleop_topic} was refused: {exc}")
+            return
+        if not may(self.client.call.role, Right.DRIVE):
+            self._refuse_teleop(f"{self.teleop_topic}: observers may not drive")
+            return
+        if linear == 0.0 and angular == 0.0:
+            self._release()
+            return
+        self._check_rate((linear, angular))
+        # The robot clamps to its limits and its speed cap, and says why it does not move
+        # (not armed, not the holder, ...) in its drive_state.
+        self.client.drive(linear, angular, hold=self.teleop_hold)
+        self._driving = True
+
+    def _check_rate(self, command: tuple[float, float]) -> None:
+        """Say once if the panel publishes slower than the hold: a held direction arriving
+        again after its hold ran out (the robot lurches and stops between messages; the
+        panel's own default rate is 1 Hz)."""
+        now = time.monotonic()
+        gap = now - self._teleop_last
+        if command != self._teleop_command or gap > _SLOW_GAP:
+            pass  # a new press, not a repeat
+        elif gap <= self.teleop_hold:
+            self._teleop_slow = 0  # in time: a late one now and then is jitter
+        else:
+            self._teleop_slow += 1
+            if self._teleop_slow == _SLOW_WARN_AFTER and not self._teleop_warned:
+                self._teleop_warned = True
+                log.warning(
+                    "Teleop messages on %s arrive every %.1f s: set the panel's publish rate "
+                    "to %g Hz (or pass --teleop-rate), or the robot stops between them",
+                    self.teleop_topic,
+                    gap,
+                    round(1.5 / self.teleop_hold),
+                )
+        self._teleop_last, self._teleop_command = now, command
+
+    def _release(self) -> None:
+        self._driving = False
+        self.client.drive(0.0, 0.0)
+
+    def _refuse_teleop(self, text: str) -> None:
+        self.teleop_refused += 1
+        if self._driving:  # fail safe: what the user meant is unknown
+            self._release()
+        now = time.monotonic()
+        if now - self._teleop_logged >= _TELEOP_LOG_EVERY:
+            self._teleop_logged = now
+            log.warning("%s (%d refused so far)", excerpt(text), self.teleop_refused)
 
     # -- commands from Foxglove (services) -------------------------------------------------
 
@@ -842,6 +1028,8 @@ async def serve_foxglove(
     stop: asyncio.Event | None = None,
     announce: Callable[[str], None] = print,
     transport: Transport | None = None,
+    teleop_topic: str = TELEOP_TOPIC,
+    teleop_rate: float = TELEOP_RATE,
 ) -> int:
     """``telebot-user foxglove``: call ``robot`` and serve it to Foxglove until Ctrl-C
     (or ``stop``); ``transport``: an open one to share (default: one from ``config``)."""
@@ -856,7 +1044,15 @@ async def serve_foxglove(
     async with connect(
         robot, home=home, config=config, timeout=config.call.connect_timeout, transport=transport
     ) as client:
-        bridge = FoxgloveBridge(client, host=host, port=port, mcap=record, topics=topics)
+        bridge = FoxgloveBridge(
+            client,
+            host=host,
+            port=port,
+            mcap=record,
+            topics=topics,
+            teleop_topic=teleop_topic,
+            teleop_rate=teleop_rate,
+        )
         try:
             await bridge.start()
         except OSError as exc:

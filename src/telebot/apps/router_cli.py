@@ -72,6 +72,15 @@ def _add_router_options(parser: argparse.ArgumentParser) -> None:
         "certificate, so the ACL lets it do nothing unless --no-acl; off by default)",
     )
     parser.add_argument(
+        "--peer-router",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="link to another telebot router at this TLS endpoint, e.g. "
+        "tls/cloud.example.com:7447 (repeatable): clients of either reach clients of the "
+        "other; it must share this router's CA (init --ca --ca-key; docs/protocol.md §22.5)",
+    )
+    parser.add_argument(
         "--namespace", default="telebot", help="the telebot namespace (default: telebot)"
     )
     parser.add_argument(
@@ -220,6 +229,7 @@ def plan_of(args: argparse.Namespace) -> RouterPlan:
             listen_tls=tuple(args.listen or [DEFAULT_LISTEN]),
             listen_tcp=tuple(args.tcp),
             acl=not args.no_acl,
+            peers=tuple(args.peer_router),
         )
     except ValueError as exc:
         raise ConfigError(str(exc)) from exc
@@ -357,6 +367,7 @@ async def _run_router(
                     "listen": [*plan.listen_tls, *plan.listen_tcp],
                     "members": [m.common_name for m in plan.members],
                     "acl": plan.acl,
+                    "peers": list(plan.peers),
                 }
                 if events:
                     print(json.dumps(ready), flush=True)
@@ -366,6 +377,8 @@ async def _run_router(
                         f"{len(plan.members)} certificate(s) allowed",
                         flush=True,
                     )
+                    for peer in plan.peers:
+                        print(f"{PROG}: linking to the router at {peer}", flush=True)
                     if gateway_url:
                         print(f"{PROG}: browser gateway at {gateway_url}", flush=True)
                 await stop.wait()

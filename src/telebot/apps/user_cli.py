@@ -51,6 +51,23 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _teleop_topic(text: str) -> str:
+    # As foxglove_bridge.TELEOP_TOPIC and GOAL_TOPIC (not imported here: the SDK is heavy).
+    if not text.startswith("/") or len(text) < 2 or any(c.isspace() for c in text):
+        raise argparse.ArgumentTypeError(f"must be a topic like /cmd_vel, got {text[:60]!r}")
+    if text == "/goal_pose":
+        raise argparse.ArgumentTypeError("/goal_pose is the goal topic, not a teleop topic")
+    return text
+
+
+def _teleop_rate(text: str) -> float:
+    # The range of foxglove_bridge.TELEOP_RATES.
+    value = float(text)
+    if not 2.0 <= value <= 50.0:  # also refuses nan
+        raise argparse.ArgumentTypeError(f"must be 2 to 50 Hz, got {text[:20]}")
+    return value
+
+
 def build_parser() -> Parser:
     """The argument parser of telebot-user."""
     parser = new_parser(PROG, "The telebot user client: call robots, talk and drive through them.")
@@ -296,9 +313,28 @@ def build_parser() -> Parser:
         "published on /goal_pose (the 3D panel's publish tool) is a goal: it goes through the "
         "robot's supervisor as a click on the web page does (drivers only; the robot must be "
         "armed). The services /telebot/arm, /telebot/stop, /telebot/take, /telebot/release and "
-        "/telebot/cancel (the Service Call panel; request {}) are the web page's buttons.",
+        "/telebot/cancel (the Service Call panel; request {}) are the web page's buttons. "
+        "A geometry_msgs/Twist published on /cmd_vel (the Teleop panel; --teleop-topic) "
+        "drives the robot by hand: linear.x and angular.z, while the panel publishes "
+        "(set the panel's publish rate to 10 Hz, or to --teleop-rate).",
     )
     fox.add_argument("robot", type=_robot_after_topics, help="the robot's name")
+    fox.add_argument(
+        "--teleop-topic",
+        type=_teleop_topic,
+        default="/cmd_vel",
+        metavar="TOPIC",
+        help="the topic Foxglove's Teleop panel publishes Twist on (default /cmd_vel)",
+    )
+    fox.add_argument(
+        "--teleop-rate",
+        type=_teleop_rate,
+        default=10.0,
+        metavar="HZ",
+        help="the Teleop panel's publish rate, 2 to 50 (default 10; set the panel to the "
+        "same): each message drives for 1.5 periods, so letting go stops the robot within "
+        "1.5 periods plus the robot's [drive] stale_after (0.15 + 0.3 s at 10 Hz)",
+    )
     fox.add_argument(
         "--port", type=_port, default=8765, help="TCP port to serve on (default 8765; 0: any)"
     )
@@ -469,6 +505,8 @@ def main(argv: list[str] | None = None) -> int:
                 port=args.port,
                 topics=args.topics,
                 record=args.record,
+                teleop_topic=args.teleop_topic,
+                teleop_rate=args.teleop_rate,
             )
         if args.command == "record":
             from telebot.apps.foxglove_bridge import record_session

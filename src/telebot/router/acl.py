@@ -26,6 +26,8 @@ publish (put)              ``{ns}/robot/*/in/U``, ``{ns}/robot/*/call/U/*/ctl|da
 liveliness token           ``{ns}/presence/user/U/*``
 watch liveliness           ``{ns}/presence/robot/*/*``
 admin A may                everything
+a linked router may        everything under ``{ns}/**`` (common name ``telebot-router``:
+                           every router certificate of the CA, ``certs.ROUTER_CN``)
 =========================  ==============================================================
 
 Everything else is denied (``default_permission: deny``): a robot cannot publish to or
@@ -34,6 +36,12 @@ on a call key that names another robot; a user cannot read another user's keys, 
 another user's presence, or publish on a robot's handshake or call keys under another
 user's name (so not into another user's call); and no certificate outside the list (or
 on ``revoked.txt``) can do anything at all.
+
+Two routers (docs/protocol.md §22.5): a router that shares this router's CA may link to
+it (``RouterPlan.peers``: the endpoints it connects to). Each router enforces the rules
+above for its *own* clients on their ingress; what a linked router forwards was checked by
+that router, so a linked router is trusted with the namespace (it could not be told apart
+from its clients' traffic anyway: one link carries them all).
 """
 
 from __future__ import annotations
@@ -46,6 +54,7 @@ from telebot.channels.proto.frames import validate_name
 
 __all__ = [
     "DEFAULT_PORT",
+    "ROUTER_CN",
     "Member",
     "RouterPlan",
     "acl_config",
@@ -54,6 +63,9 @@ __all__ = [
 ]
 
 DEFAULT_PORT: Final = 7447
+#: The common name of every router's certificate (``telebot-router init``): the subject a
+#: linked router (one made from the same CA) is matched by.
+ROUTER_CN: Final = "telebot-router"
 _ALL_MESSAGES: Final = [
     "put",
     "delete",
@@ -99,6 +111,14 @@ class RouterPlan:
     #: unless ``acl`` is off). Off unless asked.
     listen_tcp: tuple[str, ...] = ()
     acl: bool = True
+    #: Other routers to link to (``tls/HOST:PORT``, connected to as a router: zenoh's
+    #: router mesh); they must share this router's CA (§22.5).
+    peers: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        for endpoint in self.peers:
+            if not endpoint.startswith("tls/"):
+                raise ValueError(f"peer router {endpoint}: not a tls/ endpoint")
 
 
 def _rule(rid: str, messages: list[str], keys: Iterable[str]) -> dict[str, Any]:
@@ -168,6 +188,10 @@ def acl_config(members: Iterable[Member], namespace: str = "telebot") -> dict[st
     ]
     subjects: list[dict[str, Any]] = [{"id": "anyone"}]
     policies: list[dict[str, Any]] = [{"id": "egress", "rules": ["egress"], "subjects": ["anyone"]}]
+    # A linked router: it checked its own clients' ingress by its own ACL (§22.5).
+    rules.append(_rule("router", _ALL_MESSAGES, [f"{namespace}/**"]))
+    subjects.append({"id": "router", "cert_common_names": [ROUTER_CN]})
+    policies.append({"id": "router", "rules": ["router"], "subjects": ["router"]})
     for member in members:
         tag = f"{member.kind}-{member.name}"
         mine = _member_rules(member, namespace)
@@ -188,7 +212,9 @@ def router_config(plan: RouterPlan) -> dict[str, Any]:
     config: dict[str, Any] = {
         "mode": "router",
         "listen": {"endpoints": [*plan.listen_tls, *plan.listen_tcp]},
-        "connect": {"endpoints": []},
+        # Linked routers (§22.5): retried in the background for as long as the router
+        # runs, so either side may start first or restart.
+        "connect": {"endpoints": list(plan.peers), "exit_on_failure": False},
         # Across networks nothing is found by multicast, and answering it on a LAN would
         # only advertise the router to strangers.
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},

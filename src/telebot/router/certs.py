@@ -30,6 +30,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from telebot.channels.proto.frames import validate_name
 from telebot.errors import ConfigError
+from telebot.router import acl
 
 __all__ = [
     "KINDS",
@@ -53,7 +54,8 @@ CAKey = ec.EllipticCurvePrivateKey | rsa.RSAPrivateKey
 KINDS: Final[tuple[Kind, ...]] = ("robot", "user", "admin")
 #: Ten years: a CA of one's own; revocation is by the ACL (``revoked.txt``).
 _VALIDITY = datetime.timedelta(days=3650)
-ROUTER_CN: Final = "telebot-router"
+#: The router certificate's common name (what a linked router's ACL lets in).
+ROUTER_CN: Final = acl.ROUTER_CN
 
 
 @dataclass(frozen=True, slots=True)
