@@ -604,7 +604,8 @@ export class RobotSession {
   onDrive(msg) {
     const { linear, angular } = msg;
     if (typeof linear !== "number" || typeof angular !== "number" || !Number.isFinite(linear) || !Number.isFinite(angular)) {
-      this.services?.drive.cancel(); // fail safe: a page that says nonsense stops driving
+      // Fail safe: a page that says nonsense stops driving (a release if it was driving).
+      if (this.services?.drive.driving) this.services.drive.drive(0, 0, { now: this.clock.now() });
       return this.pageError("a drive needs finite numbers linear, angular");
     }
     if (!this.mayDrive) return this.pageError("observers may not drive");
