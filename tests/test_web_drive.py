@@ -11,8 +11,12 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import AsyncIterator
+from pathlib import Path
 from typing import Any
 
+import aiohttp
+
+from rig import SLACK
 from test_web_phone import PORTRAIT, box, inside, overlap
 from test_web_setup import start_page_server
 
@@ -20,8 +24,13 @@ from test_web_setup import start_page_server
 from test_web_ui import (
     _chromium,  # noqa: F401
     _no_leaked_tasks,  # noqa: F401
+    arm,
+    browser_page,
     in_module_loop,
+    page_ready,
+    robot_rig,
     shared_browser,
+    wait_for,
 )
 
 FAKE_PORT = """
@@ -227,3 +236,35 @@ async def test_the_touch_joystick_drives_and_lifting_the_finger_releases() -> No
         # An observer has no joystick.
         await feed(page, hello(may_drive=False))
         await page.wait_for_selector("#joystick", state="hidden")
+
+
+@in_module_loop
+async def test_keys_drive_the_simulated_robot_through_the_local_client(tmp_path: Path) -> None:
+    """End to end through ``telebot-user ui`` (server.py): held, the robot moves; let go,
+    it stops at once, still armed (a release is no stop); bad drive messages get one line."""
+    async with robot_rig(tmp_path) as rig, browser_page(rig.ui.url) as page:
+        await arm(rig)
+        await page_ready(page)
+        await page.wait_for_function("() => window.telebotUI.state.safety?.armed")
+        start = rig.nav.pose().pose
+        await page.keyboard.down("ArrowUp")
+        await wait_for(lambda: rig.nav.velocity().linear > 0.2, what="the robot driving")
+        await page.wait_for_function(
+            "() => document.getElementById('drive-state').textContent.startsWith('driving')"
+        )
+        await page.keyboard.up("ArrowUp")
+        await wait_for(lambda: rig.nav.velocity().linear == 0.0, what="the robot stopped")
+        moved = rig.nav.pose().pose
+        assert moved.x - start.x > 0.05, (start, moved)  # forward, along +x
+        await page.wait_for_function(
+            "() => document.getElementById('drive-state').textContent === 'released'"
+        )
+        assert rig.safety.state().armed and rig.stops() == [], "a release neither stops nor latches"
+        # Bad drive messages from a page: one line each, the call goes on.
+        async with aiohttp.ClientSession() as http, http.ws_connect(rig.ui.url + "ws") as ws:
+            for bad in ({"type": "drive", "linear": "fast", "angular": 0}, {"type": "drive"}):
+                await ws.send_json(bad)
+                while (reply := await ws.receive_json(timeout=10 + SLACK))["type"] != "error":
+                    pass
+                assert reply["text"] == "a drive needs finite numbers linear, angular", reply
+            assert rig.safety.state().armed  # (closing this armed page stops it: the old rule)
