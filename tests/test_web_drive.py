@@ -18,7 +18,7 @@ from typing import Any
 import aiohttp
 
 from rig import SLACK
-from test_web_phone import PORTRAIT, box, inside, overlap
+from test_web_phone import LANDSCAPE, PORTRAIT, box, inside, overlap
 from test_web_setup import start_page_server
 
 # _chromium: one chromium for the module; _no_leaked_tasks: the leak check in its loop.
@@ -137,6 +137,18 @@ async def test_arrow_keys_and_wasd_drive_while_held_and_keyup_releases() -> None
         # One release, the last message: nothing after it.
         assert zero(drives[-1]) and sum(zero(m) for m in drives) == 1, drives[-3:]
         assert await sent(page, "stop") == [], "a drive key never stops"
+        # Held while the window loses the focus (its keyup goes elsewhere): released.
+        await page.keyboard.down("s")
+        await wait_drive(page, "m.linear === -0.5")
+        await page.evaluate("() => window.dispatchEvent(new Event('blur'))")
+        await page.wait_for_function(
+            "() => { const d = window.fake.sent.filter((m) => m.type === 'drive');"
+            " return d[d.length - 1].linear === 0; }"
+        )
+        await ticks_pass(page)
+        await page.keyboard.up("s")
+        drives = await sent(page, "drive")
+        assert zero(drives[-1]) and sum(zero(m) for m in drives) == 2, drives[-3:]
         # The robot's answers are shown.
         state = {"type": "drive_state", "seq": 9, "active": True, "code": "ok", "reason": ""}
         await feed(page, {**state, "linear": 0.3, "angular": -0.5, "cap": 0.42})
@@ -234,6 +246,11 @@ async def test_the_touch_joystick_drives_and_lifting_the_finger_releases() -> No
         await ticks_pass(page)
         drives = await sent(page, "drive")
         assert zero(drives[-1]) and sum(zero(m) for m in drives) == 1
+        # Landscape: still on screen, clear of STOP.
+        await page.set_viewport_size(LANDSCAPE)
+        await page.wait_for_function(f"() => window.innerWidth === {LANDSCAPE['width']}")
+        joystick, stop = await box(page, "#joystick"), await box(page, "#stop")
+        assert inside(joystick, LANDSCAPE) and not overlap(joystick, stop), (joystick, stop)
         # An observer has no joystick.
         await feed(page, hello(may_drive=False))
         await page.wait_for_selector("#joystick", state="hidden")
