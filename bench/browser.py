@@ -356,7 +356,7 @@ async def stops(page: Any, home: Path, who: str, presses: int, out: list[float])
                     raise
         before = len(audit_lines(home))
         offset = time.time() - time.monotonic()  # wall - monotonic, this machine
-        await page.keyboard.press("s")
+        await page.keyboard.press("x")  # not a drive key (WASD, arrows drive)
         pressed = float((await page_state(page, "ui.stats.keyTimes"))[-1])
         deadline = time.monotonic() + 10
         record = None

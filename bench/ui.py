@@ -57,7 +57,7 @@ async def bench(presses: int) -> tuple[list[float], list[float]]:
                 goal = asyncio.create_task(rig.client.goto(target, CORRIDOR_Y))
                 await wait_for(lambda: abs(rig.nav.velocity().linear) > 0.2, what=f"moving ({i})")
                 stops = len(rig.zeroed)
-                await page.keyboard.press("s")
+                await page.keyboard.press("x")  # not a drive key (WASD, arrows drive)
                 await wait_for(lambda n=stops: len(rig.zeroed) > n, timeout=2.0, what="stopped")
                 pressed = (await page.evaluate("() => window.telebotUI.stats.keyTimes"))[-1]
                 key_stop.append(rig.zeroed[-1] * 1000 - pressed)

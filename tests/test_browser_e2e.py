@@ -12,7 +12,8 @@ process), the browser opens the printed link, which registers its key with the r
 pins the robot's; the call button opens the robot page (``/call?robot=…``), whose client
 (the bundle) calls the robot through the gateway. alice drives: a tap on the map is a goal
 the robot reaches, STOP stops it, and so do a touch on the video while it moves and the
-page hidden while it moves. When the network goes while alice drives (her page's
+page hidden while it moves; the touch joystick drives it by hand, and lifting the finger
+releases it. When the network goes while alice drives (her page's
 websockets closed, new ones failing, until it comes back), the robot's deadman stops it,
 her page says so at once, and once the call is back shows it latched with re-arm as the
 one action. bob, invited as an observer in a second browser context, sees who drives,
@@ -395,6 +396,38 @@ async def test_a_page_hidden_while_driving_stops_the_robot(e2e: E2E) -> None:
     await page.evaluate("() => window.dispatchEvent(new PageTransitionEvent('pagehide'))")
     await stopped_by(e2e, "alice", "page_hidden")
     await page.evaluate("() => window.dispatchEvent(new PageTransitionEvent('pageshow'))")
+
+
+async def test_the_phones_joystick_drives_through_the_gateway_and_lifting_releases(
+    e2e: E2E,
+) -> None:
+    """Driving by hand in the in-browser client: the touch joystick (static/drive.js) turns
+    the robot on the spot (whatever is ahead of it), and lifting the finger stops it, armed."""
+    page = e2e.users["alice"].page
+    await arm_from(page)
+    await poll(lambda: armed(e2e), "the robot armed")
+    stops = len(e2e.stops())
+    b = await box(page, "#joystick")
+    x, y = b["x"] + b["width"] / 2, b["y"] + b["height"] / 2
+    cdp = await page.context.new_cdp_session(page)
+
+    async def touch(kind: str, points: list[dict[str, float]]) -> None:
+        await cdp.send("Input.dispatchTouchEvent", {"type": kind, "touchPoints": points})
+
+    await touch("touchStart", [{"x": x, "y": y}])
+    await touch("touchMove", [{"x": x + b["width"] / 2, "y": y}])  # full right: clockwise
+
+    def turning() -> bool:
+        pose = e2e.monitor.latest_pose.value
+        return pose is not None and pose.w < -0.3
+
+    await poll(turning, "the robot turning")
+    await touch("touchEnd", [])
+    await poll(lambda: at_rest(e2e), "the robot at rest")
+    assert armed(e2e) and len(e2e.stops()) == stops, e2e.stops()  # released, not stopped
+    await page.wait_for_function(
+        "() => window.telebotUI.state.drive?.code === 'released'", timeout=PAGE_MS
+    )
 
 
 async def test_when_the_network_goes_the_deadman_stops_the_robot_and_the_page_says_so(

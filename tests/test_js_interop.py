@@ -425,6 +425,22 @@ async def test_js_session_drives_python_robot_at_10_percent_loss(
         seen = client.of_type("pose")[-1]
         assert math.dist((seen["x"], seen["y"]), goal) < start - 0.5  # the page saw it too
 
+        # Driving by hand (§27): the page's drive at 20 Hz takes over from the goal (the
+        # robot says so in drive_state, which the JS session decodes), and a release stops
+        # the robot, still armed.
+        def driving() -> bool:
+            return any(d["active"] and d["code"] == "ok" for d in client.of_type("drive_state"))
+
+        async with asyncio.timeout(LONG):
+            while not (driving() and nav.velocity().angular > 0.1):
+                client.page({"type": "drive", "linear": 0.0, "angular": 0.8})
+                await asyncio.sleep(0.05)
+        client.page({"type": "drive", "linear": 0, "angular": 0})
+        await wait_until(lambda: client.of_type("drive_state")[-1]["code"] == "released", LONG)
+        await wait_until(lambda: nav.velocity() == Velocity(), LONG)
+        assert safety.state().armed and nav.current_goal() is None
+        await wait_until(lambda: client.of_type("goal")[-1]["code"] == "replaced", LONG)
+
         # A stop: acknowledged, and the robot stays latched (disarmed) afterwards.
         client.page({"type": "stop", "how": "button"})
         await wait_until(lambda: bool(_acks(client, "stop")), LONG)

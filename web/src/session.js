@@ -35,6 +35,7 @@ import {
   VideoService,
 } from "./services/services.js";
 import { STOP_HOWS, sayText } from "./services/messages.js";
+import { DriveService } from "./services/drive.js";
 import { CODEC_IDS, CODEC_NAMES, packMedia } from "./services/video.js";
 import { PAGE_CODECS, UserMediaService, chooseCodec, parseMediaMessage, unpackMedia } from "./services/uplink.js";
 import { RequestFailed } from "./services/util.js";
@@ -114,7 +115,7 @@ export class RobotSession {
       onMessage: (msg) => this.emit({ type: "msg", seq: msg.seq, from: msg.from, kind: msg.kind, text: msg.text }),
     });
     /** The newest of each stream, for a page that (re)opens: {@link greet}. */
-    this.latest = { pose: null, telemetry: null, safety: null, goal: null, plan: null, places: null, people: null, map: null };
+    this.latest = { pose: null, telemetry: null, safety: null, goal: null, plan: null, places: null, people: null, map: null, drive: null };
     this.connection = { type: "connection", state: "connected", detail: "", seconds: 0 };
     this.lastRoster = null;
     this.goalId = null;
@@ -220,6 +221,7 @@ export class RobotSession {
       }),
     });
     s.relay = new RelayService(theCall, { random });
+    s.drive = new DriveService(theCall, { random, onState: (state) => this.onDriveState(state) });
     s.userMedia = new UserMediaService(theCall, {
       rtt: () => theCall.stats?.rtt ?? null,
       onKeyframe: () => this.emit({ type: "keyframe_request" }),
@@ -464,6 +466,8 @@ export class RobotSession {
         return;
       case "goal":
         return this.onGoal(msg);
+      case "drive":
+        return this.onDrive(msg);
       case "chat": {
         const line = String(msg.text ?? "");
         const said = sayText(line);
@@ -504,6 +508,7 @@ export class RobotSession {
    * @param {string} [how] "button" | "key" | "tab_closed" | "exit" | "api"
    */
   stop(how = "button") {
+    this.services?.drive.cancel(); // the stop ends direct driving: no repeat may follow it
     return this.safety("stop", how);
   }
 
@@ -550,6 +555,7 @@ export class RobotSession {
     }
     if (![x, y, yaw ?? 0].every(Number.isFinite)) return this.pageError("a goal needs finite numbers");
     if (!this.mayDrive) return this.pageError("observers may not send goals");
+    this.services?.drive.cancel(); // the goal ends direct driving: no repeat may replace it
     const token = {};
     this.goalId = token;
     const update = (status, progress = 0, reason = "", code = "") => {
@@ -576,9 +582,46 @@ export class RobotSession {
     attempt(UNMEASURED_RETRIES);
   }
 
+  // ------------------------------------------------------------ driving by hand §27
+
+  /**
+   * Drive by hand (§27), as the Python client's `drive(linear, angular, hold=0.25)`: sent
+   * at once and repeated at 20 Hz for `hold` s (a page holding a key calls it at 20 Hz);
+   * (0, 0) releases (sent 3 times). While no call is up (reconnecting) nothing is sent
+   * and nothing waits: a motion is never replayed on the next call (§18). Throws a
+   * RangeError on a number that is not finite.
+   * @param {number} linear m/s @param {number} angular rad/s
+   * @param {{hold?: number}} [options]
+   */
+  drive(linear, angular, { hold } = {}) {
+    if (!Number.isFinite(linear) || !Number.isFinite(angular)) {
+      throw new RangeError("drive: linear and angular must be finite numbers");
+    }
+    this.services?.drive.drive(linear, angular, { hold, now: this.clock.now() });
+  }
+
+  /** The page's `{type: "drive", linear, angular}` (§19). */
+  onDrive(msg) {
+    const { linear, angular } = msg;
+    if (typeof linear !== "number" || typeof angular !== "number" || !Number.isFinite(linear) || !Number.isFinite(angular)) {
+      // Fail safe: a page that says nonsense stops driving (a release if it was driving).
+      if (this.services?.drive.driving) this.services.drive.drive(0, 0, { now: this.clock.now() });
+      return this.pageError("a drive needs finite numbers linear, angular");
+    }
+    if (!this.mayDrive) return this.pageError("observers may not drive");
+    this.drive(linear, angular);
+  }
+
+  onDriveState(state) {
+    const msg = { type: "drive_state", ...state };
+    this.latest.drive = msg;
+    this.emit(msg);
+  }
+
   chat(id, line) {
     line = line.trim();
     if (!line) return;
+    this.services?.drive.cancel(); // a chat motion ends direct driving: no repeat may replace it
     const reply = (r) => this.emit({ type: "chat", id, text: r.text, ok: r.ok, final: r.final, code: r.code });
     const attempt = (left) => this.onCall(() => {
       let first = true;

@@ -16,6 +16,9 @@ Websocket protocol (JSON text messages unless stated)::
       {"type": "say", "id": 5, "text": "hello all"}      to everyone in the robot's calls
       {"type": "camera", "id": 4, "name": "usercam"}     switch camera (a chat command)
       {"type": "ping", "t": 1234.5}                      answered with pong (page ↔ client)
+      {"type": "drive", "linear": 0.3, "angular": -0.5}  drive by hand: client.drive(L, A),
+                                                         sent by the page at 20 Hz while
+                                                         held; zeros release
 
     client → page
       {"type": "hello", "robot", "user", "role", "may_drive", "map": MAP | null}
@@ -46,6 +49,8 @@ Websocket protocol (JSON text messages unless stated)::
       {"type": "msg", "seq", "from", "kind": "user" | "robot", "text"}   the conference's
                                                          messages (the last 50 on opening)
       {"type": "said", "id", "ok", "reason", "code"}     the answer to this page's say
+      {"type": "drive_state", "seq", "active", "code", "reason", "linear", "angular",
+       "cap"}                                            the robot's drive_state (§27)
       binary: video frame = 4-byte big-endian header length, UTF-8 JSON header
               {"kind": "video", "codec", "key", "camera", "frame_id", "capture_time"},
               then the picture as the robot sent it (JPEG, H.264, VP8: never decoded or
@@ -130,6 +135,13 @@ def _now_ms() -> float:
     return time.time() * 1000.0
 
 
+def _finite(value: Any) -> float | None:
+    """``value`` as a float when it is a finite JSON number (not a bool), else None."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        return None
+    return float(value)
+
+
 class _Page:
     """One open page: its websocket and what it asked for."""
 
@@ -139,6 +151,8 @@ class _Page:
         #: The video frame being sent; a new frame skips the page while it is (latest wins).
         self.frame: asyncio.Task[None] | None = None
         self.frames_skipped = 0
+        #: It drives by hand now (its last drive command was not a release).
+        self.driving = False
 
 
 class WebUI:
@@ -245,6 +259,7 @@ class WebUI:
             self._pump_plan,
             self._pump_places,
             self._pump_people,
+            self._pump_drive,
         )
         for pump in pumps:
             self._tasks.spawn(pump())
@@ -333,6 +348,8 @@ class WebUI:
                     break
         finally:
             self.pages.discard(page)
+            if page.driving:  # gone while driving by hand: released now, not 0.55 s later
+                self.client.drive(0.0, 0.0)
             self.media.page_closed(page)
             self._video_wanted()
             self._page_closed()
@@ -434,6 +451,8 @@ class WebUI:
             self._tasks.spawn(self._safety(page, kind))
         elif kind == "goal":
             self._on_goal(page, msg)
+        elif kind == "drive":
+            self._on_drive(page, msg)
         elif kind == "chat":
             text = str(msg.get("text", ""))
             if (said := say_text(text)) is not None:  # "say …": to everyone in the call
@@ -467,6 +486,24 @@ class WebUI:
             self._send(page, {"type": "error", "text": "observers may not send goals"})
             return
         self._tasks.spawn(self._run_goal(x, y, yaw))
+
+    def _on_drive(self, page: _Page, msg: dict[str, Any]) -> None:
+        """Drive by hand (§27): the page sends this at 20 Hz while its user holds a key,
+        the gamepad's stick or the joystick, and zeros once on release."""
+        linear, angular = _finite(msg.get("linear")), _finite(msg.get("angular"))
+        if linear is None or angular is None:
+            if page.driving:  # fail safe: a page that says nonsense stops driving
+                page.driving = False
+                self.client.drive(0.0, 0.0)
+            self._send(
+                page, {"type": "error", "text": "a drive needs finite numbers linear, angular"}
+            )
+            return
+        if not self.may_drive:
+            self._send(page, {"type": "error", "text": "observers may not drive"})
+            return
+        page.driving = linear != 0.0 or angular != 0.0
+        self.client.drive(linear, angular)
 
     async def _run_goal(self, x: float, y: float, yaw: float | None) -> None:
         def update(status: GoalUpdate) -> None:
@@ -663,6 +700,12 @@ class WebUI:
         message = json.loads(alert.encode())
         message["type"] = "people_alert"
         self._broadcast(message)
+
+    async def _pump_drive(self) -> None:
+        latest = self.client.latest_drive
+        while True:
+            state = await latest.next()
+            self._broadcast(json.loads(state.encode()))  # the wire's fields, as they came
 
     async def _pump_safety(self) -> None:
         latest = self.client.latest_safety
