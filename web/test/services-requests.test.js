@@ -128,5 +128,5 @@ test("arm repeats every 0.3 s, a refusal comes back with its code, the state is 
   assert.ok(await clock.until(() => ack !== null, 5));
   assert.deepEqual([ack.ok, ack.code], [false, "not_holder"]);
   assert.equal(arms, 3);
-  assert.deepEqual(states, [{ type: "state", armed: false, reason: "stopped", holder: "bob", cap: 0, blocked: false }]);
+  assert.deepEqual(states, [{ type: "state", armed: false, reason: "stopped", code: "", holder: "bob", cap: 0, blocked: false }], "a robot without the state's code: \"\"");
 });
