@@ -38,6 +38,7 @@ from telebot.safety import (
     StateChanged,
     Stop,
 )
+from telebot.services.proto.video import Report
 
 __all__ = ["WATCHDOG_PERIOD", "CallGate", "SafetyDriver"]
 
@@ -57,6 +58,7 @@ class SafetyDriver:
         timeout: float,
         max_speed: float,
         usercam_while_moving: bool = False,
+        stale_video: float = 1.0,
         audit_path: Path | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
@@ -66,6 +68,7 @@ class SafetyDriver:
             timeout=timeout,
             max_speed=max_speed,
             usercam_while_moving=usercam_while_moving,
+            stale_video=stale_video,
             now=clock(),
         )
         self._audit_file: IO[str] | None = None
@@ -84,6 +87,7 @@ class SafetyDriver:
         self._thread: threading.Thread | None = None
         self.watchdog_stops = 0
         self._blocked = False
+        self._moving = False
         self.apply(self.supervisor.tick(clock()))  # the start-up stop and zero cap
 
     # -- lifecycle ------------------------------------------------------------------------
@@ -146,7 +150,17 @@ class SafetyDriver:
         if blocked != self._blocked:
             self._blocked = blocked
             self.apply(self.supervisor.obstacle(blocked, now))
+        moving = self.nav.velocity() != Velocity()
+        if moving != self._moving:
+            self._moving = moving
+            self.apply(self.supervisor.motion(moving, now))
         self.apply(self.supervisor.tick(now))
+
+    def video_report(self, call: Call, report: Report) -> None:
+        """A receiver report on ``call``'s ``video`` that its sender took (§17.2)."""
+        if call.id in self._calls:
+            now = self._clock()
+            self.apply(self.supervisor.video_report(call.id, report.frames, now, bye=report.bye))
 
     def stop(self, call_id: str | None, reason: str = "stop requested", how: str = "") -> Decision:
         """Stop (anyone may; ``call_id`` None: the robot itself); ``how``: see ``STOP_HOWS``."""
