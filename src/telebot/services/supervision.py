@@ -141,11 +141,8 @@ class SafetyDriver:
     def tick(self) -> None:
         """Each control step: signs of life and link quality of every call, obstacles, time."""
         now = self._clock()
-        for call in list(self._calls.values()):
-            rtt = call.stats.rtt
-            self.apply(
-                self.supervisor.heartbeat(call.id, call.last_heard, rtt=rtt, loss=call.stats.loss)
-            )
+        for call_id in list(self._calls):
+            self.heard(call_id)
         blocked = self.nav.status().state is NavState.BLOCKED
         if blocked != self._blocked:
             self._blocked = blocked
@@ -165,6 +162,17 @@ class SafetyDriver:
     def stop(self, call_id: str | None, reason: str = "stop requested", how: str = "") -> Decision:
         """Stop (anyone may; ``call_id`` None: the robot itself); ``how``: see ``STOP_HOWS``."""
         return self.carry_out(self.supervisor.request_stop(call_id, self._clock(), reason, how))
+
+    def heard(self, call_id: str) -> None:
+        """Tell the supervisor ``call_id``'s latest sign of life and link quality now, not
+        at the next control step: a request that just arrived is itself one, and a re-arm
+        right after the link came back must not be refused on the step-old view."""
+        call = self._calls.get(call_id)
+        if call is not None:
+            stats = call.stats
+            self.apply(
+                self.supervisor.heartbeat(call.id, call.last_heard, rtt=stats.rtt, loss=stats.loss)
+            )
 
     def gate(self, call_id: str) -> CallGate:
         """What ``call_id`` may do, for the chat and goals services."""
@@ -246,6 +254,7 @@ class CallGate:
 
     def motion(self, what: str) -> Refusal | None:
         """May this call start ``what`` (a motion command) now?"""
+        self._driver.heard(self.call_id)
         sup = self._driver.supervisor
         return self._decide(sup.request_motion(self.call_id, self._driver._clock(), what))
 
@@ -263,6 +272,7 @@ class CallGate:
 
     def rearm(self) -> Refusal | None:
         """Re-arm the robot (the drive holder only)."""
+        self._driver.heard(self.call_id)
         return self._decide(self._driver.supervisor.rearm(self.call_id, self._driver._clock()))
 
     def take(self) -> Refusal | None:
