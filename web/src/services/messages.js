@@ -172,9 +172,9 @@ export function encodeSafetyRequest(type, id, how = "") {
 /**
  * A robot → user `safety` datagram: {type: "ack", id, ok, reason, code} |
  * {type: "state", armed, reason, code, holder, cap, blocked} | {type: "error", reason, code}.
- * A state's `code` is the reason code of the latest stop (`ok` while armed; `""` from a
- * robot older than the field): `link_silent`, `dropped`, `video_stale` are the robot
- * stopping itself, `stopped` someone's stop (§18).
+ * A state's `code` is the reason code of the latest stop (§18: `ok` while armed;
+ * `link_silent` the deadman, `video_stale` a frozen picture, `dropped` the holder's call
+ * dropped — the robot stopped itself — `stopped` someone's stop, …; "" from an older robot).
  */
 export function decodeSafetyReply(payload) {
   const what = "safety";
