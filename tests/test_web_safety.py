@@ -107,7 +107,8 @@ async def test_a_self_stop_offers_one_rearm_and_a_users_stop_the_plain_state() -
         await feed(page, safety(True))
         assert not (await alert(page))["shown"]
         # The deadman after a link blip: one sentence, one big Re-arm, for the holder.
-        await feed(page, safety(False, "driver alice's link lost", code="link_silent"))
+        deadman = "driver alice's link lost: silent 0.45 s (deadman)"
+        await feed(page, safety(False, deadman, code="link_silent"))
         a = await alert(page)
         assert a["shown"] and a["arm"] and a["armEnabled"], a
         assert a["text"].startswith("Your link went silent") and "re-arm" in a["text"], a
@@ -131,6 +132,8 @@ async def test_a_self_stop_offers_one_rearm_and_a_users_stop_the_plain_state() -
         # A robot without the state's code: told apart by its reason.
         await feed(page, safety(False, "driver alice's link lost"))
         assert (await alert(page))["text"].startswith("Your link went silent")
+        await feed(page, safety(False, deadman))
+        assert (await alert(page))["text"].startswith("Your link went silent")
         await feed(page, safety(False, "stop requested by alice (button)"))
         assert not (await alert(page))["shown"]
         # Another driver's call dropped and the drive is free: said, but re-arm needs the
@@ -144,7 +147,7 @@ async def test_a_self_stop_offers_one_rearm_and_a_users_stop_the_plain_state() -
         assert not (await alert(page))["shown"]
         # The chat log says each self-stop once.
         log = await page.inner_text("#chat-log")
-        assert log.count("Your link went silent") == 2, log
+        assert log.count("Your link went silent") == 2, log  # the fallback's is the same
 
 
 @in_module_loop

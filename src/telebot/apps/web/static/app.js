@@ -506,7 +506,7 @@
     if (!s || s.armed) return "";
     if (s.code) return SELF_STOP_WORDS[s.code] ? s.code : "";
     const r = s.reason || "";
-    if (/^driver .*'s link lost$/.test(r)) return "link_silent";
+    if (/^driver .*'s link lost/.test(r)) return "link_silent";
     if (/^driver .* (dropped|called again)/.test(r)) return "dropped";
     if (/video froze|video frozen/.test(r)) return "video_stale";
     return "";
