@@ -13,6 +13,7 @@ import io
 import math
 import os
 import re
+import signal
 import subprocess
 import time
 from collections.abc import Iterator
@@ -344,3 +345,35 @@ def test_after_its_own_motion_the_exceptions_end_in_time() -> None:
     assert not motions.moving()  # settling: the base may still creep
     clock[0] = _Motions.SETTLE_AT_MOST + 0.01
     assert motions.moving()  # it never read zero: after a second, a key stops it
+
+
+async def test_after_the_robot_stopped_itself_chat_says_so_and_how_to_drive_on(
+    tmp_path: Path, processes: list[Process]
+) -> None:
+    # A robot of its own: this test trips the deadman, which the module's robot must not log.
+    daemon = Daemon(tmp_path)
+    daemon.start()
+    try:
+        alice = chat(daemon)
+        processes.append(alice)
+        alice.write("arm\n")
+        assert await reply(alice, 60) == "> arm"
+        assert (await reply(alice)).startswith("armed:")
+        # A blip: the chat freezes (its heartbeats stop) past the deadman time.
+        os.kill(alice.pid, signal.SIGSTOP)
+        try:
+            await wait_until(
+                lambda: any(r["what"] == "deadman" for r in daemon.audit()),
+                timeout=daemon.timeout + 10 + SLACK,
+            )
+        finally:
+            os.kill(alice.pid, signal.SIGCONT)
+        deadman = daemon.timeout - 1 / 20  # call.timeout minus one heartbeat (at 20 Hz)
+        hint = (
+            f"[the robot stopped itself: driver {daemon.driver}'s link lost: silent "
+            f"{deadman:.2f} s (deadman). Type 'arm' to drive on.]"
+        )
+        await wait_until(lambda: hint in alice.stderr(), timeout=20 + SLACK)
+        assert alice.stderr().count(hint) == 1, alice.stderr()  # said once, not every second
+    finally:
+        daemon.stop()

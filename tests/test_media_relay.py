@@ -7,14 +7,18 @@ import logging
 import struct
 import subprocess
 import sys
+from types import SimpleNamespace
+from typing import Any, cast
 
 import aiohttp
 import pytest
 
 from conftest import Homes
-from telebot.apps.web.media_relay import MAX_VIDEO_FRAME, pack_media, parse_media
+from telebot.apps.web.media_relay import MAX_VIDEO_FRAME, MediaRelay, pack_media, parse_media
 from telebot.apps.web.screen import parse_screen_option, robot_screen
+from telebot.channels.channel import ReceivedDatagram
 from telebot.config import ScreenSettings
+from telebot.services.proto.video import Report
 
 
 def test_video_and_audio_round_trip() -> None:
@@ -126,3 +130,38 @@ def test_a_bad_screen_option_is_a_usage_error(homes: Homes) -> None:
     assert result.stderr.strip() == (
         "telebot-robot: error: --screen: expected HOST:PORT or off, got 'somewhere'"
     )
+
+
+async def test_the_robots_reports_on_the_users_camera_go_to_the_sending_page() -> None:
+    """Each REPORT of ``video/user`` reaches the page that sends the camera as an
+    ``uplink_report`` (its encoder's bit rate follows it); a reordered one and a BYE do not."""
+    sent: list[tuple[object, dict[str, Any]]] = []
+    page, other = object(), object()
+    ui = SimpleNamespace(pages={page, other}, _send=lambda p, m: sent.append((p, m)))
+    relay = MediaRelay(cast(Any, ui))
+    relay.encode = {page: ("vp8",), other: ("vp8",)}
+    relay.sender = page
+
+    def report(receiver_ms: int, *, bye: bool = False) -> None:
+        payload = Report(receiver_ms, 120, 100, 90000, 40, 3, 17, bye=bye, codecs=(4,)).encode()
+        relay.uplink._on_report(ReceivedDatagram("video/user", "guiabot", payload, 0.0))
+
+    report(5000)
+    report(4000)  # reordered
+    report(5200, bye=True)
+    reports = [(p, m) for p, m in sent if m["type"] == "uplink_report"]
+    assert reports == [
+        (
+            page,
+            {
+                "type": "uplink_report",
+                "receiver_ms": 5000,
+                "highest_seq": 120,
+                "fragments": 100,
+                "bytes": 90000,
+                "frames": 40,
+                "dropped": 3,
+                "queue_delay_ms": 17,
+            },
+        )
+    ]

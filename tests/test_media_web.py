@@ -235,6 +235,43 @@ async def test_the_robot_decodes_the_users_numbered_frames(rig: MediaRig) -> Non
     assert rising(rig.robot_saw[-20:], LOOP), rig.robot_saw[-20:]
 
 
+async def test_the_pages_camera_bit_rate_follows_the_robots_reports(rig: MediaRig) -> None:
+    page = rig.page
+    # The page's encoder runs and the robot's reports on its pictures reach it.
+    await wait_stats(page, "s.encoderBitrate > 0 && s.uplinkReports >= 5")
+    # From the ceiling, with a controller of the page's own kind deaf to queueing delay
+    # (on a loaded machine the scheduling of the robot's loop shows as delay): here loss
+    # alone must lower the rate (static/uplink-rate.js's rules: web/test/uplink-rate.test.js).
+    await page.evaluate(
+        """() => { const c = window.telebotMedia.capture;
+             c.rate = new window.telebotUplinkRate.UplinkRate(
+               {start: 1500000, delayHighMs: 1e9, delayLowMs: 1e9});
+             c.opts.bitrate = 1500000; c.rateChanged = true; }"""
+    )
+    try:
+        await wait_stats(page, "s.encoderBitrate === 1500000")
+        channel = rig.ui.media.uplink.channel
+        assert channel is not None
+        send, count = channel.send, itertools.count()
+
+        def lossy(payload: str | bytes) -> None:
+            if next(count) % 4:  # a quarter of the camera's fragments never reach the robot
+                send(payload)
+
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(channel, "send", lossy)
+            # The robot reports the loss: the page's encoder is configured lower.
+            s = await wait_stats(page, "s.encoderBitrate < 1500000 && s.uplinkLoss > 0.1")
+        # A clean link again: the rate climbs back.
+        await wait_stats(page, f"s.encoderBitrate > {s['encoderBitrate']}")
+    finally:
+        await page.evaluate(
+            """() => { const c = window.telebotMedia.capture;
+                 c.rate = new window.telebotUplinkRate.UplinkRate();
+                 c.opts.bitrate = c.rate.bitrate; c.rateChanged = true; }"""
+        )
+
+
 async def test_the_robot_screen_shows_the_users_video_and_name(rig: MediaRig) -> None:
     screen = rig.screen_page
     await screen.wait_for_function(

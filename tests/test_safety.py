@@ -225,7 +225,9 @@ def test_deadman_fires_at_the_timeout_and_not_before() -> None:
     before = sup.tick(1.0 + TIMEOUT - 1e-6)
     assert not stops(before) and sup.armed and sup.speed_cap(1.0 + TIMEOUT - 1e-6) > 0
     at = sup.tick(1.0 + TIMEOUT)
-    assert isinstance(at[0], Stop) and at[0].reason == "driver alice's link lost"
+    reason = "driver alice's link lost: silent 0.50 s (deadman)"
+    assert isinstance(at[0], Stop) and at[0].reason == reason
+    assert sup.state().code == Reason.LINK_SILENT and sup.stop_code == Reason.LINK_SILENT
     assert not sup.armed and sup.speed_cap(1.0 + TIMEOUT) == 0.0 and sup.state().cap == 0.0
     # The cap announced just before was already rounded down to 0.
     assert caps(before) == [0.0] and caps(at) == []
@@ -528,12 +530,165 @@ def test_actions_put_the_stop_first() -> None:
         {"max_speed": -1.0},
         {"grace": 0.5},
         {"grace": -0.1},
+        {"stale_video": -0.5},
+        {"stale_video": math.nan},
         {"now": math.inf},
     ],
 )
 def test_bad_settings_are_config_errors(kwargs: dict[str, float]) -> None:
     with pytest.raises(ConfigError):
         SafetySupervisor(**{"now": 0.0, **kwargs})  # type: ignore[arg-type]
+
+
+# -- no driving blind: the stale-video lockout ----------------------------------------------
+
+STALE = 1.0
+
+
+def watched(now: float = 1.0, frames: int = 10, **kwargs: float | bool) -> SafetySupervisor:
+    """Alice drives (armed) and watches the robot's video: her first report came at ``now``."""
+    sup = driving(now, stale_video=STALE, **kwargs)
+    sup.video_report("a", frames, now)
+    return sup
+
+
+def live(sup: SafetySupervisor, start: float, end: float) -> list[Action]:
+    """Alice's heartbeats keep coming every 50 ms from ``start`` up to ``end`` (her link
+    stays fresh, so only the video term moves the cap); every action on the way."""
+    t = start
+    actions: list[Action] = []
+    while t < end - 1e-9:
+        t = min(end, t + 0.05)
+        actions += beat(sup, "a", t)
+        actions += sup.tick(t)
+    return actions
+
+
+def test_a_frozen_picture_lowers_the_cap_and_then_stops_a_moving_robot() -> None:
+    sup = watched()
+    sup.motion(True, 1.0)
+    live(sup, 1.0, 1.0 + STALE / 2)
+    assert sup.speed_cap(1.0 + STALE / 2) == MAX  # no new picture for stale/2: full speed
+    live(sup, 1.5, 1.75)
+    assert sup.speed_cap(1.75) == pytest.approx(MAX / 2)  # halfway down to 0
+    before = live(sup, 1.75, 1.0 + STALE - 0.05)
+    assert sup.armed and not stops(before)
+    at = live(sup, 1.95, 1.0 + STALE)
+    assert stops(at) and not sup.armed
+    state = sup.state()
+    assert state.code == Reason.VIDEO_STALE and sup.stop_code == "video_stale"
+    assert state.reason == "video frozen for 1.0 s: the robot stopped itself"
+    record = audits(at)[-1]
+    assert (record.what, record.outcome, record.who) == ("video_stale", "stopped", "alice")
+    # Latched: fresh pictures do not restart it, a re-arm does (and starts nothing).
+    sup.video_report("a", 11, 2.05)
+    live(sup, 2.0, 2.1)
+    assert not sup.armed and not sup.request_motion("a", 2.1, "fwd 1").allowed
+    assert sup.rearm("a", 2.1).allowed and sup.speed_cap(2.1) == MAX
+
+
+def test_at_rest_a_frozen_picture_only_lowers_the_cap_and_fresh_frames_restore_it() -> None:
+    sup = watched()
+    actions = live(sup, 1.0, 1.0 + 2 * STALE - 0.1)  # long frozen, but the robot stands
+    assert sup.armed and sup.speed_cap(2.9) == 0.0 and not stops(actions)
+    refused = sup.request_motion("a", 2.9, "fwd 1")
+    assert not refused.allowed and refused.code == Reason.VIDEO_STALE
+    assert "frozen" in refused.reason
+    # The next report whose counter grew: a new picture, the cap is back at once.
+    actions = sup.video_report("a", 11, 2.9)
+    assert sup.speed_cap(2.9) == MAX and caps(actions) == [MAX]
+    assert sup.request_motion("a", 2.9, "fwd 1").allowed
+
+
+def test_starting_to_move_on_a_frozen_picture_stops_at_once() -> None:
+    sup = watched()
+    live(sup, 1.0, 1.0 + STALE + 0.2)
+    assert sup.armed  # at rest: no latch
+    actions = sup.motion(True, 2.2)
+    assert stops(actions) and sup.stop_code == Reason.VIDEO_STALE
+
+
+def test_fresh_frames_keep_a_moving_robot_at_full_speed() -> None:
+    sup = watched()
+    sup.motion(True, 1.0)
+    t, frames = 1.0, 10
+    while t < 4.0:  # reports every 0.2 s, each with new frames
+        live(sup, t, t + 0.2)
+        t += 0.2
+        frames += 3
+        sup.video_report("a", frames, t)
+        assert sup.armed and sup.speed_cap(t) == MAX
+    # A report without new frames counts as no picture: the age runs from the last new one.
+    live(sup, t, t + 0.7)
+    sup.video_report("a", frames, t + 0.7)
+    assert sup.speed_cap(t + 0.7) < MAX
+
+
+def test_a_holder_not_watching_video_is_not_subject_to_the_rule() -> None:
+    sup = driving(1.0, stale_video=STALE)  # no video report at all
+    sup.motion(True, 1.0)
+    live(sup, 1.0, 4.0)
+    assert sup.armed and sup.speed_cap(4.0) == MAX
+    # Neither is a watcher who is not the holder: an observer's frozen picture.
+    sup.join("o", "olga", Role.OBSERVER, 4.0)
+    sup.video_report("o", 5, 4.0)
+    live(sup, 4.0, 6.0)
+    assert sup.armed and sup.speed_cap(6.0) == MAX
+
+
+def test_bye_ends_the_rule_and_so_do_reports_that_stop_coming() -> None:
+    sup = watched()
+    sup.motion(True, 1.0)
+    live(sup, 1.0, 1.6)
+    assert sup.speed_cap(1.6) < MAX
+    actions = sup.video_report("a", 10, 1.6, bye=True)  # she closed the video
+    assert caps(actions) == [MAX]
+    live(sup, 1.6, 4.0)
+    assert sup.armed and sup.speed_cap(4.0) == MAX
+    # Watching again starts afresh (the first report is a fresh picture) ...
+    sup.video_report("a", 10, 4.0)
+    live(sup, 4.0, 4.4)
+    assert sup.speed_cap(4.4) == MAX
+    # ... and so does one after reports stopped for 2 s (the robot stopped streaming).
+    sup.motion(False, 4.4)
+    live(sup, 4.4, 6.5)
+    assert sup.armed and sup.speed_cap(6.5) == MAX  # not watching any more
+    sup.video_report("a", 10, 6.5)
+    assert sup.speed_cap(6.5) == MAX
+
+
+def test_stale_video_zero_turns_the_rule_off_and_counters_wrap() -> None:
+    sup = driving(1.0, stale_video=0.0)
+    sup.video_report("a", 3, 1.0)
+    sup.motion(True, 1.0)
+    live(sup, 1.0, 3.0)
+    assert sup.armed and sup.speed_cap(3.0) == MAX
+    # u32 counters wrap: 2**32 - 1 -> 2 is three new frames, not an old report.
+    sup = watched(frames=2**32 - 1)
+    sup.motion(True, 1.0)
+    live(sup, 1.0, 1.9)
+    sup.video_report("a", 2, 1.9)
+    assert sup.speed_cap(1.9) == MAX
+    live(sup, 1.9, 2.2)
+    assert sup.armed
+
+
+def test_stop_codes_say_who_or_what_stopped_the_robot() -> None:
+    sup = SafetySupervisor(now=0.0)
+    assert sup.state().code == Reason.STARTED
+    sup = driving()
+    assert sup.state().code == Reason.OK
+    sup.request_stop("a", 1.1)
+    assert sup.state().code == Reason.STOPPED
+    sup.tick(3.0)  # the deadman while stopped keeps the first reason
+    assert sup.state().code == Reason.STOPPED
+    for how, code in (("dropped", Reason.DROPPED), ("hung_up", Reason.HUNG_UP)):
+        sup = driving()
+        sup.leave("a", how, 1.1)  # type: ignore[arg-type]
+        assert sup.state().code == code
+    sup = driving()
+    sup.release_drive("a", 1.1)
+    assert sup.state().code == Reason.HANDED_OVER
 
 
 # -- the stateful model --------------------------------------------------------------------

@@ -290,3 +290,22 @@ async def test_a_robot_that_fails_to_start_closes_its_audit_log(
         await robot_daemon.serve_robot(RobotConfig(), homes.robot, homes.contacts, home=tmp_path)
     assert audit.exists()  # it was opened (the start-up stop is audited) ...
     assert str(audit) not in open_paths()  # ... and closed again
+
+
+def test_a_re_arm_right_after_the_link_came_back_is_not_refused_on_a_stale_view() -> None:
+    # The deadman stopped the robot; the driver's link is back (its arm request is itself a
+    # sign of life) before the next control step has looked: one `arm` must do.
+    clock = [100.0]
+    driver = SafetyDriver(room(), timeout=0.5, max_speed=0.5, clock=lambda: clock[0])
+    alice = FakeCall("c1", "alice", Role.DRIVER, last_heard=100.0)
+    driver.join(alice)  # type: ignore[arg-type]
+    driver.tick()
+    assert driver.gate("c1").rearm() is None
+    clock[0] = 101.0
+    driver.tick()
+    state = driver.state()
+    assert not state.armed and state.code == Reason.LINK_SILENT
+    alice.last_heard = 101.0  # no tick in between
+    assert driver.gate("c1").rearm() is None
+    assert driver.state().armed
+    driver.close()

@@ -510,6 +510,10 @@ class SafetySettings(StrictModel):
 
     #: Allow cameras other than the navcam while the robot moves.
     usercam_while_moving: bool = False
+    #: No driving blind: while the drive holder watches the robot's video, a picture this
+    #: old (s; its receiver's reports show no new frame) stops a moving robot and latches
+    #: (code ``video_stale``); from half this age the speed cap falls to 0. 0 turns it off.
+    stale_video: float = Field(default=1.0, ge=0, le=60)
     #: Audit log (JSON lines); relative paths are taken from the robot's home directory.
     audit_log: Path = Path("audit.jsonl")
 

@@ -43,6 +43,13 @@ class Reason(enum.StrEnum):
     NO_SUPERVISOR = "no_supervisor"
     UNKNOWN_CALL = "unknown_call"
     CLOCK_FAULT = "clock_fault"
+    # Why the robot is stopped (the safety state's code, §18), beside ``stopped``,
+    # ``link_silent`` (the deadman), ``clock_fault`` and ``internal_error``.
+    VIDEO_STALE = "video_stale"
+    STARTED = "started"
+    HUNG_UP = "hung_up"
+    DROPPED = "dropped"
+    HANDED_OVER = "handed_over"
     # Commands the robot could not make sense of.
     UNKNOWN_COMMAND = "unknown_command"
     USAGE = "usage"
@@ -93,6 +100,14 @@ DESCRIPTIONS: dict[Reason, str] = {
     Reason.NO_SUPERVISOR: "the robot runs no safety supervisor: nothing to arm or hand over",
     Reason.UNKNOWN_CALL: "the safety supervisor does not know the call",
     Reason.CLOCK_FAULT: "the robot's clock failed: it stopped",
+    Reason.VIDEO_STALE: (
+        "the drive holder's video froze (no new picture for `[safety] stale_video`) "
+        "while the robot moved: it stopped itself; a motion refused while it stays frozen"
+    ),
+    Reason.STARTED: "the robot (re)started: it comes up stopped until armed",
+    Reason.HUNG_UP: "the drive holder's call hung up: the robot stopped",
+    Reason.DROPPED: "the drive holder's call dropped (or was replaced by its client's next call)",
+    Reason.HANDED_OVER: "the drive changed hands (taken over, taken to another call, released)",
     Reason.UNKNOWN_COMMAND: "not a command (or an empty line): see help",
     Reason.USAGE: "bad arguments: the text is the command's usage line",
     Reason.INVALID: (

@@ -37,6 +37,18 @@ Rules (fail safe: when in doubt, stop or refuse):
   Every term only falls as the link gets worse, and the cap is exactly 0 when the holder's
   age reaches the timeout, whatever the round trip. The cap is announced through
   :class:`SetSpeedCap` in steps of :data:`CAP_STEP`, rounded down.
+- **No driving blind** (stale video, ``stale_video`` s, 0 = off). A holder who watches the
+  robot's video (:meth:`~SafetySupervisor.video_report`: its receiver reported within
+  :data:`WATCHING_WINDOW`, no BYE) must keep getting new pictures. With ``age`` the time
+  since its frames counter last grew, a fourth term of the factor is::
+
+      video_factor = 1                                              if age <= stale_video/2
+                   = (stale_video - age) / (stale_video / 2)       if stale_video/2 < age < stale_video
+                   = 0                                              if age >= stale_video
+
+  so the cap falls while the picture freezes, at rest too; and at ``stale_video``, if the
+  robot moves (:meth:`~SafetySupervisor.motion`), it stops and latches (code
+  ``video_stale``). A holder who does not watch video is not subject to this rule.
 - **One driver, many observers.** Contacts with role driver or admin may hold the drive, one
   call at a time; the first such call to join while the drive is free takes it at once
   (still disarmed), the others are observers until the holder releases it
@@ -58,7 +70,8 @@ States, in words::
 
     DISARMED, nobody holds ──(driver/admin joins or takes)──► DISARMED, H holds
     DISARMED, H holds ──(H re-arms, link fresh)──► ARMED, H holds
-    ARMED ──(any stop · deadman · H leaves/drops/releases · admin takeover · clock fault)──►
+    ARMED ──(any stop · deadman · frozen video while moving · H leaves/drops/releases ·
+             admin takeover · clock fault)──►
         Stop, DISARMED (holder: none, or the admin after a takeover)
     DISARMED, H holds ──(H leaves/drops/releases)──► DISARMED, nobody holds
     any, H holds ──(H's user calls again: H replaced by H')──► Stop, DISARMED, H' holds
@@ -83,6 +96,7 @@ __all__ = [
     "LOCAL",
     "LOSS_LIMIT",
     "NAVCAM",
+    "WATCHING_WINDOW",
     "Action",
     "Audit",
     "AuditRecord",
@@ -106,6 +120,11 @@ LOSS_LIMIT = 0.5
 #: Announced speed caps are rounded down to this step (m/s), so that a link whose quality
 #: wobbles does not send a new limit to the NavStack on every tick.
 CAP_STEP = 0.01
+#: A holder watches video while its receiver's reports come at most this far apart (s):
+#: the robot's video sender stops streaming as long after the last report (§17.2).
+WATCHING_WINDOW = 2.0
+#: Frame counters of receiver reports are u32 and wrap (serial arithmetic, §17.2).
+_U32 = 2**32
 
 #: What an audit record says happened: commands are allowed or refused; events (join,
 #: leave, deadman, obstacle) stopped the robot or were only noted.
@@ -129,6 +148,14 @@ class Participant:
     rtt: float | None = None
     #: Share of the call's recent heartbeats that were lost (0 … 1).
     loss: float = 0.0
+    #: The frames counter of the call's latest video report; None while it does not watch
+    #: the robot's video (no report yet, or a BYE).
+    video_frames: int | None = None
+    #: When its latest video report came.
+    video_heard: float = -math.inf
+    #: When its frames counter last grew (or it began watching): its newest picture's age
+    #: is counted from here.
+    video_fresh: float = -math.inf
 
     @property
     def may_drive(self) -> bool:
@@ -143,6 +170,10 @@ class SafetyState:
     armed: bool
     #: Why the robot was last stopped (empty while armed).
     reason: str
+    #: The reason code of the latest stop (``ok`` while armed): ``link_silent`` for the
+    #: deadman, ``video_stale``, ``stopped`` for a stop request, … (see ``docs/protocol.md``
+    #: §18), so a user interface can tell the robot stopping itself from a STOP button.
+    code: Reason
     #: The user holding the drive, its call and role; None when the drive is free.
     holder: str | None
     holder_call: str | None
@@ -268,15 +299,23 @@ class SafetySupervisor:
         max_speed: float = 0.5,
         usercam_while_moving: bool = False,
         grace: float = 0.1,
+        stale_video: float = 1.0,
         now: float,
     ) -> None:
         """Start disarmed, with nobody holding the drive.
 
         ``timeout``: the deadman time (s); ``max_speed``: the hard linear cap (m/s);
         ``grace``: loop delay (s) below which the link costs no speed (two heartbeats at
-        20 Hz); ``usercam_while_moving``: allow cameras other than the navcam while moving.
+        20 Hz); ``usercam_while_moving``: allow cameras other than the navcam while moving;
+        ``stale_video``: the age of a watching holder's newest picture at which a moving
+        robot stops (s; 0 turns the rule off).
         """
-        for name, value in (("timeout", timeout), ("max_speed", max_speed), ("grace", grace)):
+        for name, value in (
+            ("timeout", timeout),
+            ("max_speed", max_speed),
+            ("grace", grace),
+            ("stale_video", stale_video),
+        ):
             if not isinstance(value, int | float) or not math.isfinite(value):
                 raise ConfigError(f"safety {name} must be a finite number, not {value!r}")
         if timeout <= 0:
@@ -285,17 +324,21 @@ class SafetySupervisor:
             raise ConfigError(f"safety max_speed must be > 0, not {max_speed}")
         if not 0 <= grace < timeout:
             raise ConfigError(f"safety grace must be ≥ 0 and below the timeout, not {grace}")
+        if stale_video < 0:
+            raise ConfigError(f"safety stale_video must be ≥ 0 (0: off), not {stale_video}")
         if not math.isfinite(now):
             raise ConfigError(f"the start time must be a finite number, not {now!r}")
         # Read-only after construction: a safety limit is not something to change in passing.
         self._timeout = float(timeout)
         self._max_speed = float(max_speed)
         self._grace = float(grace)
+        self._stale_video = float(stale_video)
         self._usercam_while_moving = bool(usercam_while_moving)
         self._clock = float(now)
         self._armed = False
         # A restart after a crash lands here too: stopped, disarmed, waiting for a re-arm.
         self._reason = "not armed since start"
+        self._code = Reason.STARTED
         self._since = self._clock
         self._holder: str | None = None
         self._participants: dict[str, Participant] = {}
@@ -303,6 +346,7 @@ class SafetySupervisor:
         self._replaced: dict[str, str] = {}
         self._camera: str | None = None  # unknown until the supervisor selects one
         self._blocked = False
+        self._moving = False
         self._announced: float | None = None
         # Whatever the NavStack was doing before this process started, it stops now: the
         # first actions returned, by whichever call comes first, are these.
@@ -329,6 +373,12 @@ class SafetySupervisor:
         return self._grace
 
     @property
+    def stale_video(self) -> float:
+        """The age (s) of a watching holder's newest picture at which a moving robot stops
+        (0: the rule is off)."""
+        return self._stale_video
+
+    @property
     def usercam_while_moving(self) -> bool:
         """Whether cameras other than the navcam may be selected while moving."""
         return self._usercam_while_moving
@@ -342,6 +392,11 @@ class SafetySupervisor:
     def stop_reason(self) -> str:
         """Why the robot was last stopped (empty while armed)."""
         return "" if self._armed else self._reason
+
+    @property
+    def stop_code(self) -> Reason:
+        """The reason code of the latest stop (``ok`` while armed)."""
+        return Reason.OK if self._armed else self._code
 
     @property
     def holder(self) -> str | None:
@@ -368,6 +423,7 @@ class SafetySupervisor:
         return SafetyState(
             armed=self._armed,
             reason=self.stop_reason,
+            code=self.stop_code,
             holder=p.user if p else None,
             holder_call=self._holder,
             holder_role=p.role if p else None,
@@ -418,7 +474,7 @@ class SafetySupervisor:
             # was driving, stop rather than guess which one is real.
             detail = "call already joined"
             if call_id == self._holder:
-                self._disarm(step, "call joined twice")
+                self._disarm(step, "call joined twice", Reason.INTERNAL_ERROR)
                 detail += "; robot stopped"
             self._audit(step, call_id, "join", "refused", detail)
             return list(self._finish(step))
@@ -443,7 +499,8 @@ class SafetySupervisor:
         outcome: Outcome = "noted"
         if self._holder == old.call_id:
             # Fail safe: what the old call started ran on a link that is gone.
-            self._disarm(step, f"driver {old.user} called again (the old call is replaced)")
+            reason = f"driver {old.user} called again (the old call is replaced)"
+            self._disarm(step, reason, Reason.DROPPED)
             outcome = "stopped"
             if may(role, Right.DRIVE):
                 self._holder = call_id
@@ -473,7 +530,8 @@ class SafetySupervisor:
         if call_id == self._holder:
             user = self._participants[call_id].user
             words = "hung up" if how == "hung_up" else "dropped"
-            self._disarm(step, f"driver {user} {words}")
+            code = Reason.HUNG_UP if how == "hung_up" else Reason.DROPPED
+            self._disarm(step, f"driver {user} {words}", code)
             self._holder = None
             outcome = "stopped"
         self._audit(step, call_id, what, outcome, "")
@@ -525,7 +583,7 @@ class SafetySupervisor:
         p = self._participants.get(call_id) if call_id is not None else None
         by = LOCAL if call_id is None else (p.user if p else f"unknown call {call_id}")
         was_armed = self._armed
-        self._disarm(step, f"{reason} by {by}" + (f" ({how})" if how else ""))
+        self._disarm(step, f"{reason} by {by}" + (f" ({how})" if how else ""), Reason.STOPPED)
         detail = reason if was_armed else f"{reason} (already stopped)"
         return self._decide(step, call_id, "stop", True, detail, how=how)
 
@@ -624,10 +682,11 @@ class SafetySupervisor:
         if previous is not None and own:
             # A user moves the drive between their own calls (the page and the terminal):
             # the robot stops, and this call re-arms it once its user sees where it is.
-            self._disarm(step, f"{p.user} took the drive to another call")
+            self._disarm(step, f"{p.user} took the drive to another call", Reason.HANDED_OVER)
             detail = f"taken from {p.user}'s call {previous.call_id}"
         elif previous is not None:
-            self._disarm(step, f"{p.user} (admin) took over the drive from {previous.user}")
+            reason = f"{p.user} (admin) took over the drive from {previous.user}"
+            self._disarm(step, reason, Reason.HANDED_OVER)
             detail = f"taken over from {previous.user}"
         self._holder = call_id
         return self._decide(step, call_id, "take drive", True, detail)
@@ -642,7 +701,7 @@ class SafetySupervisor:
             return self._decide(step, call_id, "release drive", False, *refusal)
         user = self._participants[call_id].user
         # Nobody would be watching the robot any more: it must not go on moving.
-        self._disarm(step, f"{user} released the drive")
+        self._disarm(step, f"{user} released the drive", Reason.HANDED_OVER)
         self._holder = None
         return self._decide(step, call_id, "release drive", True, "")
 
@@ -661,6 +720,54 @@ class SafetySupervisor:
             self._blocked = blocked
             text = "obstacle ahead" if blocked else "obstacle cleared"
             self._audit(step, None, "obstacle", "noted", text)
+        return list(self._finish(step))
+
+    def motion(self, moving: bool, now: float) -> list[Action]:
+        """The NavStack reports the robot moving (any velocity) or at rest.
+
+        Only a moving robot is stopped for a frozen picture: at rest the cap alone keeps it
+        from starting blind, and fresh pictures lift the cap again without a re-arm.
+        """
+        step = self._begin(now)
+        if step is None:
+            return self._fault(None, "motion")
+        self._moving = bool(moving)
+        self._video_lockout(step)
+        return list(self._finish(step))
+
+    def video_report(
+        self, call_id: str, frames: int, now: float, *, bye: bool = False
+    ) -> list[Action]:
+        """A receiver report from ``call_id`` on the robot's ``video`` (§17.2), as the video
+        sender accepted it (reordered reports already dropped): its ``frames`` counter (u32,
+        wraps) and its BYE flag.
+
+        The first report (or the first after a BYE or a 2 s lapse) starts the stale-video
+        rule for the call with a fresh picture; a counter that grew freshens it; a BYE ends
+        the rule for the call. Unknown calls are ignored (no audit record: these arrive five
+        times a second).
+        """
+        step = self._begin(now)
+        if step is None:
+            return self._fault(call_id, "video report")
+        p = self._participants.get(call_id)
+        if p is not None and isinstance(frames, int):
+            frames %= _U32
+            t = step.t
+            if bye:
+                p = replace(p, video_frames=None)
+            elif p.video_frames is None or t - p.video_heard >= WATCHING_WINDOW:
+                p = replace(p, video_frames=frames, video_heard=t, video_fresh=t)
+            else:
+                # Serial arithmetic: a counter that moved forward by less than half the space.
+                grew = 0 < (frames - p.video_frames) % _U32 < _U32 // 2
+                p = replace(
+                    p,
+                    video_frames=frames if grew else p.video_frames,
+                    video_heard=t,
+                    video_fresh=t if grew else p.video_fresh,
+                )
+            self._participants[call_id] = p
         return list(self._finish(step))
 
     def tick(self, now: float) -> list[Action]:
@@ -690,7 +797,7 @@ class SafetySupervisor:
             1.0 if delay <= self.grace else (self.timeout - delay) / (self.timeout - self.grace)
         )
         loss_factor = max(0.0, 1.0 - p.loss / LOSS_LIMIT)
-        return max(0.0, min(1.0, delay_factor, loss_factor))
+        return max(0.0, min(1.0, delay_factor, loss_factor, self._video_factor(p, t)))
 
     def _announced_cap(self, t: float) -> float:
         cap = self.speed_cap(t)
@@ -700,7 +807,7 @@ class SafetySupervisor:
         return min(cap, math.floor(cap / CAP_STEP) * CAP_STEP)
 
     def _key(self) -> tuple[object, ...]:
-        return (self._armed, self._reason, self._holder, self._blocked)
+        return (self._armed, self._reason, self._code, self._holder, self._blocked)
 
     def _begin(self, now: float) -> _Step | None:
         """Bring the supervisor to ``now`` (the deadman first); None for a clock fault."""
@@ -714,6 +821,7 @@ class SafetySupervisor:
         for action in boot:
             (step.audits if isinstance(action, Audit) else step.stops).append(action)
         self._deadman(step)
+        self._video_lockout(step)
         return step
 
     def _deadman(self, step: _Step) -> None:
@@ -721,20 +829,57 @@ class SafetySupervisor:
             return
         p = self._holder_participant()
         if p is None or not p.may_drive:  # cannot happen; if it does, nobody is in charge
-            self._disarm(step, "armed without a driver")
+            self._disarm(step, "armed without a driver", Reason.INTERNAL_ERROR)
             self._audit(step, None, "deadman", "stopped", "armed without a driver")
             return
         age = step.t - p.last_heard
         if age >= self.timeout:
-            self._disarm(step, f"driver {p.user}'s link lost")
+            # The deadman time, not the age: a late tick must not make the rule look laxer.
+            reason = f"driver {p.user}'s link lost: silent {self.timeout:.2f} s (deadman)"
+            self._disarm(step, reason, Reason.LINK_SILENT)
             self._audit(step, p.call_id, "deadman", "stopped", f"silent for {age:.3f} s")
 
-    def _disarm(self, step: _Step, reason: str) -> None:
-        """Stop, and latch if armed; a stop while stopped keeps the first reason."""
+    def _watching(self, p: Participant, t: float) -> bool:
+        """Whether the stale-video rule applies to ``p``: on, and its reports come."""
+        return (
+            self._stale_video > 0
+            and p.video_frames is not None
+            and t - p.video_heard < WATCHING_WINDOW
+        )
+
+    def _video_factor(self, p: Participant, t: float) -> float:
+        """The video term of the link factor (module docstring), 0 … 1."""
+        if not self._watching(p, t):
+            return 1.0
+        age = t - p.video_fresh
+        half = self._stale_video / 2
+        if age <= half:
+            return 1.0
+        if age >= self._stale_video:
+            return 0.0
+        return (self._stale_video - age) / half
+
+    def _video_lockout(self, step: _Step) -> None:
+        """No driving blind: stop and latch a moving robot whose holder's picture froze."""
+        p = self._holder_participant()
+        if not self._armed or not self._moving or p is None or not self._watching(p, step.t):
+            return
+        age = step.t - p.video_fresh
+        if age >= self._stale_video:
+            # The configured time, as the deadman's: the age may be a tick later.
+            reason = f"video frozen for {self._stale_video:.1f} s: the robot stopped itself"
+            self._disarm(step, reason, Reason.VIDEO_STALE)
+            self._audit(
+                step, p.call_id, "video_stale", "stopped", f"no new picture for {age:.3f} s"
+            )
+
+    def _disarm(self, step: _Step, reason: str, code: Reason) -> None:
+        """Stop, and latch if armed; a stop while stopped keeps the first reason and code."""
         step.stops.append(Stop(reason))
         if self._armed:
             self._armed = False
             self._reason = reason
+            self._code = code
             self._since = step.t
 
     def _holder_refusal(
@@ -764,6 +909,10 @@ class SafetySupervisor:
         if p.rtt is None:
             text = "your link's round trip is not measured yet; try again in a moment"
             return text, Reason.RTT_UNMEASURED
+        if self._watching(p, t) and t - p.video_fresh >= self._stale_video:
+            age = t - p.video_fresh
+            text = f"your video is frozen (no new picture for {age:.1f} s): wait for it"
+            return text, Reason.VIDEO_STALE
         if self.speed_cap(t) <= 0:
             text = f"your link is too poor to drive (rtt {p.rtt:.3f} s, loss {p.loss:.0%})"
             return text, Reason.LINK_POOR
@@ -822,7 +971,7 @@ class SafetySupervisor:
         boot, self._boot = self._boot, []
         for action in boot:
             (step.audits if isinstance(action, Audit) else step.stops).append(action)
-        self._disarm(step, "clock fault")
+        self._disarm(step, "clock fault", Reason.CLOCK_FAULT)
         self._audit(step, call_id, what, "refused", "time is not a finite number; stopped")
         return list(self._finish(step))
 

@@ -177,7 +177,7 @@ export class RobotSession {
     s.safety = new SafetyService(theCall, {
       random,
       onState: (state) => {
-        const msg = { type: "safety", armed: state.armed, reason: state.reason, holder: state.holder, cap: state.cap, blocked: state.blocked };
+        const msg = { type: "safety", armed: state.armed, reason: state.reason, code: state.code, holder: state.holder, cap: state.cap, blocked: state.blocked };
         this.latest.safety = msg;
         this.emit(msg);
       },
@@ -226,6 +226,7 @@ export class RobotSession {
       rtt: () => theCall.stats?.rtt ?? null,
       onKeyframe: () => this.emit({ type: "keyframe_request" }),
       onChange: () => this.tellMedia(),
+      onReport: (msg) => this.emit(msg),
     });
     this.services = s;
     const now = this.clock.now();

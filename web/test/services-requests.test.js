@@ -3,6 +3,8 @@
 import { test } from "node:test";
 import assert from "node:assert/strict";
 import { ChatService, SafetyService } from "../src/services/services.js";
+import { decodeSafetyReply } from "../src/services/messages.js";
+import { DecodeError } from "../src/services/util.js";
 import { FakeCall, ManualClock, seeded } from "./services-fake.js";
 
 /** A robot's chat: "fwd 1" gets an ack and, 0.5 s later, its final reply; repeats get every reply sent so far. */
@@ -128,5 +130,18 @@ test("arm repeats every 0.3 s, a refusal comes back with its code, the state is 
   assert.ok(await clock.until(() => ack !== null, 5));
   assert.deepEqual([ack.ok, ack.code], [false, "not_holder"]);
   assert.equal(arms, 3);
-  assert.deepEqual(states, [{ type: "state", armed: false, reason: "stopped", holder: "bob", cap: 0, blocked: false }]);
+  // An older robot sends no code: it reads as "".
+  assert.deepEqual(states, [{ type: "state", armed: false, reason: "stopped", code: "", holder: "bob", cap: 0, blocked: false }]);
+});
+
+test("the safety state carries the code of the latest stop, so a page tells a deadman from a button", () => {
+  const state = (fields) => decodeSafetyReply(JSON.stringify({ type: "state", armed: false, holder: "alice", cap: 0, blocked: false, ...fields }));
+  const deadman = state({ reason: "driver alice's link lost: silent 0.45 s (deadman)", code: "link_silent" });
+  assert.equal(deadman.code, "link_silent");
+  assert.equal(state({ reason: "video frozen for 1.0 s: the robot stopped itself", code: "video_stale" }).code, "video_stale");
+  assert.equal(state({ reason: "stop requested by alice (button)", code: "stopped" }).code, "stopped");
+  // A code this page does not know is kept as it is; one that is not short text does not decode.
+  assert.equal(state({ reason: "", code: "newer_code" }).code, "newer_code");
+  assert.throws(() => state({ reason: "", code: 7 }), DecodeError);
+  assert.throws(() => state({ reason: "", code: "x".repeat(65) }), DecodeError);
 });

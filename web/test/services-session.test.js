@@ -64,7 +64,7 @@ test("hello, then the robot's streams in the page's shapes", async () => {
   assert.deepEqual(out[1], { type: "connection", state: "connected", detail: "", seconds: 0 });
   call().toUser("pose", JSON.stringify(POSE), { lossless: true });
   call().toUser("telemetry", JSON.stringify(TELEMETRY), { lossless: true });
-  call().toUser("safety", JSON.stringify({ type: "state", armed: false, reason: "stop requested by bob (key)", holder: "bob", cap: 0, blocked: false }), { lossless: true });
+  call().toUser("safety", JSON.stringify({ type: "state", armed: false, reason: "stop requested by bob (key)", code: "stopped", holder: "bob", cap: 0, blocked: false }), { lossless: true });
   call().toUser("plan", JSON.stringify({ type: "plan", seq: 3, goal: 7, points: [[1, 2], [3, 4]] }), { lossless: true });
   call().toUser("plan", JSON.stringify({ type: "plan", seq: 2, goal: 7, points: [] }), { lossless: true });
   call().toUser("plan", JSON.stringify({ type: "places", places: [{ name: "lab", x: 1, y: 2, yaw: null }] }), { lossless: true });
@@ -82,7 +82,7 @@ test("hello, then the robot's streams in the page's shapes", async () => {
   delete pose.recv;
   assert.deepEqual(pose, { type: "pose", x: 1, y: 2, yaw: 0.5, v: 0.3, w: 0, state: "moving", detail: "goto lab", goal: 7, t: 12.5, cov: [0.1, 0.1, 0.01] });
   assert.deepEqual(ofType(out, "telemetry"), [{ type: "telemetry", ...TELEMETRY }]);
-  assert.deepEqual(ofType(out, "safety"), [{ type: "safety", armed: false, reason: "stop requested by bob (key)", holder: "bob", cap: 0, blocked: false }]);
+  assert.deepEqual(ofType(out, "safety"), [{ type: "safety", armed: false, reason: "stop requested by bob (key)", code: "stopped", holder: "bob", cap: 0, blocked: false }], "the state's code (§18) goes to the page");
   assert.deepEqual(ofType(out, "plan"), [{ type: "plan", seq: 3, goal: 7, points: [[1, 2], [3, 4]] }], "an older plan is dropped");
   assert.deepEqual(ofType(out, "places"), [{ type: "places", places: [{ name: "lab", x: 1, y: 2, yaw: null }] }], "once while unchanged");
   assert.deepEqual(ofType(out, "people"), [{ ...people, tracks: [{ ...people.tracks[0], src: ["camera", "laser"] }] }]);

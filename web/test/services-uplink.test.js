@@ -39,6 +39,21 @@ const CAPTURE = 1700000000.25;
 const report = (over = {}) => encodeReport({ receiverMs: 1, highestSeq: 0, fragments: 0, bytes: 0, frames: 0, dropped: 0, queueDelayMs: 0, ...over });
 const picture = (frameId, key, data, codec = "vp8") => ({ type: "video", header: { kind: "video", codec, key, frame_id: frameId, capture_time: CAPTURE }, data });
 
+test("the robot's reports on video/user reach the page as uplink_report (not a BYE, not a reordered one)", async () => {
+  const { clock, out, call } = await started();
+  const counters = { highestSeq: 120, fragments: 100, bytes: 90000, frames: 40, dropped: 3, queueDelayMs: 17 };
+  call().toUser("video/user", report({ receiverMs: 5000, ...counters, codecs: [0x04] }), { lossless: true });
+  await clock.advance(0.05);
+  assert.deepEqual(ofType(out, "uplink_report"), [{
+    type: "uplink_report", receiver_ms: 5000, highest_seq: 120, fragments: 100, bytes: 90000, frames: 40, dropped: 3, queue_delay_ms: 17,
+  }]);
+  call().toUser("video/user", report({ receiverMs: 4000, codecs: [0x04] }), { lossless: true });
+  call().toUser("video/user", report({ receiverMs: 5200, bye: true, codecs: [0x04] }), { lossless: true });
+  call().toUser("audio/user", report({ receiverMs: 5300, codecs: [0x10] }), { lossless: true });
+  await clock.advance(0.05);
+  assert.equal(ofType(out, "uplink_report").length, 1, "reordered, BYE and audio reports are not the camera's");
+});
+
 test("the page's media message is answered send: true in its first codec; the robot's list then chooses", async () => {
   const { clock, out, call } = await started();
   assert.deepEqual(ofType(out, "media"), [{ type: "media", send: true, codec: "vp8", note: "" }]);
@@ -283,7 +298,7 @@ test("seeded fuzz: the page's media decoders and the robot's reports never throw
   }
   await clock.advance(0.1);
   assert.ok(session.drops.userMedia > 1000, `counted: ${JSON.stringify(session.drops)}`);
-  for (const m of out.slice(before)) assert.ok(["media", "keyframe_request", "link", "error"].includes(m.type), m.type);
+  for (const m of out.slice(before)) assert.ok(["media", "keyframe_request", "uplink_report", "link", "error"].includes(m.type), m.type);
   session.send({ type: "ping", t: 2 });
   assert.deepEqual(out.at(-1), { type: "pong", t: 2 }, "the session still works");
 });

@@ -108,6 +108,7 @@ async def serve_robot(
             timeout=deadman_time(config),
             max_speed=max_speed,
             usercam_while_moving=config.safety.usercam_while_moving,
+            stale_video=config.safety.stale_video,
             audit_path=audit,
         )
         recorder = _recorder(config, audit, home)

@@ -21,7 +21,7 @@ from telebot.services.proto.chat import ChatReply
 from telebot.services.proto.conference import MAX_TEXT as MAX_SAY_TEXT
 from telebot.services.proto.conference import Message, Roster, say_text
 from telebot.services.proto.people import PeopleAlertMessage
-from telebot.services.proto.safety import latched_text
+from telebot.services.proto.safety import SafetyStatus, latched_text
 from telebot.services.proto.status import PoseUpdate
 
 __all__ = [
@@ -121,6 +121,40 @@ async def _robot(
 def _say_connection(event: ConnectionEvent) -> None:
     """Tell the chat user the call dropped / came back (stderr: stdout is the replies)."""
     print(f"[{event}]", file=sys.stderr, flush=True)
+
+
+def stopped_itself_line(state: SafetyStatus, me: str | None) -> str:
+    """The one line the chat prints after the robot stopped itself (``state.stopped_itself``:
+    a silent link, a frozen picture, a dropped call): what happened and that ``arm`` drives
+    on (said to the drive holder; others learn who may)."""
+    what = state.reason.removesuffix(": the robot stopped itself")  # said once is enough
+    if me is None or state.holder in (None, me):
+        way = "Type 'arm' to drive on."
+    else:
+        way = f"{state.holder} holds the drive and may re-arm it."
+    return f"the robot stopped itself: {what}. {way}"
+
+
+def _say_self_stops(client: RobotClient) -> None:
+    """After the robot stopped itself, say so once on stderr (with connection news), with
+    the re-arm that undoes it: a brief blip of the link costs one word, ``arm``."""
+    first = client.latest_safety.value
+    seen: list[SafetyStatus] = [first] if first is not None else []
+
+    def on_state(state: SafetyStatus) -> None:
+        previous = seen[-1] if seen else None
+        seen[:] = [state]
+        # Only stops seen happening (the state repeats once a second; an old stop found
+        # on connecting is what `status` is for), and across reconnections too.
+        if previous is None or not state.stopped_itself:
+            return
+        if not previous.armed and previous.reason == state.reason:
+            return
+        roster = client.conference.roster
+        me = next((m.name for m in roster.users if m.you), None) if roster else None
+        print(f"[{stopped_itself_line(state, me)}]", file=sys.stderr, flush=True)
+
+    client.on_safety.append(on_state)
 
 
 def _say_people_alert(alert: PeopleAlertMessage) -> None:
@@ -341,6 +375,7 @@ async def chat_session(
         client.on_connection.append(_say_connection)
         _show_conference(client)
         client.on_people_alert.append(_say_people_alert)
+        _say_self_stops(client)
         print(
             f"connected to {robot} (role {client.call.role}); type help, Ctrl-D to leave",
             file=sys.stderr,

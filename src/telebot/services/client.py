@@ -325,8 +325,11 @@ class RobotClient:
         self._goal_ids = itertools.count(start)
         self._safety_ids = itertools.count(start)
         self._safety_waiters: dict[int, asyncio.Queue[SafetyAck]] = {}
-        #: The robot's safety state (armed, why stopped, who holds the drive).
+        #: The robot's safety state (armed, why stopped and its ``code``, who holds the
+        #: drive); ``stopped_itself`` says a re-arm (:meth:`arm`) is all it takes to go on.
         self.latest_safety: _Latest[SafetyStatus] = _Latest()
+        #: Called with every safety state as it comes (on a change and once a second).
+        self.on_safety: list[Callable[[SafetyStatus], None]] = []
         self._chat_waiters: dict[int, asyncio.Queue[ChatReply]] = {}
         self._goal_waiters: dict[int, asyncio.Queue[GoalUpdate]] = {}
         self.latest_pose: _Latest[PoseUpdate] = _Latest()
@@ -1101,6 +1104,11 @@ class RobotClient:
             return
         if isinstance(message, SafetyStatus):
             self.latest_safety.set(message)
+            for callback in list(self.on_safety):
+                try:
+                    callback(message)
+                except Exception:  # one listener's fault must not hide the state from others
+                    log.exception("safety state listener failed")
             return
         if isinstance(message, SafetyError):  # our own requests always decode: a robot's bug
             log.warning("the robot could not read a safety request: %s", message.text)

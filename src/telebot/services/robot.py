@@ -454,6 +454,9 @@ class RobotVideo:
 
     def __init__(self, server: RobotServer, call: Call) -> None:
         self.sender = VideoSender.for_call(call, server.nav, server.video_settings)
+        safety = server.safety
+        if safety is not None:  # no driving blind: the supervisor follows the pictures
+            self.sender.on_report = lambda report: safety.video_report(call, report)
         self.sender.start()
 
     def tick(self, now: float) -> None:
@@ -485,6 +488,13 @@ def default_robot_services() -> ServiceRegistry[RobotServer]:
     registry.register("people", PeopleService)
     registry.register("drive", CallDrive)
     return registry
+
+
+def _status(state: SafetyState) -> SafetyStatus:
+    """The supervisor's state as the ``safety`` channel tells it."""
+    return SafetyStatus(
+        state.armed, state.reason, state.holder, state.cap, state.blocked, state.code
+    )
 
 
 def _remember(table: OrderedDict[int, Any], key: int, value: Any) -> None:
@@ -742,16 +752,14 @@ class RobotServer:
     def safety_status(self) -> SafetyStatus:
         """The safety state as the users see it."""
         if self.safety is None:
-            return SafetyStatus(True, "", None, self.nav.speed_limit, False)
-        state = self.safety.state()
-        holder = state.holder
-        return SafetyStatus(state.armed, state.reason, holder, state.cap, state.blocked)
+            return SafetyStatus(True, "", None, self.nav.speed_limit, False, Reason.OK)
+        return _status(self.safety.state())
 
     def _broadcast_safety(self, state: SafetyState) -> None:
         # A stop or a hand-over ends a follow before anyone hears of it.
         self._guarded(self.follow.safety_changed, state)
         self._guarded(self.drive.safety_changed, state, self.now())
-        status = SafetyStatus(state.armed, state.reason, state.holder, state.cap, state.blocked)
+        status = _status(state)
         for services in list(self.services.values()):
             self._guarded(services.send_safety_state, status)
 

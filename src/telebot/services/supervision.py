@@ -39,6 +39,7 @@ from telebot.safety import (
     StateChanged,
     Stop,
 )
+from telebot.services.proto.video import Report
 
 __all__ = ["WATCHDOG_PERIOD", "CallGate", "SafetyDriver"]
 
@@ -58,6 +59,7 @@ class SafetyDriver:
         timeout: float,
         max_speed: float,
         usercam_while_moving: bool = False,
+        stale_video: float = 1.0,
         audit_path: Path | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
@@ -67,6 +69,7 @@ class SafetyDriver:
             timeout=timeout,
             max_speed=max_speed,
             usercam_while_moving=usercam_while_moving,
+            stale_video=stale_video,
             now=clock(),
         )
         self._audit_file: IO[str] | None = None
@@ -85,6 +88,7 @@ class SafetyDriver:
         self._thread: threading.Thread | None = None
         self.watchdog_stops = 0
         self._blocked = False
+        self._moving = False
         self.apply(self.supervisor.tick(clock()))  # the start-up stop and zero cap
 
     # -- lifecycle ------------------------------------------------------------------------
@@ -138,20 +142,38 @@ class SafetyDriver:
     def tick(self) -> None:
         """Each control step: signs of life and link quality of every call, obstacles, time."""
         now = self._clock()
-        for call in list(self._calls.values()):
-            rtt = call.stats.rtt
-            self.apply(
-                self.supervisor.heartbeat(call.id, call.last_heard, rtt=rtt, loss=call.stats.loss)
-            )
+        for call_id in list(self._calls):
+            self.heard(call_id)
         blocked = self.nav.status().state is NavState.BLOCKED
         if blocked != self._blocked:
             self._blocked = blocked
             self.apply(self.supervisor.obstacle(blocked, now))
+        moving = self.nav.velocity() != Velocity()
+        if moving != self._moving:
+            self._moving = moving
+            self.apply(self.supervisor.motion(moving, now))
         self.apply(self.supervisor.tick(now))
+
+    def video_report(self, call: Call, report: Report) -> None:
+        """A receiver report on ``call``'s ``video`` that its sender took (§17.2)."""
+        if call.id in self._calls:
+            now = self._clock()
+            self.apply(self.supervisor.video_report(call.id, report.frames, now, bye=report.bye))
 
     def stop(self, call_id: str | None, reason: str = "stop requested", how: str = "") -> Decision:
         """Stop (anyone may; ``call_id`` None: the robot itself); ``how``: see ``STOP_HOWS``."""
         return self.carry_out(self.supervisor.request_stop(call_id, self._clock(), reason, how))
+
+    def heard(self, call_id: str) -> None:
+        """Tell the supervisor ``call_id``'s latest sign of life and link quality now, not
+        at the next control step: a request that just arrived is itself one, and a re-arm
+        right after the link came back must not be refused on the step-old view."""
+        call = self._calls.get(call_id)
+        if call is not None:
+            stats = call.stats
+            self.apply(
+                self.supervisor.heartbeat(call.id, call.last_heard, rtt=stats.rtt, loss=stats.loss)
+            )
 
     def gate(self, call_id: str) -> CallGate:
         """What ``call_id`` may do, for the chat and goals services."""
@@ -245,6 +267,7 @@ class CallGate:
 
     def motion(self, what: str) -> Refusal | None:
         """May this call start ``what`` (a motion command) now?"""
+        self._driver.heard(self.call_id)
         sup = self._driver.supervisor
         return self._decide(sup.request_motion(self.call_id, self._driver._clock(), what))
 
@@ -262,6 +285,7 @@ class CallGate:
 
     def rearm(self) -> Refusal | None:
         """Re-arm the robot (the drive holder only)."""
+        self._driver.heard(self.call_id)
         return self._decide(self._driver.supervisor.rearm(self.call_id, self._driver._clock()))
 
     def take(self) -> Refusal | None:

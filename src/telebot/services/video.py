@@ -82,6 +82,7 @@ from telebot.services.proto.video import (
     CompleteFrame,
     Reassembler,
     ReassemblyStats,
+    Report,
     VideoRateController,
     VideoSettings,
     encode_jpeg,
@@ -287,6 +288,9 @@ class VideoSender:
         self._watch: asyncio.Task[None] | None = None
         self._ended = False
         self._closed = False
+        #: Called with each receiver report the sender takes (reordered ones are not): the
+        #: robot's safety supervisor learns from it whether its driver still gets pictures.
+        self.on_report: Callable[[Report], None] | None = None
         channel.set_callback(self._on_datagram)
 
     @classmethod
@@ -401,7 +405,13 @@ class VideoSender:
             return
         now = self._loop.time()
         idle = not self.controller.watching(now)
+        taken = self.controller.reports
         self.controller.on_report(report, now)
+        if self.on_report is not None and self.controller.reports != taken:
+            try:
+                self.on_report(report)
+            except Exception:  # a listener's fault must not stop the video
+                log.exception("video report listener failed")
         self.stats.reports += 1
         self.accepted = report.codecs
         if report.keyframe:

@@ -171,7 +171,10 @@ export function encodeSafetyRequest(type, id, how = "") {
 
 /**
  * A robot → user `safety` datagram: {type: "ack", id, ok, reason, code} |
- * {type: "state", armed, reason, holder, cap, blocked} | {type: "error", reason, code}.
+ * {type: "state", armed, reason, code, holder, cap, blocked} | {type: "error", reason, code}.
+ * A state's `code` is the reason code of the latest stop (§18: `ok` while armed;
+ * `link_silent` the deadman, `video_stale` a frozen picture, `dropped` the holder's call
+ * dropped — the robot stopped itself — `stopped` someone's stop, …; "" from an older robot).
  */
 export function decodeSafetyReply(payload) {
   const what = "safety";
@@ -190,6 +193,7 @@ export function decodeSafetyReply(payload) {
         type: "state",
         armed: flag(msg, "armed", what),
         reason: text(msg, "reason", what, ""),
+        code: decodeCode(msg, what),
         holder: optionalText(msg, "holder", what),
         cap: finiteNumber(msg, "cap", what),
         blocked: flag(msg, "blocked", what),

@@ -10,8 +10,9 @@
  * then while reports come (a `BYE` or 2 s without one stops it). A report of `video/user`
  * carries the robot's codec list (the page's codec is chosen from it) and its KEYFRAME
  * flag, passed to the page as a keyframe request at most once per max(RTT, 300 ms).
- * The Python relay does not use the report's counters (the page's encoder keeps its own
- * bit rate), and neither does this.
+ * Its counters go to the page as they came (`onReport`, the page's `uplink_report`
+ * message, as the Python relay passes them on): the page's encoder sets its bit rate from
+ * them (static/uplink-rate.js).
  *
  * Sans-IO parts ({@link parseMediaMessage}, {@link unpackMedia}, {@link VideoUplink},
  * {@link AudioUplink}) take `now` in seconds; {@link UserMediaService} puts them on a call.
@@ -119,6 +120,23 @@ export function chooseCodec(accepted, preferred) {
 }
 
 /**
+ * The page's `uplink_report` message (§19.1) for a parsed REPORT of `video/user`: its
+ * counters under the wire's names, as the Python relay's `uplink_report()` writes them.
+ */
+export function uplinkReport(report) {
+  return {
+    type: "uplink_report",
+    receiver_ms: report.receiverMs,
+    highest_seq: report.highestSeq,
+    fragments: report.fragments,
+    bytes: report.bytes,
+    frames: report.frames,
+    dropped: report.dropped,
+    queue_delay_ms: report.queueDelayMs,
+  };
+}
+
+/**
  * When a stream of the user's may go (§25): reports keep it going; before the first one,
  * {@link USER_MEDIA_PROBE} s from the first wish to send. A report older than the last
  * accepted one (by `receiver_ms`) is ignored, so it cannot undo a `BYE`.
@@ -173,9 +191,9 @@ export class VideoUplink {
   }
 
   /**
-   * One REPORT from the robot: {codecsChanged, wantedChanged, keyframe} (`keyframe`: pass
-   * a request to the page now), or null when it was older than the last one. Throws
-   * DecodeError when malformed.
+   * One REPORT from the robot: {codecsChanged, wantedChanged, keyframe, report} (`keyframe`:
+   * pass a request to the page now; `report`: the parsed REPORT), or null when it was older
+   * than the last one. Throws DecodeError when malformed.
    */
   onReport(payload, now, rtt = null) {
     const report = parseReport(payload);
@@ -189,7 +207,7 @@ export class VideoUplink {
       this.keyframeRequests += 1;
       keyframe = true;
     }
-    return { codecsChanged, wantedChanged: was !== this.wanted(now), keyframe };
+    return { codecsChanged, wantedChanged: was !== this.wanted(now), keyframe, report };
   }
 
   /**
@@ -244,10 +262,12 @@ export class AudioUplink {
 /**
  * The user's camera and microphone on one call: `video/user` and `audio/user` (BULK).
  * `onKeyframe()` when the robot asks for a keyframe of the user's camera; `onChange()`
- * when its codec list (or whether it asks) changed, so the page may be told again.
+ * when its codec list (or whether it asks) changed, so the page may be told again;
+ * `onReport(message)` with each of its REPORTs on `video/user` (but a `BYE`) as the page's
+ * `uplink_report` message ({@link uplinkReport}).
  */
 export class UserMediaService {
-  constructor(theCall, { onKeyframe = null, onChange = null, rtt = () => null } = {}) {
+  constructor(theCall, { onKeyframe = null, onChange = null, onReport = null, rtt = () => null } = {}) {
     this.video = new VideoUplink();
     this.audio = new AudioUplink();
     this.videoChannel = theCall.channel(USER_VIDEO, { lane: "bulk" });
@@ -256,6 +276,7 @@ export class UserMediaService {
     this.audioChannel.onmessage = (payload) => this.onAudioReport(payload);
     this.onKeyframe = onKeyframe;
     this.onChange = onChange;
+    this.onReport = onReport;
     this.rtt = rtt;
     this.drops = new DropCounter();
     this.now = 0;
@@ -273,6 +294,7 @@ export class UserMediaService {
     if (!result) return;
     if (result.codecsChanged || result.wantedChanged) callSafely(this.onChange);
     if (result.keyframe) callSafely(this.onKeyframe);
+    if (!result.report.bye) callSafely(this.onReport, uplinkReport(result.report));
   }
 
   onAudioReport(payload) {

@@ -36,7 +36,7 @@ from telebot.services.proto.media import (
     parse_media_report,
 )
 from telebot.services.proto.messages import is_finite_number
-from telebot.services.proto.video import CompleteFrame, fragment, serial_diff
+from telebot.services.proto.video import CompleteFrame, Report, fragment, serial_diff
 
 if TYPE_CHECKING:
     from telebot.apps.web.server import WebUI, _Page
@@ -55,6 +55,7 @@ __all__ = [
     "MediaRelay",
     "pack_media",
     "parse_media",
+    "uplink_report",
 ]
 
 _LEN: Final = struct.Struct(">I")
@@ -159,6 +160,21 @@ def video_header(frame: CompleteFrame) -> dict[str, Any]:
     }
 
 
+def uplink_report(report: Report) -> dict[str, Any]:
+    """The page's ``uplink_report`` message: the counters of one of the robot's REPORTs on
+    ``video/user`` (§17.2 names), which the page's camera encoder adapts its bit rate to."""
+    return {
+        "type": "uplink_report",
+        "receiver_ms": report.receiver_ms,
+        "highest_seq": report.highest_seq,
+        "fragments": report.fragments,
+        "bytes": report.data_bytes,
+        "frames": report.frames,
+        "dropped": report.dropped,
+        "queue_delay_ms": report.queue_delay_ms,
+    }
+
+
 #: The robot stops asking for the user's camera this long after its last report (s).
 IDLE_AFTER: Final = 2.0
 #: A keyframe request of the robot is passed on to the page at most this often (s).
@@ -226,6 +242,8 @@ class _Uplink:
         self.codecs = report.codecs
         if was != self.wanted(loop.time()) or codecs_changed:
             self.relay.tell_pages()
+        if not report.bye:
+            self.relay.pass_report(report)
         if report.keyframe:
             now = loop.time()
             rtt = self.call.stats.rtt if self.call is not None else None
@@ -413,6 +431,12 @@ class MediaRelay:
                 "note": "the robot decodes none of the video codecs this browser encodes",
             }
         return {"type": "media", "send": True, "codec": CODEC_NAMES[chosen], "note": ""}
+
+    def pass_report(self, report: Report) -> None:
+        """A robot's REPORT on the user's camera: to the sending page, whose encoder's bit
+        rate follows it (static/uplink-rate.js)."""
+        if self.sender is not None:
+            self.ui._send(self.sender, uplink_report(report))
 
     def ask_page_keyframe(self) -> None:
         """The robot lost a picture of the user's camera: the sending page makes a keyframe."""

@@ -28,7 +28,7 @@ Websocket protocol (JSON text messages unless stated)::
       {"type": "pose", "x", "y", "yaw", "v", "w", "state", "detail", "goal", "t",
        "recv": UNIX_MS}                                  recv: when the client got it
       {"type": "telemetry", ...}                         the robot's Telemetry fields
-      {"type": "safety", "armed", "reason", "holder", "cap", "blocked"}
+      {"type": "safety", "armed", "reason", "holder", "cap", "blocked", "code"}
       {"type": "link", "rtt": S | null, "loss": 0..1}    the call's heartbeats, every 0.5 s
       {"type": "connection", "state": "connected" | "reconnecting" | "reconnected"
        | "ended", "detail", "seconds"}                   the call to the robot dropped /

@@ -13,7 +13,10 @@ request (``reason``: the text for people; ``code``: the reason code of
 (again for each repeat), and the safety state on every change and once a second::
 
     {"type": "state", "armed": false, "reason": "stop requested by alice",
-     "holder": "alice", "cap": 0.0, "blocked": false}
+     "code": "stopped", "holder": "alice", "cap": 0.0, "blocked": false}
+
+(``code``: the reason code of the latest stop, ``ok`` while armed; ``link_silent`` when the
+deadman stopped the robot, ``video_stale`` for a frozen picture, …: see :class:`SafetyStatus`.)
 
 A request's ``id`` is an integer in 0 … 2³² − 1, the client's own per call and per channel (it
 does not share a number space with chat or goal ids). A request that does not decode (not
@@ -41,6 +44,7 @@ from telebot.services.proto.messages import (
 __all__ = [
     "LATCHED",
     "SAFETY",
+    "SELF_STOPS",
     "STOP_HOWS",
     "InvalidSafetyRequest",
     "SafetyAck",
@@ -54,6 +58,10 @@ __all__ = [
 
 #: The channel's name.
 SAFETY = "safety"
+
+#: Safety state codes of the robot stopping itself, not of someone's stop: the holder's
+#: link went silent (the deadman), its video froze while the robot moved, its call dropped.
+SELF_STOPS = frozenset({"link_silent", "video_stale", "dropped"})
 
 #: The robot's state, as chat ``status`` and ``telebot-user where`` say it, while it is
 #: stopped and latched (it stays stopped until the drive holder re-arms it).
@@ -157,13 +165,26 @@ class InvalidSafetyRequest(ProtocolError):
 
 @dataclass(frozen=True, slots=True)
 class SafetyStatus:
-    """The supervisor's state as the users see it."""
+    """The supervisor's state as the users see it.
+
+    ``code`` is the reason code of the latest stop (``ok`` while armed; ``""`` from a robot
+    older than the field): ``link_silent`` (the deadman), ``video_stale``, ``dropped``
+    (the holder's call dropped) are the robot stopping itself, which the holder undoes
+    with one re-arm; ``stopped`` is someone's stop (see :data:`SELF_STOPS`).
+    """
 
     armed: bool
     reason: str
     holder: str | None
     cap: float
     blocked: bool
+    code: str = ""
+
+    @property
+    def stopped_itself(self) -> bool:
+        """Whether the robot is stopped because it stopped itself (a silent link, a frozen
+        picture, a dropped call): a re-arm by the holder is all it takes to drive on."""
+        return not self.armed and self.code in SELF_STOPS
 
     def encode(self) -> str:
         """The datagram text."""
@@ -172,6 +193,7 @@ class SafetyStatus:
                 "type": "state",
                 "armed": self.armed,
                 "reason": self.reason,
+                "code": self.code,
                 "holder": self.holder,
                 "cap": round(self.cap, 3),
                 "blocked": self.blocked,
@@ -230,6 +252,7 @@ def decode_safety_reply(payload: str | bytes) -> SafetyAck | SafetyStatus | Safe
             holder,
             finite_number(msg, "cap", what="safety"),
             _bool(msg, "blocked"),
+            decode_code(msg, what="safety"),
         )
     if kind == "error":
         return SafetyError(_text(msg, "reason"), decode_code(msg, what="safety"))

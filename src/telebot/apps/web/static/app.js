@@ -493,19 +493,60 @@
     if (lost === "down") { lost = "back"; showAlert(); }
   }
   function safetyAfterLoss() {
-    if (lost !== "back" && lost !== "latched") return;
-    lost = ui.state.safety.armed ? null : "latched";
+    noteSelfStop();
+    if (lost === "back" || lost === "latched") lost = ui.state.safety.armed ? null : "latched";
     showAlert();
+  }
+  // The robot stopped itself (issue 26: a blip is cheap to recover from): its deadman
+  // after a silent link, its driver's call dropped, or the driver's video froze (§18 state
+  // `code` link_silent, dropped, video_stale). The page says what happened in one sentence
+  // and offers one action, a big Re-arm (to the drive holder); a stop someone made shows
+  // the plain stopped state. Robots before the state's `code`: told apart by its reason.
+  function selfStop(s) {
+    if (!s || s.armed) return "";
+    if (s.code) return SELF_STOP_WORDS[s.code] ? s.code : "";
+    const r = s.reason || "";
+    if (/^driver .*'s link lost/.test(r)) return "link_silent";
+    if (/^driver .* (dropped|called again)/.test(r)) return "dropped";
+    if (/video froze|video frozen/.test(r)) return "video_stale";
+    return "";
+  }
+  const SELF_STOP_WORDS = {
+    link_silent: "link went silent for a moment, so the robot stopped itself (deadman)",
+    dropped: "call dropped, so the robot stopped itself",
+    video_stale: "video froze, so the robot stopped itself rather than drive blind",
+  };
+  // Whose link, call or video: the driver the robot's reason names (this user: "your").
+  function selfStopText(code, s) {
+    const named = /^driver (.+?)(?:'s link lost| dropped| called again)/.exec(s.reason || "");
+    const who = named ? named[1] : code === "video_stale" ? s.holder : null;
+    const whose = who === ui.state.user ? "Your" : who ? who + "'s" : "The driver's";
+    return whose + " " + SELF_STOP_WORDS[code] + ": re-arm to drive on";
+  }
+  ui.selfStop = () => selfStop(ui.state.safety);
+  let selfStopped = "";
+  function noteSelfStop() {
+    const s = ui.state.safety;
+    const code = driving() ? selfStop(s) : "";
+    if (code && code !== selfStopped) addChat("[" + selfStopText(code, s) + "]", "fail");
+    selfStopped = code;
   }
   function showAlert() {
     const box = $("alert");
-    box.hidden = !lost;
-    $("alert-arm").hidden = lost !== "latched";
+    const s = ui.state.safety;
+    const self = lost === "down" || lost === "back" || !driving() ? "" : selfStop(s);
+    const shown = !!(lost || self);
+    box.hidden = !shown;
+    // Re-arm is the holder's (the robot refuses anyone else's); the drive is free after
+    // the holder's call dropped until its next call joins and takes it.
+    const mine = !!(s && s.holder && s.holder === ui.state.user);
+    $("alert-arm").hidden = !(lost === "latched" || self) || (!!self && !mine);
     $("alert-arm").disabled = !ui.state.mayDrive;
-    if (!lost) return;
+    if (!shown) return;
     const ended = ui.state.call && ui.state.call.state === "ended";
     box.className = lost === "down" ? "" : "back";
     $("alert-text").textContent =
+      self ? selfStopText(self, s) + (mine ? "" : " (take the drive first)") :
       lost === "latched" ? "connection back — the robot is stopped (latched since the link was lost): re-arm to drive on" :
       lost === "back" ? "connection back — waiting for the robot's state…" :
       ended ? "connection lost — the robot stopped itself (deadman); the call ended: reload the page to call again" :
@@ -539,6 +580,7 @@
       videoUrl = url;
       video.src = url;
       if (old) setTimeout(() => URL.revokeObjectURL(old), 1000);
+      pictureShown();
     }
     const t = now();
     ui.stats.frameTimes.push(t);
@@ -555,6 +597,47 @@
     ui.state.fps = ui.stats.frameTimes.length;
     $("fps").textContent = ui.state.fps;
   }, 500);
+  // ------------------------------------------------------------------ frozen picture
+  // A picture that stopped moving is marked at once (issue 26: no driving blind): no new
+  // picture shown for FROZEN_MS (more at a low frame rate: 2.5 frame intervals, at most
+  // FROZEN_MAX_MS) puts "picture frozen — N s" over the video until the next one. Only
+  // once pictures came: a robot that sends no video (none yet, or none at all) is not a
+  // frozen picture. Codec pictures count when decoded and drawn (media.js), not when they
+  // arrive: a picture waiting for a keyframe is frozen too.
+  const FROZEN_MS = 500, FROZEN_MAX_MS = 1000;
+  const frozen = { shownAt: null, gapMs: 0, on: false, marks: 0, checks: 0 };
+  ui.frozen = frozen;
+  function pictureShown() {
+    const t = now();
+    // The usual gap between pictures (a freeze's own gap is not usual).
+    if (frozen.shownAt !== null && !frozen.on) {
+      const gap = Math.min(t - frozen.shownAt, FROZEN_MAX_MS);
+      frozen.gapMs = frozen.gapMs ? 0.9 * frozen.gapMs + 0.1 * gap : gap;
+    }
+    frozen.shownAt = t;
+    if (frozen.on) markFrozen(false, 0);
+  }
+  function markFrozen(on, ageMs) {
+    const el = $("frozen");
+    if (on) {
+      if (!frozen.on) frozen.marks += 1;
+      const secs = ageMs / 1000;
+      el.textContent = "picture frozen — " + (secs < 10 ? secs.toFixed(1) : Math.round(secs)) + " s";
+    }
+    frozen.on = on;
+    el.hidden = !on;
+  }
+  function checkFrozen() {
+    frozen.checks += 1;
+    if (frozen.shownAt === null) return;
+    const age = now() - frozen.shownAt;
+    const limit = Math.min(FROZEN_MAX_MS, Math.max(FROZEN_MS, 2.5 * frozen.gapMs));
+    if (age >= limit) markFrozen(true, age);
+    else if (frozen.on) markFrozen(false, 0);
+  }
+  if (window.telebotMedia && window.telebotMedia.video) window.telebotMedia.video.onPicture = pictureShown;
+  setInterval(checkFrozen, 100);
+
   $("navcam").onclick = () => send({ type: "camera", id: ++chatId, name: "navcam" });
   $("usercam").onclick = () => send({ type: "camera", id: ++chatId, name: "usercam" });
 

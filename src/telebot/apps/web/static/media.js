@@ -29,6 +29,9 @@
       audioPackets: 0, audioLost: 0, audioErrors: 0, audioFreq: 0, audioMs: [], audioTransitMs: [], audioUnderruns: 0, audioLevel: 0, audioTarget: 0, audioSkippedMs: 0,
       sentVideo: 0, sentVideoKeys: 0, sentAudio: 0, sentBytes: 0, keyframesAsked: 0,
       captureNote: "",
+      // The camera upload's rate (static/uplink-rate.js): the target from the robot's
+      // reports, what the encoder is configured with, and what the reports said last.
+      sendBitrate: 0, encoderBitrate: 0, bitrateChanges: 0, uplinkReports: 0, uplinkLoss: 0, uplinkDelayMs: 0,
     },
     readStamps: false,
   };
@@ -341,7 +344,8 @@
 
   // ------------------------------------------------------------------ capture out
   // Camera and mic -> WebCodecs encoders -> `send(arrayBuffer)`. Video: VP8 or H.264
-  // (Annex B), realtime, 0.3–0.8 Mbit/s, a keyframe when the robot asks and every 5 s.
+  // (Annex B), realtime, a keyframe when the robot asks and every 5 s, at a bit rate that
+  // follows the robot's receiver reports (`report()`: 150 kbit/s–1.5 Mbit/s, from 0.6).
   // Audio: Opus 48 kHz mono 20 ms with in-band FEC; echo cancellation on. A missing or
   // refused device leaves the call going, with a note (`onNote`).
   class Capture {
@@ -358,6 +362,25 @@
       this.stream = null;
       this.onNote = () => {};
       this.running = false;
+      const R = window.telebotUplinkRate; // absent on pages that only receive (screen.html)
+      this.rate = R ? new R.UplinkRate({ start: this.opts.bitrate }) : null;
+      this.rateChanged = false;
+      M.stats.sendBitrate = this.opts.bitrate;
+    }
+
+    // One of the robot's REPORTs on the user's video (an `uplink_report` message, §19.1):
+    // the rate controller may lower or raise the bit rate; the encoder takes it at its
+    // next picture.
+    report(fields) {
+      if (!this.rate) return;
+      M.stats.uplinkReports += 1;
+      const bitrate = this.rate.report(fields);
+      M.stats.uplinkLoss = this.rate.loss;
+      M.stats.uplinkDelayMs = this.rate.delayMs;
+      if (bitrate === null) return;
+      this.opts.bitrate = bitrate;
+      M.stats.sendBitrate = bitrate;
+      this.rateChanged = true;
     }
 
     async start() {
@@ -394,17 +417,27 @@
 
     async _video(track) {
       const o = this.opts;
-      let encoder = null, size = "";
+      let encoder = null, size = "", cfg = null;
       const make = (w, h) => {
         encoder = new VideoEncoder({
           output: (chunk) => this._sendChunk(chunk),
           error: () => { encoder = null; this.forceKey = true; },
         });
-        const cfg = { codec: CODEC_STRINGS[o.codec], width: w, height: h, bitrate: o.bitrate, framerate: o.fps, latencyMode: "realtime" };
+        cfg = { codec: CODEC_STRINGS[o.codec], width: w, height: h, bitrate: o.bitrate, framerate: o.fps, latencyMode: "realtime" };
         if (o.codec === "h264") cfg.avc = { format: "annexb" };
         encoder.configure(cfg);
+        M.stats.encoderBitrate = o.bitrate;
+        this.rateChanged = false;
         size = w + "x" + h;
         this.forceKey = true;
+      };
+      // The reports moved the bit rate: the same encoder, configured again.
+      const retune = () => {
+        this.rateChanged = false;
+        cfg = Object.assign({}, cfg, { bitrate: o.bitrate });
+        encoder.configure(cfg);
+        M.stats.encoderBitrate = o.bitrate;
+        M.stats.bitrateChanges += 1;
       };
       this.captureTimes = new Map();
       const reader = new MediaStreamTrackProcessor({ track }).readable.getReader();
@@ -416,6 +449,8 @@
           if (!encoder || encoder.state === "closed" || size !== frame.displayWidth + "x" + frame.displayHeight) {
             if (encoder && encoder.state !== "closed") encoder.close();
             make(frame.displayWidth, frame.displayHeight);
+          } else if (this.rateChanged) {
+            retune();
           }
           if (encoder.encodeQueueSize > 2) continue; // the encoder is behind: skip, never queue
           const key = this.forceKey || this.videoId % (o.fps * 5) === 0;
@@ -547,6 +582,7 @@
       // A text message of the media kinds; true when it was one.
       text(m) {
         if (m.type === "keyframe_request") { capture.keyframe(); return true; }
+        if (m.type === "uplink_report") { capture.report(m); return true; }
         if (m.type === "media") {
           if (m.codec) capture.opts.codec = m.codec;
           notes.call = m.note || ""; showNote();

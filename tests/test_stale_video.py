@@ -1,0 +1,91 @@
+"""No driving blind, end to end in one process: a driver whose picture freezes gets the robot
+stopped (the supervisor's rule itself is tested with plain numbers in test_safety.py)."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import AsyncGenerator
+from pathlib import Path
+
+import pytest
+
+from conftest import wait_until
+from rig import GENEROUS_TIMEOUT, ROBOT, SLACK, robot_on_hub, user_on_hub
+from telebot.apps.user_client import _say_self_stops
+from telebot.channels.channel import ReceivedDatagram
+from telebot.channels.transports.memory import MemoryHub
+from telebot.reasons import Reason
+from telebot.robot.nav import Velocity
+from telebot.services.client import RobotClient
+from telebot.services.proto.chat import ChatReply
+from telebot.services.proto.video import CompleteFrame, VideoSettings
+from telebot.services.video import VideoFeedService
+
+
+async def first_reply(client: RobotClient, command: str) -> ChatReply:
+    """The first reply to ``command`` (a motion's acknowledgement); the motion runs on."""
+    replies = client.chat_replies(command)
+    assert isinstance(replies, AsyncGenerator)  # closed here, not left to the GC
+    async with contextlib.aclosing(replies):
+        return await anext(replies)
+
+
+async def test_a_driver_whose_video_freezes_while_driving_gets_the_robot_stopped(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # The user's video receiver stops taking fragments (the bulk lane lost them, the
+    # decoder hung): its reports keep coming, but their frames counter no longer grows.
+    frozen = False
+    take = VideoFeedService._on_datagram
+
+    def on_datagram(self: VideoFeedService, datagram: ReceivedDatagram) -> None:
+        if not frozen:
+            take(self, datagram)
+
+    monkeypatch.setattr(VideoFeedService, "_on_datagram", on_datagram)
+    hub = MemoryHub(seed=7)
+    # Small pictures, so a loaded machine cannot freeze the video by itself; a generous
+    # call timeout (and deadman), so a preempted test process does not stop it either.
+    video = VideoSettings(width=160, height=120, max_fps=15.0)
+    async with (
+        robot_on_hub(tmp_path, hub, timeout=GENEROUS_TIMEOUT, video=video) as (nav, safety, _, _),
+        user_on_hub(tmp_path, hub) as user,
+    ):
+        assert safety.supervisor.stale_video == 1.0  # the default
+        call = await user.call(ROBOT)
+        client = RobotClient(call)
+        _say_self_stops(client)  # what the terminal chat says (telebot-user chat)
+        shown: list[CompleteFrame] = []
+        unsubscribe = client.video_feed.subscribe(shown.append)
+        try:
+            await wait_until(lambda: len(shown) >= 3)
+            assert (await client.arm(timeout=30)).ok
+            reply = await first_reply(client, "fwd 4")
+            assert reply.ok and not reply.final, reply.text
+            await wait_until(lambda: nav.velocity().linear > 0.2)
+            assert safety.state().armed  # fresh pictures: driving on
+            frozen = True
+            await wait_until(lambda: not safety.state().armed)
+            state = safety.state()
+            assert state.code == Reason.VIDEO_STALE, state.reason
+            assert state.reason == "video frozen for 1.0 s: the robot stopped itself"
+            await wait_until(lambda: nav.velocity() == Velocity())
+            # The driver hears why, with the code a page or a program offers the re-arm on.
+            await wait_until(
+                lambda: (s := client.latest_safety.value) is not None and s.code == "video_stale"
+            )
+            latest = client.latest_safety.value
+            assert latest is not None and latest.stopped_itself
+            said = capsys.readouterr().err.splitlines()
+            hint = "[the robot stopped itself: video frozen for 1.0 s. Type 'arm' to drive on.]"
+            assert said.count(hint) == 1, said
+            # Pictures again: one re-arm and the driver may move on.
+            frozen = False
+            assert (await client.arm(timeout=30)).ok
+            # The cap is back once a report with new frames came (one every 0.2 s).
+            await wait_until(lambda: safety.state().cap > 0, timeout=20 + SLACK)
+            reply = await first_reply(client, "fwd 1")
+            assert reply.ok, reply.text
+        finally:
+            unsubscribe()
+            await call.hangup()
