@@ -14,6 +14,8 @@ from rig import GENEROUS_TIMEOUT, ROBOT, SLACK, robot_on_hub, user_on_hub
 from telebot.apps.user_client import _say_self_stops
 from telebot.channels.channel import ReceivedDatagram
 from telebot.channels.transports.memory import MemoryHub
+from telebot.config import RobotConfig, load_toml
+from telebot.errors import ConfigError
 from telebot.reasons import Reason
 from telebot.robot.nav import Velocity
 from telebot.services.client import RobotClient
@@ -89,3 +91,20 @@ async def test_a_driver_whose_video_freezes_while_driving_gets_the_robot_stopped
         finally:
             unsubscribe()
             await call.hangup()
+
+
+@pytest.mark.parametrize(
+    ("value", "words"),
+    [("-1", "greater than or equal to 0"), ("'soon'", "number"), ("nan", "")],
+)
+def test_a_bad_stale_video_setting_is_one_line_naming_the_key(
+    tmp_path: Path, value: str, words: str
+) -> None:
+    path = tmp_path / "robot.toml"
+    path.write_text(f"[safety]\nstale_video = {value}\n")
+    with pytest.raises(ConfigError) as error:
+        load_toml(path, RobotConfig)
+    text = str(error.value)
+    assert "safety.stale_video" in text and words in text and "\n" not in text, text
+    path.write_text("[safety]\nstale_video = 0\n")  # 0 turns the rule off: valid
+    assert load_toml(path, RobotConfig).safety.stale_video == 0.0
