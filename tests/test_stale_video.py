@@ -81,10 +81,19 @@ async def test_a_driver_whose_video_freezes_while_driving_gets_the_robot_stopped
             said = capsys.readouterr().err.splitlines()
             hint = "[the robot stopped itself: video frozen for 1.0 s. Type 'arm' to drive on.]"
             assert said.count(hint) == 1, said
-            # Pictures again: one re-arm and the driver may move on.
+            # Pictures again (the robot hears of them with the next report, at most 0.2 s
+            # later): one re-arm and the driver may move on.
             frozen = False
+            holder = safety.supervisor.participant(call.id)
+            assert holder is not None
+            stale_at = holder.video_fresh
+
+            def fresh_again() -> bool:
+                p = safety.supervisor.participant(call.id)
+                return p is not None and p.video_fresh > stale_at
+
+            await wait_until(fresh_again, timeout=20 + SLACK)
             assert (await client.arm(timeout=30)).ok
-            # The cap is back once a report with new frames came (one every 0.2 s).
             await wait_until(lambda: safety.state().cap > 0, timeout=20 + SLACK)
             reply = await first_reply(client, "fwd 1")
             assert reply.ok, reply.text
