@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import io
 import os
+import signal
 import subprocess
 import time
 from collections.abc import Iterator
@@ -257,8 +258,6 @@ def test_after_its_own_motion_the_exceptions_end_in_time() -> None:
 async def test_after_the_robot_stopped_itself_chat_says_so_and_how_to_drive_on(
     tmp_path: Path, processes: list[Process]
 ) -> None:
-    from signal import SIGCONT, SIGSTOP  # (not at the top: another branch edits those lines)
-
     # A robot of its own: this test trips the deadman, which the module's robot must not log.
     daemon = Daemon(tmp_path)
     daemon.start()
@@ -269,14 +268,14 @@ async def test_after_the_robot_stopped_itself_chat_says_so_and_how_to_drive_on(
         assert await reply(alice, 60) == "> arm"
         assert (await reply(alice)).startswith("armed:")
         # A blip: the chat freezes (its heartbeats stop) past the deadman time.
-        os.kill(alice.pid, SIGSTOP)
+        os.kill(alice.pid, signal.SIGSTOP)
         try:
             await wait_until(
                 lambda: any(r["what"] == "deadman" for r in daemon.audit()),
                 timeout=daemon.timeout + 10 + SLACK,
             )
         finally:
-            os.kill(alice.pid, SIGCONT)
+            os.kill(alice.pid, signal.SIGCONT)
         deadman = daemon.timeout - 1 / 20  # call.timeout minus one heartbeat (at 20 Hz)
         hint = (
             f"[the robot stopped itself: driver {daemon.driver}'s link lost: silent "

@@ -23,7 +23,6 @@ import logging
 import math
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import replace
 from typing import Any, TypeVar
 
 from telebot.channels.call import Call, RobotEndpoint
@@ -743,8 +742,7 @@ class RobotServer:
     def _broadcast_safety(self, state: SafetyState) -> None:
         # A stop or a hand-over ends a follow before anyone hears of it.
         self._guarded(self.follow.safety_changed, state)
-        status = SafetyStatus(state.armed, state.reason, state.holder, state.cap, state.blocked)
-        status = replace(status, code=state.code)  # the latest stop's reason code (§18)
+        status = _status(state)
         for services in list(self.services.values()):
             self._guarded(services.send_safety_state, status)
 
