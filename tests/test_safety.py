@@ -18,6 +18,7 @@ from telebot.safety import (
     CAP_STEP,
     LOCAL,
     NAVCAM,
+    WATCHING_WINDOW,
     Action,
     Audit,
     AuditRecord,
@@ -716,25 +717,48 @@ RTTS = st.one_of(GOOD_RTT, GOOD_RTT, GOOD_RTT, st.none(), st.floats(0.0, 0.7))
 LOSSES = st.one_of(st.just(0.0), st.floats(0.0, 0.1), st.floats(0.0, 1.0))
 
 
+MODEL_STALE = 0.3
+
+
 class SupervisorModel(RuleBasedStateMachine):
     """Random sequences of events; after each, the robot may move only when it is safe."""
 
     def __init__(self) -> None:
         super().__init__()
         self.now = 0.0
-        self.sup = SafetySupervisor(now=0.0)
+        # A picture goes stale sooner than the deadman fires, so that short runs get there.
+        self.sup = SafetySupervisor(now=0.0, stale_video=MODEL_STALE)
         self.joined: set[str] = set()
         # Kept by the test from what it fed in, not read back from the supervisor.
         self.heard: dict[str, float] = {}
         self.latched = True  # it starts stopped
         self.was_armed = False
         self.announced: float | None = None  # the cap in force in the NavStack
+        # Video: per call, when its last report came and when its picture was last new
+        # (None: not watching); whether the NavStack says the robot moves.
+        self.reported: dict[str, float] = {}
+        self.fresh: dict[str, float | None] = {}
+        self.moving = False
+        self.frames: dict[str, int] = {}
+
+    def blind(self) -> bool:
+        """The holder watches video and its picture is ``stale_video`` old by now."""
+        holder = self.sup.holder_call
+        fresh = self.fresh.get(holder) if holder is not None else None
+        return (
+            holder is not None
+            and fresh is not None
+            and self.now - self.reported[holder] < WATCHING_WINDOW
+            and self.now - fresh >= MODEL_STALE
+        )
 
     def advance(self, dt: float) -> None:
         """Time passes; a holder silent for the timeout by now must be latched."""
         self.now += dt
         holder = self.sup.holder_call
         if holder is not None and self.now - self.heard[holder] >= TIMEOUT:
+            self.latched = True
+        if self.moving and self.blind():  # no driving blind
             self.latched = True
 
     def check(self, actions: Sequence[Action], *, rearmed: bool = False) -> None:
@@ -776,6 +800,7 @@ class SupervisorModel(RuleBasedStateMachine):
         actions = self.sup.join(call, call.upper(), role, self.now)
         if call not in self.joined:
             self.joined.add(call)
+            self.fresh.pop(call, None)  # a new call: not watching yet
             self.heard[call] = self.now
         self.check(actions)
 
@@ -808,6 +833,7 @@ class SupervisorModel(RuleBasedStateMachine):
         if call in self.joined and call == holder:
             assert stops(actions) and self.sup.holder_call is None
         self.joined.discard(call)
+        self.fresh.pop(call, None)
         self.check(actions)
 
     @rule(call=st.sampled_from(CALLS), rtt=RTTS, loss=LOSSES)
@@ -834,16 +860,20 @@ class SupervisorModel(RuleBasedStateMachine):
         self.check(decision.actions)
 
     @precondition(lambda self: self.sup.holder_call is not None)
-    @rule(rtt=GOOD_RTT)
-    def holder_drives(self, rtt: float) -> None:
-        # The holder, on a live link, re-arms if need be and drives: the paths that make
-        # the robot move, which the other rules then disturb.
+    @rule(rtt=GOOD_RTT, watching=st.booleans())
+    def holder_drives(self, rtt: float, watching: bool) -> None:
+        # The holder, on a live link, re-arms if need be and drives (watching the video
+        # or not): the paths that make the robot move, which the other rules then disturb.
         holder = self.sup.holder_call
         assert holder is not None
         self.heartbeat(holder, rtt, 0.0)
+        if watching:
+            self.video_report(holder, grew=True, bye=False)
         if not self.sup.armed:
             self.rearm(holder)
         self.motion(holder)
+        if self.sup.armed:
+            self.moves(True)
 
     @rule(call=st.sampled_from(CALLS))
     def motion(self, call: str) -> None:
@@ -896,10 +926,35 @@ class SupervisorModel(RuleBasedStateMachine):
         assert not stops(actions)
         self.check(actions)
 
+    @rule(who=st.sampled_from(["holder", *CALLS]), grew=st.booleans(), bye=st.booleans())
+    def video_report(self, who: str, grew: bool, bye: bool) -> None:
+        call = self.sup.holder_call if who == "holder" else who
+        if call is None:
+            return
+        frames = self.frames[call] = self.frames.get(call, 0) + (1 if grew else 0)
+        actions = self.sup.video_report(call, frames, self.now, bye=bye)
+        if call in self.joined:
+            lapsed = self.now - self.reported.get(call, -math.inf) >= WATCHING_WINDOW
+            if bye:
+                self.fresh[call] = None
+            elif grew or lapsed or self.fresh.get(call) is None:
+                self.fresh[call] = self.now
+            if not bye:
+                self.reported[call] = self.now
+        self.check(actions)
+
+    @rule(moving=st.booleans())
+    def moves(self, moving: bool) -> None:
+        self.moving = moving
+        if moving and self.blind():
+            self.latched = True
+        self.check(self.sup.motion(moving, self.now))
+
     @invariant()
     def moves_only_when_safe(self) -> None:
         if self.sup.speed_cap(self.now) > 0:
             assert self.safe_to_move()
+            assert not self.blind()
         assert 0.0 <= self.sup.speed_cap(self.now) <= MAX
         if self.latched:
             assert not self.sup.armed

@@ -14,6 +14,8 @@ from rig import GENEROUS_TIMEOUT, ROBOT, SLACK, robot_on_hub, user_on_hub
 from telebot.apps.user_client import _say_self_stops
 from telebot.channels.channel import ReceivedDatagram
 from telebot.channels.transports.memory import MemoryHub
+from telebot.config import RobotConfig, load_toml
+from telebot.errors import ConfigError
 from telebot.reasons import Reason
 from telebot.robot.nav import Velocity
 from telebot.services.client import RobotClient
@@ -79,13 +81,39 @@ async def test_a_driver_whose_video_freezes_while_driving_gets_the_robot_stopped
             said = capsys.readouterr().err.splitlines()
             hint = "[the robot stopped itself: video frozen for 1.0 s. Type 'arm' to drive on.]"
             assert said.count(hint) == 1, said
-            # Pictures again: one re-arm and the driver may move on.
+            # Pictures again (the robot hears of them with the next report, at most 0.2 s
+            # later): one re-arm and the driver may move on.
             frozen = False
+            holder = safety.supervisor.participant(call.id)
+            assert holder is not None
+            stale_at = holder.video_fresh
+
+            def fresh_again() -> bool:
+                p = safety.supervisor.participant(call.id)
+                return p is not None and p.video_fresh > stale_at
+
+            await wait_until(fresh_again, timeout=20 + SLACK)
             assert (await client.arm(timeout=30)).ok
-            # The cap is back once a report with new frames came (one every 0.2 s).
             await wait_until(lambda: safety.state().cap > 0, timeout=20 + SLACK)
             reply = await first_reply(client, "fwd 1")
             assert reply.ok, reply.text
         finally:
             unsubscribe()
             await call.hangup()
+
+
+@pytest.mark.parametrize(
+    ("value", "words"),
+    [("-1", "greater than or equal to 0"), ("'soon'", "number"), ("nan", "")],
+)
+def test_a_bad_stale_video_setting_is_one_line_naming_the_key(
+    tmp_path: Path, value: str, words: str
+) -> None:
+    path = tmp_path / "robot.toml"
+    path.write_text(f"[safety]\nstale_video = {value}\n")
+    with pytest.raises(ConfigError) as error:
+        load_toml(path, RobotConfig)
+    text = str(error.value)
+    assert "safety.stale_video" in text and words in text and "\n" not in text, text
+    path.write_text("[safety]\nstale_video = 0\n")  # 0 turns the rule off: valid
+    assert load_toml(path, RobotConfig).safety.stale_video == 0.0
