@@ -3,7 +3,8 @@
 Layers, lowest first (a module may import from its own layer and those below)::
 
     errors < registry < config < channels.proto < identity < reasons, rights
-           < router (certificates, router configs) < channels.transports
+           < router (certificates, router configs) < netem (network emulator)
+           < channels.transports
            < channels (call, channel) < robot < safety < services < gateway < apps
 """
 
@@ -27,6 +28,7 @@ LAYERS = [
     "telebot.reasons",
     "telebot.rights",
     "telebot.router",
+    "telebot.netem",
     "telebot.channels.transports",
     "telebot.channels",
     "telebot.robot",
@@ -121,6 +123,7 @@ SANS_IO_SOURCES = sorted(
         SRC / "reasons.py",
         SRC / "rights.py",
         SRC / "router" / "acl.py",
+        SRC / "netem" / "model.py",
         SRC / "gateway" / "core.py",
     ]
 )

@@ -18,6 +18,8 @@ Model:
   changing e.g. the latency does not change which frames are lost.
 * Conditions apply when a frame is published: a frame already in flight still arrives
   after the link is cut or slowed down, as on a real wire.
+* ``set_profile`` plays a named network (telebot.netem: Wi-Fi, 4G, ...) on a link instead
+  of hand-set conditions, with the same model as the loopback proxy of real zenoh links.
 * Lanes are recorded on the publisher but not modelled: all lanes share one link.
 * A hub lives in one thread; a transport opened on another event loop still gets its
   callbacks on its own loop (hand-over with ``call_soon_threadsafe``).
@@ -54,6 +56,8 @@ from telebot.channels.transports.base import (
 )
 from telebot.config import TransportSettings
 from telebot.errors import TransportError
+from telebot.netem.model import LinkModel, LinkQueue, Profile
+from telebot.netem.model import profile as netem_profile
 
 __all__ = [
     "LinkConditions",
@@ -177,9 +181,14 @@ class LinkStats:
 
 
 class _Link:
-    """One direction of a link: conditions, random stream, counters, bandwidth queue."""
+    """One direction of a link: conditions, random stream, counters, bandwidth queue.
 
-    __slots__ = ("busy_until", "conditions", "rng", "stats")
+    With a netem profile set (:meth:`MemoryHub.set_profile`) the profile's
+    :class:`~telebot.netem.model.LinkModel` decides each frame's fate instead of the
+    conditions (a cut link still loses everything).
+    """
+
+    __slots__ = ("conditions", "model", "queue", "rng", "stats")
 
     def __init__(self, seed: int, src: str, dst: str, on_up_change: Callable[[], None]) -> None:
         # hashlib, not hash(): str hashes are randomised per process.
@@ -188,10 +197,13 @@ class _Link:
         self.conditions = LinkConditions()
         self.conditions._on_up_change = on_up_change
         self.stats = LinkStats()
-        self.busy_until = -math.inf  # when the bandwidth queue empties (loop clock)
+        self.queue = LinkQueue()  # the bandwidth queue (loop clock)
+        self.model: LinkModel | None = None
 
     def transmit(self, size: int, now: float) -> float | None:
         """The delay of a frame of ``size`` bytes sent at ``now``, or None if it is lost."""
+        if self.model is not None:
+            return self._transmit_model(self.model, size, now)
         cond = self.conditions
         self.stats.sent += 1
         # Always draw both numbers so one frame's fate does not shift the next ones'.
@@ -201,17 +213,26 @@ class _Link:
             return None
         delay = cond.latency + spread * cond.jitter
         if cond.bandwidth is not None:
-            start = max(now, self.busy_until)
-            if start - now > cond.max_queue_delay:
+            left = self.queue.admit(size / cond.bandwidth, now, cond.max_queue_delay)
+            if left is None:
                 self.stats.lost += 1
                 self.stats.tail_dropped += 1
                 return None
-            self.busy_until = start + size / cond.bandwidth
-            delay += self.busy_until - now
+            delay += left - now
         if lose < cond.loss:  # lost on the wire, after it used its share of bandwidth
             self.stats.lost += 1
             return None
         return delay
+
+    def _transmit_model(self, model: LinkModel, size: int, now: float) -> float | None:
+        self.stats.sent += 1
+        tail_dropped = model.stats.tail_dropped
+        arrival = model.transmit(size, now)  # drawn even when cut: fates do not shift
+        if arrival is None or not self.conditions.up:
+            self.stats.lost += 1
+            self.stats.tail_dropped += model.stats.tail_dropped - tail_dropped
+            return None
+        return arrival - now
 
 
 class MemoryHub:
@@ -257,6 +278,33 @@ class MemoryHub:
             conditions = self.link(src, dst)
             for name, value in fields.items():
                 setattr(conditions, name, value)
+
+    def set_profile(
+        self, a: str, b: str, profile: Profile | str | None, *, seed: int | None = None
+    ) -> None:
+        """Play a netem profile (or its name) on the link between ``a`` and ``b``.
+
+        ``a`` is the side on the profiled network: ``a`` -> ``b`` is its "up" direction
+        (``rate_up``), ``b`` -> ``a`` its "down". Both directions share one outage
+        schedule, whose clock starts at the first frame. ``seed`` defaults to the hub's.
+        While a profile is set it replaces the link's conditions, except that a cut link
+        (:meth:`cut`) still loses everything; ``None`` goes back to the conditions.
+        """
+        if isinstance(profile, str):
+            profile = netem_profile(profile)
+        if profile is None:
+            up = down = None
+        else:
+            up, down = LinkModel.pair(profile, self.seed if seed is None else seed)
+        self._link(a, b).model = up
+        self._link(b, a).model = down
+
+    def outage(self, a: str, b: str, seconds: float, now: float) -> None:
+        """Force an outage of ``seconds`` from ``now`` (loop clock) on a profiled link."""
+        model = self._link(a, b).model
+        if model is None:
+            raise ValueError(f"no netem profile on the link {a!r} - {b!r}: set_profile first")
+        model.schedule.force(now, seconds)
 
     def cut(self, a: str, b: str) -> None:
         """Cut the link both ways: every frame lost, presence lost both ways."""
