@@ -66,11 +66,10 @@ import dataclasses
 import json
 import logging
 import math
-import socket
 import sys
 import tempfile
 import time
-from collections.abc import Awaitable, Callable, Iterator
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -79,7 +78,7 @@ from safety import MIDDLE_X, arm, start_motion  # bench/safety.py: the stop path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
-from rig import FAST_SIM, REAL_TIMEOUT, Daemon
+from rig import FAST_SIM, REAL_TIMEOUT, Daemon, free_port, free_udp_port
 from telebot.config import AppConfig
 from telebot.errors import TelebotError
 from telebot.netem import PROFILES, NetemProxy, Profile
@@ -107,6 +106,9 @@ OUTAGE_S = 3.0
 #: Driving time before each stop (s).
 MOTION = 0.1
 SEED = 26
+#: Tries to open a call (zenoh's session, the call's set-up) and each one's time limit (s).
+CALL_TRIES = 3
+CALL_TIMEOUT = 15.0
 NAN = math.nan
 TARGETS = {  # RESULT key: (target, what)
     "stop_p99_ms": (20.0, "stop p99 - delay"),
@@ -194,8 +196,11 @@ def parse_row(text: str) -> tuple[str, str]:
 
 
 def with_loss(profile: Profile, loss: float) -> Profile:
-    """``profile`` with its random loss set to ``loss`` (the late-frames phase)."""
-    return dataclasses.replace(profile, name=f"{profile.name}+{loss:.0%} loss", loss=loss)
+    """``profile`` losing ``loss`` of its packets at random (no bursts: ``loss`` is the whole
+    mean loss), for the late-frames phase."""
+    return dataclasses.replace(
+        profile, name=f"{profile.name}+{loss:.0%} loss", loss=loss, burst=None
+    )
 
 
 @dataclass
@@ -211,6 +216,7 @@ class Row:
     late: list[float] = field(default_factory=list)  # frames shown at 10 % loss
     late_expected: int = 0
     late_lost: int = 0
+    late_drops: int = 0
     reconnect: list[float] = field(default_factory=list)
     trips: int = 0
     drive_seconds: float = 0.0
@@ -276,18 +282,6 @@ def result_line(fields: dict[str, float], drive: bool) -> str:
 # -- the robot, the links, the proxies -------------------------------------------------------
 
 
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    """A TCP (or, with ``SOCK_DGRAM``, UDP) port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket(socket.AF_INET, kind) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
-def transport_of(link: str) -> str:
-    """What carries ``link`` (and what the proxy relays): a TCP stream or UDP datagrams."""
-    return "tcp" if link == "tcp" else "udp"
-
-
 class WanDaemon(Daemon):
     """The tests' robot daemon (``tests/rig.py``) listening on ``link`` (TLS for QUIC)."""
 
@@ -308,8 +302,8 @@ class WanDaemon(Daemon):
                 )
 
     def start(self, ready_timeout: float = 60.0, *, port: int | None = None) -> None:
-        kind = socket.SOCK_STREAM if self.link == "tcp" else socket.SOCK_DGRAM
-        super().start(ready_timeout, port=port if port is not None else free_port(kind))
+        free = free_port() if self.link == "tcp" else free_udp_port()
+        super().start(ready_timeout, port=port if port is not None else free)
 
     @property
     def endpoint(self) -> str:
@@ -318,12 +312,8 @@ class WanDaemon(Daemon):
 
 @contextlib.contextmanager
 def proxy_to(daemon: WanDaemon, profile: Profile, seed: int) -> Iterator[NetemProxy]:
-    """A NetemProxy on loopback in front of ``daemon``'s listening endpoint."""
-    kind = transport_of(daemon.link)
-    sock = socket.SOCK_STREAM if kind == "tcp" else socket.SOCK_DGRAM
-    listen = f"{kind}/127.0.0.1:{free_port(sock)}"
-    target = f"{kind}/127.0.0.1:{daemon.port}"
-    with NetemProxy(profile, listen=listen, target=target, seed=seed) as proxy:
+    """A NetemProxy on loopback (a free port) in front of ``daemon``'s listening endpoint."""
+    with NetemProxy(profile, f"{daemon.link}/127.0.0.1:0", daemon.endpoint, seed) as proxy:
         yield proxy
 
 
@@ -331,13 +321,12 @@ def user_config(daemon: WanDaemon, proxy: NetemProxy) -> AppConfig:
     """The user's config: a zenoh client that reaches the robot only through ``proxy``
     (a peer could find the robot's own endpoint behind its back), the product's call
     timeout and reconnection."""
-    _, _, address = proxy.endpoint.partition("/")
     options: dict[str, Any] = {}
     if daemon.ca is not None:
         options["transport/link/tls/root_ca_certificate"] = str(daemon.ca)
     zenoh = {
         "mode": "client",
-        "connect": [f"{daemon.link}/{address}"],
+        "connect": [proxy.endpoint],
         "multicast_scouting": False,
         "options": options,
     }
@@ -391,7 +380,7 @@ class Watcher:
 
     def __init__(self, client: RobotClient) -> None:
         self.client = client
-        self.frames: list[tuple[float, float, int]] = []
+        self.frames: list[tuple[float, float, int, str]] = []
         self.receiver = client.video()
         self._task: asyncio.Task[None] | None = None
 
@@ -408,11 +397,12 @@ class Watcher:
 
     async def _run(self) -> None:
         async for frame in self.receiver:
-            self.frames.append((time.monotonic(), frame.latency * 1000, frame.frame_id))
+            call = self.client.call.id  # frame numbers start again on each call
+            self.frames.append((time.monotonic(), frame.latency * 1000, frame.frame_id, call))
 
-    def between(self, start: float, end: float) -> list[tuple[float, int]]:
-        """(latency ms, frame number) of the frames shown from ``start`` to ``end``."""
-        return [(ms, n) for t, ms, n in self.frames if start <= t <= end]
+    def between(self, start: float, end: float) -> list[tuple[float, int, str]]:
+        """(latency ms, frame number, call) of the frames shown from ``start`` to ``end``."""
+        return [(ms, n, call) for t, ms, n, call in self.frames if start <= t <= end]
 
     async def first_frames(self, count: int, timeout: float) -> None:
         async with asyncio.timeout(timeout):
@@ -428,9 +418,13 @@ async def ready(client: RobotClient) -> None:
 async def measure_stops(
     client: RobotClient, audit: AuditTail, row: Row, count: int, me: str
 ) -> None:
+    refused = ""
     for _ in range(count):
         await ready(client)
-        await start_motion(client)
+        try:
+            await start_motion(client)
+        except RuntimeError as exc:  # refused (a link too poor to drive): stop it at rest
+            refused = str(exc)
         await asyncio.sleep(MOTION)
         t0 = time.monotonic()
         ack = await client.stop(timeout=10)
@@ -440,6 +434,8 @@ async def measure_stops(
             lambda r, t0=t0: r["what"] == "stop" and r["t"] >= t0 and r["who"] == me, 10
         )
         row.stop.append((record["t"] - t0) * 1000)
+    if refused:
+        row.notes.append(f"stops of a robot at rest: {refused}")
 
 
 async def measure_releases(client: RobotClient, audit: AuditTail, row: Row, count: int) -> None:
@@ -484,7 +480,7 @@ async def keep_driving(client: RobotClient, until: float) -> None:
                 await ready(client)
             await start_motion(client)
         except (RuntimeError, TelebotError, TimeoutError):
-            await asyncio.sleep(0.2)
+            await asyncio.sleep(1.0)  # refused (a poor link), or a call coming back
             continue
         await asyncio.sleep(min(1.5, max(0.0, until - time.monotonic())))
 
@@ -502,7 +498,7 @@ async def measure_watch(
     end = time.monotonic()
     audit.read()
     window = audit.records[first:]
-    row.glass += [ms for ms, _ in watcher.between(start, end)]
+    row.glass += [ms for ms, _, _ in watcher.between(start, end)]
     trips = [r for r in window if r["what"] == "deadman" and r["outcome"] == "stopped"]
     row.trips += len(trips)
     row.notes += [f"deadman: {r['detail']}" for r in trips]
@@ -540,12 +536,38 @@ async def measure_reconnects(
         await asyncio.gather(follower, return_exceptions=True)
 
 
+@contextlib.asynccontextmanager
+async def call_robot(daemon: WanDaemon, config: AppConfig, row: Row) -> AsyncIterator[RobotClient]:
+    """``telebot.connect`` to the robot, tried :data:`CALL_TRIES` times: over a lossy link
+    zenoh's session or the call's set-up can fail (each failure is noted in the row)."""
+    for attempt in range(1, CALL_TRIES + 1):
+        stack = contextlib.AsyncExitStack()
+        try:
+            client = await stack.enter_async_context(
+                connect(daemon.robot, home=daemon.user_home, config=config, timeout=CALL_TIMEOUT)
+            )
+        except TelebotError as exc:
+            await stack.aclose()
+            row.notes.append(f"call attempt {attempt} failed: {one_line(exc)}")
+            if attempt == CALL_TRIES:
+                raise
+            continue
+        async with stack:
+            yield client
+        return
+
+
+def one_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0][:300] if text else type(exc).__name__
+
+
 async def phase(row: Row, name: str, run: Awaitable[None]) -> None:
     """Run one phase; a failure is noted in the row (its figures stay unmeasured)."""
     try:
         await run
     except Exception as exc:
-        text = str(exc).strip().splitlines()[0][:300] if str(exc).strip() else type(exc).__name__
+        text = one_line(exc)
         row.failed[name] = text
         print(f"  {row.name}: {name} FAILED: {text}", flush=True)
 
@@ -558,39 +580,51 @@ async def measure_row(
     watch_s = amounts.trip_watch_s if row.profile in TRIP_PROFILES else amounts.watch_s
     with proxy_to(daemon, profile, SEED) as proxy:
         config = user_config(daemon, proxy)
-        async with (
-            connect(daemon.robot, home=daemon.user_home, config=config, timeout=30) as client,
-            Watcher(client) as watcher,
-        ):
-            await phase(row, "first picture", watcher.first_frames(5, 60))
-            await phase(
-                row, "stops", measure_stops(client, audit, row, amounts.stops, daemon.driver)
-            )
-            if drive:
-                await phase(row, "releases", measure_releases(client, audit, row, amounts.releases))
-            await phase(row, "watch", measure_watch(client, watcher, audit, row, watch_s))
-            await phase(row, "reconnects", measure_reconnects(client, proxy, row, amounts.outages))
-            with contextlib.suppress(TelebotError):
-                await client.stop()
+        await phase(
+            row, "call", calling(daemon, config, row, audit, proxy, amounts, drive, watch_s)
+        )
     lossy = with_loss(profile, LATE_LOSS)
     with proxy_to(daemon, lossy, SEED + 1) as proxy:
         config = user_config(daemon, proxy)
         await phase(row, "late frames", late_frames(daemon, config, row, amounts.late_s))
 
 
+async def calling(
+    daemon: WanDaemon,
+    config: AppConfig,
+    row: Row,
+    audit: AuditTail,
+    proxy: NetemProxy,
+    amounts: Amounts,
+    drive: bool,
+    watch_s: float,
+) -> None:
+    """The phases of one call on the row's profile: stops, releases, watch, outages."""
+    async with call_robot(daemon, config, row) as client, Watcher(client) as watcher:
+        await phase(row, "first picture", watcher.first_frames(5, 60))
+        stops = measure_stops(client, audit, row, amounts.stops, daemon.driver)
+        await phase(row, "stops", stops)
+        if drive:
+            await phase(row, "releases", measure_releases(client, audit, row, amounts.releases))
+        await phase(row, "watch", measure_watch(client, watcher, audit, row, watch_s))
+        await phase(row, "reconnects", measure_reconnects(client, proxy, row, amounts.outages))
+        with contextlib.suppress(TelebotError):
+            await client.stop()
+
+
 async def late_frames(daemon: WanDaemon, config: AppConfig, row: Row, seconds: float) -> None:
-    async with (
-        connect(daemon.robot, home=daemon.user_home, config=config, timeout=30) as client,
-        Watcher(client) as watcher,
-    ):
+    """The video on a new call at 10 % loss: frames shown, late, never shown."""
+    async with call_robot(daemon, config, row) as client, Watcher(client) as watcher:
         await watcher.first_frames(5, 60)
         start = time.monotonic()
         await asyncio.sleep(seconds)
         shown = watcher.between(start, time.monotonic())
-        if client.reconnects:
-            raise RuntimeError("the call dropped at 10 % loss")
-        row.late += [ms for ms, _ in shown]
-        row.late_expected, row.late_lost = never_shown([n for _, n in shown])
+        row.late += [ms for ms, _, _ in shown]
+        row.late_drops = client.reconnects
+        for call in {c for _, _, c in shown}:
+            sent, lost = never_shown([n for _, n, c in shown if c == call])
+            row.late_expected += sent
+            row.late_lost += lost
 
 
 # -- the report ------------------------------------------------------------------------------
@@ -647,7 +681,8 @@ def report(rows: list[Row], drive: bool, amounts: Amounts, seconds: float) -> li
         lines.append(
             f"{row.name}: {len(row.stop)} stops, {len(row.release)} releases, "
             f"{len(row.glass)} frames watched, {len(row.late)} at {LATE_LOSS:.0%} loss "
-            f"({row.late_lost} of {row.late_expected} never shown), "
+            f"({row.late_lost} of {row.late_expected} never shown, {row.late_drops} calls "
+            "dropped), "
             f"{len(row.reconnect)} outages of {OUTAGE_S:g} s; {trips}{row.drops} calls dropped "
             "while driving"
             + "".join(f"; {note}" for note in row.notes)
