@@ -48,6 +48,7 @@ from pathlib import Path
 from typing import Any
 
 from telebot.channels.call import RobotEndpoint, UserEndpoint
+from telebot.channels.transports.base import Transport
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.config import (
     AppConfig,
@@ -426,12 +427,14 @@ async def robot_on_hub(
     services: ServiceSettings | None = None,
     video: VideoSettings | None = None,
     cipher: CipherChoice = "auto",
+    transport: Transport | None = None,
 ) -> AsyncIterator[tuple[SimNavStack, SafetyDriver, RobotServer, RobotEndpoint]]:
     """A simulated robot (small map) with its safety supervisor, answering on ``hub`` as
     "robot"; paired homes for ``ROBOT`` and ``USER`` (a driver) are made under ``base``.
 
     ``timeout`` is the robot's call timeout and its deadman time; ``sim`` the simulator's
-    settings (a robot of 1 m/s by default); ``cipher`` its ``[call] cipher``.
+    settings (a robot of 1 m/s by default); ``cipher`` its ``[call] cipher``;
+    ``transport``: an unopened transport to answer on instead of ``hub`` (a zenoh one).
     """
     create_paired_homes(base, ROBOT, USER, role=Role.DRIVER)
     robot_home = base / "robot"
@@ -458,7 +461,7 @@ async def robot_on_hub(
     await server.prepare()
     with safety:
         async with (
-            MemoryTransport(hub, "robot") as transport,
+            transport if transport is not None else MemoryTransport(hub, "robot") as transport,
             RobotEndpoint(
                 transport,
                 Identity.load(robot_home),

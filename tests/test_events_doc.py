@@ -1,7 +1,7 @@
 """docs/events.md describes every ``--events`` line the programs print.
 
 Statically, every ``{"event": KIND, ...}`` the code emits (``emit(...)`` in any module, the
-router's ``ready`` line) has a table for its program in docs/events.md with exactly its
+router's and the network emulator's ``ready`` lines) has a table for its program in docs/events.md with exactly its
 fields. Live, a real ``telebot-robot run --events`` process is driven through every kind
 (call, chat, goal, safety, say, hang-up, shutdown) and each line it prints matches its table.
 """
@@ -28,6 +28,7 @@ EVENTS_MD = ROOT / "docs" / "events.md"
 RUN = "telebot-robot run --events"
 ECHO = "telebot-robot echo --events"
 ROUTER = "telebot-router run --events"
+NETEM = "telebot-netem --events"
 
 
 def documented() -> dict[str, dict[str, dict[str, str]]]:
@@ -71,9 +72,13 @@ def emitted() -> dict[str, dict[str, set[str]]]:
         if '"event"' not in text:  # most modules: no need to parse them
             continue
         tree = ast.parse(text)
+        # The router and the network emulator print their one line without emit().
         router = relative == "apps/router_cli.py"
-        program = ROUTER if router else ECHO if relative == "apps/echo.py" else RUN
-        for node in _event_dicts(tree, emitted_only=not router):
+        netem = relative == "apps/netem_cli.py"
+        program = (
+            ROUTER if router else NETEM if netem else ECHO if relative == "apps/echo.py" else RUN
+        )
+        for node in _event_dicts(tree, emitted_only=not (router or netem)):
             keys = [k.value if isinstance(k, ast.Constant) else None for k in node.keys]
             assert None not in keys, f"{relative}:{node.lineno}: an event with computed fields"
             kind = node.values[keys.index("event")]

@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import itertools
+from pathlib import Path
 
 import pytest
 
@@ -43,7 +44,7 @@ def test_the_named_profiles_have_the_issues_figures() -> None:
     assert (g4.rate_down, g4.rate_up) == (5e6, 2e6)
     assert (ocean.delay, ocean.jitter, ocean.mean_loss) == pytest.approx((0.16, 0.01, 0.005))
     assert (bad.delay, bad.jitter, bad.mean_loss) == pytest.approx((0.08, 0.04, 0.05))
-    assert (bad.rate_down, bad.rate_up) == (1e6, 1e6)
+    assert (bad.rate_down, bad.rate_up, bad.reorder) == (1e6, 1e6, 0.01)
     assert profile("lan").mean_loss == 0 and profile("lan").delay == 0
 
 
@@ -74,16 +75,16 @@ def test_changing_the_delay_does_not_change_which_packets_are_lost() -> None:
 @pytest.mark.parametrize("name", ["wifi", "4g", "intercontinental", "bad"])
 def test_the_loss_rate_over_many_packets_is_the_profiles(name: str) -> None:
     model = LinkModel(quiet(name), seed=1)
-    arrived = fates(model, 200_000)
+    arrived = fates(model, 80_000)
     rate = arrived.count(False) / len(arrived)
-    assert rate == pytest.approx(profile(name).mean_loss, rel=0.2)
+    assert rate == pytest.approx(profile(name).mean_loss, rel=0.25)
     assert model.stats.lost == arrived.count(False)
     assert 0 < model.stats.burst_lost < model.stats.lost  # some in bursts, some random
 
 
 def test_bursts_lose_runs_of_packets_and_random_loss_single_ones() -> None:
-    bursty = fates(LinkModel(quiet("bad", loss=0.0, burst=Burst.of(0.05, length=8)), 2), 100_000)
-    random = fates(LinkModel(quiet("bad", loss=0.05, burst=None), 2), 100_000)
+    bursty = fates(LinkModel(quiet("bad", loss=0.0, burst=Burst.of(0.05, length=8)), 2), 50_000)
+    random = fates(LinkModel(quiet("bad", loss=0.05, burst=None), 2), 50_000)
     for arrived in (bursty, random):  # the same share of packets lost...
         assert arrived.count(False) / len(arrived) == pytest.approx(0.05, rel=0.2)
     bursts, singles = runs_of_losses(bursty), runs_of_losses(random)
@@ -116,16 +117,20 @@ def test_the_bandwidth_cap_spaces_packets_and_drops_beyond_the_queue() -> None:
     assert LinkModel(link, direction="down").transmit(1250, 0.0) == pytest.approx(0.05)
 
 
-def test_jitter_reorders_datagrams_but_never_a_stream() -> None:
+def test_jitter_spreads_delays_and_only_the_reorder_share_overtakes() -> None:
     wifi = quiet("wifi", loss=0.0, burst=None)
-    for ordered in (False, True):
-        model = LinkModel(wifi, seed=5, ordered=ordered)
+    for reorder, ordered in ((0.0, False), (0.05, False), (0.05, True)):
+        link = dataclasses.replace(wifi, reorder=reorder)
+        model = LinkModel(link, seed=5, ordered=ordered)
         sent = [i * 0.001 for i in range(2000)]
         arrivals = [model.transmit(100, t) for t in sent]
         delays = [a - s for a, s in zip(arrivals, sent, strict=True)]  # type: ignore[operator]
+        # 5 +- 3 ms; waiting for the datagram ahead never adds more than the spread.
         assert min(delays) >= 0.002 - 1e-9 and max(delays) <= 0.008 + 1e-9
+        assert max(delays) - min(delays) > 0.005  # the jitter is there
         inversions = sum(b < a for a, b in itertools.pairwise(arrivals))  # type: ignore[operator]
-        assert (inversions > 100) if not ordered else (inversions == 0)
+        # Datagrams keep their order but for the reorder share; a stream always does.
+        assert (20 < inversions < 150) if reorder and not ordered else (inversions == 0)
 
 
 def test_a_lost_stream_chunk_arrives_after_a_retransmission_and_holds_up_the_rest() -> None:
@@ -198,3 +203,18 @@ async def test_the_memory_hub_plays_a_profile_and_forced_outages() -> None:
         assert got[-1].payload == b"after"
     with pytest.raises(ConfigError, match="unknown network profile"):
         hub.set_profile("robot", "user", "dialup")
+
+
+def test_the_readme_table_lists_every_profile_with_its_figures() -> None:
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    section = readme.split("### Network emulator", 1)[1].split("\n### ", 1)[0]
+    rows = {
+        cells[0].strip("` "): cells[1:]
+        for line in section.splitlines()
+        if line.startswith("| `") and (cells := [c.strip() for c in line.strip("|").split("|")])
+    }
+    assert set(rows) == set(PROFILES)
+    for name, (delay, loss, _rate, _outages) in rows.items():
+        p = profile(name)
+        assert delay == ("0" if not p.delay else f"{p.delay * 1e3:g} ± {p.jitter * 1e3:g} ms")
+        assert loss.split(",")[0] == ("0" if not p.mean_loss else f"{p.mean_loss * 100:g} %")

@@ -16,14 +16,18 @@ from telebot.netem.model import (
     Profile,
     profile,
 )
+from telebot.netem.proxy import NetemProxy, ProxyStats, parse_endpoint
 
 __all__ = [
     "PROFILES",
     "Burst",
     "LinkModel",
     "ModelStats",
+    "NetemProxy",
     "OutageSchedule",
     "Outages",
     "Profile",
+    "ProxyStats",
+    "parse_endpoint",
     "profile",
 ]

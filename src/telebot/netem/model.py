@@ -15,8 +15,11 @@ Directions: a profile describes the access link of one side (the robot on 4G, th
 hotel Wi-Fi). ``"up"`` is from that side into the network (``rate_up``), ``"down"`` is
 towards it (``rate_down``).
 
-Datagrams and streams: by default a link carries datagrams (UDP): jitter may reorder them,
-a lost one is gone, a full queue drops at its tail. With ``ordered=True`` it carries one
+Datagrams and streams: by default a link carries datagrams (UDP): a lost one is gone, a
+full queue drops at its tail. Jitter changes the spacing of datagrams but not their order
+(as queueing does on a real path: a datagram drawn to arrive before the one sent ahead of
+it arrives just after it), except for the profile's ``reorder`` share, which arrive at
+their own jittered time, possibly ahead of earlier ones. With ``ordered=True`` it carries one
 TCP byte stream: nothing is lost or reordered, but a "lost" chunk arrives after TCP's
 retransmission timeout (doubling on each further loss) and holds up every chunk behind it
 (head-of-line blocking); an outage delays instead of losing; the queue never drops (the
@@ -129,8 +132,11 @@ class Profile:
     name: str
     #: One-way delay, seconds.
     delay: float = 0.0
-    #: Each packet's delay is uniform in ``delay +- jitter`` (never below 0), seconds.
+    #: Each packet's delay is uniform in ``delay +- jitter`` (never below 0), seconds;
+    #: packets keep their order (see ``reorder``).
     jitter: float = 0.0
+    #: The share of datagrams that may overtake earlier ones (streams never reorder).
+    reorder: float = 0.0
     #: Random (independent) loss probability of each packet, on top of the bursts.
     loss: float = 0.0
     #: Burst loss (Gilbert-Elliott), or None for none.
@@ -150,6 +156,7 @@ class Profile:
         _check("delay", self.delay)
         _check("jitter", self.jitter)
         _check("loss", self.loss, high=1.0)
+        _check("reorder", self.reorder, high=1.0)
         _check("rate_down", self.rate_down, low=1.0)
         _check("rate_up", self.rate_up, low=1.0)
         _check("queue", self.queue)
@@ -216,11 +223,12 @@ PROFILES: dict[str, Profile] = {
             "bad",
             delay=0.080,
             jitter=0.040,
+            reorder=0.01,
             **_lossy(0.05, length=8),
             rate_down=_mbit(1),
             rate_up=_mbit(1),
             queue=0.5,
-            description="a bad link: 80 +- 40 ms, 5 % loss, 1 Mbit/s",
+            description="a bad link: 80 +- 40 ms, 5 % loss, 1 Mbit/s, 1 % reordered",
         ),
     )
 }
@@ -375,6 +383,11 @@ class LinkModel:
             cls(profile, seed, "down", ordered=ordered, schedule=schedule),
         )
 
+    @property
+    def last_arrival(self) -> float:
+        """When the last packet kept in order arrives (-inf before any)."""
+        return self._last_arrival
+
     def backlog(self, now: float) -> float:
         """Seconds of traffic waiting in the bandwidth queue at ``now``.
 
@@ -387,8 +400,8 @@ class LinkModel:
         """When a packet of ``size`` bytes sent at ``now`` arrives, or None if it is lost."""
         p = self.profile
         self.stats.sent += 1
-        # Always the same four draws, so one packet's fate does not shift the next ones'.
-        step, burst_draw, loss_draw, spread = (self._rng.random() for _ in range(4))
+        # Always the same five draws, so one packet's fate does not shift the next ones'.
+        step, burst_draw, loss_draw, spread, overtake = (self._rng.random() for _ in range(5))
         if p.burst is not None:
             self._bad = step >= p.burst.leave if self._bad else step < p.burst.enter
         burst_lost = self._bad and p.burst is not None and burst_draw < p.burst.loss
@@ -410,7 +423,10 @@ class LinkModel:
         if lost:  # lost on the wire, after it used its share of the bandwidth
             self._lose(burst=burst_lost)
             return None
-        return departed + delay
+        if overtake < p.reorder:
+            return departed + delay
+        self._last_arrival = max(departed + delay, self._last_arrival)
+        return self._last_arrival
 
     def _lose(self, *, outage: bool = False, tail: bool = False, burst: bool = False) -> None:
         self.stats.lost += 1

@@ -1,0 +1,79 @@
+"""A robot and a user over real zenoh sessions through the network emulator.
+
+The robot answers on a zenoh session of its own that listens on TCP; the user's session
+(client mode) reaches it only through a :class:`~telebot.netem.NetemProxy` playing the
+``wifi`` profile on zenoh's TCP link, and the test forces the profile's roaming gap
+(300 ms) while the robot drives.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import pytest
+
+from conftest import ROBOT, free_port, wait_until
+from rig import GENEROUS_TIMEOUT, robot_on_hub
+from telebot.channels.transports.memory import MemoryHub
+from telebot.channels.transports.zenoh import ZenohTransport
+from telebot.config import AppConfig, ServiceSettings, ZenohSettings
+from telebot.netem import NetemProxy, profile
+from telebot.robot.nav import Velocity
+from telebot.services.client import connect
+
+ROAM = profile("wifi").outages.duration  # type: ignore[union-attr]
+
+
+@pytest.mark.zenoh
+async def test_a_call_over_wifi_survives_a_roaming_gap_and_a_stop_sent_into_it_arrives(
+    tmp_path: Path,
+) -> None:
+    listen = f"tcp/127.0.0.1:{free_port()}"
+    robot_transport = ZenohTransport(ZenohSettings(listen=[listen], multicast_scouting=False))
+    # The rig's generous call timeout: this test is about the link, not about how long a
+    # silence the deadman forgives (TCP turns the 300 ms gap into a longer stall).
+    async with (
+        robot_on_hub(
+            tmp_path,
+            MemoryHub(),
+            transport=robot_transport,
+            timeout=GENEROUS_TIMEOUT,
+            services=ServiceSettings(pose_hz=20.0),
+        ) as (nav, safety, _server, _endpoint),
+        NetemProxy("wifi", "tcp/127.0.0.1:0", listen, seed=1) as proxy,
+    ):
+        # Client mode: a client connects only where it is told, never around the proxy.
+        config = AppConfig.model_validate(
+            {
+                "transport": {
+                    "zenoh": {
+                        "mode": "client",
+                        "connect": [proxy.endpoint],
+                        "multicast_scouting": False,
+                    }
+                },
+                "call": {"timeout": GENEROUS_TIMEOUT},
+            }
+        )
+        async with connect(ROBOT, home=tmp_path / "user", config=config, timeout=20) as client:
+            assert (await client.arm()).ok
+            first = client.call
+            replies = client.chat_replies("fwd 3")
+            assert (await anext(replies)).text == "Forward command received"
+            await wait_until(lambda: nav.velocity() != Velocity())
+            loop = asyncio.get_running_loop()
+            proxy.outage(ROAM)  # the Wi-Fi roams: nothing gets through either way
+            sent = loop.time()
+            ack = await client.stop(timeout=10)
+            took = loop.time() - sent
+            # The stop went into the gap: TCP held it and delivered it after the gap...
+            assert ack.ok
+            assert took >= ROAM - 0.05, f"acknowledged {took:.3f} s after, inside the gap"
+            assert proxy.stats.up.retransmitted >= 1 and proxy.stats.cut == 0
+            # ...and the robot is at rest, latched, on the same call: no drop, no redial.
+            assert nav.velocity() == Velocity() and not safety.supervisor.armed
+            async for _ in replies:  # the move's final reply: it was stopped
+                pass
+            assert client.call is first and client.reconnects == 0
+            assert (await client.telemetry()).stop_reason
