@@ -24,6 +24,7 @@ __all__ = [
     "AppConfig",
     "CallSettings",
     "CipherChoice",
+    "DriveSettings",
     "FollowSettings",
     "MemorySettings",
     "PeopleSettings",
@@ -549,6 +550,14 @@ class FollowSettings(StrictModel):
         return self
 
 
+class DriveSettings(StrictModel):
+    """``[drive]``: driving by hand (the ``drive`` channel, :mod:`telebot.services.drive`)."""
+
+    #: The robot obeys only while fresh commands arrive: none for this long (s) and it
+    #: stops (not latched; the user's client repeats them at 20 Hz).
+    stale_after: float = Field(default=0.3, ge=0.1, le=2.0)
+
+
 #: The streams ``[recording] streams`` may name: the robot's JSON channels.
 RecordedStream = Literal["pose", "telemetry", "plan", "goals", "chat", "safety"]
 ALL_RECORDED: tuple[RecordedStream, ...] = ("pose", "telemetry", "plan", "goals", "chat", "safety")
@@ -648,6 +657,7 @@ class RobotConfig(AppConfig):
     recording: RecordingSettings = Field(default_factory=RecordingSettings)
     relay: RelaySettings = Field(default_factory=RelaySettings)
     follow: FollowSettings = Field(default_factory=FollowSettings)
+    drive: DriveSettings = Field(default_factory=DriveSettings)
     people: PeopleSettings = Field(default_factory=PeopleSettings)
     screen: ScreenSettings = Field(default_factory=ScreenSettings)
     #: None (no ``[gateway]`` section): no browser gateway.

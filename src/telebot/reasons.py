@@ -72,6 +72,9 @@ class Reason(enum.StrEnum):
     NO_PEOPLE_SOURCE = "no_people_source"
     LOST_PERSON = "lost_person"
     PERSON_TOO_CLOSE = "person_too_close"
+    # Driving by hand (the ``drive`` channel): why it ended.
+    RELEASED = "released"
+    STALE = "stale"
 
 
 #: What each code means (the table of docs/protocol.md §13.1 says the same).
@@ -118,6 +121,8 @@ DESCRIPTIONS: dict[Reason, str] = {
     Reason.NO_PEOPLE_SOURCE: "follow refused: this robot tracks no people",
     Reason.LOST_PERSON: "a follow ended: the person was lost (unseen, or only jumping tracks)",
     Reason.PERSON_TOO_CLOSE: "a follow ended: the person came closer than the minimum distance",
+    Reason.RELEASED: "driving by hand ended: the user let go (a zero command); the robot stopped",
+    Reason.STALE: "driving by hand ended: no fresh command for `[drive] stale_after`; the robot stopped",
 }
 
 

@@ -136,6 +136,7 @@ async def serve_robot(
                 services=services,
                 relay=config.relay,
                 follow=config.follow,
+                drive=config.drive,
                 people_settings=config.people,
             )
             media = install_robot_media(server, media_settings(config.media, simulated=simulated))

@@ -27,6 +27,7 @@ import asyncio
 import contextlib
 import itertools
 import logging
+import math
 import random
 import secrets
 from collections.abc import AsyncGenerator, AsyncIterator, Awaitable, Callable, Mapping
@@ -59,6 +60,7 @@ from telebot.services.plan import PlanReceiver
 from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
 from telebot.services.proto.chat import ChatReply, decode_reply, encode_request
 from telebot.services.proto.conference import Said
+from telebot.services.proto.drive import DRIVE, DriveCommand, DriveState, decode_drive_state
 from telebot.services.proto.people import PeopleAlertMessage, PeopleUpdate, TrackInfo
 from telebot.services.proto.plan import Place, PlanUpdate
 from telebot.services.proto.relay import (
@@ -96,7 +98,9 @@ if TYPE_CHECKING:
 __all__ = [
     "ChatResult",
     "ClientCore",
+    "ClientDrive",
     "ConnectionEvent",
+    "DriveState",
     "RelayedMessage",
     "RobotClient",
     "TopicInfo",
@@ -120,6 +124,10 @@ STOP_REPEAT = 0.05
 #: While waiting for the end of a long-running request, ask again this often (s), so a
 #: lost final answer is recovered.
 REFRESH_AFTER = 2.0
+#: Driving by hand: a held command is sent this often (s), 20 Hz …
+DRIVE_EVERY = 0.05
+#: … and a release (a zero command) this many times.
+RELEASE_REPEATS = 3
 
 
 @dataclass(slots=True)
@@ -220,6 +228,32 @@ class ClientCore:
             channel.set_callback(None)
 
 
+class ClientDrive:
+    """The ``drive`` service of a user client on one call: sends the client's drive
+    commands (:meth:`RobotClient.drive`) and keeps the robot's ``drive_state``."""
+
+    def __init__(self, client: RobotClient, call: Call) -> None:
+        self.call = call
+        self.channel = call.channel(DRIVE, lane=Lane.CONTROL)
+        self._client = client
+        self.channel.set_callback(self._on_state)
+
+    def _on_state(self, datagram: ReceivedDatagram) -> None:
+        try:
+            state = decode_drive_state(datagram.payload)
+        except ProtocolError:
+            self._client.rejected += 1
+            return
+        self._client.latest_drive.set(state)
+
+    def tick(self, now: float) -> None:
+        """Nothing periodic: the client repeats its commands itself."""
+
+    def close(self) -> None:
+        """Deliver nothing more from this call."""
+        self.channel.set_callback(None)
+
+
 def _video(client: RobotClient, call: Call) -> VideoFeedService:
     return VideoFeedService(client.video_feed, call)
 
@@ -239,8 +273,8 @@ def _relay(client: RobotClient, call: Call) -> RelayReceiver:
 def default_client_services() -> ServiceRegistry[RobotClient]:
     """The user side's built-in services: ``core`` (:class:`ClientCore`), ``video``,
     ``plan`` (the robot's planned path and named places), ``relay`` (relayed topics) and
-    ``conference`` (the roster and messages of everyone in the robot's calls) and
-    ``people`` (tracked people and alerts)."""
+    ``conference`` (the roster and messages of everyone in the robot's calls),
+    ``people`` (tracked people and alerts), ``media`` and ``drive`` (driving by hand)."""
     registry: ServiceRegistry[RobotClient] = ServiceRegistry()
     registry.register("core", ClientCore)
     registry.register("video", _video)
@@ -249,6 +283,7 @@ def default_client_services() -> ServiceRegistry[RobotClient]:
     registry.register("conference", ConferenceReceiver)
     registry.register("people", _people)
     registry.register("media", open_user_media)
+    registry.register("drive", ClientDrive)
     return registry
 
 
@@ -307,6 +342,15 @@ class RobotClient:
         self.on_people_alert: list[Callable[[PeopleAlertMessage], None]] = []
         #: Datagrams from the robot that did not decode (dropped).
         self.rejected = 0
+        #: The robot's newest ``drive_state`` (see :attr:`drive_state`).
+        self.latest_drive: _Latest[DriveState] = _Latest()
+        # Driving by hand: the command being repeated, until when (loop time), how many
+        # zero commands are still to go, and the repeat timer.
+        self._drive_seq = secrets.randbelow(2**31)
+        self._drive_command = (0.0, 0.0)
+        self._drive_until = -math.inf
+        self._drive_zeros = 0
+        self._drive_timer: asyncio.TimerHandle | None = None
         #: The robot's conference: roster, messages, ``say`` (lives across reconnections).
         self.conference = ConferenceState(self)
         # Fire-and-forget work (a relay's stop), kept referenced until done.
@@ -341,6 +385,7 @@ class RobotClient:
     async def aclose(self) -> None:
         """Stop reconnecting and close the services (a hang-up is :meth:`hangup`'s)."""
         self._closing = True
+        self._end_driving()
         if self._supervisor is not None:
             self._supervisor.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -599,8 +644,10 @@ class RobotClient:
         :data:`STOP_REPEAT` seconds until acknowledged, so loss cannot eat it. The robot
         stays stopped (disarmed) until the drive holder re-arms it (:meth:`arm`). ``how``
         tells the robot's audit log how the user stopped (``"button"``, ``"key"``,
-        ``"tab_closed"``, ``"exit"``, ``"api"``: see ``STOP_HOWS``).
+        ``"tab_closed"``, ``"exit"``, ``"api"``: see ``STOP_HOWS``). It also ends the
+        repeating of :meth:`drive`.
         """
+        self._end_driving()
         return await self._safety_request("stop", timeout, STOP_REPEAT, how)
 
     async def arm(self, *, timeout: float = 5.0) -> SafetyAck:
@@ -647,6 +694,87 @@ class RobotClient:
                     return ack
         finally:
             self._safety_waiters.pop(request_id, None)
+
+    # -- driving by hand -------------------------------------------------------------
+
+    def drive(self, linear: float, angular: float, *, hold: float = 0.25) -> None:
+        """Drive by hand: command this velocity now (m/s, + forward; rad/s, + to the left).
+
+        Never blocks. The command is sent at once and repeated every :data:`DRIVE_EVERY`
+        (20 Hz, covering loss) for at most ``hold`` seconds, then no more: the robot stops
+        by itself ``[drive] stale_after`` (0.3 s) later unless ``drive()`` is called again.
+        Keep driving by calling it at 5 Hz or more while the user holds the key (a stuck
+        caller stops the robot). ``drive(0, 0)`` releases: the robot stops at once (the
+        zero command is sent 3 times at 20 Hz). :meth:`stop` also ends the repeating.
+        What the robot makes of it arrives in :attr:`drive_state`. Raises ValueError on a
+        number that is not finite (or a negative ``hold``). Safe to call from another
+        thread (the sending runs on the client's event loop).
+        """
+        values = (linear, angular, hold)
+        if not all(isinstance(v, int | float) and math.isfinite(v) for v in values):
+            raise ValueError(
+                f"drive: linear, angular and hold must be finite numbers, "
+                f"not {linear!r}, {angular!r}, {hold!r}"
+            )
+        if hold < 0:
+            raise ValueError(f"drive: hold must be >= 0 s, not {hold!r}")
+        command = (float(linear), float(angular))
+        try:
+            running = asyncio.get_running_loop()
+        except RuntimeError:
+            running = None
+        if running is self._loop:
+            self._start_driving(command, hold)
+        else:
+            self._loop.call_soon_threadsafe(self._start_driving, command, hold)
+
+    @property
+    def drive_state(self) -> DriveState | None:
+        """The robot's newest ``drive_state`` (None before the first): ``active``, the code
+        (``reason``: ``ok``, ``released``, ``stale``, ``obstacle``, ``not_armed``, …), the
+        velocity it commands now and the speed cap."""
+        return self.latest_drive.value
+
+    def _start_driving(self, command: tuple[float, float], hold: float) -> None:
+        if command == (0.0, 0.0):
+            self._drive_command = command
+            self._drive_until = -math.inf
+            self._drive_zeros = RELEASE_REPEATS
+        else:
+            self._drive_command = command
+            self._drive_until = self._loop.time() + hold
+            self._drive_zeros = 0
+        if self._drive_timer is not None:
+            self._drive_timer.cancel()
+            self._drive_timer = None
+        self._send_drive()
+
+    def _send_drive(self) -> None:
+        """Send the current command once and schedule the next, if any is due."""
+        self._drive_timer = None
+        now = self._loop.time()
+        if self._drive_zeros > 0:
+            self._drive_zeros -= 1
+        elif now > self._drive_until:
+            return  # held long enough: the robot stops by itself
+        linear, angular = self._drive_command
+        self._drive_seq = (self._drive_seq + 1) % 2**32
+        drive = self.services.get("drive")
+        if isinstance(drive, ClientDrive):
+            try:
+                drive.channel.send(DriveCommand(self._drive_seq, linear, angular).encode())
+            except TelebotError as exc:  # no call right now: the robot stops by itself
+                log.debug("drive command not sent: %s", exc)
+        if self._drive_zeros > 0 or now + DRIVE_EVERY < self._drive_until:
+            self._drive_timer = self._loop.call_later(DRIVE_EVERY, self._send_drive)
+
+    def _end_driving(self) -> None:
+        """Send no more drive commands (a stop follows, or the client closes)."""
+        if self._drive_timer is not None:
+            self._drive_timer.cancel()
+            self._drive_timer = None
+        self._drive_until = -math.inf
+        self._drive_zeros = 0
 
     # -- goals ----------------------------------------------------------------------
 
@@ -909,6 +1037,7 @@ class RobotClient:
     async def hangup(self) -> None:
         """End the call (no reconnection follows)."""
         self._closing = True
+        self._end_driving()
         await self.call.hangup()
 
     # -- plumbing -------------------------------------------------------------------

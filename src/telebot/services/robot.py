@@ -28,7 +28,13 @@ from typing import Any, TypeVar
 from telebot.channels.call import Call, RobotEndpoint
 from telebot.channels.channel import Channel, ReceivedDatagram
 from telebot.channels.transports.base import Lane
-from telebot.config import FollowSettings, PeopleSettings, RelaySettings, ServiceSettings
+from telebot.config import (
+    DriveSettings,
+    FollowSettings,
+    PeopleSettings,
+    RelaySettings,
+    ServiceSettings,
+)
 from telebot.errors import ProtocolError, TelebotError
 from telebot.identity import Role
 from telebot.reasons import Reason, Refusal
@@ -39,6 +45,7 @@ from telebot.safety import SafetyState
 from telebot.services.base import OpenServices, ServiceRegistry
 from telebot.services.chat import NO_SUPERVISOR, ChatSession, error_reason, goal_reason
 from telebot.services.conference import RobotConference
+from telebot.services.drive import CallDrive, DriveService
 from telebot.services.follow import CallFollow, FollowService, TrackSource
 from telebot.services.mapxfer import MapService
 from telebot.services.people import PeopleService
@@ -185,7 +192,9 @@ class CallServices:
             self.gate.stop(how=how or "unspecified")
         else:
             with contextlib.suppress(Exception):
-                self.server.follow.unfollow()  # no supervisor to end a follow-me
+                self.server.follow.unfollow()  # no supervisor to end a follow-me …
+            with contextlib.suppress(Exception):  # … or driving by hand
+                self.server.drive.end(Reason.STOPPED, "stopped", self.server.now())
             self.server.nav.stop()
 
     def send_safety_state(self, state: SafetyStatus) -> None:
@@ -464,8 +473,9 @@ def default_robot_services() -> ServiceRegistry[RobotServer]:
     """The robot's built-in services: ``core`` (:class:`CallServices`), ``video``,
     ``plan`` (:class:`~telebot.services.plan.PlanService`: planned path and places),
     ``relay`` (:class:`~telebot.services.relay.RelayService`: topics relayed as CDR),
-    ``conference`` (:class:`~telebot.services.conference.RobotConference`: roster, messages) and
-    ``people`` (:class:`~telebot.services.people.PeopleService`: tracked people, alerts)."""
+    ``conference`` (:class:`~telebot.services.conference.RobotConference`: roster, messages),
+    ``people`` (:class:`~telebot.services.people.PeopleService`: tracked people, alerts) and
+    ``drive`` (:class:`~telebot.services.drive.CallDrive`: driving by hand)."""
     registry: ServiceRegistry[RobotServer] = ServiceRegistry()
     registry.register("core", _core)
     registry.register("video", RobotVideo)
@@ -473,6 +483,7 @@ def default_robot_services() -> ServiceRegistry[RobotServer]:
     registry.register("relay", RelayService)
     registry.register("conference", RobotConference)
     registry.register("people", PeopleService)
+    registry.register("drive", CallDrive)
     return registry
 
 
@@ -501,6 +512,7 @@ class RobotServer:
         follow: FollowSettings | None = None,
         people: TrackSource | None = None,
         people_settings: PeopleSettings | None = None,
+        drive: DriveSettings | None = None,
     ) -> None:
         self.nav = nav
         #: Person detection and tracking (``[people]``), stepped with the robot; the
@@ -528,6 +540,8 @@ class RobotServer:
             safety_state=safety.state if safety is not None else None,
             watchdog_stops=(lambda: safety.watchdog_stops) if safety is not None else None,
         )
+        #: Driving by hand (the ``drive`` channel), ticked after the follow.
+        self.drive = DriveService(nav, drive, safety=safety, follow=self.follow)
         if safety is not None:
             safety.on_state = self._broadcast_safety
         self.settings = settings if settings is not None else ServiceSettings()
@@ -718,6 +732,8 @@ class RobotServer:
         with contextlib.suppress(Exception):
             self.follow.unfollow()  # first: a follow must not drive again after the stop
         with contextlib.suppress(Exception):
+            self.drive.end(Reason.STOPPED, f"stopped: {reason}", self.now())
+        with contextlib.suppress(Exception):
             self.nav.stop()
         if self.safety is not None:
             with contextlib.suppress(Exception):
@@ -734,6 +750,7 @@ class RobotServer:
     def _broadcast_safety(self, state: SafetyState) -> None:
         # A stop or a hand-over ends a follow before anyone hears of it.
         self._guarded(self.follow.safety_changed, state)
+        self._guarded(self.drive.safety_changed, state, self.now())
         status = SafetyStatus(state.armed, state.reason, state.holder, state.cap, state.blocked)
         for services in list(self.services.values()):
             self._guarded(services.send_safety_state, status)
@@ -768,6 +785,11 @@ class RobotServer:
                 except Exception:
                     log.exception("follow-me failed: stopping the robot")
                     self._emergency("follow-me failed")
+                try:
+                    self.drive.tick(now)  # after the follow's: a follow just started wins
+                except Exception:
+                    log.exception("driving by hand failed: stopping the robot")
+                    self._emergency("driving by hand failed")
                 for opened in list(self.open.values()):
                     opened.tick(now)  # each service guarded
                 next_step += period

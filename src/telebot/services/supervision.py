@@ -27,6 +27,7 @@ from telebot.identity import Role
 from telebot.reasons import Refusal
 from telebot.robot.nav import EmergencyStoppable, NavState, Velocity
 from telebot.safety import (
+    LOCAL,
     Action,
     Audit,
     AuditRecord,
@@ -159,6 +160,18 @@ class SafetyDriver:
     def state(self) -> SafetyState:
         """The supervisor's state now."""
         return self.supervisor.state(self._clock())
+
+    def note(self, call_id: str | None, what: str, detail: str = "") -> None:
+        """Write an audit record of something the supervisor did not decide (the end of
+        driving by hand): outcome ``noted``, who from the call (``call_id`` None: the robot)."""
+        p = self.supervisor.participant(call_id) if call_id is not None else None
+        if call_id is None:
+            who, role = LOCAL, ""
+        elif p is None:
+            who, role = f"unknown call {call_id}", ""
+        else:
+            who, role = p.user, p.role.value
+        self.apply([Audit(AuditRecord(self._clock(), who, role, call_id, what, "noted", detail))])
 
     # -- actions --------------------------------------------------------------------------
 
