@@ -133,7 +133,7 @@ class Amounts:
     outages: int
 
 
-FULL = Amounts(stops=25, releases=15, watch_s=12.0, trip_watch_s=60.0, late_s=10.0, outages=3)
+FULL = Amounts(stops=25, releases=15, watch_s=12.0, trip_watch_s=45.0, late_s=10.0, outages=3)
 QUICK = Amounts(stops=3, releases=3, watch_s=3.0, trip_watch_s=4.0, late_s=3.0, outages=1)
 
 

@@ -13,6 +13,7 @@ import datetime
 import json
 import subprocess
 import sys
+import tomllib
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -426,6 +427,20 @@ def test_router_commands_fail_in_one_line(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 3 and all(line.startswith("telebot-router: error: ") for line in err)
     assert "init" in err[0] and "ca.pem" in err[1] and "not a tls/ endpoint" in err[2]
+
+
+def test_cert_prints_client_settings_for_quic_with_tls_where_udp_is_blocked(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    root = tmp_path / "r"
+    assert router_cli.main(["init", str(root)]) == 0
+    capsys.readouterr()
+    assert router_cli.main(["cert", str(root), "--user", "bob"]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    settings = tomllib.loads("\n".join(printed[2:]))["transport"]["zenoh"]
+    assert settings["connect"] == ["quic/127.0.0.1:7447"]
+    assert '# where UDP is blocked: connect = ["tls/127.0.0.1:7447"]' in printed
+    assert ZenohSettings.model_validate(settings).tls.cert == root / "clients/user-bob/cert.pem"
 
 
 async def test_a_certificate_outside_the_acl_gets_a_reason_not_a_hang(fleet: Fleet) -> None:

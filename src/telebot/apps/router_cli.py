@@ -136,9 +136,11 @@ def build_parser() -> Parser:
     )
     cert.add_argument(
         "--router",
-        default=f"tls/127.0.0.1:{DEFAULT_PORT}",
+        default=f"quic/127.0.0.1:{DEFAULT_PORT}",
         metavar="ENDPOINT",
-        help="the router endpoint to print in the client settings",
+        help="the router endpoint to print in the client settings (default "
+        f"quic/127.0.0.1:{DEFAULT_PORT}, the link to use across the internet; a tls/ "
+        "endpoint where UDP is blocked)",
     )
     cert.add_argument("--force", action="store_true", help="replace an existing certificate")
 
@@ -246,11 +248,18 @@ def plan_of(args: argparse.Namespace) -> RouterPlan:
 
 
 def _client_settings(client: certs.ClientCert, router: str, key: str | None = None) -> str:
+    scheme, sep, address = router.partition("/")
+    fallback = (
+        [f"# where UDP is blocked: connect = [{json.dumps(f'tls/{address}')}]"]
+        if scheme == "quic" and sep
+        else []
+    )
     return "\n".join(
         [
             "[transport.zenoh]",
             'mode = "client"',
             f"connect = [{json.dumps(router)}]",
+            *fallback,
             "multicast_scouting = false",
             "[transport.zenoh.tls]",
             f"ca = {json.dumps(str(client.ca.resolve()))}",
