@@ -61,6 +61,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import collections
 import contextlib
 import dataclasses
 import json
@@ -109,6 +110,9 @@ SEED = 26
 #: Tries to open a call (zenoh's session, the call's set-up) and each one's time limit (s).
 CALL_TRIES = 3
 CALL_TIMEOUT = 15.0
+#: How long a release waits for the robot's record of it (s): none comes when driving had
+#: ended before (a stall longer than ``[drive] stale_after``).
+RELEASE_WAIT = 3.0
 NAN = math.nan
 TARGETS = {  # RESULT key: (target, what)
     "stop_p99_ms": (20.0, "stop p99 - delay"),
@@ -133,7 +137,7 @@ class Amounts:
     outages: int
 
 
-FULL = Amounts(stops=25, releases=15, watch_s=12.0, trip_watch_s=45.0, late_s=10.0, outages=3)
+FULL = Amounts(stops=20, releases=12, watch_s=10.0, trip_watch_s=40.0, late_s=8.0, outages=3)
 QUICK = Amounts(stops=3, releases=3, watch_s=3.0, trip_watch_s=4.0, late_s=3.0, outages=1)
 
 
@@ -222,6 +226,7 @@ class Row:
     drive_seconds: float = 0.0
     drops: int = 0
     failed: dict[str, str] = field(default_factory=dict)
+    seconds: float = 0.0
     notes: list[str] = field(default_factory=list)
 
     @property
@@ -415,11 +420,31 @@ async def ready(client: RobotClient) -> None:
     await arm(client, patience=20.0)
 
 
+async def collect(
+    row: Row, what: str, count: int, one: Callable[[], Awaitable[float]]
+) -> list[float]:
+    """``count`` samples of ``one()`` (ms). A sample that fails (a dropped call, a refusal,
+    a record that never came) is counted in the row's notes and tried again, up to
+    ``count`` failures in all."""
+    values: list[float] = []
+    failures: collections.Counter[str] = collections.Counter()
+    while len(values) < count and failures.total() < count:
+        try:
+            values.append(await one())
+        except (RuntimeError, TelebotError, TimeoutError) as exc:
+            failures[one_line(exc)[:120]] += 1
+    for reason, times in failures.items():
+        row.notes.append(f"{what}: {times} failed ({reason})")
+    return values
+
+
 async def measure_stops(
     client: RobotClient, audit: AuditTail, row: Row, count: int, me: str
 ) -> None:
     refused = ""
-    for _ in range(count):
+
+    async def one() -> float:
+        nonlocal refused
         await ready(client)
         try:
             await start_motion(client)
@@ -431,16 +456,19 @@ async def measure_stops(
         if not ack.ok:
             raise RuntimeError(f"stop not acknowledged: {ack.text}")
         record = await audit.wait(
-            lambda r, t0=t0: r["what"] == "stop" and r["t"] >= t0 and r["who"] == me, 10
+            lambda r: r["what"] == "stop" and r["t"] >= t0 and r["who"] == me, 10
         )
-        row.stop.append((record["t"] - t0) * 1000)
+        return (record["t"] - t0) * 1000
+
+    row.stop += await collect(row, "stops", count, one)
     if refused:
         row.notes.append(f"stops of a robot at rest: {refused}")
 
 
 async def measure_releases(client: RobotClient, audit: AuditTail, row: Row, count: int) -> None:
-    drive: Callable[..., None] = client.drive  # type: ignore[attr-defined]
-    for _ in range(count):
+    drive: Callable[..., None] = client.drive
+
+    async def one() -> float:
         await ready(client)
         pose = client.latest_pose.value or await client.pose()
         linear = 1.0 if pose.x < MIDDLE_X else -1.0
@@ -452,22 +480,25 @@ async def measure_releases(client: RobotClient, audit: AuditTail, row: Row, coun
             if now is not None and abs(now.v) > 0.2:
                 break
             if time.monotonic() > deadline:
-                state = getattr(client, "drive_state", None)
-                raise RuntimeError(f"the base did not move by hand within 10 s ({state})")
+                raise RuntimeError(f"the base did not move by hand ({client.drive_state})")
         await asyncio.sleep(0.1)
         drive(linear, 0.0)
         t0 = time.monotonic()
         drive(0.0, 0.0)
-        record = await audit.wait(
-            lambda r, t0=t0: (
-                r["what"].startswith("drive by hand: end")
-                and r["t"] >= t0
-                and str(r.get("detail", "")).startswith("released")
-            ),
-            10,
-        )
-        row.release.append((record["t"] - t0) * 1000)
-        await asyncio.sleep(0.3)  # the base at rest; the next press starts from standstill
+        try:
+            record = await audit.wait(
+                lambda r: (
+                    r["what"].startswith("drive by hand: end")
+                    and r["t"] >= t0
+                    and str(r.get("detail", "")).startswith("released")
+                ),
+                RELEASE_WAIT,
+            )
+        finally:
+            await asyncio.sleep(0.3)  # at rest: the next press starts from standstill
+        return (record["t"] - t0) * 1000
+
+    row.release += await collect(row, "releases", count, one)
 
 
 async def keep_driving(client: RobotClient, until: float) -> None:
@@ -679,7 +710,7 @@ def report(rows: list[Row], drive: bool, amounts: Amounts, seconds: float) -> li
             else ""
         )
         lines.append(
-            f"{row.name}: {len(row.stop)} stops, {len(row.release)} releases, "
+            f"{row.name} ({row.seconds:.0f} s): {len(row.stop)} stops, {len(row.release)} releases, "
             f"{len(row.glass)} frames watched, {len(row.late)} at {LATE_LOSS:.0%} loss "
             f"({row.late_lost} of {row.late_expected} never shown, {row.late_drops} calls "
             "dropped), "
@@ -721,7 +752,9 @@ def run_rows(selected: list[tuple[str, str]], amounts: Amounts) -> tuple[list[Ro
                     profile = PROFILES[name]
                     row = Row(name, link, delay_ms=profile.delay * 1000)
                     print(f"{row.name} ...", flush=True)
+                    started = time.monotonic()
                     asyncio.run(measure_row(daemon, profile, row, amounts, drive))
+                    row.seconds = time.monotonic() - started
                     rows.append(row)
             finally:
                 daemon.stop(graceful=True)
