@@ -73,8 +73,8 @@ def _add_router_options(parser: argparse.ArgumentParser) -> None:
         default=[],
         metavar="ENDPOINT",
         help="also listen on this QUIC endpoint (UDP; the same certificates and access "
-        "control as TLS), e.g. quic/0.0.0.0:7447: across the internet a lost packet then "
-        "holds up only its own stream, never a stop behind the video (repeatable)",
+        "control as TLS), e.g. quic/0.0.0.0:7447: the link to use across the internet "
+        "(README 'Networks'; repeatable)",
     )
     parser.add_argument(
         "--tcp",
