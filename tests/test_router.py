@@ -13,6 +13,7 @@ import datetime
 import json
 import subprocess
 import sys
+import tomllib
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -27,7 +28,7 @@ from cryptography.hazmat.primitives.asymmetric import rsa
 from cryptography.x509.oid import NameOID
 
 from conftest import wait_until
-from rig import REAL_TIMEOUT, SLACK, Process
+from rig import REAL_TIMEOUT, SLACK, Process, free_udp_port
 from router_rig import RouterRig
 from telebot.apps import router_cli
 from telebot.channels.transports.zenoh import ZenohTransport, build_zenoh_config
@@ -56,6 +57,8 @@ class Fleet:
     other_user: certs.ClientCert
     robot_certs: dict[str, certs.ClientCert]
     daemons: dict[str, Process]
+    #: The router's QUIC endpoint (beside its TLS one, as ``telebot-router run`` offers).
+    quic: str
 
 
 def _start_robot(fleet_base: Path, router: RouterRig, name: str, cert: certs.ClientCert) -> Process:
@@ -97,12 +100,13 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet]:
     user = router.issue("user", USER)
     admin = router.issue("admin", "ops")
     other_user = router.issue("user", OTHER_USER)
-    router.start()
+    quic = f"quic/127.0.0.1:{free_udp_port()}"
+    router.start(extra=("--quic", quic))
     daemons: dict[str, Process] = {}
     try:
         for name in ROBOTS:
             daemons[name] = _start_robot(base, router, name, robot_certs[name])
-        yield Fleet(base, router, user_home, user, admin, other_user, robot_certs, daemons)
+        yield Fleet(base, router, user_home, user, admin, other_user, robot_certs, daemons, quic)
     finally:
         for process in daemons.values():
             process.stop()
@@ -147,6 +151,20 @@ async def test_a_call_goes_through_the_router_and_it_sees_only_sealed_frames(
         assert not any(marker.encode() in payload for _, payload in frames)
     finally:
         await asyncio.to_thread(admin.close)
+
+
+async def test_a_user_calls_a_robot_over_the_routers_quic_endpoint(fleet: Fleet) -> None:
+    # The user on QUIC (its certificate and the ACL as on TLS), the robot on TLS.
+    config = fleet.router.app_config(fleet.user)
+    config.transport.zenoh.connect = [fleet.quic]
+    async with connect("guiabot", home=fleet.user_home, config=config, timeout=20) as client:
+        assert (await client.pose()).state
+        assert [r.text async for r in client.chat_replies("help")]
+    # A certificate from another CA is refused on QUIC as on TLS.
+    stranger = RouterRig(fleet.base / "other-quic").issue("user", USER)
+    wrong = fleet.router.zenoh(stranger).model_copy(update={"connect": [fleet.quic]})
+    with pytest.raises(TransportError, match="certificate"):
+        await ZenohTransport(wrong).open()
 
 
 async def test_the_acl_keeps_a_robot_off_another_robots_keys(fleet: Fleet) -> None:
@@ -306,7 +324,8 @@ def test_the_printed_config_is_the_one_the_router_runs(fleet: Fleet) -> None:
     assert {"id": "robot-rover", "cert_common_names": ["robot:rover"]} in subjects
     assert printed["transport"]["link"]["tls"]["enable_mtls"] is True
     assert printed["scouting"]["multicast"]["enabled"] is False
-    assert all(e.startswith("tls/") for e in printed["listen"]["endpoints"])
+    # By default the router offers TLS and QUIC (the link across the internet) on 7447.
+    assert printed["listen"]["endpoints"] == ["tls/0.0.0.0:7447", "quic/0.0.0.0:7447"]
     zenoh.Config.from_json5(done.stdout)  # zenoh (and so zenohd -c) takes it as it is
 
 
@@ -408,6 +427,20 @@ def test_router_commands_fail_in_one_line(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 3 and all(line.startswith("telebot-router: error: ") for line in err)
     assert "init" in err[0] and "ca.pem" in err[1] and "not a tls/ endpoint" in err[2]
+
+
+def test_cert_prints_client_settings_for_quic_with_tls_where_udp_is_blocked(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    root = tmp_path / "r"
+    assert router_cli.main(["init", str(root)]) == 0
+    capsys.readouterr()
+    assert router_cli.main(["cert", str(root), "--user", "bob"]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    settings = tomllib.loads("\n".join(printed[2:]))["transport"]["zenoh"]
+    assert settings["connect"] == ["quic/127.0.0.1:7447"]
+    assert '# where UDP is blocked: connect = ["tls/127.0.0.1:7447"]' in printed
+    assert ZenohSettings.model_validate(settings).tls.cert == root / "clients/user-bob/cert.pem"
 
 
 async def test_a_certificate_outside_the_acl_gets_a_reason_not_a_hang(fleet: Fleet) -> None:

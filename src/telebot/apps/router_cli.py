@@ -35,6 +35,9 @@ from telebot.router.acl import DEFAULT_PORT, Member, RouterPlan, router_config
 
 PROG = "telebot-router"
 DEFAULT_LISTEN = f"tls/0.0.0.0:{DEFAULT_PORT}"
+#: QUIC beside TLS on the same port number (UDP): the link to use across the internet
+#: (README "Networks"; bench/wan.py measures why).
+DEFAULT_QUIC = f"quic/0.0.0.0:{DEFAULT_PORT}"
 DEFAULT_GATEWAY = "0.0.0.0:8443"
 
 
@@ -61,7 +64,17 @@ def _add_router_options(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="ENDPOINT",
-        help=f"TLS endpoint to listen on (repeatable; default {DEFAULT_LISTEN})",
+        help=f"TLS endpoint to listen on (repeatable; default {DEFAULT_LISTEN} and "
+        f"{DEFAULT_QUIC} when neither --listen nor --quic is given)",
+    )
+    parser.add_argument(
+        "--quic",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="also listen on this QUIC endpoint (UDP; the same certificates and access "
+        "control as TLS), e.g. quic/0.0.0.0:7447: the link to use across the internet "
+        "(README 'Networks'; repeatable)",
     )
     parser.add_argument(
         "--tcp",
@@ -132,9 +145,11 @@ def build_parser() -> Parser:
     )
     cert.add_argument(
         "--router",
-        default=f"tls/127.0.0.1:{DEFAULT_PORT}",
+        default=f"quic/127.0.0.1:{DEFAULT_PORT}",
         metavar="ENDPOINT",
-        help="the router endpoint to print in the client settings",
+        help="the router endpoint to print in the client settings (default "
+        f"quic/127.0.0.1:{DEFAULT_PORT}, the link to use across the internet; a tls/ "
+        "endpoint where UDP is blocked)",
     )
     cert.add_argument("--force", action="store_true", help="replace an existing certificate")
 
@@ -215,7 +230,13 @@ def plan_of(args: argparse.Namespace) -> RouterPlan:
     )
     for endpoint in args.listen:
         if not endpoint.startswith("tls/"):
-            raise ConfigError(f"--listen {endpoint}: not a tls/ endpoint (plain TCP: --tcp)")
+            raise ConfigError(
+                f"--listen {endpoint}: not a tls/ endpoint (QUIC: --quic; plain TCP: --tcp)"
+            )
+    for endpoint in args.quic:
+        if not endpoint.startswith("quic/"):
+            raise ConfigError(f"--quic {endpoint}: not a quic/ endpoint")
+    defaults = not args.listen and not args.quic
     for endpoint in args.tcp:
         if not endpoint.startswith("tcp/"):
             raise ConfigError(f"--tcp {endpoint}: not a tcp/ endpoint")
@@ -226,7 +247,8 @@ def plan_of(args: argparse.Namespace) -> RouterPlan:
             key=str((root / "router.key").resolve()),
             members=members,
             namespace=args.namespace,
-            listen_tls=tuple(args.listen or [DEFAULT_LISTEN]),
+            listen_tls=(DEFAULT_LISTEN,) if defaults else tuple(args.listen),
+            listen_quic=(DEFAULT_QUIC,) if defaults else tuple(args.quic),
             listen_tcp=tuple(args.tcp),
             acl=not args.no_acl,
             peers=tuple(args.peer_router),
@@ -236,11 +258,18 @@ def plan_of(args: argparse.Namespace) -> RouterPlan:
 
 
 def _client_settings(client: certs.ClientCert, router: str, key: str | None = None) -> str:
+    scheme, sep, address = router.partition("/")
+    fallback = (
+        [f"# where UDP is blocked: connect = [{json.dumps(f'tls/{address}')}]"]
+        if scheme == "quic" and sep
+        else []
+    )
     return "\n".join(
         [
             "[transport.zenoh]",
             'mode = "client"',
             f"connect = [{json.dumps(router)}]",
+            *fallback,
             "multicast_scouting = false",
             "[transport.zenoh.tls]",
             f"ca = {json.dumps(str(client.ca.resolve()))}",
@@ -364,7 +393,7 @@ async def _run_router(
                 ready: dict[str, Any] = {
                     "event": "ready",
                     "zid": str(session.zid()),
-                    "listen": [*plan.listen_tls, *plan.listen_tcp],
+                    "listen": [*plan.listen_tls, *plan.listen_quic, *plan.listen_tcp],
                     "members": [m.common_name for m in plan.members],
                     "acl": plan.acl,
                     "peers": list(plan.peers),

@@ -107,6 +107,8 @@ class RouterPlan:
     members: tuple[Member, ...] = ()
     namespace: str = "telebot"
     listen_tls: tuple[str, ...] = (f"tls/127.0.0.1:{DEFAULT_PORT}",)
+    #: QUIC endpoints (UDP): the same certificates, mutual TLS and ACL as ``listen_tls``.
+    listen_quic: tuple[str, ...] = ()
     #: Plain TCP endpoints (no certificates, hence no ACL subject: denied everything
     #: unless ``acl`` is off). Off unless asked.
     listen_tcp: tuple[str, ...] = ()
@@ -211,7 +213,7 @@ def router_config(plan: RouterPlan) -> dict[str, Any]:
     """The whole zenoh config of the router (``zenohd -c`` reads it as it is)."""
     config: dict[str, Any] = {
         "mode": "router",
-        "listen": {"endpoints": [*plan.listen_tls, *plan.listen_tcp]},
+        "listen": {"endpoints": [*plan.listen_tls, *plan.listen_quic, *plan.listen_tcp]},
         # Linked routers (§22.5): retried in the background for as long as the router
         # runs, so either side may start first or restart.
         "connect": {"endpoints": list(plan.peers), "exit_on_failure": False},
@@ -220,6 +222,7 @@ def router_config(plan: RouterPlan) -> dict[str, Any]:
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
         "transport": {
             "link": {
+                # zenoh's QUIC links take their certificates from this section too.
                 "tls": {
                     "root_ca_certificate": plan.ca,
                     "listen_certificate": plan.cert,

@@ -720,11 +720,11 @@ class ZenohTransport(Transport):
             raise
         except zenoh.ZError as exc:
             hint = ""
-            if any(e.startswith("tls/") for e in self.settings.connect):
+            if any(e.startswith(("tls/", "quic/")) for e in self.settings.connect):
                 # zenoh says only "Unable to connect"; through a telebot router the usual
                 # cause is the certificate, which the router refuses without a word.
                 hint = (
-                    " (is the router up? a TLS router refuses a client without a "
+                    " (is the router up? a TLS or QUIC router refuses a client without a "
                     "certificate from its CA: check transport.zenoh.tls)"
                 )
             raise TransportError(

@@ -1,0 +1,89 @@
+"""bench/wan.py's own arithmetic: the figures it prints and its RESULT line.
+
+A quick run of the benchmark takes longer than a test may (a robot daemon, a call through
+the emulator, an outage and a second call at 10 % loss: about half a minute on a loaded
+machine), so what is tested here is what turns measurements into figures: percentiles,
+late and never-shown frames, trips per hour, the worst row, the RESULT line, ``--row``.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+from telebot.netem import PROFILES
+
+BENCH = Path(__file__).resolve().parent.parent / "bench"
+
+
+@pytest.fixture(scope="module")
+def wan() -> ModuleType:
+    sys.path.insert(0, str(BENCH))  # wan.py imports bench/safety.py's helpers
+    try:
+        spec = importlib.util.spec_from_file_location("bench_wan", BENCH / "wan.py")
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        sys.modules.setdefault("bench_wan", module)
+        spec.loader.exec_module(module)
+        return module
+    finally:
+        sys.path.remove(str(BENCH))
+
+
+def test_percentiles_late_frames_and_trips(wan: ModuleType) -> None:
+    assert wan.pct([5.0, 1.0, 3.0, 2.0, 4.0], 50) == 3.0
+    assert wan.pct(list(range(1, 101)), 99) == 99
+    assert math.isnan(wan.pct([], 99))
+    # 150 ms after capture plus the one-way delay (40 ms) is late: 190.5 is, 190 is not.
+    assert wan.late_share([50.0, 190.0, 190.5, 400.0], 40.0) == 0.5
+    assert math.isnan(wan.late_share([], 40.0))
+    # Frames 10..19 sent, 15 never shown (a frame shown twice counts once).
+    assert wan.never_shown([11, 12, 13, 14, 16, 17, 18, 18, 10, 19]) == (10, 1)
+    assert wan.never_shown([]) == (0, 0)
+    assert wan.per_hour(2, 60.0) == 120.0
+    assert math.isnan(wan.per_hour(0, 0.0))
+
+
+def test_a_row_takes_the_one_way_delay_off_its_latencies(wan: ModuleType) -> None:
+    row = wan.Row("4g", "tcp", delay_ms=40.0)
+    row.stop = [45.0] * 99 + [90.0]
+    row.glass = [60.0] * 100
+    row.late = [60.0] * 98 + [300.0, 300.0]
+    row.late_expected, row.late_lost = 200, 100
+    row.trips, row.drive_seconds = 1, 1800.0
+    figures = row.figures()
+    assert figures["stop_p99_ms"] == 5.0 and figures["glass_p99_ms"] == 20.0
+    assert figures["late_frames_pct"] == 2.0 and figures["never_shown_pct"] == 50.0
+    assert figures["false_trips_h"] == 2.0
+    assert math.isnan(figures["release_p99_ms"]) and math.isnan(figures["reconnect_p99_ms"])
+
+
+def test_the_result_line_holds_the_worst_row_but_the_baselines(wan: ModuleType) -> None:
+    lan = wan.Row("lan", "tcp", stop=[500.0], trips=9, drive_seconds=60.0)
+    wifi = wan.Row("wifi", "tcp", delay_ms=5.0, stop=[15.0], trips=0, drive_seconds=60.0)
+    g_tcp = wan.Row("4g", "tcp", delay_ms=40.0, stop=[140.0], trips=1, drive_seconds=3600.0)
+    g_quic = wan.Row("4g", "quic", delay_ms=40.0, stop=[50.0], trips=3, drive_seconds=3600.0)
+    fields = wan.result_fields([lan, wifi, g_tcp, g_quic], drive=False)
+    assert fields["stop_p99_ms"] == 100.0  # 4g/tcp; the baseline's 500 is not a profile's
+    assert fields["false_trips_wifi_h"] == 0.0 and fields["false_trips_4g_h"] == 3.0
+    line = wan.result_line(fields, drive=False)
+    assert line.startswith("RESULT stop_p99_ms=100.0 glass_p99_ms=nan late_frames_pct=nan ")
+    assert line.endswith("false_trips_wifi_h=0.0 false_trips_4g_h=3.0 release_p99_ms=n/a")
+    keys = [part.split("=")[0] for part in line.split()[1:]]
+    assert keys == list(wan.TARGETS)
+    assert wan.ratio(100.0, 20.0) == "5.0x" and wan.ratio(1.0, 0.0) == "-"
+
+
+def test_rows_and_the_lossy_profile(wan: ModuleType) -> None:
+    assert wan.parse_row("4g/quic") == ("4g", "quic") and wan.parse_row("wifi") == ("wifi", "tcp")
+    with pytest.raises(ValueError, match="unknown profile 'moon'"):
+        wan.parse_row("moon/tcp")
+    with pytest.raises(ValueError, match="unknown link 'sctp'"):
+        wan.parse_row("4g/sctp")
+    lossy = wan.with_loss(PROFILES["4g"], 0.10)
+    assert lossy.mean_loss == pytest.approx(0.10) and lossy.delay == PROFILES["4g"].delay
