@@ -49,6 +49,24 @@ async def wait_until(condition: Callable[[], bool], timeout: float = 5.0 + SLACK
         await asyncio.sleep(0.01)
 
 
+@pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the marks
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Keep a module's tests on one xdist worker when they share a module-scoped fixture.
+
+    ``make test`` runs ``pytest -n 2 --dist loadgroup``: these tests are one group per module,
+    so the daemon, router or browser the module shares is started once rather than once on
+    each worker, and each group goes to a worker whole, the biggest groups first (xdist's
+    order); every other test is scheduled on its own, filling the workers in between. The
+    mark does nothing without ``--dist loadgroup``.
+    """
+    for item in items:
+        info = getattr(item, "_fixtureinfo", None)
+        if info is None:
+            continue
+        if any(defs and defs[-1].scope == "module" for defs in info.name2fixturedefs.values()):
+            item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::", 1)[0]))
+
+
 @dataclass
 class Homes:
     """A robot home and a user home that know each other."""
