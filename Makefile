@@ -23,7 +23,7 @@ lint: install
 	$(BIN)/mypy
 
 # --dist loadgroup: a module's tests that share a module-scoped daemon, router or browser run
-# on one worker, which starts it once (tests/conftest.py marks them); the rest load-balance.
+# on one worker, which starts it once (tests/conftest.py schedules them); the rest load-balance.
 test: lint install-debian node_modules/.installed
 	npm test
 	$(BIN)/pytest -n 2 --dist loadgroup

@@ -8,6 +8,7 @@ import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 from hypothesis import settings
@@ -49,22 +50,31 @@ async def wait_until(condition: Callable[[], bool], timeout: float = 5.0 + SLACK
         await asyncio.sleep(0.01)
 
 
-@pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the marks
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Keep a module's tests on one xdist worker when they share a module-scoped fixture.
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """``--dist loadgroup`` (``make test``): a module that defines a module-scoped fixture
+    (a daemon, a router, a browser) runs whole on one worker, which starts it once rather
+    than once on each; every other test is scheduled on its own, filling the workers in
+    between. xdist hands out the biggest groups first.
 
-    ``make test`` runs ``pytest -n 2 --dist loadgroup``: these tests are one group per module,
-    so the daemon, router or browser the module shares is started once rather than once on
-    each worker, and each group goes to a worker whole, the biggest groups first (xdist's
-    order); every other test is scheduled on its own, filling the workers in between. The
-    mark does nothing without ``--dist loadgroup``.
+    (xdist's own loadgroup reads ``xdist_group`` marks into node ids, which pytest 9 no
+    longer lets it change; the modules are found by their source instead.)
     """
-    for item in items:
-        info = getattr(item, "_fixtureinfo", None)
-        if info is None:
-            continue
-        if any(defs and defs[-1].scope == "module" for defs in info.name2fixturedefs.values()):
-            item.add_marker(pytest.mark.xdist_group(item.path.stem))
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    root = config.rootpath
+    shared: dict[str, bool] = {}
+
+    class SharedModuleScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            path = nodeid.split("::", 1)[0]
+            if path not in shared:
+                with contextlib.suppress(OSError):
+                    shared[path] = 'scope="module"' in (root / path).read_text("utf-8")
+            return path if shared.get(path) else nodeid
+
+    return SharedModuleScheduling(config, log)
 
 
 @dataclass
