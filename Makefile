@@ -22,9 +22,11 @@ lint: install
 	$(BIN)/ruff format --check src tests bench
 	$(BIN)/mypy
 
+# --dist loadgroup: a module's tests that share a module-scoped daemon, router or browser run
+# on one worker, which starts it once (tests/conftest.py schedules them); the rest load-balance.
 test: lint install-debian node_modules/.installed
 	npm test
-	$(BIN)/pytest -n 2
+	$(BIN)/pytest -n 2 --dist loadgroup
 
 # The browser client's packages (package-lock.json): again only when the lockfile changed.
 node_modules/.installed: package-lock.json | install-debian

@@ -8,6 +8,7 @@ import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 from hypothesis import settings
@@ -47,6 +48,33 @@ async def wait_until(condition: Callable[[], bool], timeout: float = 5.0 + SLACK
         if time.monotonic() > deadline:
             raise AssertionError(f"condition not met within {timeout} s")
         await asyncio.sleep(0.01)
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """``--dist loadgroup`` (``make test``): a module that defines a module-scoped fixture
+    (a daemon, a router, a browser) runs whole on one worker, which starts it once rather
+    than once on each; every other test is scheduled on its own, filling the workers in
+    between. xdist hands out the biggest groups first.
+
+    (xdist's own loadgroup reads ``xdist_group`` marks into node ids, which pytest 9 no
+    longer lets it change; the modules are found by their source instead.)
+    """
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    root = config.rootpath
+    shared: dict[str, bool] = {}
+
+    class SharedModuleScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            path = nodeid.split("::", 1)[0]
+            if path not in shared:
+                with contextlib.suppress(OSError):
+                    shared[path] = 'scope="module"' in (root / path).read_text("utf-8")
+            return path if shared.get(path) else nodeid
+
+    return SharedModuleScheduling(config, log)
 
 
 @dataclass
