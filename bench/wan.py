@@ -83,7 +83,7 @@ from safety import MIDDLE_X, arm, start_motion  # bench/safety.py: the stop path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 from rig import FAST_SIM, REAL_TIMEOUT, Daemon, free_port, free_udp_port
-from telebot.config import AppConfig
+from telebot.config import AppConfig, SafetySettings
 from telebot.errors import TelebotError
 from telebot.netem import PROFILES, NetemProxy, Profile
 from telebot.router import certs
@@ -294,7 +294,14 @@ class WanDaemon(Daemon):
     """The tests' robot daemon (``tests/rig.py``) listening on ``link`` (TLS for QUIC)."""
 
     def __init__(self, base: Path, link: str) -> None:
-        super().__init__(base, observer=None, timeout=REAL_TIMEOUT, sim=FAST_SIM)
+        # The product's call timeout (deadman) and stale-video lockout: they are measured here.
+        super().__init__(
+            base,
+            observer=None,
+            timeout=REAL_TIMEOUT,
+            sim=FAST_SIM,
+            stale_video=SafetySettings().stale_video,
+        )
         self.link = link
         self.ca: Path | None = None
         if link == "quic":

@@ -16,6 +16,10 @@ Timing on a shared, loaded machine (CI runs on 2 cores; so do five engineers at 
   :data:`GENEROUS_TIMEOUT`, on the robot and on every user the rig configures (heartbeats
   stay at 20 Hz); a test about the deadman or drop detection asks for :data:`REAL_TIMEOUT`
   explicitly (``Daemon(..., timeout=REAL_TIMEOUT)``).
+- **Stale video.** Likewise a loaded machine stalls the robot's camera, encoder or a page's
+  decoder for longer than the stale-video lockout (``[safety] stale_video``, 1 s), which
+  stops a moving robot whose driver watches video: a :class:`Daemon` runs with
+  :data:`GENEROUS_STALE_VIDEO` unless the test asks for the product's value.
 - **Wall-clock bounds.** :data:`SLACK` is a number of seconds (``$TELEBOT_TEST_SLACK``,
   default 1.0) added to every wall-clock bound an integration test asserts, on top of the
   requirement and the product's own periods: ``TIMEOUT + 0.5 + SLACK``. Seconds, not a
@@ -78,6 +82,8 @@ SLACK = float(os.environ.get("TELEBOT_TEST_SLACK", "1.0"))
 REAL_TIMEOUT = CallSettings().timeout
 #: The call timeout (s) of tests that are not about timing: a preempted process keeps its calls.
 GENEROUS_TIMEOUT = 2.0
+#: The stale-video lockout (s) of daemons in tests that are not about it (see the module doc).
+GENEROUS_STALE_VIDEO = 5.0
 
 #: The small map and a fast robot, so that moves take a second or two.
 FAST_SIM: dict[str, Any] = {
@@ -117,14 +123,17 @@ def write_config(
     lease_ms: int | None = None,
     timeout: float | None = None,
     sim: Mapping[str, Any] | None = None,
+    stale_video: float | None = None,
 ) -> Path:
     """A telebot TOML config for loopback tests: no multicast scouting; optionally zenoh's
-    link lease, the call timeout (s) and a ``[sim]`` table."""
+    link lease, the call timeout (s), the stale-video lockout (s) and a ``[sim]`` table."""
     lines = ["[transport.zenoh]", "multicast_scouting = false"]
     if lease_ms is not None:
         lines += ["[transport.zenoh.options]", f'"transport/link/tx/lease" = {lease_ms}']
     if timeout is not None:
         lines += ["[call]", f"timeout = {timeout}"]
+    if stale_video is not None:
+        lines += ["[safety]", f"stale_video = {stale_video}"]
     if sim:
         lines += ["[sim]", *(f"{key} = {_toml_value(value)}" for key, value in sim.items())]
     path.write_text("\n".join(lines) + "\n")
@@ -242,8 +251,9 @@ class Daemon:
     Homes under ``base``: ``robot`` (the daemon's), ``user`` (``driver``, a driver) and, if
     ``observer`` is given, one named after the observer. ``timeout`` is the call timeout
     of the robot and of every user configured here (:data:`GENEROUS_TIMEOUT` unless the test
-    is about timing); ``sim`` the ``[sim]`` table (:data:`FAST_SIM` by default).
-    Call :meth:`start`; :meth:`stop` ends it.
+    is about timing); ``stale_video`` the robot's stale-video lockout
+    (:data:`GENEROUS_STALE_VIDEO` unless the test is about it); ``sim`` the ``[sim]`` table
+    (:data:`FAST_SIM` by default). Call :meth:`start`; :meth:`stop` ends it.
     """
 
     def __init__(
@@ -255,6 +265,7 @@ class Daemon:
         observer: str | None = OBSERVER,
         timeout: float = GENEROUS_TIMEOUT,
         sim: Mapping[str, Any] | None = None,
+        stale_video: float = GENEROUS_STALE_VIDEO,
     ) -> None:
         create_paired_homes(base, robot, driver, role=Role.DRIVER)
         self.base = base
@@ -268,7 +279,10 @@ class Daemon:
         if observer is not None:
             self.add_user(observer, Role.OBSERVER, self.observer_home)
         self.robot_config = write_config(
-            base / "robot.toml", timeout=timeout, sim=FAST_SIM if sim is None else sim
+            base / "robot.toml",
+            timeout=timeout,
+            sim=FAST_SIM if sim is None else sim,
+            stale_video=stale_video,
         )
         self.user_config = self.write_user_config("user.toml")
         self.port = 0
