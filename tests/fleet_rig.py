@@ -13,7 +13,7 @@ from collections.abc import AsyncIterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from rig import GENEROUS_TIMEOUT
+from rig import GENEROUS_STALE_VIDEO, GENEROUS_TIMEOUT
 from telebot.channels.call import RobotEndpoint, UserEndpoint
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.config import CallSettings, ServiceSettings, SimSettings
@@ -76,7 +76,12 @@ async def running_robot(base: Path, name: str, hub: MemoryHub) -> AsyncIterator[
         control_hz=50,
     )
     nav = SimNavStack.from_settings(settings, now=loop.time())
-    safety = SafetyDriver(nav, timeout=GENEROUS_TIMEOUT, max_speed=settings.max_linear_speed)
+    safety = SafetyDriver(
+        nav,
+        timeout=GENEROUS_TIMEOUT,
+        max_speed=settings.max_linear_speed,
+        stale_video=GENEROUS_STALE_VIDEO,
+    )
     server = RobotServer(
         nav,
         ServiceSettings(pose_hz=10.0),

@@ -18,8 +18,9 @@ Timing on a shared, loaded machine (CI runs on 2 cores; so do five engineers at 
   explicitly (``Daemon(..., timeout=REAL_TIMEOUT)``).
 - **Stale video.** Likewise a loaded machine stalls the robot's camera, encoder or a page's
   decoder for longer than the stale-video lockout (``[safety] stale_video``, 1 s), which
-  stops a moving robot whose driver watches video: a :class:`Daemon` runs with
-  :data:`GENEROUS_STALE_VIDEO` unless the test asks for the product's value.
+  stops a moving robot whose driver watches video: a :class:`Daemon` and
+  :func:`robot_on_hub` run with :data:`GENEROUS_STALE_VIDEO` unless the test asks for the
+  product's value.
 - **Wall-clock bounds.** :data:`SLACK` is a number of seconds (``$TELEBOT_TEST_SLACK``,
   default 1.0) added to every wall-clock bound an integration test asserts, on top of the
   requirement and the product's own periods: ``TIMEOUT + 0.5 + SLACK``. Seconds, not a
@@ -442,13 +443,16 @@ async def robot_on_hub(
     video: VideoSettings | None = None,
     cipher: CipherChoice = "auto",
     transport: Transport | None = None,
+    stale_video: float = GENEROUS_STALE_VIDEO,
 ) -> AsyncIterator[tuple[SimNavStack, SafetyDriver, RobotServer, RobotEndpoint]]:
     """A simulated robot (small map) with its safety supervisor, answering on ``hub`` as
     "robot"; paired homes for ``ROBOT`` and ``USER`` (a driver) are made under ``base``.
 
     ``timeout`` is the robot's call timeout and its deadman time; ``sim`` the simulator's
     settings (a robot of 1 m/s by default); ``cipher`` its ``[call] cipher``;
-    ``transport``: an unopened transport to answer on instead of ``hub`` (a zenoh one).
+    ``transport``: an unopened transport to answer on instead of ``hub`` (a zenoh one);
+    ``stale_video`` its stale-video lockout (:data:`GENEROUS_STALE_VIDEO` unless the test is
+    about it).
     """
     create_paired_homes(base, ROBOT, USER, role=Role.DRIVER)
     robot_home = base / "robot"
@@ -464,7 +468,9 @@ async def robot_on_hub(
         }
     )
     nav = SimNavStack.from_settings(settings, now=loop.time())
-    safety = SafetyDriver(nav, timeout=timeout, max_speed=settings.max_linear_speed)
+    safety = SafetyDriver(
+        nav, timeout=timeout, max_speed=settings.max_linear_speed, stale_video=stale_video
+    )
     server = RobotServer(
         nav,
         services if services is not None else ServiceSettings(),

@@ -14,7 +14,7 @@ from rig import GENEROUS_TIMEOUT, ROBOT, SLACK, robot_on_hub, user_on_hub
 from telebot.apps.user_client import _say_self_stops
 from telebot.channels.channel import ReceivedDatagram
 from telebot.channels.transports.memory import MemoryHub
-from telebot.config import RobotConfig, load_toml
+from telebot.config import RobotConfig, SafetySettings, load_toml
 from telebot.errors import ConfigError
 from telebot.reasons import Reason
 from telebot.robot.nav import Velocity
@@ -22,6 +22,9 @@ from telebot.services.client import RobotClient
 from telebot.services.proto.chat import ChatReply
 from telebot.services.proto.video import CompleteFrame, VideoSettings
 from telebot.services.video import VideoFeedService
+
+#: The product's stale-video lockout (rigs default to a generous one).
+PRODUCT_STALE_VIDEO = SafetySettings().stale_video
 
 
 async def first_reply(client: RobotClient, command: str) -> ChatReply:
@@ -50,10 +53,12 @@ async def test_a_driver_whose_video_freezes_while_driving_gets_the_robot_stopped
     # call timeout (and deadman), so a preempted test process does not stop it either.
     video = VideoSettings(width=160, height=120, max_fps=15.0)
     async with (
-        robot_on_hub(tmp_path, hub, timeout=GENEROUS_TIMEOUT, video=video) as (nav, safety, _, _),
+        robot_on_hub(
+            tmp_path, hub, timeout=GENEROUS_TIMEOUT, video=video, stale_video=PRODUCT_STALE_VIDEO
+        ) as (nav, safety, _, _),
         user_on_hub(tmp_path, hub) as user,
     ):
-        assert safety.supervisor.stale_video == 1.0  # the default
+        assert safety.supervisor.stale_video == 1.0  # the product's default
         call = await user.call(ROBOT)
         client = RobotClient(call)
         _say_self_stops(client)  # what the terminal chat says (telebot-user chat)

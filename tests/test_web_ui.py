@@ -25,7 +25,7 @@ import pytest
 import pytest_asyncio
 
 from conftest import ROBOT, USER
-from rig import GENEROUS_TIMEOUT, SLACK
+from rig import GENEROUS_STALE_VIDEO, GENEROUS_TIMEOUT, SLACK
 from telebot.apps.web.server import WebUI
 from telebot.channels.call import RobotEndpoint, UserEndpoint
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
@@ -113,7 +113,11 @@ async def robot_rig(
     _watch_stops(nav, zeroed)
     audit = base / "audit.jsonl"
     safety = SafetyDriver(
-        nav, timeout=GENEROUS_TIMEOUT, max_speed=settings.max_linear_speed, audit_path=audit
+        nav,
+        timeout=GENEROUS_TIMEOUT,
+        max_speed=settings.max_linear_speed,
+        stale_video=GENEROUS_STALE_VIDEO,
+        audit_path=audit,
     )
     server = RobotServer(
         nav,
