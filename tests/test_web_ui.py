@@ -349,7 +349,9 @@ async def test_a_click_moves_the_robot_there(rig: Rig) -> None:
         )
         assert math.dist((sent["x"], sent["y"]), target) <= 1.5 * scale + 1e-6
         real = rig.nav.pose().pose
-        assert math.dist((real.x, real.y), (sent["x"], sent["y"])) < 0.15
+        # The goal's tolerance, plus what a loaded machine's late control steps let the base
+        # run on past it (the simulator's watchdog design, tested in test_sim_stack).
+        assert math.dist((real.x, real.y), (sent["x"], sent["y"])) < 0.3
         # The pose updates that follow bring the page to where the robot stopped.
         await page.wait_for_function(
             "([x, y]) => { const p = window.telebotUI.state.pose;"
@@ -486,6 +488,8 @@ async def test_video_frames_arrive_and_the_camera_switches(rig: Rig) -> None:
     async with browser_page(rig.ui.url) as page:
         await page_ready(page)
         await page.wait_for_function("() => window.telebotUI.state.frames >= 5", timeout=10000)
+        # Each frame replaces the image's source: its size is 0 until that one decodes.
+        await page.wait_for_function("() => document.getElementById('video').naturalWidth > 0")
         size = await page.evaluate(
             "() => [document.getElementById('video').naturalWidth,"
             " document.getElementById('video').naturalHeight]"
