@@ -219,7 +219,10 @@ async def _lost_set(seed: int, loss: float, count: int) -> tuple[set[int], Memor
         pub = a.publisher("k")
         for i in range(count):
             pub.put(str(i).encode())
-        await settle()
+        # What crossed the link comes in batches, one per loop turn.
+        stats = hub.link_stats("a", "b")
+        while stats.in_flight or len(inbox.arrivals) < stats.delivered:
+            await settle()
         return set(range(count)) - set(nums(inbox)), hub
 
 
