@@ -479,6 +479,7 @@ class MemoryTransport(Transport):
     """A node of a :class:`MemoryHub`; frames travel through the hub's link conditions."""
 
     name = "memory"
+    section = "memory"
 
     def __init__(
         self,

@@ -58,6 +58,7 @@ from typing import Any, Final, Protocol, Self, TypeVar
 import zenoh
 
 from telebot.channels.transports.base import (
+    CliOption,
     Lane,
     Presence,
     PresenceCallback,
@@ -605,6 +606,23 @@ class ZenohTransport(Transport):
     """
 
     name = "zenoh"
+    section = "zenoh"
+    cli_options = (
+        CliOption(
+            "--listen",
+            "listen",
+            "zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
+            metavar="ENDPOINT",
+            repeatable=True,
+        ),
+        CliOption(
+            "--connect",
+            "connect",
+            "zenoh endpoint (peer or router) to connect to, e.g. tcp/10.0.0.5:7447 (repeatable)",
+            metavar="ENDPOINT",
+            repeatable=True,
+        ),
+    )
 
     def __init__(
         self, settings: ZenohSettings | None = None, *, reader_name: str | None = None
