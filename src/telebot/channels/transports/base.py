@@ -15,6 +15,8 @@ bytes, and the largest payload it takes. A payload over the limit is dropped bef
 is copied out of the transport (it cannot be an authentic frame), and a subscription
 hands at most ``batch`` samples to its callback per event-loop turn, so that one flooded
 subscription cannot hold the loop while another (a call's control frames) waits.
+:class:`~telebot.channels.transports.inbox.Inbox` is that receive path, for every
+transport to use; :mod:`telebot.testing.transport` checks that a transport keeps it.
 """
 
 from __future__ import annotations

@@ -23,6 +23,14 @@ Model:
 * Lanes are recorded on the publisher but not modelled: all lanes share one link.
 * A hub lives in one thread; a transport opened on another event loop still gets its
   callbacks on its own loop (hand-over with ``call_soon_threadsafe``).
+* Frames that arrive go through each subscription's
+  :class:`~telebot.channels.transports.inbox.Inbox`, the receive path zenoh uses too:
+  bounded in samples and bytes (``ReceiveLimits``, else ``queue_size`` / ``queue_bytes``,
+  zenoh's defaults), dropping the oldest, at most ``batch`` samples per loop turn. So a
+  flood is a deterministic in-process test.
+* Every time is the event loop's (``loop.time()``, ``loop.call_at``): on
+  :class:`telebot.testing.clock.VirtualClockLoop` latencies and bandwidth queues take no
+  wall time and are exact.
 """
 
 from __future__ import annotations

@@ -12,8 +12,10 @@ thread also serves other subscriptions (measured: one call flooding 32 KB datagr
 stalled another call's heartbeats until it dropped); a full ring drops its oldest
 sample instead, so one flooded subscription never delays another.
 The reader waits in ``recv()`` with the GIL released; when samples come it takes every
-one already waiting under a single hold of the GIL, appends the payloads to a bounded
-deque and wakes the event loop once with ``call_soon_threadsafe``; everything else
+one already waiting under a single hold of the GIL, pushes the payloads into the
+subscription's bounded :class:`~telebot.channels.transports.inbox.Inbox` (the receive
+path every transport shares) and wakes the event loop once with
+``call_soon_threadsafe``; everything else
 happens on the loop. A callback per sample (zenoh's default) takes the GIL once per
 sample, and a burst then costs a GIL hand-over between zenoh's thread and the loop
 for every few samples; batching the hand-over is what lets the loop keep up with a
