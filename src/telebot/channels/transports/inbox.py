@@ -88,18 +88,27 @@ class Inbox(Generic[Item]):
     def push(self, item: Item, size: int) -> None:
         """Queue ``item`` (``size`` payload bytes), dropping the oldest beyond the bounds."""
         queue = self._queue
+        # Inline, not queued_bytes: this runs for every sample of a flood.
+        if queue and (
+            len(queue) >= self.max_samples
+            or self.bytes_in - self.bytes_dropped - self.bytes_out + size > self.max_bytes
+        ):
+            self._make_room(size)
+        self.bytes_in += size
+        self.received += 1
+        queue.append((item, size))
+
+    def _make_room(self, size: int) -> None:
+        queue = self._queue
         while queue and (
             len(queue) >= self.max_samples or self.queued_bytes + size > self.max_bytes
         ):
             try:
                 _, old_size = queue.popleft()
             except IndexError:  # the consumer took it meanwhile
-                break
+                return
             self.dropped += 1
             self.bytes_dropped += old_size
-        self.bytes_in += size
-        self.received += 1
-        queue.append((item, size))
 
     def take(self) -> list[Item]:
         """Up to ``batch`` items, oldest first (the consumer's side)."""
