@@ -422,8 +422,8 @@ class ZenohPublisher(_Entity, Publisher):
 class ZenohSubscription(_Entity, Subscription):
     """Delivers matching samples to a callback on the loop, in batches.
 
-    The reader thread appends to a queue bounded in samples and bytes and schedules one
-    drain per batch; the drain, on the loop, hands at most ``limits.batch`` samples to
+    The reader thread pushes into the subscription's :attr:`inbox` (bounded in samples
+    and bytes, dropping the oldest) and schedules one drain per batch; the drain, on the loop, hands at most ``limits.batch`` samples to
     the callback and schedules itself again for the rest, so other subscriptions'
     drains run in between.
     """
