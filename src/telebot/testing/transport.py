@@ -83,14 +83,14 @@ class Recorder:
 
     def __init__(self) -> None:
         self.batches: list[list[Sample]] = []
+        #: Whether the warm-up's end marker came (see :func:`_warm_up`).
+        self.warm = False
         self._changed = asyncio.Event()
 
     def __call__(self, batch: Sequence[Sample]) -> None:
         self.batches.append([s for s in batch if s.payload not in (_WARM_UP, _WARMED_UP)])
         self.warm = self.warm or any(s.payload == _WARMED_UP for s in batch)
         self._changed.set()
-
-    warm = False
 
     @property
     def samples(self) -> list[Sample]:
