@@ -603,14 +603,14 @@ async def test_slow_consumer_drops_oldest() -> None:
                 # The reader thread's own count: the transport's stats are updated on
                 # the loop, which this consumer is holding.
                 deadline = time.monotonic() + 5
-                while subscription._received < received_before + count + 1:
+                while subscription.inbox.received < received_before + count + 1:
                     assert time.monotonic() < deadline, "flood did not arrive"
                     time.sleep(0.01)
 
         subscription = listener.subscribe(key, consumer)
         publisher = connector.publisher(key)
         await warm_up(publisher.put, inbox)
-        received_before = subscription._received
+        received_before = subscription.inbox.received
 
         def flood() -> None:
             blocking.wait(5)
@@ -656,14 +656,17 @@ async def test_receive_limits_bound_bytes_drop_oversized_uncopied_and_cap_batche
                 sent.wait(5)
                 deadline = time.monotonic() + 5
                 # The block itself, the flood and the oversized one.
-                while subscription._received + subscription._oversized < before + 1 + count + 1:
+                while (
+                    subscription.inbox.received + subscription.inbox.oversized
+                    < before + 1 + count + 1
+                ):
                     assert time.monotonic() < deadline, "flood did not arrive"
                     time.sleep(0.01)
 
         subscription = listener.subscribe(key, consumer, limits=limits)
         publisher = connector.publisher(key)
         await warm_up(publisher.put, inbox)
-        before = subscription._received + subscription._oversized
+        before = subscription.inbox.received + subscription.inbox.oversized
 
         def flood() -> None:
             blocking.wait(5)

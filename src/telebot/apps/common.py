@@ -19,6 +19,7 @@ from pydantic import ValidationError
 
 from telebot import __version__
 from telebot.channels.proto.frames import validate_name
+from telebot.channels.transports import apply_cli_option, declared_cli_options
 from telebot.config import AppConfig, default_home, format_validation_error, load_toml
 from telebot.errors import (
     CallError,
@@ -112,27 +113,22 @@ def add_home_option(parser: argparse.ArgumentParser, kind: Literal["robot", "use
 
 
 def add_connection_options(parser: argparse.ArgumentParser) -> None:
-    """``--config``, ``--listen``, ``--connect``: how to reach the network."""
+    """``--config`` and the flags the transports declare (zenoh's ``--listen``,
+    ``--connect``): how to reach the network."""
     parser.add_argument(
         "--config",
         type=Path,
         default=None,
         help="TOML config file (see configs/); default: built-in defaults",
     )
-    parser.add_argument(
-        "--listen",
-        action="append",
-        default=[],
-        metavar="ENDPOINT",
-        help="zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
-    )
-    parser.add_argument(
-        "--connect",
-        action="append",
-        default=[],
-        metavar="ENDPOINT",
-        help="zenoh endpoint (peer or router) to connect to, e.g. tcp/10.0.0.5:7447 (repeatable)",
-    )
+    for _, option in declared_cli_options():
+        parser.add_argument(
+            option.flag,
+            action="append" if option.repeatable else "store",
+            default=[] if option.repeatable else None,
+            metavar=option.metavar,
+            help=option.help,
+        )
 
 
 def home_of(args: argparse.Namespace, kind: Literal["robot", "user"]) -> Path:
@@ -147,13 +143,14 @@ def app_config(args: argparse.Namespace) -> AppConfig:
 
 
 def load_app_config(args: argparse.Namespace, model: type[Config]) -> Config:
-    """``--config`` read as ``model`` (or its defaults), with ``--listen`` / ``--connect``."""
+    """``--config`` read as ``model`` (or its defaults), with the transports' flags
+    (``--listen`` / ``--connect``) given on the command line applied over it."""
     config = load_toml(args.config, model) if args.config else model()
     try:
-        if args.listen:
-            config.transport.zenoh.listen = list(args.listen)
-        if args.connect:
-            config.transport.zenoh.connect = list(args.connect)
+        for name, option in declared_cli_options():
+            value = getattr(args, option.flag.lstrip("-").replace("-", "_"), None)
+            if value:  # not given: the config file's value stands
+                apply_cli_option(config.transport, name, option, value)
     except ValidationError as exc:
         raise ConfigError(format_validation_error(exc, "command line")) from exc
     return config

@@ -15,6 +15,8 @@ bytes, and the largest payload it takes. A payload over the limit is dropped bef
 is copied out of the transport (it cannot be an authentic frame), and a subscription
 hands at most ``batch`` samples to its callback per event-loop turn, so that one flooded
 subscription cannot hold the loop while another (a call's control frames) waits.
+:class:`~telebot.channels.transports.inbox.Inbox` is that receive path, for every
+transport to use; :mod:`telebot.testing.transport` checks that a transport keeps it.
 """
 
 from __future__ import annotations
@@ -25,12 +27,15 @@ import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from types import TracebackType
-from typing import TYPE_CHECKING, Self
+from typing import TYPE_CHECKING, ClassVar, Self
+
+from pydantic import BaseModel
 
 if TYPE_CHECKING:
     from telebot.config import TransportSettings
 
 __all__ = [
+    "CliOption",
     "Lane",
     "Presence",
     "Publisher",
@@ -133,6 +138,22 @@ SampleBatchCallback = Callable[[Sequence[Sample]], None]
 PresenceCallback = Callable[[str, bool], None]
 
 
+@dataclass(frozen=True, slots=True)
+class CliOption:
+    """A command-line flag a transport declares: every command that connects has it.
+
+    ``flag`` (``--listen``) sets ``setting``, a field of the transport's settings (its
+    ``[transport.<section>]`` table, or for a plug-in its ``[transport.options]``), over
+    what the config file says; ``repeatable`` flags collect a list (``action="append"``).
+    """
+
+    flag: str
+    setting: str
+    help: str
+    metavar: str | None = None
+    repeatable: bool = False
+
+
 class Publisher(abc.ABC):
     """Publishes frames on one key with the QoS of one lane."""
 
@@ -181,6 +202,16 @@ class Transport(abc.ABC):
     #: What on the path may silently drop frames (a router's access control), added to
     #: "did not answer" errors; empty when nothing does.
     unanswered_hint: str = ""
+    #: A built-in's own table of the config file, ``[transport.<section>]`` (a field of
+    #: :class:`~telebot.config.TransportSettings`); None: a plug-in, whose table is
+    #: ``[transport.options]``.
+    section: ClassVar[str | None] = None
+    #: A plug-in's declared options: ``[transport.options]`` is validated with this model
+    #: when the transport is created (:func:`~telebot.channels.transports.create_transport`),
+    #: a bad value being one line naming its key; None: passed through unchecked.
+    options_model: ClassVar[type[BaseModel] | None] = None
+    #: The command-line flags that set this transport's settings (see :class:`CliOption`).
+    cli_options: ClassVar[tuple[CliOption, ...]] = ()
 
     def __init__(self) -> None:
         self.stats = TransportStats()

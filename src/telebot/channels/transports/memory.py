@@ -23,6 +23,14 @@ Model:
 * Lanes are recorded on the publisher but not modelled: all lanes share one link.
 * A hub lives in one thread; a transport opened on another event loop still gets its
   callbacks on its own loop (hand-over with ``call_soon_threadsafe``).
+* Frames that arrive go through each subscription's
+  :class:`~telebot.channels.transports.inbox.Inbox`, the receive path zenoh uses too:
+  bounded in samples and bytes (``ReceiveLimits``, else ``queue_size`` / ``queue_bytes``,
+  zenoh's defaults), dropping the oldest, at most ``batch`` samples per loop turn. So a
+  flood is a deterministic in-process test.
+* Every time is the event loop's (``loop.time()``, ``loop.call_at``): on
+  :class:`telebot.testing.clock.VirtualClockLoop` latencies and bandwidth queues take no
+  wall time and are exact.
 """
 
 from __future__ import annotations
@@ -35,7 +43,6 @@ import heapq
 import itertools
 import math
 import random
-import sys
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -54,6 +61,7 @@ from telebot.channels.transports.base import (
     Transport,
     gate_passes,
 )
+from telebot.channels.transports.inbox import Inbox
 from telebot.config import TransportSettings
 from telebot.errors import TransportError
 from telebot.netem.model import LinkModel, LinkQueue, Profile
@@ -393,14 +401,43 @@ class _MemorySubscription(Subscription):
         self._transport = transport
         self.pattern = pattern
         self.callback = callback
-        self.max_payload = limits.max_payload or sys.maxsize
+        self.limits = limits
+        #: The bounded queue between the frames' arrival and the callback.
+        self.inbox: Inbox[Sample] = Inbox(
+            limits,
+            default_samples=transport.queue_size,
+            default_bytes=transport.queue_bytes,
+        )
         self.stats = SubscriptionStats()
         self.closed = False
+        self._drain_scheduled = False
 
     def close(self) -> None:
         if not self.closed:
             self.closed = True
+            self.inbox.clear()
             self._transport._subs.remove(self)
+
+    def _deliver(self) -> None:
+        """Loop: hand up to ``limits.batch`` queued samples to the callback; the rest on
+        the next turn, after other callbacks had theirs."""
+        self._drain_scheduled = False
+        transport = self._transport
+        batch = self.inbox.take()
+        if len(self.inbox) and not self.closed:
+            self._drain_scheduled = True
+            assert transport._loop is not None
+            transport._loop.call_soon(self._deliver)
+        self.inbox.report(self.stats, transport.stats)
+        if self.closed or not batch:
+            return
+        try:
+            self.callback(batch)
+        except Exception as exc:  # one faulty consumer must not starve the others
+            assert transport._loop is not None
+            transport._loop.call_exception_handler(
+                {"message": f"subscription callback on {self.pattern!r} failed", "exception": exc}
+            )
 
 
 class _MemoryWatch(Subscription):
@@ -435,6 +472,12 @@ class _MemoryPresence(Presence):
 
 # --------------------------------------------------------------------------- transport
 
+#: Default bounds of a subscription's queue (zenoh's defaults: ``[transport.zenoh]``).
+DEFAULT_QUEUE_SIZE = 4096
+DEFAULT_QUEUE_BYTES = 8 << 20
+#: Frames in flight to one node at most (the link's delay line); beyond, the oldest drops.
+_MAX_IN_FLIGHT = 65536
+
 # In-flight frames of a node, ordered by arrival time then by send order (the sequence
 # number keeps equal arrival times first-in first-out, which the loop's timers do not).
 _Arrival = tuple[float, int, Sample, LinkStats | None]
@@ -444,26 +487,36 @@ class MemoryTransport(Transport):
     """A node of a :class:`MemoryHub`; frames travel through the hub's link conditions."""
 
     name = "memory"
+    section = "memory"
 
     def __init__(
-        self, hub: MemoryHub | None = None, node: str | None = None, *, queue_size: int = 65536
+        self,
+        hub: MemoryHub | None = None,
+        node: str | None = None,
+        *,
+        queue_size: int = DEFAULT_QUEUE_SIZE,
+        queue_bytes: int = DEFAULT_QUEUE_BYTES,
     ) -> None:
         """Join ``hub`` (default: the hub named "default") as ``node`` (default: unique name).
 
-        ``queue_size`` bounds the frames in flight to this node; beyond it the oldest is
-        dropped and counted in ``stats.dropped``.
+        ``queue_size`` and ``queue_bytes`` bound each subscription's queue (its
+        :class:`~telebot.channels.transports.inbox.Inbox`) unless its ``ReceiveLimits``
+        say otherwise: beyond either the oldest sample is dropped and counted in
+        ``stats.dropped``, as on zenoh (same defaults).
         """
         super().__init__()
         self._hub = hub if hub is not None else MemoryHub.named("default")
         self._node = node if node is not None else self._hub._new_node_name()
-        self._queue_size = queue_size
+        #: Default bounds of a subscription's queue, in samples and bytes.
+        self.queue_size = queue_size
+        self.queue_bytes = queue_bytes
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread = 0
         self._closed = False
         self._subs: list[_MemorySubscription] = []
         self._watches: list[_MemoryWatch] = []
         self._tokens: list[_MemoryPresence] = []
-        self._inbox: list[_Arrival] = []
+        self._in_flight: list[_Arrival] = []
         self._seq = itertools.count()
         self._wakeup: asyncio.Handle | None = None
         self._wakeup_at = math.inf
@@ -505,12 +558,13 @@ class MemoryTransport(Transport):
         if self._wakeup is not None:
             self._wakeup.cancel()
             self._wakeup = None
-        for *_, stats in self._inbox:
+        for *_, stats in self._in_flight:
             if stats is not None:
                 stats.lost += 1
-        self._inbox.clear()
+        self._in_flight.clear()
         for sub in self._subs:
             sub.closed = True
+            sub.inbox.clear()
         for watch in self._watches:
             watch.closed = True
         for token in self._tokens:
@@ -536,9 +590,11 @@ class MemoryTransport(Transport):
     ) -> Subscription:
         """Call ``callback`` on the loop with batches of samples whose key matches ``pattern``.
 
-        Of ``limits`` only ``max_payload`` applies (larger payloads are dropped and counted
-        as oversized): the queue is the node's, bounded by ``queue_size``, and everything
-        due is delivered in one turn.
+        ``limits`` bound the subscription's queue as on zenoh (see
+        :class:`~telebot.channels.transports.inbox.Inbox`): larger payloads than
+        ``max_payload`` are dropped and counted as oversized, the oldest samples beyond
+        ``max_samples`` or ``max_bytes`` as dropped, and at most ``batch`` samples are
+        delivered per loop turn.
         """
         self._check_open()
         _check_key_expr(pattern, wildcards=True)
@@ -607,12 +663,12 @@ class MemoryTransport(Transport):
             if stats is not None:
                 stats.lost += 1
             return
-        if len(self._inbox) >= self._queue_size:
-            *_, oldest_stats = heapq.heappop(self._inbox)
+        if len(self._in_flight) >= _MAX_IN_FLIGHT:
+            *_, oldest_stats = heapq.heappop(self._in_flight)
             if oldest_stats is not None:
                 oldest_stats.delivered += 1  # it crossed the link; the consumer fell behind
             self.stats.dropped += 1
-        heapq.heappush(self._inbox, (due, next(self._seq), sample, stats))
+        heapq.heappush(self._in_flight, (due, next(self._seq), sample, stats))
         self._arm(due)
 
     def _arm(self, due: float) -> None:
@@ -628,42 +684,33 @@ class MemoryTransport(Transport):
             self._wakeup = self._loop.call_at(due, self._drain)
 
     def _drain(self) -> None:
-        """Hand every frame that has arrived to its subscriptions, one batch per subscription."""
+        """Queue every frame that has arrived in its subscriptions' inboxes, and deliver
+        each subscription's first batch in this turn."""
         assert self._loop is not None
         # The loop may fire a timer a hair before its time: what it was armed for is due.
         limit = max(self._loop.time(), self._wakeup_at)
         self._wakeup = None
-        batches: dict[_MemorySubscription, list[Sample]] = {}
-        while self._inbox and self._inbox[0][0] <= limit:
-            _, _, sample, stats = heapq.heappop(self._inbox)
+        touched: dict[_MemorySubscription, None] = {}  # in order of first arrival
+        in_flight = self._in_flight
+        while in_flight and in_flight[0][0] <= limit:
+            _, _, sample, stats = heapq.heappop(in_flight)
             if stats is not None:
                 stats.delivered += 1
+            size = len(sample.payload)
             for sub in self._subs:
                 if key_matches(sub.pattern, sample.key):
-                    if len(sample.payload) > sub.max_payload:
-                        sub.stats.oversized += 1
-                        self.stats.oversized += 1
+                    touched[sub] = None
+                    if not sub.inbox.admits(size):
                         continue
                     if sub.gate is not None and not gate_passes(sub.gate, sample.payload):
-                        sub.stats.gated += 1
+                        sub.inbox.gated += 1
                         continue
-                    batches.setdefault(sub, []).append(sample)
-        if self._inbox:
-            self._arm(self._inbox[0][0])
-        for sub, samples in batches.items():
-            if sub.closed:  # closed by an earlier callback of this batch
-                continue
-            self.stats.received += len(samples)
-            sub.stats.received += len(samples)
-            try:
-                sub.callback(samples)
-            except Exception as exc:  # one faulty consumer must not starve the others
-                self._loop.call_exception_handler(
-                    {
-                        "message": f"subscription callback on {sub.pattern!r} failed",
-                        "exception": exc,
-                    }
-                )
+                    sub.inbox.push(sample, size)
+        if in_flight:
+            self._arm(in_flight[0][0])
+        for sub in touched:
+            if not sub._drain_scheduled:  # else its next batch is already on its way
+                sub._deliver()
 
     def _fire_presence(self, watch: _MemoryWatch, key: str, alive: bool) -> None:
         if watch.closed or self._closed:

@@ -12,8 +12,10 @@ thread also serves other subscriptions (measured: one call flooding 32 KB datagr
 stalled another call's heartbeats until it dropped); a full ring drops its oldest
 sample instead, so one flooded subscription never delays another.
 The reader waits in ``recv()`` with the GIL released; when samples come it takes every
-one already waiting under a single hold of the GIL, appends the payloads to a bounded
-deque and wakes the event loop once with ``call_soon_threadsafe``; everything else
+one already waiting under a single hold of the GIL, pushes the payloads into the
+subscription's bounded :class:`~telebot.channels.transports.inbox.Inbox` (the receive
+path every transport shares) and wakes the event loop once with
+``call_soon_threadsafe``; everything else
 happens on the loop. A callback per sample (zenoh's default) takes the GIL once per
 sample, and a burst then costs a GIL hand-over between zenoh's thread and the loop
 for every few samples; batching the hand-over is what lets the loop keep up with a
@@ -43,7 +45,6 @@ process (:func:`keep_freed_memory`).
 from __future__ import annotations
 
 import asyncio
-import collections
 import contextlib
 import ctypes
 import json
@@ -51,7 +52,6 @@ import logging
 import os
 import platform
 import re
-import sys
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -60,6 +60,7 @@ from typing import Any, Final, Protocol, Self, TypeVar
 import zenoh
 
 from telebot.channels.transports.base import (
+    CliOption,
     Lane,
     Presence,
     PresenceCallback,
@@ -72,6 +73,7 @@ from telebot.channels.transports.base import (
     Transport,
     gate_passes,
 )
+from telebot.channels.transports.inbox import Inbox
 from telebot.config import TransportSettings, ZenohSettings
 from telebot.errors import TransportError
 
@@ -420,8 +422,8 @@ class ZenohPublisher(_Entity, Publisher):
 class ZenohSubscription(_Entity, Subscription):
     """Delivers matching samples to a callback on the loop, in batches.
 
-    The reader thread appends to a queue bounded in samples and bytes and schedules one
-    drain per batch; the drain, on the loop, hands at most ``limits.batch`` samples to
+    The reader thread pushes into the subscription's :attr:`inbox` (bounded in samples
+    and bytes, dropping the oldest) and schedules one drain per batch; the drain, on the loop, hands at most ``limits.batch`` samples to
     the callback and schedules itself again for the rest, so other subscriptions'
     drains run in between.
     """
@@ -441,19 +443,13 @@ class ZenohSubscription(_Entity, Subscription):
         self.limits = limits
         # A pattern without wildcards is the key of every sample it gets.
         self._exact = "*" not in pattern
-        # Payloads (exact pattern) or (key, payload) pairs. Both threads pop from it (the
-        # reader drops the oldest), so the drain tolerates finding it emptier than it was.
-        self._queue: collections.deque[Any] = collections.deque()
+        #: Payloads (exact pattern) or (key, payload) pairs, between the reader and the loop.
+        self.inbox: Inbox[Any] = Inbox(
+            limits,
+            default_samples=transport.settings.queue_size,
+            default_bytes=transport.settings.queue_bytes,
+        )
         self._drain_scheduled = False
-        # Each counter is written by one thread only (no lock shared between the reader
-        # and the loop); queued bytes are what came in minus what left either way.
-        self._bytes_in = 0  # reader
-        self._bytes_dropped = 0  # reader
-        self._bytes_out = 0  # loop
-        self._received = 0  # reader
-        self._dropped = 0  # reader
-        self._oversized = 0  # reader
-        self._gated = 0  # reader
         self.stats = SubscriptionStats()
         self._closed = False
         self._raw: zenoh.Subscriber[zenoh.handlers.Handler[zenoh.Sample]] | None = None
@@ -475,9 +471,8 @@ class ZenohSubscription(_Entity, Subscription):
         if self._transport.reader_name is not None:
             name_os_thread(self._transport.reader_name)
         recv, try_recv = handler.recv, handler.try_recv
-        queue, exact = self._queue, self._exact
-        max_samples, max_bytes = self._max_samples, self._max_bytes
-        max_payload = self.limits.max_payload or sys.maxsize
+        inbox, exact = self.inbox, self._exact
+        admits, push = inbox.admits, inbox.push
         while True:
             try:
                 sample = recv()
@@ -489,8 +484,7 @@ class ZenohSubscription(_Entity, Subscription):
                     raw = sample.payload
                     size = len(raw)
                     payload = None
-                    if size > max_payload:
-                        self._oversized += 1
+                    if not admits(size):
                         self._wake()  # so that the count is reported, with nothing to deliver
                     else:
                         payload = raw.to_bytes()
@@ -500,20 +494,12 @@ class ZenohSubscription(_Entity, Subscription):
                         if gate is not None and not gate_passes(gate, payload):
                             # Counted, not reported at once: waking the loop for each
                             # of a flood's frames would cost it what the gate saved.
-                            self._gated += 1
+                            inbox.gated += 1
                             payload = None
                     if payload is not None:
-                        while queue and (
-                            len(queue) >= max_samples
-                            or self._bytes_in - self._bytes_dropped - self._bytes_out + size
-                            > max_bytes
-                        ):
-                            self._drop_oldest()
-                        self._bytes_in += size
-                        queue.append(payload if exact else (str(sample.key_expr), payload))
+                        push(payload if exact else (str(sample.key_expr), payload), size)
                         taken += 1
                         if taken == _READ_BATCH:  # a long burst: let the loop start on it
-                            self._received += taken
                             taken = 0
                             self._wake()
                 del sample
@@ -521,26 +507,8 @@ class ZenohSubscription(_Entity, Subscription):
                     sample = try_recv()
                 except zenoh.ZError:  # undeclared mid-batch: deliver what was taken, then end
                     sample = None
-            self._received += taken
             if taken:
                 self._wake()
-
-    @property
-    def _max_samples(self) -> int:
-        return self.limits.max_samples or self._transport.settings.queue_size
-
-    @property
-    def _max_bytes(self) -> int:
-        return self.limits.max_bytes or self._transport.settings.queue_bytes
-
-    def _drop_oldest(self) -> None:
-        """Reader thread: discard the oldest queued sample (the loop may have taken it)."""
-        try:
-            item = self._queue.popleft()
-        except IndexError:
-            return
-        self._dropped += 1
-        self._bytes_dropped += len(item if self._exact else item[1])
 
     def _wake(self) -> None:
         """Reader thread: schedule one drain on the loop unless one is pending."""
@@ -551,26 +519,16 @@ class ZenohSubscription(_Entity, Subscription):
     def _drain(self) -> None:
         """Loop: deliver up to ``limits.batch`` queued samples; schedule the rest."""
         self._drain_scheduled = False
-        queue = self._queue
-        pop = queue.popleft
-        batch: list[Sample] = []
-        exact, key = self._exact, self.pattern
-        for _ in range(min(len(queue), self.limits.batch)):
-            try:
-                item = pop()
-            except IndexError:  # the reader dropped the oldest meanwhile
-                break
-            # Counted as it leaves, so the reader never sees bytes that are already gone.
-            if exact:
-                self._bytes_out += len(item)
-                batch.append(Sample(key, item))
-            else:
-                self._bytes_out += len(item[1])
-                batch.append(Sample(*item))
-        if queue and not self._closed:  # the rest after other callbacks had their turn
+        items = self.inbox.take()
+        if self._exact:
+            key = self.pattern
+            batch = [Sample(key, payload) for payload in items]
+        else:
+            batch = [Sample(*item) for item in items]
+        if len(self.inbox) and not self._closed:  # the rest after other callbacks had their turn
             self._drain_scheduled = True
             self._loop.call_soon(self._drain)
-        self._report()
+        self.inbox.report(self.stats, self._transport.stats)
         if self._closed or not batch:
             return
         try:
@@ -579,18 +537,9 @@ class ZenohSubscription(_Entity, Subscription):
             # One bad batch must not end the subscription: later batches still come.
             logger.exception("subscriber callback for %r raised", self.pattern)
 
-    def _report(self) -> None:
-        stats, total = self.stats, self._transport.stats
-        received, dropped, oversized = self._received, self._dropped, self._oversized
-        total.received += received - stats.received
-        total.dropped += dropped - stats.dropped
-        total.oversized += oversized - stats.oversized
-        stats.received, stats.dropped, stats.oversized = received, dropped, oversized
-        stats.gated = self._gated
-
     def _mark_closed(self) -> None:
         self._closed = True
-        self._queue.clear()
+        self.inbox.clear()
 
     def _undeclare(self) -> None:
         _undeclare(self._raw, f"subscriber {self.pattern}")
@@ -659,6 +608,23 @@ class ZenohTransport(Transport):
     """
 
     name = "zenoh"
+    section = "zenoh"
+    cli_options = (
+        CliOption(
+            "--listen",
+            "listen",
+            "zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
+            metavar="ENDPOINT",
+            repeatable=True,
+        ),
+        CliOption(
+            "--connect",
+            "connect",
+            "zenoh endpoint (peer or router) to connect to, e.g. tcp/10.0.0.5:7447 (repeatable)",
+            metavar="ENDPOINT",
+            repeatable=True,
+        ),
+    )
 
     def __init__(
         self, settings: ZenohSettings | None = None, *, reader_name: str | None = None
