@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from conftest import ROBOT, SLACK, USER, Homes, free_port, memory_endpoints, wait_until
+from conftest import ROBOT, SLACK, USER, Homes, memory_endpoints, wait_until
 from rig import GENEROUS_TIMEOUT
 from telebot.channels import call as call_module
 from telebot.channels.call import CONTROL_LIMITS, RobotEndpoint, UserEndpoint
@@ -31,6 +31,7 @@ from telebot.channels.transports.zenoh import ZenohTransport
 from telebot.config import CallSettings, ZenohSettings
 from telebot.errors import CallTimeout
 from telebot.identity import encode_key
+from telebot.testing.net import free_port
 
 
 async def test_a_live_call_id_in_a_new_hello_makes_no_second_call(homes: Homes) -> None:
