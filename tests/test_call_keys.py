@@ -41,7 +41,7 @@ async def test_a_live_call_id_in_a_new_hello_makes_no_second_call(homes: Homes) 
     async with memory_endpoints(homes, MemoryHub(seed=1)) as (robot, user):
         call = await user.call(ROBOT)
         await wait_until(lambda: len(robot.calls) == 1)
-        robot._answered.clear()  # as after 256 other HELLOs
+        robot._answering._answered.clear()  # as after 256 other HELLOs
         hello, _ = start_call(
             homes.user.private_key,
             homes.robot.public_key,
