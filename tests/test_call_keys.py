@@ -58,6 +58,38 @@ async def test_a_live_call_id_in_a_new_hello_makes_no_second_call(homes: Homes) 
         assert call.active
 
 
+async def test_a_repeated_hello_of_a_call_the_robot_hung_up_gets_silence(homes: Homes) -> None:
+    """The robot tells its answering policy when a call ends: a late copy of that call's
+    HELLO is then not answered with the cached WELCOME (which would hand the caller a call
+    that no longer exists on the robot), it is dropped and counted."""
+    async with memory_endpoints(homes, MemoryHub(seed=1)) as (robot, user):
+        instance = os.urandom(8)
+        answers: list[bytes] = []
+        user.transport.subscribe(
+            f"telebot/user/{USER}/{instance.hex()}/in/{ROBOT}",
+            lambda batch: answers.extend(s.payload for s in batch),
+        )
+        hello, _ = start_call(
+            homes.user.private_key,
+            homes.robot.public_key,
+            caller=homes.user.name,
+            instance=instance,
+            call_id=os.urandom(8),
+            wall_time_ns=time.time_ns(),
+        )
+        publisher = user.transport.publisher(f"telebot/robot/{ROBOT}/in/{USER}", Lane.CONTROL)
+        publisher.put(hello.encode())
+        await wait_until(lambda: len(answers) == 1 and len(robot.calls) == 1)
+        publisher.put(hello.encode())  # the caller did not get it: the same answer again
+        await wait_until(lambda: len(answers) == 2)
+        assert answers[0] == answers[1]
+        robot.calls[0].hangup_now("test")
+        publisher.put(hello.encode())
+        await wait_until(lambda: robot.stats.rejected["hello_for_ended_call"] == 1)
+        publisher.close()
+        assert len(answers) == 2 and robot.calls == []
+
+
 async def test_a_call_hung_up_by_its_first_frames_is_not_kept(homes: Homes) -> None:
     """The robot answers and hangs up at once ("robot busy"): the HANGUP may be read
     before the WELCOME is handled. The user's call then ends and is not left among the
