@@ -99,11 +99,12 @@ import playwright.async_api as playwright_api
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 from fake_media import chromium_media_args
-from rig import FAST_SIM, GENEROUS_TIMEOUT, OBSERVER, ROBOT, Daemon, Process, free_port
+from rig import FAST_SIM, GENEROUS_TIMEOUT, OBSERVER, ROBOT, Daemon, Process
 from router_rig import RouterRig
 from telebot.channels.call import UserEndpoint
 from telebot.channels.transports import create_transport
 from telebot.identity import Identity, KnownRobots
+from telebot.testing.net import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
 CHROMIUM = "/usr/bin/chromium"

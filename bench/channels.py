@@ -75,7 +75,6 @@ import json
 import os
 import pstats
 import queue
-import socket
 import struct
 import subprocess
 import sys
@@ -100,6 +99,7 @@ from telebot.channels.transports.base import Lane, Sample
 from telebot.channels.transports.zenoh import LANE_QOS, ZenohTransport, build_zenoh_config
 from telebot.config import ZenohSettings
 from telebot.identity import ContactBook, Identity, KnownRobots, create_paired_homes
+from telebot.testing.net import free_port
 
 SIZES: tuple[int, ...] = (64, 1024, 32768)
 DURATION = 3.0  # seconds of flooding per size
@@ -136,14 +136,6 @@ _T = TypeVar("_T")
 
 
 # -- shared helpers ---------------------------------------------------------------------
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-    return port
 
 
 def listen_settings(port: int) -> ZenohSettings:

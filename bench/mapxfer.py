@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import socket
 import statistics
 import sys
 import tempfile
@@ -51,6 +50,7 @@ from telebot.robot.mapfile import load_map
 from telebot.robot.sim.building import resolve_map
 from telebot.services.mapxfer import MapDownload, MapService, fetch_map, map_channel
 from telebot.services.proto.mapxfer import EncodedMap, encode_map
+from telebot.testing.net import free_port
 
 ROBOT = "mapbot"
 USER = "mapuser"
@@ -63,14 +63,6 @@ LOSS = 0.10
 NOISE = 0.02  # share of known cells flipped in the speckled map
 TARGET_ENCODE_MS = 50.0
 TARGET_ZENOH_MS = 300.0
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-    return port
 
 
 def default_grid() -> OccupancyGrid:

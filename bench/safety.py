@@ -65,7 +65,6 @@ import math
 import os
 import queue
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -93,6 +92,7 @@ from telebot.services.client import RobotClient
 from telebot.services.proto.chat import ChatReply
 from telebot.services.robot import RobotServer
 from telebot.services.supervision import SafetyDriver
+from telebot.testing.net import free_port
 
 ROBOT = "safebot"
 USER = "safeuser"
@@ -112,14 +112,6 @@ TARGET_DROP_S = 0.5
 FAST = SimSettings(
     map="small", max_linear_speed=1.5, linear_accel=3.0, max_angular_speed=3.0, angular_accel=8.0
 )
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-    return port
 
 
 _out = threading.Lock()

@@ -33,7 +33,6 @@ import argparse
 import asyncio
 import contextlib
 import json
-import socket
 import statistics
 import sys
 import tempfile
@@ -50,6 +49,7 @@ from telebot.config import CallSettings, SimSettings, ZenohSettings
 from telebot.identity import ContactBook, Identity, KnownRobots, create_paired_homes
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.video import VideoReceiver, VideoSender, VideoSettings, video_channel
+from telebot.testing.net import free_port
 
 ROBOT = "videobot"
 USER = "videouser"
@@ -65,14 +65,6 @@ TARGET_FPS = 29.0
 TARGET_P50_MS = 5.0
 TARGET_P99_MS = 15.0
 TARGET_DELIVERED = 0.80
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-    return port
 
 
 def sim_robot() -> SimNavStack:

@@ -82,12 +82,13 @@ from safety import MIDDLE_X, arm, start_motion  # bench/safety.py: the stop path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
-from rig import FAST_SIM, REAL_TIMEOUT, Daemon, free_port, free_udp_port
+from rig import FAST_SIM, REAL_TIMEOUT, Daemon
 from telebot.config import AppConfig, SafetySettings
 from telebot.errors import TelebotError
 from telebot.netem import PROFILES, NetemProxy, Profile
 from telebot.router import certs
 from telebot.services.client import RobotClient, connect
+from telebot.testing.net import free_port
 
 LINKS = ("tcp", "udp", "quic")
 DEFAULT_LINK = "tcp"
@@ -317,7 +318,7 @@ class WanDaemon(Daemon):
                 )
 
     def start(self, ready_timeout: float = 60.0, *, port: int | None = None) -> None:
-        free = free_port() if self.link == "tcp" else free_udp_port()
+        free = free_port() if self.link == "tcp" else free_port("udp")
         super().start(ready_timeout, port=port if port is not None else free)
 
     @property

@@ -14,7 +14,7 @@ import pytest
 from hypothesis import settings
 
 # The rig (tests/rig.py, also used by bench/) holds the process helpers; re-exported here.
-from rig import GENEROUS_TIMEOUT, ROBOT, SLACK, USER, Process, free_port, write_config
+from rig import GENEROUS_TIMEOUT, ROBOT, SLACK, USER, Process, write_config
 from telebot.channels.call import RobotEndpoint, UserEndpoint
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.config import CallSettings
@@ -26,7 +26,6 @@ __all__ = [
     "USER",
     "Homes",
     "Process",
-    "free_port",
     "memory_endpoints",
     "wait_until",
     "write_config",

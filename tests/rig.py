@@ -44,7 +44,6 @@ import json
 import os
 import queue
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -71,6 +70,7 @@ from telebot.services.client import RobotClient, connect
 from telebot.services.robot import RobotServer
 from telebot.services.supervision import SafetyDriver
 from telebot.services.video import VideoSettings
+from telebot.testing.net import free_port
 
 ROBOT = "guiabot"
 USER = "alice"
@@ -94,20 +94,6 @@ FAST_SIM: dict[str, Any] = {
     "max_angular_speed": 3.0,
     "angular_accel": 8.0,
 }
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
-def free_udp_port() -> int:
-    """A UDP port on 127.0.0.1 that was free a moment ago (zenoh's udp/ and quic/ links)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def _toml_value(value: object) -> str:

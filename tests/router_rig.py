@@ -10,9 +10,10 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from rig import FAST_SIM, GENEROUS_TIMEOUT, Process, free_port
+from rig import FAST_SIM, GENEROUS_TIMEOUT, Process
 from telebot.config import AppConfig, CallSettings, ReconnectSettings, ZenohSettings
 from telebot.router import certs
+from telebot.testing.net import free_port
 
 __all__ = ["RouterRig"]
 

@@ -42,8 +42,9 @@ import playwright.async_api as playwright_api
 import pytest
 import pytest_asyncio
 
-from rig import FAST_SIM, SLACK, Daemon, free_port
+from rig import FAST_SIM, SLACK, Daemon
 from telebot.services.client import RobotClient
+from telebot.testing.net import free_port
 from test_web_phone import PORTRAIT, box
 from test_web_ui import ARTIFACTS, CHROMIUM
 

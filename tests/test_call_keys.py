@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from conftest import ROBOT, SLACK, USER, Homes, free_port, memory_endpoints, wait_until
+from conftest import ROBOT, SLACK, USER, Homes, memory_endpoints, wait_until
 from rig import GENEROUS_TIMEOUT
 from telebot.channels import call as call_module
 from telebot.channels.call import CONTROL_LIMITS, RobotEndpoint, UserEndpoint
@@ -31,6 +31,7 @@ from telebot.channels.transports.zenoh import ZenohTransport
 from telebot.config import CallSettings, ZenohSettings
 from telebot.errors import CallTimeout
 from telebot.identity import encode_key
+from telebot.testing.net import free_port
 
 
 async def test_a_live_call_id_in_a_new_hello_makes_no_second_call(homes: Homes) -> None:
@@ -40,7 +41,7 @@ async def test_a_live_call_id_in_a_new_hello_makes_no_second_call(homes: Homes) 
     async with memory_endpoints(homes, MemoryHub(seed=1)) as (robot, user):
         call = await user.call(ROBOT)
         await wait_until(lambda: len(robot.calls) == 1)
-        robot._answered.clear()  # as after 256 other HELLOs
+        robot._answering._answered.clear()  # as after 256 other HELLOs
         hello, _ = start_call(
             homes.user.private_key,
             homes.robot.public_key,
@@ -55,6 +56,38 @@ async def test_a_live_call_id_in_a_new_hello_makes_no_second_call(homes: Homes) 
         await wait_until(lambda: robot.stats.rejected["call_id_reused"] == 1)
         assert [c.id for c in robot.calls] == [call.id]
         assert call.active
+
+
+async def test_a_repeated_hello_of_a_call_the_robot_hung_up_gets_silence(homes: Homes) -> None:
+    """The robot tells its answering policy when a call ends: a late copy of that call's
+    HELLO is then not answered with the cached WELCOME (which would hand the caller a call
+    that no longer exists on the robot), it is dropped and counted."""
+    async with memory_endpoints(homes, MemoryHub(seed=1)) as (robot, user):
+        instance = os.urandom(8)
+        answers: list[bytes] = []
+        user.transport.subscribe(
+            f"telebot/user/{USER}/{instance.hex()}/in/{ROBOT}",
+            lambda batch: answers.extend(s.payload for s in batch),
+        )
+        hello, _ = start_call(
+            homes.user.private_key,
+            homes.robot.public_key,
+            caller=homes.user.name,
+            instance=instance,
+            call_id=os.urandom(8),
+            wall_time_ns=time.time_ns(),
+        )
+        publisher = user.transport.publisher(f"telebot/robot/{ROBOT}/in/{USER}", Lane.CONTROL)
+        publisher.put(hello.encode())
+        await wait_until(lambda: len(answers) == 1 and len(robot.calls) == 1)
+        publisher.put(hello.encode())  # the caller did not get it: the same answer again
+        await wait_until(lambda: len(answers) == 2)
+        assert answers[0] == answers[1]
+        robot.calls[0].hangup_now("test")
+        publisher.put(hello.encode())
+        await wait_until(lambda: robot.stats.rejected["hello_for_ended_call"] == 1)
+        publisher.close()
+        assert len(answers) == 2 and robot.calls == []
 
 
 async def test_a_call_hung_up_by_its_first_frames_is_not_kept(homes: Homes) -> None:

@@ -11,12 +11,13 @@ from pathlib import Path
 
 import pytest
 
-from conftest import ROBOT, Homes, free_port, write_config
+from conftest import ROBOT, Homes, write_config
 from rig import GENEROUS_TIMEOUT
 from telebot import __version__
 from telebot.apps import robot_cli
 from telebot.gateway.admission import ContactsAdmitter
 from telebot.identity import ContactBook, Identity, KnownRobots, Role
+from telebot.testing.net import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 
-from conftest import ROBOT, USER, Homes, Process, free_port, memory_endpoints, write_config
+from conftest import ROBOT, USER, Homes, Process, memory_endpoints, write_config
 from rig import GENEROUS_TIMEOUT, SLACK
 from telebot.apps.echo import STATS_CHANNEL, echo_call
 from telebot.channels.call import Call, RobotEndpoint, UserEndpoint
@@ -28,6 +28,7 @@ from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.config import CallSettings, ZenohSettings
 from telebot.errors import CallEnded, CallError, CallRejected, CallTimeout, DatagramTooLarge
 from telebot.identity import Identity, KnownRobots, encode_key
+from telebot.testing.net import free_port
 
 #: Call settings of robots and users here unless a test says otherwise: no test in this suite
 #: is about drop timing, and a preempted process must not drop a call (tests/rig.py).

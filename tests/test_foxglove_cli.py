@@ -14,8 +14,9 @@ from pathlib import Path
 import pytest
 
 from conftest import wait_until
-from rig import ROBOT, Daemon, Process, free_port
+from rig import ROBOT, Daemon, Process
 from telebot.apps.user_cli import build_parser
+from telebot.testing.net import free_port
 from test_foxglove import read_mcap, ws_client
 
 pytestmark = pytest.mark.zenoh

@@ -28,7 +28,7 @@ import pytest
 
 from conftest import Homes, wait_until
 from gateway_client import GatewayTransport, admit, b64, parse_sample, proof, put_frame
-from rig import ROBOT, USER, Process, free_port, write_config
+from rig import ROBOT, USER, Process, write_config
 from router_rig import RouterRig
 from telebot.apps import robot_cli, router_cli
 from telebot.channels.call import UserEndpoint
@@ -62,6 +62,7 @@ from telebot.gateway.server import Gateway
 from telebot.gateway.tls import self_signed, server_context
 from telebot.identity import ContactBook, Identity, KnownRobots, Role
 from telebot.services.client import RobotClient
+from telebot.testing.net import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
 NS = "telebot"

@@ -35,11 +35,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from rig import FAST_SIM, ROBOT, SLACK, USER, Daemon, free_port
+from rig import FAST_SIM, ROBOT, SLACK, USER, Daemon
 from telebot.config import SimSettings
 from telebot.identity import Identity, encode_key
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.proto.mapxfer import MAX_CHUNK_DATA, encode_map
+from telebot.testing.net import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
 CLIENT = ROOT / "web" / "test" / "interop" / "gateway-client.mjs"

@@ -18,11 +18,12 @@ from typing import cast
 
 import pytest
 
-from conftest import free_port, wait_until
+from conftest import wait_until
 from rig import SLACK, Process
 from telebot.apps import netem_cli
 from telebot.errors import ConfigError, TransportError
 from telebot.netem import LinkModel, NetemProxy, Profile
+from telebot.testing.net import free_port
 
 LOSSY = Profile("lossy", delay=0.01, jitter=0.005, loss=0.1)
 

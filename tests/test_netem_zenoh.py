@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import ROBOT, free_port, wait_until
+from conftest import ROBOT, wait_until
 from rig import GENEROUS_TIMEOUT, robot_on_hub
 from telebot.channels.transports.memory import MemoryHub
 from telebot.channels.transports.zenoh import ZenohTransport
@@ -21,6 +21,7 @@ from telebot.config import AppConfig, ServiceSettings, ZenohSettings
 from telebot.netem import NetemProxy, profile
 from telebot.robot.nav import Velocity
 from telebot.services.client import connect
+from telebot.testing.net import free_port
 
 ROAM = profile("wifi").outages.duration  # type: ignore[union-attr]
 

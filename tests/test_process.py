@@ -14,12 +14,13 @@ from pathlib import Path
 
 import pytest
 
-from conftest import ROBOT, USER, Homes, Process, free_port, wait_until, write_config
+from conftest import ROBOT, USER, Homes, Process, wait_until, write_config
 from rig import REAL_TIMEOUT, SLACK
 from telebot.apps.echo import echo_call
 from telebot.channels.call import Call, RobotEndpoint, UserEndpoint
 from telebot.channels.transports.zenoh import ZenohTransport
 from telebot.config import CallSettings, ZenohSettings
+from telebot.testing.net import free_port
 
 pytestmark = pytest.mark.zenoh
 

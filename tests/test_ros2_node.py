@@ -13,7 +13,6 @@ import pytest
 import zenoh
 
 from conftest import wait_until
-from rig import free_port
 from telebot.errors import RobotUnreachable, Ros2Error
 from telebot.robot.ros2.keys import (
     ATTACHMENT_SIZE,
@@ -33,6 +32,7 @@ from telebot.robot.ros2.node import (
     Ros2Node,
 )
 from telebot.robot.ros2.types import TypeLibrary
+from telebot.testing.net import free_port
 
 LIB = TypeLibrary("jazzy")
 STRING = LIB.message("std_msgs/msg/String")

@@ -20,13 +20,14 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import SLACK, Process, free_port, wait_until
+from conftest import SLACK, Process, wait_until
 from rig import FAST_SIM, child_env, write_config
 from telebot.config import SimSettings
 from telebot.robot.ros2.keys import Attachment, QoS
 from telebot.robot.ros2.node import Ros2Node
 from telebot.robot.ros2.types import TypeLibrary
 from telebot.robot.sim.stack import SimNavStack
+from telebot.testing.net import free_port
 
 #: action_msgs/GoalStatus codes.
 SUCCEEDED, CANCELED, ABORTED = 4, 5, 6

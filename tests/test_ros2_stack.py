@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from conftest import SLACK, Homes, free_port, wait_until
+from conftest import SLACK, Homes, wait_until
 from rig import Daemon, start_telebot_sim
 from telebot.config import RobotConfig
 from telebot.errors import InvalidCommand, RobotUnreachable
@@ -45,6 +45,7 @@ from telebot.robot.sim.building import resolve_map
 from telebot.services.drive import CallDrive, DriveService
 from telebot.services.follow import FollowService
 from telebot.services.proto.drive import DriveCommand, decode_drive_state
+from telebot.testing.net import free_port
 from test_drive import FakeCall
 
 pytestmark = pytest.mark.zenoh

@@ -28,7 +28,7 @@ from cryptography.hazmat.primitives.asymmetric import rsa
 from cryptography.x509.oid import NameOID
 
 from conftest import wait_until
-from rig import REAL_TIMEOUT, SLACK, Process, free_udp_port
+from rig import REAL_TIMEOUT, SLACK, Process
 from router_rig import RouterRig
 from telebot.apps import router_cli
 from telebot.channels.transports.zenoh import ZenohTransport, build_zenoh_config
@@ -37,6 +37,7 @@ from telebot.errors import CallEnded, CallTimeout, ConfigError, TransportError
 from telebot.identity import ContactBook, Identity, KnownRobots, Role
 from telebot.router import acl, certs
 from telebot.services.client import ConnectionEvent, connect
+from telebot.testing.net import free_port
 
 pytestmark = pytest.mark.zenoh
 
@@ -100,7 +101,7 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet]:
     user = router.issue("user", USER)
     admin = router.issue("admin", "ops")
     other_user = router.issue("user", OTHER_USER)
-    quic = f"quic/127.0.0.1:{free_udp_port()}"
+    quic = f"quic/127.0.0.1:{free_port('udp')}"
     router.start(extra=("--quic", quic))
     daemons: dict[str, Process] = {}
     try:

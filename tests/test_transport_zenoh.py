@@ -13,7 +13,6 @@ import json
 import logging
 import os
 import platform
-import socket
 import subprocess
 import sys
 import threading
@@ -32,17 +31,11 @@ from telebot.channels.transports.base import Lane, ReceiveLimits, Sample
 from telebot.channels.transports.zenoh import ZenohTransport, build_zenoh_config
 from telebot.config import TransportSettings, ZenohSettings
 from telebot.errors import TransportError
+from telebot.testing.net import free_port
 
 pytestmark = pytest.mark.zenoh
 
 PEER_SCRIPT = Path(__file__).with_name("zenoh_peer_proc.py")
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-    return port
 
 
 def listen_settings(endpoint: str, **kwargs: Any) -> ZenohSettings:

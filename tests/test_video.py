@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import ROBOT, Homes, free_port, memory_endpoints, wait_until
+from conftest import ROBOT, Homes, memory_endpoints, wait_until
 from telebot.apps import video_cli
 from telebot.apps.video_cli import MAX_FILL, Recorder, video, video_log
 from telebot.channels.call import Call, RobotEndpoint, UserEndpoint
@@ -54,6 +54,7 @@ from telebot.services.video import (
     frames,
     video_channel,
 )
+from telebot.testing.net import free_port
 
 
 def sim_nav() -> SimNavStack:

@@ -15,7 +15,6 @@ from __future__ import annotations
 import contextlib
 import json
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -23,6 +22,7 @@ import urllib.request
 from pathlib import Path
 
 from telebot.identity import Role, create_paired_homes
+from telebot.testing.net import free_port
 
 __all__ = ["TOUR", "main"]
 
@@ -46,12 +46,6 @@ TOUR = [
 ]
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 def _homes() -> tuple[Path, Path]:
     robot_home, user_home = DEMO_HOME / "robot", DEMO_HOME / "user"
     if not (robot_home / "id_telebot").exists() or not (user_home / "id_telebot").exists():
@@ -72,7 +66,7 @@ def _start_ui(user_home: Path, endpoint: str) -> subprocess.Popen[str]:
             "--connect",
             endpoint,
             "--port",
-            str(_free_port()),
+            str(free_port()),
         ],
         stdout=subprocess.PIPE,
         text=True,
@@ -89,7 +83,7 @@ def _ui_url(ui: subprocess.Popen[str]) -> str | None:
 def main() -> int:
     """Run the demo; exit 0 when every step worked."""
     robot_home, user_home = _homes()
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     print(f"demo home {DEMO_HOME.resolve()}: robot guiabot, user alice (driver)")
     print(f"starting telebot-robot run (zenoh peer, listening on {endpoint}) on the building map")
     robot = subprocess.Popen(

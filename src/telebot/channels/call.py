@@ -36,13 +36,14 @@ import logging
 import math
 import os
 import time
-from collections import Counter, OrderedDict
+from collections import Counter
 from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Literal, Self
 
 from telebot.channels.channel import Channel, DatagramTap, ReceivedDatagram
+from telebot.channels.proto.answering import Accept, Answering, Ignore, Reply
 from telebot.channels.proto.frames import (
     INSTANCE_LEN,
     LEGACY_VERSION,
@@ -60,16 +61,12 @@ from telebot.channels.proto.frames import (
     encode_hangup,
     validate_name,
 )
-from telebot.channels.proto.noise import InitiatorHandshake, ResponderHandshake, Suite
+from telebot.channels.proto.noise import InitiatorHandshake, Suite
 from telebot.channels.proto.session import (
-    Answer,
     CallSession,
     CallStats,
-    answer_hello,
-    choose_suite,
     describe_suites,
     finish_call,
-    read_hello,
     start_call,
 )
 from telebot.channels.suites import suite_preference
@@ -653,11 +650,7 @@ class _Endpoint:
                 self.stats.rejected["not_a_handshake_key"] += 1
                 continue
             try:
-                frame = decode_frame(sample.payload)
-                if isinstance(frame, DataFrame):
-                    self.stats.rejected["data_on_handshake_key"] += 1
-                else:
-                    self._on_handshake(frame, sender)
+                self._on_handshake(sample.payload, sender)
             except IncompatiblePeer as exc:
                 # A peer of another version: say so once (its HELLO repeats 4 times a
                 # second), then count it like any other frame that does not decode.
@@ -673,8 +666,9 @@ class _Endpoint:
                 self.stats.rejected["internal_error"] += 1
                 log.exception("error handling a frame on %s", sample.key)
 
-    def _on_handshake(self, frame: Hello | Welcome | Retry, sender: str | None) -> None:
-        raise ProtocolError(f"unexpected {type(frame).__name__} frame")
+    def _on_handshake(self, data: bytes, sender: str | None) -> None:
+        """A frame from ``sender``'s handshake key (raises ProtocolError if it is garbage)."""
+        raise NotImplementedError
 
 
 # --------------------------------------------------------------------------------------
@@ -685,6 +679,10 @@ class RobotEndpoint(_Endpoint):
 
     ``async with RobotEndpoint(transport, identity, contacts) as robot:`` then
     ``async for call in robot.incoming():`` or set :attr:`on_call`.
+
+    How to answer each HELLO (the answer cache, replays, call-id reuse) is decided by
+    :class:`~telebot.channels.proto.answering.Answering` (sans-IO); this class moves the
+    frames and starts the calls it accepts.
     """
 
     _legacy_inbox = True
@@ -698,6 +696,16 @@ class RobotEndpoint(_Endpoint):
         settings: CallSettings | None = None,
         namespace: str = DEFAULT_NAMESPACE,
     ) -> None:
+        settings = settings or CallSettings()
+        # Before the base class sets ``suites``: the policy holds them (see the property).
+        self._answering = Answering(
+            identity.name,
+            identity.private_key,
+            contacts,
+            suites=suite_preference(settings.cipher),
+            heartbeat_interval=1.0 / settings.heartbeat_hz,
+            timeout=settings.timeout,
+        )
         super().__init__(transport, identity, settings=settings, namespace=namespace)
         self.contacts = contacts
         self.base = f"{namespace}/robot/{identity.name}"
@@ -708,129 +716,70 @@ class RobotEndpoint(_Endpoint):
         #: Called with each new call (on the loop); if unset, calls queue for :meth:`incoming`.
         self.on_call: Callable[[Call], None] | None = None
         self._incoming: asyncio.Queue[Call] = asyncio.Queue(maxsize=64)
-        # HELLO retransmissions get the same WELCOME again: call_id -> (HELLO, WELCOME).
-        self._answered: OrderedDict[bytes, tuple[bytes, bytes]] = OrderedDict()
-        # Call ids of the cached answers that accepted a call.
-        self._accepted: set[bytes] = set()
-        # The newest HELLO timestamp accepted per caller key: an old HELLO is a replay.
-        self._latest_hello: dict[bytes, int] = {}
+
+    @property
+    def suites(self) -> tuple[Suite, ...]:
+        """The cipher suites this robot accepts, preferred first (from ``settings.cipher``)."""
+        return self._answering.suites
+
+    @suites.setter
+    def suites(self, suites: Sequence[Suite]) -> None:
+        self._answering.suites = tuple(suites)
 
     async def incoming(self) -> AsyncIterator[Call]:
         """Each call as it is answered."""
         while True:
             yield await self._incoming.get()
 
-    def _on_handshake(self, frame: Hello | Welcome | Retry, sender: str | None) -> None:
-        if not isinstance(frame, Hello):
-            raise ProtocolError(f"a robot does not take {type(frame).__name__} frames")
-        if frame.version == VERSION and sender != frame.caller:
-            # The key names the sender (a router lets only that user publish on it): a
-            # HELLO that names someone else, or one on the version-1 key, is not read.
-            self.stats.rejected["sender_mismatch"] += 1
-            return
-        raw = frame.encode()
-        cached = self._answered.get(frame.call_id)
-        if cached is not None:
-            if cached[0] != raw:
-                self.stats.rejected["call_id_reused"] += 1
-                return
-            # The caller did not get our answer: repeat it. While the call has heard
-            # nothing else, the repeat is its only sign of life, so it keeps the call up;
-            # once the call is gone, repeating the answer would hand the caller a call
-            # that no longer exists here, so it gets silence and times out instead.
-            call = self._calls.get(frame.call_id)
-            if call is None and frame.call_id in self._accepted:
-                self.stats.rejected["hello_for_ended_call"] += 1
-                return
-            if call is not None and call.stats.frames_received == 0:
-                call._session.last_heard = max(
-                    call._session.last_heard, asyncio.get_running_loop().time()
-                )
-            self._reply(frame, cached[1])
-            return
-        if frame.call_id in self._calls:
-            # A live call's id in a new HELLO (its answer left the cache): never a second
-            # call, with its own keys, on top of the first.
-            self.stats.rejected["call_id_reused"] += 1
-            return
-        if frame.version == LEGACY_VERSION:
-            self._refuse_old_version(frame, raw)
-            return
-        suite = choose_suite(frame.offers, self.suites)
-        if suite is not None and suite != frame.suite:
-            # Before any cryptography: cheap, stateless, and it tells nothing that the
-            # offers do not. The handshake with the HELLO written again proves our pick.
-            self.stats.rejected["cipher_retry"] += 1
-            self._reply(frame, Retry(frame.call_id, suite).encode())
-            return
-        offer, handshake = read_hello(self.identity.private_key, frame)
-        if offer.user != frame.caller:
-            raise ProtocolError(
-                f"HELLO header names {frame.caller!r} but its payload {offer.user!r}"
-            )
-        contact = self.contacts.by_key(offer.caller_public_key)
-        if contact is None:
-            log.warning("refused a call from %r: key not in the contact list", frame.caller)
-            self.stats.rejected["not_a_contact"] += 1
-            self._refuse(frame, raw, handshake, f"not in the contact list of {self.identity.name}")
-            return
-        if suite is None:
-            offered, accepted = describe_suites(frame.offers), describe_suites(self.suites)
-            log.warning(
-                "refused a call from %s: no common cipher suite (it offers %s, this robot "
-                "accepts %s: see [call] cipher)",
-                contact.name,
-                offered,
-                accepted,
-            )
-            self.stats.rejected["no_common_cipher"] += 1
-            self._refuse(
-                frame,
-                raw,
-                handshake,
-                f"no common cipher suite: {frame.caller} offers {offered}, "
-                f"{self.identity.name} accepts {accepted}",
-            )
-            return
-        if offer.timestamp_ns <= self._latest_hello.get(offer.caller_public_key, -1):
-            self.stats.rejected["replayed_hello"] += 1
-            return
-        self._latest_hello[offer.caller_public_key] = offer.timestamp_ns
-        if self._closed:  # hanging up its calls: a new one would outlive the endpoint
-            self.stats.rejected["closing"] += 1
-            self._refuse(frame, raw, handshake, f"{self.identity.name} is shutting down")
-            return
-        welcome, keys = answer_hello(
-            handshake, frame.call_id, Answer(True, self.identity.name, role=contact.role.value)
-        )
-        self._remember(frame.call_id, raw, welcome.encode())
-        self._accepted.add(frame.call_id)
-        now = asyncio.get_running_loop().time()
-        session = CallSession(
-            frame.call_id,
-            keys,
-            heartbeat_interval=1.0 / self.settings.heartbeat_hz,
-            timeout=self.settings.timeout,
-            now=now,
-        )
-        instance = frame.instance.hex()
+    async def close(self, reason: str = "shutting down") -> None:
+        """:meth:`_Endpoint.close`; a HELLO that comes meanwhile is refused."""
+        self._answering.close()
+        await super().close(reason)
+
+    def _forget(self, call: Call) -> None:
+        super()._forget(call)
+        self._answering.ended(bytes.fromhex(call.id))
+
+    def _on_handshake(self, data: bytes, sender: str | None) -> None:
+        decision = self._answering.receive(data, sender, asyncio.get_running_loop().time())
+        match decision:
+            case Ignore(code):
+                self.stats.rejected[code] += 1
+            case Reply(hello, frame, code, warning):
+                if code is not None:
+                    self.stats.rejected[code] += 1
+                if warning is not None:
+                    log.warning("%s", warning)
+                self._reply(hello, frame)
+            case Accept():
+                try:
+                    self._start(decision)
+                except BaseException:  # no call came of it: its repeats get silence
+                    self._answering.ended(decision.hello.call_id)
+                    raise
+
+    def _start(self, accept: Accept) -> None:
+        """Start the call ``accept`` describes and hand it over."""
+        hello, contact, session = accept.hello, accept.contact, accept.session
+        role = Role(contact.role)
+        instance = hello.instance.hex()
         # Listening on the call's keys before the WELCOME goes out: the user sends on
         # them once it has the WELCOME.
         call = self._new_call(
             session,
             peer=contact.name,
-            role=contact.role,
-            peer_base=f"{self.namespace}/user/{frame.caller}/{instance}",
-            peer_presence=f"{self.namespace}/presence/user/{frame.caller}/{instance}",
-            inbox=_CallInbox(self, frame.call_id, frame.caller),
+            role=role,
+            peer_base=f"{self.namespace}/user/{hello.caller}/{instance}",
+            peer_presence=f"{self.namespace}/presence/user/{hello.caller}/{instance}",
+            inbox=_CallInbox(self, hello.call_id, hello.caller),
         )
         call.peer_instance = instance
-        self._reply(frame, welcome.encode())
+        self._reply(hello, accept.welcome)
         log.info(
             "answered call %s from %s (%s, %s)",
             call.id,
             contact.name,
-            contact.role.value,
+            role.value,
             session.suite.label,
         )
         if self.on_call is not None:
@@ -845,59 +794,14 @@ class RobotEndpoint(_Endpoint):
         else:
             self._incoming.put_nowait(call)
 
-    def _refuse_old_version(self, frame: Hello, raw: bytes) -> None:
-        """Answer an older client's HELLO with a refusal it can read, naming the version.
-
-        The refusal is a version-1 WELCOME (authenticated, so the old client shows its
-        reason rather than timing out) on the version-1 inbox; no call is made.
-        """
-        offer, handshake = read_hello(self.identity.private_key, frame)  # raises if forged
-        if offer.user != frame.caller:
-            raise ProtocolError(
-                f"HELLO header names {frame.caller!r} but its payload {offer.user!r}"
-            )
-        self.stats.rejected["old_protocol_version"] += 1
-        reason = (
-            f"{self.identity.name} speaks telebot protocol version {VERSION}, this client "
-            f"version {LEGACY_VERSION}: upgrade telebot"
-        )
-        if frame.caller not in self._incompatible_seen and len(self._incompatible_seen) < 64:
-            self._incompatible_seen.add(frame.caller)  # its HELLO repeats: say so once
-            log.warning(
-                "refused a call from %r: it runs telebot protocol version %d, this robot %d "
-                "(the caller must upgrade telebot)",
-                frame.caller,
-                LEGACY_VERSION,
-                VERSION,
-            )
-        welcome, _ = answer_hello(
-            handshake, frame.call_id, Answer(False, self.identity.name, reason=reason)
-        )
-        encoded = Welcome(frame.call_id, welcome.noise_message, LEGACY_VERSION).encode()
-        self._remember(frame.call_id, raw, encoded)
-        self._reply(frame, encoded)
-
-    def _refuse(self, frame: Hello, raw: bytes, handshake: ResponderHandshake, reason: str) -> None:
-        """Answer ``frame`` with a refusal naming ``reason`` (repeated if the HELLO is)."""
-        welcome, _ = answer_hello(
-            handshake, frame.call_id, Answer(False, self.identity.name, reason=reason)
-        )
-        self._remember(frame.call_id, raw, welcome.encode())
-        self._reply(frame, welcome.encode())
-
-    def _remember(self, call_id: bytes, hello: bytes, welcome: bytes) -> None:
-        self._answered[call_id] = (hello, welcome)
-        while len(self._answered) > 256:
-            forgotten, _ = self._answered.popitem(last=False)
-            self._accepted.discard(forgotten)
-
-    def _reply(self, hello: Hello, welcome: bytes) -> None:
+    def _reply(self, hello: Hello, frame: bytes) -> None:
+        """Send ``frame`` to the handshake inbox of the caller of ``hello``."""
         inbox = f"{self.namespace}/user/{hello.caller}/{hello.instance.hex()}/in"
         if hello.version != LEGACY_VERSION:  # version 1 clients listen on ``…/in`` itself
             inbox = f"{inbox}/{self.identity.name}"
         publisher = self.transport.publisher(inbox, Lane.CONTROL)
         try:
-            publisher.put(welcome)
+            publisher.put(frame)
         finally:
             publisher.close()
 
@@ -1102,7 +1006,11 @@ class UserEndpoint(_Endpoint):
         """Where this user's HELLOs to ``robot`` go: the robot's inbox, under our name."""
         return f"{self.namespace}/robot/{robot}/in/{self.identity.name}"
 
-    def _on_handshake(self, frame: Hello | Welcome | Retry, sender: str | None) -> None:
+    def _on_handshake(self, data: bytes, sender: str | None) -> None:
+        frame = decode_frame(data)
+        if isinstance(frame, DataFrame):
+            self.stats.rejected["data_on_handshake_key"] += 1
+            return
         robot = self._pending_robot.get(frame.call_id)
         if robot is not None and sender != robot:  # an answer comes on in/{the robot}
             self.stats.rejected["sender_mismatch"] += 1
