@@ -11,7 +11,6 @@ from typing import ClassVar, Self
 
 import pytest
 
-from rig import free_port
 from telebot.channels.transports import Transport
 from telebot.channels.transports.base import (
     Lane,
@@ -30,6 +29,7 @@ from telebot.channels.transports.memory import MemoryHub, MemoryTransport, key_m
 from telebot.config import TransportSettings, ZenohSettings
 from telebot.errors import TransportError
 from telebot.testing.clock import run_virtual
+from telebot.testing.net import free_port
 from telebot.testing.transport import CHECKS, Check, Contract
 
 # --------------------------------------------------------------------------- loopback
