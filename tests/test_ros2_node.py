@@ -32,7 +32,7 @@ from telebot.robot.ros2.node import (
     Responder,
     Ros2Node,
 )
-from telebot.robot.ros2.types import TypeLibrary
+from telebot.rosmsg.types import TypeLibrary
 
 LIB = TypeLibrary("jazzy")
 STRING = LIB.message("std_msgs/msg/String")
