@@ -214,6 +214,4 @@ async def serve_robot(
             await asyncio.to_thread(recorder.close)
         # An adapter holding a connection (the ROS 2 robot's node) lets go of it last,
         # after the stop above has reached the base.
-        close = getattr(nav, "close", None)
-        if callable(close):
-            await asyncio.to_thread(close)
+        await asyncio.to_thread(nav.close)

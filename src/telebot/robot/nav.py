@@ -501,6 +501,11 @@ class NavStack(Protocol):
         """Named health values (``{"laser": "ok", …}``) for telemetry."""
         ...
 
+    def close(self) -> None:
+        """Let go of what the adapter holds (a connection, threads); idempotent. The daemon
+        calls it last, after its stop has reached the base."""
+        ...
+
 
 @runtime_checkable
 class Drivable(Protocol):
@@ -788,3 +793,7 @@ class NavStackBase(abc.ABC):
     def diagnostics(self) -> Mapping[str, str]:
         """None."""
         return {}
+
+    def close(self) -> None:
+        """Nothing to let go of (the default holds nothing)."""
+        return

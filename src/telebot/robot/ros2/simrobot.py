@@ -328,7 +328,7 @@ class SimRobotServer:
         loop = asyncio.get_running_loop()
         self._loop = loop
         self._start_io()
-        period = 1.0 / self._stack.settings.control_hz
+        period = 1.0 / self._stack.control_hz
         next_scan = next_battery = next_camera = next_graph = next_warning = loop.time()
         try:
             while not stop.is_set():
