@@ -17,7 +17,8 @@ from telebot.config import RobotConfig
 from telebot.robot.ros2.stack import Ros2NavStack
 from telebot.testing.navstack import NavStackContract, Subject, check_optional
 
-pytestmark = [pytest.mark.zenoh]
+# The module's first test also starts telebot-sim and joins it (slow on a loaded machine).
+pytestmark = [pytest.mark.zenoh, pytest.mark.timeout(180)]
 
 
 @pytest.fixture(scope="module")
