@@ -15,6 +15,7 @@ import pytest
 
 from rig import FAST_SIM
 from telebot.config import SimSettings
+from telebot.errors import RobotError
 from telebot.reasons import Reason
 from telebot.robot.grid import OccupancyGrid
 from telebot.robot.nav import (
@@ -30,6 +31,8 @@ from telebot.robot.nav import (
     require_finite,
 )
 from telebot.robot.sim.stack import SimNavStack
+from telebot.services.drive import DriveService
+from telebot.services.follow import FollowService
 from telebot.testing.navstack import (
     OPTIONAL,
     NavStackContract,
@@ -168,3 +171,29 @@ class TestSimulator(NavStackContract):
         report = await check_optional(subject)
         assert report.failed == {}
         assert list(report.lacks) == ["pose notifications"]
+
+
+# --------------------------------------------------------------------------- declarations
+
+
+def test_motion_limits_are_positive_numbers() -> None:
+    assert MotionLimits().robot_radius == 0.25
+    for bad in (0.0, -1.0, math.nan, math.inf):
+        with pytest.raises(RobotError, match="motion limit max_angular_speed"):
+            MotionLimits(max_angular_speed=bad)
+
+
+class Slow(DiffDrive):
+    """An adapter with limits of its own (and no settings to guess them from)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._motion_limits = MotionLimits(0.3, 0.6, robot_radius=0.4, linear_accel=0.2)
+
+
+def test_follow_me_and_driving_by_hand_plan_within_the_declared_limits() -> None:
+    nav = Slow()
+    assert FollowService(nav).limits == DriveService(nav).limits == nav.motion_limits
+    assert SimNavStack.from_settings(SimSettings(**FAST_SIM)).motion_limits == MotionLimits(
+        max_linear_speed=1.5, max_angular_speed=3.0, linear_accel=3.0, angular_accel=8.0
+    )
