@@ -46,7 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from rig import Daemon, start_telebot_sim
 from ros2 import measure_stops, percentile, raw_zenoh, summary  # bench/ros2.py
 from telebot.robot.ros2.node import Ros2Node
-from telebot.robot.ros2.types import TypeLibrary
+from telebot.rosmsg.types import TypeLibrary
 
 TARGETS_MS = {"relay_added": 20.0, "stop": 20.0}
 CLOUD_BYTES = 1_000_000

@@ -55,7 +55,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from rig import Daemon, start_telebot_sim
 from telebot.robot.ros2.keys import QoS
 from telebot.robot.ros2.node import Ros2Node
-from telebot.robot.ros2.types import TypeLibrary
+from telebot.rosmsg.types import TypeLibrary
 
 TARGETS_MS = {"goal_ack": 20.0, "pose": 20.0, "stop": 10.0, "map": 300.0}
 MAP_SIZE = 4000

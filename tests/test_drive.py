@@ -21,7 +21,7 @@ from telebot.errors import ConfigError
 from telebot.identity import Role
 from telebot.reasons import Reason
 from telebot.robot.grid import OccupancyGrid
-from telebot.robot.nav import GoalStatus, Pose2D
+from telebot.robot.nav import GoalStatus, MotionLimits, Pose2D
 from telebot.robot.perception.tracks import PersonTrack
 from telebot.robot.sim.stack import SimNavStack
 from telebot.robot.sim.world import Obstacle
@@ -507,6 +507,7 @@ class LaserBase:
         ranges[behind] = 5.0 if rear_view else np.nan
         self.scan = Scan(angles, ranges)
         self.speed_limit = 0.5
+        self.motion_limits = MotionLimits()
         self.commands: list[tuple[float, float]] = []
 
     def laser_scan(self) -> Scan:

@@ -28,12 +28,11 @@ from telebot.robot.follow import (
     Drive,
     Ended,
     FollowController,
-    MotionLimits,
     clearance_ahead,
     clearance_behind,
     pick_target,
 )
-from telebot.robot.nav import GoalStatus, Pose2D, Velocity
+from telebot.robot.nav import GoalStatus, MotionLimits, Pose2D, Velocity
 from telebot.robot.perception.tracks import PersonTrack
 from telebot.robot.sim.world import Obstacle
 from telebot.services.chat import ChatSession

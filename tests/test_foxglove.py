@@ -467,7 +467,7 @@ async def _server_info(fox: FoxgloveWsClient) -> dict[str, Any]:
 
 
 def test_goal_decoding_json_and_cdr() -> None:
-    from telebot.robot.ros2.types import TypeLibrary
+    from telebot.rosmsg.types import TypeLibrary
 
     pose_type = TypeLibrary().message("geometry_msgs/msg/PoseStamped")
     yaw = 0.7
@@ -559,7 +559,7 @@ async def test_relayed_topics_are_channels_with_their_ros2msg_schema(tmp_path: P
         await wait_until(
             lambda: bool(fox.messages.get("/scan") and fox.messages.get("/foxglove/scan"))
         )
-        from telebot.robot.ros2.types import TypeLibrary
+        from telebot.rosmsg.types import TypeLibrary
 
         relayed = (
             TypeLibrary()

@@ -116,7 +116,7 @@ async def test_holding_a_teleop_direction_drives_and_letting_go_stops(tmp_path: 
 
 
 async def test_twist_stamped_turns_and_a_zero_twist_releases_at_once(tmp_path: Path) -> None:
-    from telebot.robot.ros2.types import TypeLibrary
+    from telebot.rosmsg.types import TypeLibrary
 
     stamped = TypeLibrary().message("geometry_msgs/msg/TwistStamped")
     turn = stamped.serialize(stamped.make(twist={"angular": {"z": 0.8}}))
@@ -238,7 +238,7 @@ def test_an_integer_too_big_for_a_float_is_a_refused_goal_too() -> None:
 
 
 def test_twist_decoding() -> None:
-    from telebot.robot.ros2.types import TypeLibrary
+    from telebot.rosmsg.types import TypeLibrary
 
     plain = TypeLibrary().message("geometry_msgs/msg/Twist")
     data = plain.serialize(plain.make(linear={"x": 0.5, "y": 9.0}, angular={"z": -1.0}))

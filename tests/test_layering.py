@@ -5,7 +5,8 @@ Layers, lowest first (a module may import from its own layer and those below)::
     errors < registry < config < channels.proto < identity < reasons, rights
            < router (certificates, router configs) < netem (network emulator)
            < channels.transports
-           < channels (call, channel) < robot < safety < services < gateway < apps
+           < channels (call, channel) < robot (nav, grid, ...) < rosmsg
+           < robot.sim < robot.ros2 (the adapters) < safety < services < gateway < apps
 """
 
 from __future__ import annotations
@@ -32,6 +33,9 @@ LAYERS = [
     "telebot.channels.transports",
     "telebot.channels",
     "telebot.robot",
+    "telebot.rosmsg",
+    "telebot.robot.sim",
+    "telebot.robot.ros2",
     "telebot.safety",
     "telebot.services",
     "telebot.gateway",

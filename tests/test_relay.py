@@ -28,8 +28,8 @@ from telebot.errors import ProtocolError, RelayRefused, UnknownTopic
 from telebot.identity import ContactBook, KnownRobots, Role, create_paired_homes
 from telebot.robot.nav import SourceTopic
 from telebot.robot.ros2.node import Ros2Node
-from telebot.robot.ros2.types import TypeLibrary
 from telebot.robot.sim.stack import SimNavStack
+from telebot.rosmsg.types import TypeLibrary
 from telebot.services.client import RobotClient
 from telebot.services.proto.relay import (
     MAX_LIST_TEXT,

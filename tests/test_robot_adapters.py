@@ -205,7 +205,11 @@ async def test_map_versions_travel_json_safe(homes: Homes, version: int) -> None
 
 
 class TinCan(Unstepped):
-    """A plug-in robot adapter that runs by itself (no ``step``), found by entry point."""
+    """A plug-in robot adapter that runs by itself (no ``step``), found by entry point; it
+    declares its own control rate and map name (the simulator inside has others)."""
+
+    control_hz = 12.5
+    map_name = "tin-can"
 
     @classmethod
     def from_config(cls, config: Any, *, base_dir: Any = None, now: float = 0.0) -> TinCan:
@@ -227,6 +231,16 @@ async def test_the_daemon_runs_the_robot_its_config_names(
         "entry_points",
         lambda group: [entry] if group == telebot.robot.ENTRY_POINT_GROUP else [],
     )
+    import telebot.apps.robot_daemon
+
+    servers: list[RobotServer] = []
+
+    class Recorded(RobotServer):
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            super().__init__(*args, **kwargs)
+            servers.append(self)
+
+    monkeypatch.setattr(telebot.apps.robot_daemon, "RobotServer", Recorded)
     hub_name = f"daemon-{id(tmp_path)}"
     config = RobotConfig.model_validate(
         {"robot": {"kind": "tin-can"}, "transport": {"kind": "memory", "memory": {"hub": hub_name}}}
@@ -242,6 +256,9 @@ async def test_the_daemon_runs_the_robot_its_config_names(
         await wait_until(lambda: any(e["event"] == "ready" for e in events), timeout=20)
         (ready,) = [e for e in events if e["event"] == "ready"]
         assert ready["kind"] == "tin-can" and ready["map"] == "tin-can"
+        # The loop runs at the adapter's rate, not at [sim] control_hz (20 Hz).
+        (server,) = servers
+        assert server.control_hz == 12.5 != config.sim.control_hz
         async with (
             MemoryTransport(MemoryHub.named(hub_name), "user") as transport,
             UserEndpoint(transport, homes.user, homes.known) as user,
@@ -250,7 +267,7 @@ async def test_the_daemon_runs_the_robot_its_config_names(
             telemetry = await client.telemetry(timeout=5)
             # Served (not stepped: TinCan has no step), and disarmed at start.
             assert telemetry.state == "idle" and not telemetry.armed
-            assert (await client.get_map(timeout=10)).name == "map"
+            assert (await client.get_map(timeout=10)).name == "tin-can"
             await client.call.hangup()
     finally:
         stop.set()

@@ -26,7 +26,7 @@ from telebot.robot.ros2.convert import (
     scan_from_msg,
     yaw_of,
 )
-from telebot.robot.ros2.types import TypeLibrary
+from telebot.rosmsg.types import TypeLibrary
 
 
 def ros2_data() -> Path:

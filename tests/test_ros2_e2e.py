@@ -21,7 +21,7 @@ import pytest
 from conftest import wait_until
 from rig import SLACK, Daemon, Process, start_telebot_sim
 from telebot.robot.ros2.node import Ros2Node
-from telebot.robot.ros2.types import TypeLibrary
+from telebot.rosmsg.types import TypeLibrary
 
 pytestmark = [pytest.mark.zenoh, pytest.mark.timeout(180)]
 

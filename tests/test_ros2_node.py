@@ -31,7 +31,7 @@ from telebot.robot.ros2.node import (
     Responder,
     Ros2Node,
 )
-from telebot.robot.ros2.types import TypeLibrary
+from telebot.rosmsg.types import TypeLibrary
 from telebot.testing.net import free_port
 
 LIB = TypeLibrary("jazzy")

@@ -25,8 +25,8 @@ from rig import FAST_SIM, child_env, write_config
 from telebot.config import SimSettings
 from telebot.robot.ros2.keys import Attachment, QoS
 from telebot.robot.ros2.node import Ros2Node
-from telebot.robot.ros2.types import TypeLibrary
 from telebot.robot.sim.stack import SimNavStack
+from telebot.rosmsg.types import TypeLibrary
 from telebot.testing.net import free_port
 
 #: action_msgs/GoalStatus codes.

@@ -81,7 +81,7 @@ class FakeNav2:
     """Nav2 as seen over rmw_zenoh: map, pose, odom, battery, plan, camera, three actions."""
 
     def __init__(self, endpoint: str, *, distro: str = "jazzy", stamped: bool = False) -> None:
-        from telebot.robot.ros2.types import TypeLibrary
+        from telebot.rosmsg.types import TypeLibrary
 
         self.node = node = Ros2Node(
             name="fake_nav2", connect=[endpoint], mode="client", library=TypeLibrary(distro)

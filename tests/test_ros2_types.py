@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from telebot.errors import CdrError, ConfigError, Ros2Error, UnknownRosType
-from telebot.robot.ros2.types import (
+from telebot.rosmsg.types import (
     MessageType,
     TypeLibrary,
     dds_type_name,

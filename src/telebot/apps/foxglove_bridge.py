@@ -228,7 +228,7 @@ def goal_from_pose_stamped(
             # parser goes.)
             raise ValueError(f"not a JSON PoseStamped ({excerpt(repr(exc))})") from None
     elif encoding == "cdr":
-        from telebot.robot.ros2.types import TypeLibrary
+        from telebot.rosmsg.types import TypeLibrary
 
         try:
             msg = TypeLibrary().message("geometry_msgs/msg/PoseStamped").deserialize(data)
@@ -292,7 +292,7 @@ def velocity_from_twist(data: bytes, encoding: str, schema_name: str = "") -> tu
             raise ValueError(f"not a JSON Twist ({excerpt(repr(exc))})") from None
         x, z = linear[0], angular[2]
     elif encoding == "cdr":
-        from telebot.robot.ros2.types import TypeLibrary
+        from telebot.rosmsg.types import TypeLibrary
 
         name = "geometry_msgs/msg/TwistStamped" if stamped else "geometry_msgs/msg/Twist"
         try:
@@ -684,7 +684,7 @@ class FoxgloveBridge:
             self._log_laser(info.name, message)
 
     def _log_laser(self, topic: str, message: RelayedMessage) -> None:
-        from telebot.robot.ros2.types import TypeLibrary
+        from telebot.rosmsg.types import TypeLibrary
 
         try:
             scan = TypeLibrary().message(LASER_SCAN).deserialize(message.data)

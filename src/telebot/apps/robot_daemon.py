@@ -98,8 +98,17 @@ async def serve_robot(
             raise RobotError(
                 f"robot {config.robot.kind!r} reports a top speed of {max_speed!r} m/s"
             )
-        simulated = config.robot.kind == "sim"
-        map_label = config.sim.map if simulated else config.robot.kind
+        # The adapter says how fast its control loop runs, what its map is called and
+        # whether it is simulated (video frames are then stamped unless [media] says).
+        control_hz = nav.control_hz
+        if not (
+            isinstance(control_hz, int | float) and math.isfinite(control_hz) and control_hz > 0
+        ):
+            raise RobotError(
+                f"robot {config.robot.kind!r} reports a control rate of {control_hz!r} Hz"
+            )
+        simulated = nav.simulated
+        map_label = nav.map_name
         audit = config.safety.audit_log
         if not audit.is_absolute() and home is not None:
             audit = home / audit
@@ -121,8 +130,8 @@ async def serve_robot(
             server = RobotServer(
                 nav,
                 config.services,
-                control_hz=config.sim.control_hz,
-                map_name=Path(config.sim.map).stem if simulated else "map",
+                control_hz=control_hz,
+                map_name=map_label,
                 emit=emit,
                 safety=safety,
                 video=VideoSettings(
@@ -205,6 +214,4 @@ async def serve_robot(
             await asyncio.to_thread(recorder.close)
         # An adapter holding a connection (the ROS 2 robot's node) lets go of it last,
         # after the stop above has reached the base.
-        close = getattr(nav, "close", None)
-        if callable(close):
-            await asyncio.to_thread(close)
+        await asyncio.to_thread(nav.close)

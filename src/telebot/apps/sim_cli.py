@@ -124,8 +124,8 @@ async def serve(args: argparse.Namespace) -> int:
 
     from telebot.robot.ros2.node import Ros2Node
     from telebot.robot.ros2.simrobot import SimRobotServer, open_router
-    from telebot.robot.ros2.types import TypeLibrary
     from telebot.robot.sim.stack import SimNavStack
+    from telebot.rosmsg.types import TypeLibrary
 
     config = _config(args)
     ros2 = config.ros2

@@ -2,7 +2,9 @@
 
 A robot adapter implements :class:`~telebot.robot.nav.NavStack` and
 :class:`~telebot.robot.nav.EmergencyStoppable` (the safety watchdog stops it from its own
-thread), and :class:`~telebot.robot.nav.SteppedNavStack` if the caller's clock drives it.
+thread), and :class:`~telebot.robot.nav.SteppedNavStack` if the caller's clock drives it;
+deriving from :class:`~telebot.robot.nav.NavStackBase` leaves four methods to write, and
+:mod:`telebot.testing.navstack` is the contract suite it runs.
 Built-in adapters are listed in :data:`BUILTIN_ROBOTS` as name -> (module, class) and imported
 only when asked for; ``"sim"`` is the simulated robot, and ``"ros2"`` a ROS 2 / Nav2 robot over rmw_zenoh
 (``robot/ros2/``, the one place in ``robot/`` that may import zenoh).

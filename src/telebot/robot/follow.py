@@ -45,14 +45,13 @@ import numpy.typing as npt
 
 from telebot.config import FollowSettings
 from telebot.reasons import Reason
-from telebot.robot.nav import Pose2D, Velocity, normalize_angle
+from telebot.robot.nav import MotionLimits, Pose2D, Velocity, normalize_angle
 
 __all__ = [
     "Drive",
     "Ended",
     "FollowController",
     "FollowUpdate",
-    "MotionLimits",
     "Track",
     "clearance_ahead",
     "clearance_behind",
@@ -124,16 +123,6 @@ class Track(Protocol):
     def last_seen(self) -> float:
         """When a detector last saw the person (the clock of ``now``)."""
         ...
-
-
-@dataclass(frozen=True, slots=True)
-class MotionLimits:
-    """The robot's own limits: top speeds and accelerations (the sim's ``[sim]`` values)."""
-
-    linear_speed: float = 0.5
-    angular_speed: float = 1.0
-    linear_accel: float = 0.5
-    angular_accel: float = 2.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -416,8 +405,9 @@ class FollowController:
             # Never backwards after a walking person: it only backs off from one standing.
             linear = max(speed + DISTANCE_GAIN * gap, 0.0)
         error = normalize_angle(math.atan2(aim[1] - pose.y, aim[0] - pose.x) - pose.yaw)
-        angular = max(-limits.angular_speed, min(limits.angular_speed, HEADING_GAIN * error))
-        fastest = max(0.0, min(cap, settings.max_speed, limits.linear_speed))
+        top_turn = limits.max_angular_speed
+        angular = max(-top_turn, min(top_turn, HEADING_GAIN * error))
+        fastest = max(0.0, min(cap, settings.max_speed, limits.max_linear_speed))
         # Always slow enough to brake before min_distance and before what the laser sees;
         # backwards (away from the person), before what it sees behind.
         room = min(distance - settings.min_distance, clearance) - BRAKING_MARGIN

@@ -18,7 +18,17 @@ returns an immutable snapshot, and :meth:`NavStack.map_version` changes whenever
 is in place, so whoever keeps the map encoded or downloaded knows when to refresh it. A map
 republished unchanged (same cells, resolution and origin) is not a new one.
 
-Two more abilities, each its own protocol, say how the daemon runs an adapter:
+Every adapter also declares what the rest of telebot must know of it (no guessing from
+its settings or its registry name): :attr:`NavStack.motion_limits` (top speeds, radius,
+accelerations: follow-me and driving by hand plan within them), :attr:`NavStack.control_hz`
+(the daemon's control loop rate), :attr:`NavStack.map_name` (the map's name as users see
+it) and :attr:`NavStack.simulated`. :class:`NavStackBase` gives an adapter all of it but
+the essentials (:meth:`~NavStack.map`, :meth:`~NavStack.pose`,
+:meth:`~NavStack.navigate_to`, :meth:`~NavStack.stop`) with sensible defaults, as
+python-can's ``BusABC`` does for a CAN interface; :mod:`telebot.testing.navstack` is the
+contract suite an adapter runs to see what it does and what it lacks.
+
+More abilities, each its own protocol, say how the daemon runs an adapter:
 
 - :class:`EmergencyStoppable` (required by ``telebot-robot run``): ``emergency_stop`` may be
   called from any thread, the safety watchdog's, and needs no event loop to act.
@@ -27,6 +37,8 @@ Two more abilities, each its own protocol, say how the daemon runs an adapter:
   runs by itself (a real robot's stack) has none and is not stepped.
 - :class:`LaserSource` (optional): an adapter with a 2-D laser gives its latest scan, for
   person detection (:mod:`telebot.robot.perception`).
+- :class:`Drivable` (optional): an adapter that takes velocity commands (``cmd_vel``) can
+  follow a person and be driven by hand.
 - :class:`PoseNotifier` (optional): an adapter whose poses arrive by themselves (a real
   robot's localisation) says when a new one is in, so the daemon sends it to users at once
   instead of at its next poll.
@@ -37,13 +49,17 @@ through the registry in :mod:`telebot.robot`.
 
 from __future__ import annotations
 
+import abc
 import enum
+import itertools
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
-from telebot.errors import InvalidCommand
+from telebot.errors import InvalidCommand, RobotError, UnknownCamera, UnknownPlace
+from telebot.reasons import Reason
 
 if TYPE_CHECKING:
     import numpy as np
@@ -52,29 +68,46 @@ if TYPE_CHECKING:
     from telebot.robot.grid import OccupancyGrid
 
 __all__ = [
+    "DEFAULT_CONTROL_HZ",
+    "NAVCAM",
     "Battery",
     "CameraFrame",
     "CameraInfo",
+    "Drivable",
     "EmergencyStoppable",
     "GoalHandle",
     "GoalRecord",
     "GoalStatus",
     "LaserScanLike",
     "LaserSource",
+    "MotionLimits",
     "NavStack",
+    "NavStackBase",
     "NavState",
     "NavStatus",
     "Pose2D",
     "PoseEstimate",
     "PoseNotifier",
+    "RefusedGoal",
     "SourceTopic",
     "SteppedNavStack",
     "TopicSource",
     "TopicSubscription",
     "Velocity",
+    "find_place",
     "normalize_angle",
     "require_finite",
 ]
+
+#: The control loop rate (Hz) of an adapter that does not say otherwise.
+DEFAULT_CONTROL_HZ = 20.0
+#: The camera the safety supervisor selects while the robot moves (``telebot.safety.NAVCAM``;
+#: the robot layer may not import it): every adapter has one, black if need be.
+NAVCAM = "navcam"
+#: Size of the black picture of a camera that has shown nothing (pixels).
+NO_SIGNAL_SIZE = (320, 240)
+#: Field of view reported for a camera that does not say (degrees).
+DEFAULT_FOV_DEG = 60.0
 
 
 def normalize_angle(angle: float) -> float:
@@ -272,6 +305,43 @@ class GoalRecord:
         return f"<{type(self).__name__} {self._id} {self._description!r} {self._status}>"
 
 
+class RefusedGoal(GoalRecord):
+    """A goal that failed before it started (the robot did not move): what an adapter
+    returns for a motion it cannot make. Numbered 0: it never ran."""
+
+    def __init__(self, description: str, reason: str, code: str = Reason.FAILED) -> None:
+        super().__init__(0, description, None)
+        self._end(GoalStatus.FAILED, reason, code)
+
+    def cancel(self) -> None:
+        """Nothing to cancel: the goal never ran."""
+
+
+@dataclass(frozen=True, slots=True)
+class MotionLimits:
+    """What the base can do (SI units, all positive): follow-me and driving by hand plan
+    within these, and the speed cap (:attr:`NavStack.speed_limit`) never exceeds
+    ``max_linear_speed``.
+
+    ``robot_radius`` is the round base's (or the circle around it): the clearance kept to
+    what the laser sees. The accelerations are what the base brakes and speeds up with.
+    """
+
+    max_linear_speed: float = 0.5
+    max_angular_speed: float = 1.0
+    robot_radius: float = 0.25
+    linear_accel: float = 0.5
+    angular_accel: float = 2.0
+
+    def __post_init__(self) -> None:
+        for field in fields(self):
+            value = getattr(self, field.name)
+            if not isinstance(value, int | float) or not math.isfinite(value) or value <= 0:
+                raise RobotError(
+                    f"motion limit {field.name} must be a positive number, not {value!r}"
+                )
+
+
 @dataclass(frozen=True, slots=True)
 class CameraInfo:
     """A camera the robot has."""
@@ -304,6 +374,28 @@ class Battery:
 
 class NavStack(Protocol):
     """The one interface telebot uses to drive a robot (see the module docstring)."""
+
+    @property
+    def motion_limits(self) -> MotionLimits:
+        """What the base can do: top speeds, radius, accelerations."""
+        ...
+
+    @property
+    def control_hz(self) -> float:
+        """The rate (Hz) of the daemon's control loop for this robot: a stepped adapter is
+        stepped at it, and follow-me and driving by hand command the base at it."""
+        ...
+
+    @property
+    def map_name(self) -> str:
+        """The map's name as users see it (the name of the map they download)."""
+        ...
+
+    @property
+    def simulated(self) -> bool:
+        """Whether the robot is a simulation (its pictures are rendered): then video
+        frames carry their numbers unless ``[media] stamp`` says otherwise."""
+        ...
 
     def map(self) -> OccupancyGrid:
         """The robot's map (occupancy grid, resolution, origin): a snapshot never changed later."""
@@ -409,6 +501,20 @@ class NavStack(Protocol):
         """Named health values (``{"laser": "ok", …}``) for telemetry."""
         ...
 
+    def close(self) -> None:
+        """Let go of what the adapter holds (a connection, threads); idempotent. The daemon
+        calls it last, after its stop has reached the base."""
+        ...
+
+
+@runtime_checkable
+class Drivable(Protocol):
+    """A robot that takes velocity commands (``cmd_vel``); repeated, or its base stops."""
+
+    def drive(self, linear: float, angular: float) -> None:
+        """Command this velocity (m/s, rad/s; REP-103) until the next command."""
+        ...
+
 
 @runtime_checkable
 class SteppedNavStack(NavStack, Protocol):
@@ -497,3 +603,197 @@ class LaserSource(Protocol):
     def laser_scan(self) -> LaserScanLike | None:
         """The latest scan; the same object until a new one is in."""
         ...
+
+
+def find_place(places: Mapping[str, Pose2D], name: str) -> Pose2D:
+    """The pose of place ``name`` (case-insensitive, spaces around ignored).
+
+    Raises :class:`~telebot.errors.UnknownPlace` listing the known places.
+    """
+    key = name.strip().lower()
+    for place, pose in places.items():
+        if place.lower() == key:
+            return pose
+    known = ", ".join(sorted(places)) or "none"
+    raise UnknownPlace(f"unknown place {name!r}; known places: {known}")
+
+
+class NavStackBase(abc.ABC):
+    """A :class:`NavStack` with sensible defaults for all but the essentials.
+
+    As python-can's ``BusABC`` asks an interface for two methods and supplies the rest, a
+    subclass writes :meth:`map`, :meth:`pose`, :meth:`navigate_to` and :meth:`stop`, and
+    passes its :class:`MotionLimits` (and named places) to ``__init__``. Everything else
+    has a default that says honestly what the robot lacks: no relative moves or turns (a
+    failed goal), no plan, no odometry (at rest), a black ``navcam``, a battery nobody
+    measured (0 %, low: fail safe), no diagnostics. :meth:`emergency_stop` calls
+    :meth:`stop`: override it when that is not safe from any thread. Override what the
+    robot has; :mod:`telebot.testing.navstack` reports which defaults an adapter keeps.
+    """
+
+    def __init__(
+        self, motion_limits: MotionLimits, *, places: Mapping[str, Pose2D] | None = None
+    ) -> None:
+        self._motion_limits = motion_limits
+        self._places = {name.strip().lower(): pose for name, pose in (places or {}).items()}
+        self._speed_limit = motion_limits.max_linear_speed
+        self._active_camera = NAVCAM
+        self._black_frames = itertools.count(1)
+
+    # -- the essentials
+
+    @abc.abstractmethod
+    def map(self) -> OccupancyGrid:
+        """The robot's map: a snapshot never changed later."""
+
+    @abc.abstractmethod
+    def pose(self) -> PoseEstimate:
+        """The latest localisation estimate."""
+
+    @abc.abstractmethod
+    def navigate_to(
+        self, x: float, y: float, yaw: float | None = None, *, label: str = ""
+    ) -> GoalHandle:
+        """Drive to ``(x, y)`` (replacing any running goal); a goal the robot cannot
+        reach fails at once, with why, and the robot does not move."""
+
+    @abc.abstractmethod
+    def stop(self) -> None:
+        """Stop now: cancel the running goal and bring the base to rest."""
+
+    # -- what the adapter declares
+
+    @property
+    def motion_limits(self) -> MotionLimits:
+        """The limits given to ``__init__``."""
+        return self._motion_limits
+
+    @property
+    def control_hz(self) -> float:
+        """:data:`DEFAULT_CONTROL_HZ`."""
+        return DEFAULT_CONTROL_HZ
+
+    @property
+    def map_name(self) -> str:
+        """``"map"``."""
+        return "map"
+
+    @property
+    def simulated(self) -> bool:
+        """False: a real robot."""
+        return False
+
+    # -- defaults
+
+    def map_version(self) -> int:
+        """0: a map that never changes."""
+        return 0
+
+    def velocity(self) -> Velocity:
+        """At rest (a robot without odometry)."""
+        return Velocity()
+
+    def navigate_to_place(self, name: str) -> GoalHandle:
+        """:meth:`navigate_to` the place of :meth:`places` named ``name`` (case-insensitive)."""
+        pose = find_place(self.places(), name)
+        return self.navigate_to(pose.x, pose.y, pose.yaw, label=name.strip().lower())
+
+    def forward(self, metres: float) -> GoalHandle:
+        """A failed goal: this robot drives no relative moves."""
+        require_finite(metres=metres)
+        return RefusedGoal(
+            f"forward {metres:.2f} m", f"{type(self).__name__} cannot drive relative moves"
+        )
+
+    def turn(self, radians: float) -> GoalHandle:
+        """A failed goal: this robot does not turn on the spot."""
+        require_finite(radians=radians)
+        return RefusedGoal(
+            f"turn {math.degrees(radians):.1f}°", f"{type(self).__name__} cannot turn on the spot"
+        )
+
+    def emergency_stop(self, reason: str) -> None:
+        """:meth:`stop` (override it unless stop() is safe from any thread)."""
+        del reason
+        self.stop()
+
+    def places(self) -> Mapping[str, Pose2D]:
+        """The places given to ``__init__`` (lower-case names)."""
+        return MappingProxyType(self._places)
+
+    def planned_path(self) -> tuple[Pose2D, ...]:
+        """No plan."""
+        return ()
+
+    def cameras(self) -> tuple[CameraInfo, ...]:
+        """One black ``navcam`` (the safety supervisor selects it while the robot moves)."""
+        width, height = NO_SIGNAL_SIZE
+        return (CameraInfo(NAVCAM, width, height, DEFAULT_FOV_DEG, "no camera (black)"),)
+
+    @property
+    def active_camera(self) -> str:
+        """The selected camera's name (``navcam`` at first)."""
+        return self._active_camera
+
+    def select_camera(self, name: str) -> None:
+        """Select the camera of :meth:`cameras` named ``name`` (case-insensitive)."""
+        self._active_camera = self._camera_info(name).name
+
+    def _camera_info(self, name: str) -> CameraInfo:
+        key = name.strip().lower()
+        cameras = self.cameras()
+        for info in cameras:
+            if info.name.lower() == key:
+                return info
+        known = ", ".join(info.name for info in cameras) or "none"
+        raise UnknownCamera(f"unknown camera {name!r}; cameras: {known}")
+
+    def get_frame(self, camera: str | None = None) -> CameraFrame:
+        """A black picture of the camera's size, stamped with the pose's time."""
+        import numpy as np  # here: a client that imports this module needs no numpy
+
+        info = self._camera_info(camera if camera is not None else self._active_camera)
+        width, height = (info.width, info.height) if info.width > 0 else NO_SIGNAL_SIZE
+        image = np.zeros((height, width, 3), np.uint8)
+        stamp = self.pose().stamp
+        return CameraFrame(info.name, image, stamp, next(self._black_frames))
+
+    def battery(self) -> Battery:
+        """Not measured: 0 % and low (fail safe: nobody trusts a charge nobody measured)."""
+        return Battery(percent=0.0, low=True)
+
+    def status(self) -> NavStatus:
+        """Moving while :meth:`current_goal` runs or the base moves; else idle."""
+        goal = self.current_goal()
+        if goal is not None and goal.status is GoalStatus.ACTIVE:
+            return NavStatus(NavState.MOVING, goal.description)
+        if self.velocity() != Velocity():
+            return NavStatus(NavState.MOVING, "moving")
+        return NavStatus(NavState.IDLE)
+
+    def current_goal(self) -> GoalHandle | None:
+        """None (override to report the running goal)."""
+        return None
+
+    @property
+    def speed_limit(self) -> float:
+        """The linear speed cap in force (m/s)."""
+        return self._speed_limit
+
+    def set_speed_limit(self, linear: float) -> None:
+        """Set the linear speed cap; never above ``motion_limits.max_linear_speed``.
+
+        The cap is kept here: a subclass applies :attr:`speed_limit` to its motions.
+        """
+        require_finite(linear=linear)
+        if linear < 0:
+            raise InvalidCommand(f"speed limit must be ≥ 0, not {linear}")
+        self._speed_limit = min(float(linear), self._motion_limits.max_linear_speed)
+
+    def diagnostics(self) -> Mapping[str, str]:
+        """None."""
+        return {}
+
+    def close(self) -> None:
+        """Nothing to let go of (the default holds nothing)."""
+        return

@@ -23,7 +23,7 @@ Direct driving rides the same safety path as follow-me (:mod:`telebot.services.f
   the user lets go first (a release, or a gap of ``stale_after``), so a goal wins over the
   tail of a key press and a re-arm starts nothing by itself.
 
-Velocities go to the robot's own velocity interface (:class:`~telebot.services.follow.Drivable`:
+Velocities go to the robot's own velocity interface (:class:`~telebot.robot.nav.Drivable`:
 the simulator's base, ``cmd_vel`` as Twist or TwistStamped on a ROS 2 robot), which keeps
 its acceleration limits, obstacle guard and cmd_vel timeout.
 """
@@ -45,13 +45,19 @@ from telebot.reasons import Reason, Refusal
 from telebot.rights import Right, may
 from telebot.robot.follow import (
     BRAKING_MARGIN,
-    MotionLimits,
     clearance_ahead,
     clearance_behind,
 )
-from telebot.robot.nav import GoalStatus, LaserSource, NavStack, NavState
+from telebot.robot.nav import (
+    Drivable,
+    GoalStatus,
+    LaserSource,
+    MotionLimits,
+    NavStack,
+    NavState,
+)
 from telebot.safety import SafetyState
-from telebot.services.follow import Drivable, FollowService, _limits_of
+from telebot.services.follow import FollowService
 from telebot.services.proto.drive import (
     DRIVE,
     DriveCommand,
@@ -182,7 +188,7 @@ class DriveService:
         self.settings = settings if settings is not None else DriveSettings()
         self.safety = safety
         self.follow = follow
-        self.limits = limits if limits is not None else _limits_of(nav)
+        self.limits = limits if limits is not None else nav.motion_limits
         self._calls: dict[str, CallDrive] = {}
         #: The call driving now (None: nobody).
         self.driver: CallDrive | None = None
@@ -329,7 +335,7 @@ class DriveService:
             return
         cap = self._cap()
         linear = _clamp(self._wanted[0], cap)
-        angular = _clamp(self._wanted[1], self.limits.angular_speed)
+        angular = _clamp(self._wanted[1], self.limits.max_angular_speed)
         room = self._room(linear)
         code = Reason.OK
         if linear != 0.0:
@@ -394,7 +400,7 @@ class DriveService:
         return None
 
     def _cap(self) -> float:
-        cap = min(self.nav.speed_limit, self.limits.linear_speed)
+        cap = min(self.nav.speed_limit, self.limits.max_linear_speed)
         if self.safety is not None:
             cap = min(cap, self.safety.state().cap)
         return max(cap, 0.0)
@@ -417,7 +423,7 @@ class DriveService:
         except Exception:
             log.exception("laser scan unavailable")
             return 0.0  # fail safe: no scan, no driving
-        radius = float(getattr(getattr(nav, "settings", None), "robot_radius", 0.25))
+        radius = nav.motion_limits.robot_radius
         if linear > 0:
             return clearance_ahead(points, radius)
         return clearance_behind(points, radius, angles, hit)

@@ -27,7 +27,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Sequence
-from typing import Protocol, runtime_checkable
+from typing import Protocol
 
 import numpy as np
 
@@ -37,16 +37,17 @@ from telebot.robot.follow import (
     Drive,
     Ended,
     FollowController,
-    MotionLimits,
     Track,
     clearance_ahead,
     clearance_behind,
     pick_target,
 )
 from telebot.robot.nav import (
+    Drivable,
     GoalRecord,
     GoalStatus,
     LaserSource,
+    MotionLimits,
     NavStack,
     NavState,
     NavStatus,
@@ -56,7 +57,6 @@ from telebot.safety import SafetyState
 
 __all__ = [
     "CallFollow",
-    "Drivable",
     "FollowGoal",
     "FollowService",
     "TrackSource",
@@ -70,15 +70,6 @@ class TrackSource(Protocol):
 
     def tracks(self) -> Sequence[Track]:
         """The people tracked now (map frame)."""
-        ...
-
-
-@runtime_checkable
-class Drivable(Protocol):
-    """A robot that takes velocity commands (``cmd_vel``); repeated, or its base stops."""
-
-    def drive(self, linear: float, angular: float) -> None:
-        """Command this velocity (m/s, rad/s; REP-103) until the next command."""
         ...
 
 
@@ -122,7 +113,7 @@ class FollowService:
         self._safety_state = safety_state
         self._watchdog_stops = watchdog_stops if watchdog_stops is not None else (lambda: 0)
         self._watchdog_mark = 0
-        self.limits = limits if limits is not None else _limits_of(nav)
+        self.limits = limits if limits is not None else nav.motion_limits
         self._controller: FollowController | None = None
         self._goal: FollowGoal | None = None
         self._call: str | None = None
@@ -330,7 +321,7 @@ class FollowService:
             dx, dy = person[0] - pose.x, person[1] - pose.y
             c, s = math.cos(pose.yaw), math.sin(pose.yaw)
             local = (dx * c + dy * s, -dx * s + dy * c)
-        radius = float(getattr(getattr(nav, "settings", None), "robot_radius", 0.25))
+        radius = nav.motion_limits.robot_radius
         return clearance_ahead(points, radius, local), clearance_behind(points, radius, angles, hit)
 
     def _nobody(self, tracks: Sequence[Track], pose: Pose2D) -> str:
@@ -343,19 +334,6 @@ class FollowService:
             f"(nearest: person {nearest.id}, {distance:.1f} m away): turn towards them, "
             f"or follow ID"
         )
-
-
-def _limits_of(nav: NavStack) -> MotionLimits:
-    """The robot's speed and acceleration limits, where it tells them (the simulator)."""
-    settings = getattr(nav, "settings", None)
-    values = {
-        "linear_speed": getattr(settings, "max_linear_speed", None),
-        "angular_speed": getattr(settings, "max_angular_speed", None),
-        "linear_accel": getattr(settings, "linear_accel", None),
-        "angular_accel": getattr(settings, "angular_accel", None),
-    }
-    known = {k: float(v) for k, v in values.items() if isinstance(v, int | float)}
-    return MotionLimits(**known)
 
 
 class CallFollow:

@@ -1,7 +1,7 @@
 """The ROS 2 robot: a Nav2 robot driven over rmw_zenoh's wire format, with no ROS installed.
 
-- :mod:`.types`: ROS message, service and action types (CDR through rosbags) and their
-  RIHS01 type hashes (REP 2011).
+Message types and CDR are :mod:`telebot.rosmsg`'s (shared with the simulator).
+
 - :mod:`.keys`: rmw_zenoh's key expressions, liveliness tokens and attachments (sans-IO).
 - :mod:`.node`: a ROS 2 node on a zenoh session: publishers, subscriptions, services,
   actions, graph discovery.

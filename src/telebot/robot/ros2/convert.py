@@ -1,6 +1,6 @@
 """ROS 2 messages to telebot's robot types, and back: pure functions, no I/O.
 
-Messages are the objects :class:`~telebot.robot.ros2.types.MessageType` makes and decodes
+Messages are the objects :class:`~telebot.rosmsg.types.MessageType` makes and decodes
 (attribute access by ROS field name). Everything here follows REP-103 (metres, radians,
 yaw counter-clockwise) and REP-105 (``map`` → ``odom`` → ``base_link``). A message that
 cannot be mapped raises :class:`ValueError` with one line saying why; the caller drops it

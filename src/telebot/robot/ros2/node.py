@@ -46,7 +46,7 @@ from telebot.robot.ros2.keys import (
 )
 
 if TYPE_CHECKING:
-    from telebot.robot.ros2.types import ActionType, MessageType, ServiceType, TypeLibrary
+    from telebot.rosmsg.types import ActionType, MessageType, ServiceType, TypeLibrary
 
 __all__ = [
     "GOAL_ABORTED",
@@ -202,7 +202,7 @@ class Ros2Node:
         enclave: str = "/",
     ) -> None:
         if library is None:
-            from telebot.robot.ros2.types import TypeLibrary
+            from telebot.rosmsg.types import TypeLibrary
 
             library = TypeLibrary()
         self.library = library
@@ -358,7 +358,7 @@ class Ros2Node:
 
         For any type on the graph, known to the type library or not (the topic relay).
         """
-        from telebot.robot.ros2.types import MessageType, ros_type_name
+        from telebot.rosmsg.types import MessageType, ros_type_name
 
         mtype = MessageType(ros_type_name(dds_type), dds_type, type_hash, self.library)
         sub = Subscription(self, self.resolve(topic), mtype, callback, qos, max_bytes, raw=True)

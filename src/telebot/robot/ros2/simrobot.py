@@ -49,9 +49,9 @@ from telebot.reasons import Reason
 from telebot.robot.nav import GoalStatus, Pose2D
 from telebot.robot.ros2.keys import EntityKind, GraphEntity, QoS
 from telebot.robot.ros2.node import GOAL_CANCELING, GOAL_UNKNOWN, ActionServer, Ros2Node
-from telebot.robot.ros2.simmsgs import BATTERY_HZ, CAMERA_HZ, SCAN_HZ, SimMessages
-from telebot.robot.ros2.types import ActionType, TypeLibrary
 from telebot.robot.sim.stack import SimGoal, SimNavStack
+from telebot.rosmsg.messages import BATTERY_HZ, CAMERA_HZ, SCAN_HZ, SimMessages
+from telebot.rosmsg.types import ActionType, TypeLibrary
 
 __all__ = ["SimRobotServer", "open_router", "router_config"]
 
@@ -328,7 +328,7 @@ class SimRobotServer:
         loop = asyncio.get_running_loop()
         self._loop = loop
         self._start_io()
-        period = 1.0 / self._stack.settings.control_hz
+        period = 1.0 / self._stack.control_hz
         next_scan = next_battery = next_camera = next_graph = next_warning = loop.time()
         try:
             while not stop.is_set():

@@ -45,7 +45,6 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from types import MappingProxyType
 from typing import Any
 
 import cv2
@@ -57,17 +56,22 @@ from telebot.errors import (
     RobotError,
     RobotUnreachable,
     UnknownCamera,
-    UnknownPlace,
 )
 from telebot.reasons import Reason
 from telebot.robot.grid import OccupancyGrid
 from telebot.robot.mapfile import CELL_OCCUPIED_MIN, load_places
 from telebot.robot.nav import (
+    DEFAULT_CONTROL_HZ,
+    DEFAULT_FOV_DEG,
+    NAVCAM,
+    NO_SIGNAL_SIZE,
     Battery,
     CameraFrame,
     CameraInfo,
     GoalRecord,
     GoalStatus,
+    MotionLimits,
+    NavStackBase,
     NavState,
     NavStatus,
     Pose2D,
@@ -93,7 +97,7 @@ from telebot.robot.ros2.convert import (
 )
 from telebot.robot.ros2.keys import EntityKind, GraphEntity, QoS, action_names
 from telebot.robot.ros2.node import DEFAULT_QOS, ActionClient, Ros2Node, Subscription
-from telebot.robot.ros2.types import ActionType, MessageType, TypeLibrary, ros_type_name
+from telebot.rosmsg.types import ActionType, MessageType, TypeLibrary, ros_type_name
 
 __all__ = ["BATTERY_LOW_PERCENT", "Ros2Goal", "Ros2NavStack"]
 
@@ -121,13 +125,6 @@ CLIENT_KEEP_ALIVE = 4
 #: A laser scan older than this (s) is no scan: people detection and follow-me's clearance
 #: see nothing rather than a frozen picture (a laser publishes at 10–40 Hz).
 SCAN_STALE = 1.0
-#: Field of view reported for a camera (CompressedImage does not say; degrees).
-DEFAULT_FOV_DEG = 60.0
-#: The camera the safety supervisor selects while the robot moves (``telebot.safety.NAVCAM``;
-#: the robot layer may not import it).
-NAVCAM = "navcam"
-#: Size of the black picture a camera shows before its first image (pixels).
-NO_SIGNAL_SIZE = (320, 240)
 #: Bytes of an OccupancyGrid message besides its cells (header, frame id, metadata): generous.
 MAP_HEADER_BYTES = 4096
 #: Start-up waits at least this long for Nav2 and the map once the router answered (s).
@@ -305,15 +302,7 @@ def _decode_image(data: bytes) -> np.ndarray[Any, np.dtype[np.uint8]] | None:
     return np.ascontiguousarray(image)
 
 
-def _lookup_place(places: Mapping[str, Pose2D], name: str) -> Pose2D:
-    key = name.strip().lower()
-    if key in places:
-        return places[key]
-    known = ", ".join(sorted(places)) or "none"
-    raise UnknownPlace(f"unknown place {name!r}; known places: {known}")
-
-
-class Ros2NavStack:
+class Ros2NavStack(NavStackBase):
     """A Nav2 robot over rmw_zenoh (see the module docstring). Build it with :meth:`from_config`."""
 
     def __init__(
@@ -323,10 +312,18 @@ class Ros2NavStack:
         *,
         places: Mapping[str, Pose2D] | None = None,
     ) -> None:
+        # Nav2 knows no radius or accelerations telebot could read: follow-me and driving
+        # by hand plan with the defaults (the base's controller keeps its own limits).
+        super().__init__(
+            MotionLimits(
+                max_linear_speed=settings.max_linear_speed,
+                max_angular_speed=settings.max_angular_speed,
+            ),
+            places=places,
+        )
         self._node = node
         self._settings = settings
         self._lib: TypeLibrary = node.library
-        self._places = {name.lower(): pose for name, pose in (places or {}).items()}
         self._lock = threading.RLock()
         self._closed = False
 
@@ -350,7 +347,6 @@ class Ros2NavStack:
         self._path: tuple[Pose2D, ...] = ()
         self._dropped: dict[str, int] = {}
         self._closed_drops = 0  # of camera subscriptions closed when idle
-        self._speed_limit = settings.max_linear_speed
         self._next_goal_id = 1
         self._goal: Ros2Goal | None = None
         self._last_goal: Ros2Goal | None = None
@@ -361,7 +357,6 @@ class Ros2NavStack:
         # The safety supervisor selects the navcam whenever the robot moves: a robot without
         # one still has it, showing black ("no signal"), rather than refuse to move.
         self._cameras.setdefault(NAVCAM, _Camera(NAVCAM, ""))
-        self._active_camera = NAVCAM
 
         lib = self._lib
         self._twist = lib.message("geometry_msgs/msg/Twist")
@@ -789,6 +784,14 @@ class Ros2NavStack:
             Reason.FAILED,
         )
 
+    # ------------------------------------------------------------------ what it declares
+
+    @property
+    def control_hz(self) -> float:
+        """:data:`~telebot.robot.nav.DEFAULT_CONTROL_HZ`: Nav2 runs by itself; follow-me
+        and driving by hand send ``cmd_vel`` at this rate."""
+        return DEFAULT_CONTROL_HZ
+
     # ------------------------------------------------------------------ NavStack: queries
 
     def map(self) -> OccupancyGrid:
@@ -828,10 +831,6 @@ class Ros2NavStack:
                 return ()
             return self._path
 
-    def places(self) -> Mapping[str, Pose2D]:
-        """Named places of ``[ros2] places_file`` (lower-case names)."""
-        return MappingProxyType(self._places)
-
     def battery(self) -> Battery:
         """The latest battery state; 0 % and low until one arrives (fail safe)."""
         with self._lock:
@@ -862,20 +861,12 @@ class Ros2NavStack:
             return NavStatus(NavState.FAILED, last.reason)
         return NavStatus(NavState.IDLE)
 
-    @property
-    def speed_limit(self) -> float:
-        """Linear speed cap in force (m/s), applied to drive_on_heading."""
-        return self._speed_limit
-
     def set_speed_limit(self, linear: float) -> None:
-        """Set the linear speed cap; never above ``[ros2] max_linear_speed``."""
-        require_finite(linear=linear)
-        if linear < 0:
-            raise InvalidCommand(f"speed limit must be ≥ 0, not {linear}")
-        cap = min(float(linear), self._settings.max_linear_speed)
-        changed = cap != self._speed_limit
-        self._speed_limit = cap
-        if changed:
+        """Set the linear speed cap (never above ``[ros2] max_linear_speed``), applied to
+        drive_on_heading and sent to Nav2's controller when it changes."""
+        before = self._speed_limit
+        super().set_speed_limit(linear)
+        if self._speed_limit != before:
             self._publish_speed_limit()
 
     def _publish_speed_limit(self) -> None:
@@ -968,15 +959,6 @@ class Ros2NavStack:
                 )
                 for camera in self._cameras.values()
             )
-
-    @property
-    def active_camera(self) -> str:
-        """The selected camera's name (``navcam`` at first)."""
-        return self._active_camera
-
-    def select_camera(self, name: str) -> None:
-        """Select ``name`` (case-insensitive)."""
-        self._active_camera = self._camera(name).name
 
     def _camera(self, name: str) -> _Camera:
         camera = self._cameras.get(name.strip().lower())
@@ -1080,11 +1062,6 @@ class Ros2NavStack:
         )
         goal.initial_remaining = here.distance_to(target)
         return self._send(goal, message)
-
-    def navigate_to_place(self, name: str) -> Ros2Goal:
-        """Drive to a named place (case-insensitive); unknown names list the known ones."""
-        pose = _lookup_place(self._places, name)
-        return self.navigate_to(pose.x, pose.y, pose.yaw, label=name.strip().lower())
 
     def forward(self, metres: float) -> Ros2Goal:
         """DriveOnHeading ``metres`` (negative: backwards) at the speed cap."""

@@ -35,7 +35,6 @@ from telebot.errors import (
     NoPath,
     RobotError,
     UnknownCamera,
-    UnknownPlace,
 )
 from telebot.reasons import Reason
 from telebot.robot.grid import OccupancyGrid
@@ -46,6 +45,8 @@ from telebot.robot.nav import (
     CameraInfo,
     GoalRecord,
     GoalStatus,
+    MotionLimits,
+    NavStackBase,
     NavState,
     NavStatus,
     Pose2D,
@@ -53,10 +54,10 @@ from telebot.robot.nav import (
     SourceTopic,
     TopicSubscription,
     Velocity,
+    find_place,
     normalize_angle,
     require_finite,
 )
-from telebot.robot.ros2.simtopics import SimTopics
 from telebot.robot.sim.building import resolve_map
 from telebot.robot.sim.camera import CameraModel, Renderer, default_cameras
 from telebot.robot.sim.controller import (
@@ -70,6 +71,7 @@ from telebot.robot.sim.laser import Laser, LaserScan
 from telebot.robot.sim.people import PersonTruth, Walker, Waypoint, legs_of
 from telebot.robot.sim.planner import Costmap
 from telebot.robot.sim.world import Obstacle
+from telebot.rosmsg.topics import SimTopics
 
 __all__ = ["SimGoal", "SimNavStack"]
 
@@ -136,7 +138,7 @@ class SimGoal(GoalRecord):
         self.blocked_since = None
 
 
-class SimNavStack:
+class SimNavStack(NavStackBase):
     """A simulated differential-drive robot on a ROS map (see the module docstring)."""
 
     def __init__(
@@ -150,12 +152,21 @@ class SimNavStack:
         map_name: str = "map",
     ) -> None:
         self._settings = settings = settings if settings is not None else SimSettings()
+        super().__init__(
+            MotionLimits(
+                max_linear_speed=settings.max_linear_speed,
+                max_angular_speed=settings.max_angular_speed,
+                robot_radius=settings.robot_radius,
+                linear_accel=settings.linear_accel,
+                angular_accel=settings.angular_accel,
+            ),
+            places=places,
+        )
         # The relay's topic source, made when first asked for (it loads the ROS types).
         self._topics: SimTopics | None = None
         self._grid = grid
         self._map_version = 0
         self._map_name = map_name
-        self._places = {name.lower(): pose for name, pose in (places or {}).items()}
         self._limits = Limits(
             linear_speed=settings.max_linear_speed,
             angular_speed=settings.max_angular_speed,
@@ -169,7 +180,7 @@ class SimNavStack:
             model.name: model
             for model in default_cameras(settings.camera_width, settings.camera_height)
         }
-        self._active_camera = next(iter(self._cameras))
+        self._active_camera = next(iter(self._cameras))  # navcam
         self._frame_id = 0
 
         if start is None:
@@ -207,7 +218,6 @@ class SimNavStack:
         self._last_goal: SimGoal | None = None
         self._teleop = False
         self._teleop_blocked = False
-        self._speed_limit = settings.max_linear_speed
         self._battery = 100.0
         self._collisions = 0
         # What the physics guard refused the last step's move for, and which way the
@@ -245,7 +255,7 @@ class SimNavStack:
             places = load_places(default_places) if default_places.exists() else {}
         start = None
         if settings.start is not None:
-            start = _lookup_place(places, settings.start)
+            start = find_place(places, settings.start)
         stack = cls(grid, places, settings, start=start, now=now, map_name=settings.map)
         if start is None and not places:
             raise MapError(f"{yaml_path}: the map has no places file: set sim.start")
@@ -259,6 +269,23 @@ class SimNavStack:
     ) -> SimNavStack:
         """The robot adapter ``"sim"`` of the registry: :meth:`from_settings` of ``config.sim``."""
         return cls.from_settings(config.sim, base_dir=base_dir, now=now)
+
+    # ------------------------------------------------------------------ what it declares
+
+    @property
+    def control_hz(self) -> float:
+        """``[sim] control_hz``: the daemon steps the simulation at this rate."""
+        return self._settings.control_hz
+
+    @property
+    def map_name(self) -> str:
+        """The map's name: a built-in map's, or its YAML file's stem."""
+        return Path(self._map_name).stem
+
+    @property
+    def simulated(self) -> bool:
+        """True."""
+        return True
 
     # ------------------------------------------------------------------ NavStack: queries
 
@@ -299,10 +326,6 @@ class SimNavStack:
         """The base's current velocity."""
         return self._base.velocity
 
-    def places(self) -> Mapping[str, Pose2D]:
-        """Named places (lower-case names)."""
-        return MappingProxyType(self._places)
-
     def planned_path(self) -> tuple[Pose2D, ...]:
         """The running goal's path as the planner made it (again, after a replan).
 
@@ -341,18 +364,6 @@ class SimNavStack:
             return NavStatus(NavState.MOVING, "braking")
         return NavStatus(NavState.IDLE)
 
-    @property
-    def speed_limit(self) -> float:
-        """Linear speed cap in force (m/s)."""
-        return self._speed_limit
-
-    def set_speed_limit(self, linear: float) -> None:
-        """Set the linear speed cap; never above the configured top speed."""
-        require_finite(linear=linear)
-        if linear < 0:
-            raise InvalidCommand(f"speed limit must be ≥ 0, not {linear}")
-        self._speed_limit = min(float(linear), self._settings.max_linear_speed)
-
     def diagnostics(self) -> Mapping[str, str]:
         """Health values for telemetry."""
         grid = self._grid
@@ -376,15 +387,6 @@ class SimNavStack:
             CameraInfo(m.name, m.width, m.height, m.fov_deg, m.description)
             for m in self._cameras.values()
         )
-
-    @property
-    def active_camera(self) -> str:
-        """The selected camera's name."""
-        return self._active_camera
-
-    def select_camera(self, name: str) -> None:
-        """Select ``name`` (case-insensitive)."""
-        self._active_camera = self._camera(name).name
 
     def get_frame(self, camera: str | None = None) -> CameraFrame:
         """Render what ``camera`` (default: the active one) sees from the true pose now."""
@@ -426,11 +428,6 @@ class SimNavStack:
         goal.final_yaw = None if yaw is None else normalize_angle(yaw)
         _follow(goal, path.waypoints)
         return self._start(goal)
-
-    def navigate_to_place(self, name: str) -> SimGoal:
-        """Drive to a named place (case-insensitive); unknown names list the known ones."""
-        pose = _lookup_place(self._places, name)
-        return self.navigate_to(pose.x, pose.y, pose.yaw, label=name.strip().lower())
 
     def forward(self, metres: float) -> SimGoal:
         """Drive straight ``metres`` along the current heading (negative: backwards)."""
@@ -594,7 +591,7 @@ class SimNavStack:
     # -- topics (the relay service's TopicSource)
 
     def topics(self) -> list[SourceTopic]:
-        """The simulator's streams as ROS 2 topics (see :mod:`telebot.robot.ros2.simtopics`)."""
+        """The simulator's streams as ROS 2 topics (see :mod:`telebot.rosmsg.topics`)."""
         return self._topic_source().topics()
 
     def subscribe_topic(
@@ -1048,12 +1045,3 @@ def _first_blocked(grid: OccupancyGrid, a: Waypoint, b: Waypoint) -> tuple[float
 def braking_speed_distance(speed: float, accel: float) -> float:
     """Distance needed to stop from ``speed`` at deceleration ``accel``."""
     return speed * speed / (2.0 * accel)
-
-
-def _lookup_place(places: Mapping[str, Pose2D], name: str) -> Pose2D:
-    key = name.strip().lower()
-    for place, pose in places.items():
-        if place.lower() == key:
-            return pose
-    known = ", ".join(sorted(places)) or "none"
-    raise UnknownPlace(f"unknown place {name!r}; known places: {known}")

@@ -1,10 +1,11 @@
 """The simulator's own streams as ROS 2 topics (CDR), for the ``relay`` service.
 
-:class:`SimTopics` is the :class:`~telebot.robot.nav.TopicSource` of a
-:class:`~telebot.robot.sim.stack.SimNavStack`: ``/map``, ``/amcl_pose``, ``/odom``, ``/tf``,
+:class:`SimTopics` is the :class:`~telebot.robot.nav.TopicSource` of a simulated robot
+(:class:`~telebot.robot.sim.stack.SimNavStack`, or anything with the members of
+:class:`SimulatedRobot`): ``/map``, ``/amcl_pose``, ``/odom``, ``/tf``,
 ``/plan``, ``/scan``, ``/battery_state`` and ``/<camera>/image/compressed``, the names and
 types ``telebot-sim`` serves them under, built by the same code
-(:class:`~telebot.robot.ros2.simmsgs.SimMessages`). A topic is only built while something
+(:class:`~telebot.rosmsg.messages.SimMessages`). A topic is only built while something
 subscribes to it; the stack calls :meth:`SimTopics.step` after each of its steps (the
 callbacks then run on the stepping thread, the event loop under the daemon).
 """
@@ -17,16 +18,25 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
-from telebot.robot.nav import SourceTopic
-from telebot.robot.ros2.simmsgs import BATTERY_HZ, CAMERA_HZ, SCAN_HZ, SimMessages
-from telebot.robot.ros2.types import TypeLibrary
+from telebot.robot.nav import (
+    Battery,
+    CameraFrame,
+    CameraInfo,
+    LaserScanLike,
+    Pose2D,
+    PoseEstimate,
+    SourceTopic,
+    Velocity,
+)
+from telebot.rosmsg.messages import BATTERY_HZ, CAMERA_HZ, SCAN_HZ, SimMessages
+from telebot.rosmsg.types import TypeLibrary
 
 if TYPE_CHECKING:
-    from telebot.robot.sim.stack import SimNavStack
+    from telebot.robot.grid import OccupancyGrid
 
-__all__ = ["SimTopics"]
+__all__ = ["SimTopics", "SimulatedRobot"]
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +57,52 @@ class _Topic:
     last_key: object = None
 
 
+class SimulatedRobot(Protocol):
+    """What :class:`SimTopics` reads of a simulated robot (the NavStack members it
+    publishes, and the true pose for ``/odom``)."""
+
+    def map(self) -> OccupancyGrid:
+        """As :meth:`telebot.robot.nav.NavStack.map`."""
+        ...
+
+    def map_version(self) -> int:
+        """As :meth:`telebot.robot.nav.NavStack.map_version`."""
+        ...
+
+    def pose(self) -> PoseEstimate:
+        """As :meth:`telebot.robot.nav.NavStack.pose`."""
+        ...
+
+    def velocity(self) -> Velocity:
+        """As :meth:`telebot.robot.nav.NavStack.velocity`."""
+        ...
+
+    def planned_path(self) -> tuple[Pose2D, ...]:
+        """As :meth:`telebot.robot.nav.NavStack.planned_path`."""
+        ...
+
+    def battery(self) -> Battery:
+        """As :meth:`telebot.robot.nav.NavStack.battery`."""
+        ...
+
+    def cameras(self) -> tuple[CameraInfo, ...]:
+        """As :meth:`telebot.robot.nav.NavStack.cameras`."""
+        ...
+
+    def get_frame(self, camera: str | None = None) -> CameraFrame:
+        """As :meth:`telebot.robot.nav.NavStack.get_frame`."""
+        ...
+
+    def laser_scan(self) -> LaserScanLike:
+        """The latest laser scan (:class:`~telebot.robot.nav.LaserSource`)."""
+        ...
+
+    @property
+    def true_pose(self) -> Pose2D:
+        """Where the robot really is (odometry's pose)."""
+        ...
+
+
 class _Subscription:
     def __init__(self, topics: SimTopics, topic: _Topic, callback: Callback) -> None:
         self._topics = topics
@@ -61,7 +117,7 @@ class _Subscription:
 class SimTopics:
     """The topic source of one simulated robot (see the module docstring)."""
 
-    def __init__(self, stack: SimNavStack, *, distro: str = "jazzy") -> None:
+    def __init__(self, stack: SimulatedRobot, *, distro: str = "jazzy") -> None:
         self._stack = stack
         self._distro = distro
         self._msgs: SimMessages | None = None

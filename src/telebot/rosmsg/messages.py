@@ -1,11 +1,11 @@
-"""The simulator's state as ROS 2 messages: one place for ``telebot-sim`` and the relay.
+"""A robot's state as ROS 2 messages: one place for ``telebot-sim`` and the relay.
 
 :class:`SimMessages` builds the messages a Nav2 robot publishes (map, amcl_pose, odom, tf,
-plan, scan, battery, compressed camera images) from a
-:class:`~telebot.robot.sim.stack.SimNavStack`. :class:`~telebot.robot.ros2.simrobot.SimRobotServer`
-publishes them on rmw_zenoh; the simulator's topic source (:mod:`telebot.robot.ros2.simtopics`)
-serializes them to CDR for the ``relay`` service. No zenoh here (the simulator may import
-this module): only :class:`~telebot.robot.ros2.types.TypeLibrary`.
+plan, scan, battery, compressed camera images) from telebot's robot types
+(:mod:`telebot.robot.nav`), as the simulator has them.
+:class:`~telebot.robot.ros2.simrobot.SimRobotServer` publishes them on rmw_zenoh; the
+simulator's topic source (:mod:`telebot.rosmsg.topics`) serializes them to CDR for the
+``relay`` service. No zenoh here: only :class:`~telebot.rosmsg.types.TypeLibrary`.
 """
 
 from __future__ import annotations
@@ -16,12 +16,18 @@ from typing import TYPE_CHECKING, Any
 import cv2
 import numpy as np
 
-from telebot.robot.nav import Battery, Pose2D, PoseEstimate, Velocity, normalize_angle
+from telebot.robot.nav import (
+    Battery,
+    LaserScanLike,
+    Pose2D,
+    PoseEstimate,
+    Velocity,
+    normalize_angle,
+)
 
 if TYPE_CHECKING:
     from telebot.robot.grid import OccupancyGrid
-    from telebot.robot.ros2.types import TypeLibrary
-    from telebot.robot.sim.laser import LaserScan
+    from telebot.rosmsg.types import TypeLibrary
 
 __all__ = ["BATTERY_HZ", "CAMERA_HZ", "JPEG_QUALITY", "SCAN_HZ", "SimMessages"]
 
@@ -162,7 +168,7 @@ class SimMessages:
             poses.append(self.pose_stamped(Pose2D(point.x, point.y, normalize_angle(yaw)), wall))
         return self.t_path.make(header=self.header(self.map_frame, wall), poses=poses)
 
-    def scan(self, scan: LaserScan, wall: float) -> Any:
+    def scan(self, scan: LaserScanLike, wall: float) -> Any:
         """The laser (``sensor_msgs/LaserScan``)."""
         beams = len(scan.angles)
         ranges = scan.ranges.astype(np.float32)
