@@ -574,7 +574,7 @@ async def test_relayed_topics_are_channels_with_their_ros2msg_schema(tmp_path: P
 
 
 async def test_the_foxglove_command_serves_until_stopped(tmp_path: Path) -> None:
-    from telebot.apps.foxglove_bridge import serve_foxglove
+    from telebot.apps.foxglove_cli import serve_foxglove
 
     hub = MemoryHub(seed=4)
     config = AppConfig(call=CallSettings(timeout=GENEROUS_TIMEOUT))
