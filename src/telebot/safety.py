@@ -168,8 +168,8 @@ class SafetyState:
     """A snapshot of the supervisor, for telemetry and user interfaces."""
 
     armed: bool
-    #: Why the robot was last stopped (empty while armed).
-    reason: str
+    #: Why the robot was last stopped, in words (empty while armed).
+    text: str
     #: The reason code of the latest stop (``ok`` while armed): ``link_silent`` for the
     #: deadman, ``video_stale``, ``stopped`` for a stop request, … (see ``docs/protocol.md``
     #: §18), so a user interface can tell the robot stopping itself from a STOP button.
@@ -214,9 +214,10 @@ class AuditRecord:
 
 @dataclass(frozen=True, slots=True)
 class Stop:
-    """Stop now: ``NavStack.stop()`` (cancels the running goal and halts the base)."""
+    """Stop now: ``NavStack.stop()`` (cancels the running goal and halts the base);
+    ``text`` says why."""
 
-    reason: str
+    text: str
 
 
 @dataclass(frozen=True, slots=True)
@@ -263,7 +264,8 @@ class Decision:
     """
 
     allowed: bool
-    reason: str
+    #: Why, in words (what a refusal tells the user; the audit record's detail).
+    text: str
     actions: tuple[Action, ...]
     audit: AuditRecord
     code: Reason = Reason.OK
@@ -422,7 +424,7 @@ class SafetySupervisor:
         p = self._holder_participant()
         return SafetyState(
             armed=self._armed,
-            reason=self.stop_reason,
+            text=self.stop_reason,
             code=self.stop_code,
             holder=p.user if p else None,
             holder_call=self._holder,

@@ -123,7 +123,7 @@ from telebot.services.client import ConnectionEvent, RobotClient
 from telebot.services.mapxfer import MapDownload
 from telebot.services.proto.plan import PlanUpdate
 from telebot.services.proto.relay import RelayedMessage, TopicInfo
-from telebot.services.proto.safety import SafetyAck
+from telebot.services.proto.safety import SafetyAck, SafetyStatus
 from telebot.services.proto.status import PoseUpdate
 from telebot.services.proto.video import CompleteFrame
 from telebot.services.schemas import BRIDGE_SCHEMAS, TRIGGER_REQUEST, TRIGGER_RESULT, schema_bytes
@@ -192,6 +192,20 @@ def _yaw_of(qx: float, qy: float, qz: float, qw: float) -> float:
 
 def _json_schema(schema: dict[str, Any]) -> foxglove.Schema:
     return foxglove.Schema(name=schema["title"], encoding="jsonschema", data=schema_bytes(schema))
+
+
+def _safety_event(state: SafetyStatus) -> dict[str, Any]:
+    """A safety state as ``/telebot/safety`` logs it (``telebot.SafetyEvent``: the words
+    under ``reason`` as on the wire)."""
+    return {
+        "event": "state",
+        "armed": state.armed,
+        "reason": state.text,
+        "holder": state.holder,
+        "cap": state.cap,
+        "blocked": state.blocked,
+        "code": state.code,
+    }
 
 
 def _result(ok: bool, text: str, code: str = "") -> dict[str, Any]:
@@ -464,7 +478,7 @@ class FoxgloveBridge:
             self._tasks.spawn(self._relay(topic))
         # What is already known: a new recording starts with it.
         if (safety := client.latest_safety.value) is not None:
-            self._log_json("safety", {"event": "state", **asdict(safety)})
+            self._log_json("safety", _safety_event(safety))
         if (plan := client.plan) is not None:
             self._log_plan(plan)
 
@@ -580,7 +594,7 @@ class FoxgloveBridge:
         latest = self.client.latest_safety
         while True:
             state = await latest.next()
-            self._log_json("safety", {"event": "state", **asdict(state)})
+            self._log_json("safety", _safety_event(state))
 
     async def _pump_telemetry(self) -> None:
         latest = self.client.latest_telemetry
@@ -881,7 +895,7 @@ class FoxgloveBridge:
             async with asyncio.timeout(COMMAND_TIMEOUT):
                 if what == "cancel":
                     chat = await client.chat("cancel")
-                    return _result(chat.ok, chat.replies[-1] if chat.replies else "", chat.reason)
+                    return _result(chat.ok, chat.replies[-1] if chat.replies else "", chat.code)
                 actions: dict[str, Callable[[], Awaitable[SafetyAck]]] = {
                     "stop": functools.partial(client.stop, how="button"),
                     "arm": client.arm,
@@ -893,9 +907,7 @@ class FoxgloveBridge:
             return _result(False, _NO_ANSWER)
         except TelebotError as exc:
             return _result(False, str(exc))
-        return _result(
-            ack.ok, ack.text or (_DONE[what] if ack.ok else f"{what} refused"), ack.reason
-        )
+        return _result(ack.ok, ack.text or (_DONE[what] if ack.ok else f"{what} refused"), ack.code)
 
 
 def _trigger_problem(payload: bytes) -> str | None:

@@ -206,8 +206,8 @@ class SafetyDriver:
         """Carry out the supervisor's actions in order."""
         for action in actions:
             match action:
-                case Stop(reason):
-                    log.warning("safety stop: %s", reason)
+                case Stop(text):
+                    log.warning("safety stop: %s", text)
                     self.nav.stop()
                 case SetSpeedCap(linear):
                     self.nav.set_speed_limit(linear)
@@ -263,7 +263,7 @@ class CallGate:
 
     def _decide(self, decision: Decision) -> Refusal | None:
         self._driver.carry_out(decision)
-        return None if decision.allowed else Refusal(decision.reason, decision.code)
+        return None if decision.allowed else Refusal(decision.text, decision.code)
 
     def motion(self, what: str) -> Refusal | None:
         """May this call start ``what`` (a motion command) now?"""
