@@ -549,6 +549,9 @@ async def test_a_recording_reads_back_with_the_mcap_reader(tmp_path: Path) -> No
     assert {"state", "safety", "safety_ack"} <= events
     assert any(m["event"] == "safety" and m["request"] == "stop" for m in safety)
     assert any(m["event"] == "state" and m["armed"] for m in safety)
+    # The state's fields as on the wire (telebot.SafetyEvent): the words under "reason".
+    state = next(m for m in safety if m["event"] == "state")
+    assert set(state) == {"event", "armed", "reason", "holder", "cap", "blocked", "code"}
     goals = [json.loads(data) for _, data in messages["/telebot/goal"]]
     assert goals[0]["kind"] == "goal"
     assert goals[-1]["kind"] == "goal_update" and goals[-1]["status"] == "succeeded"
