@@ -570,7 +570,7 @@ class SafetySupervisor:
     # -- commands ------------------------------------------------------------------------
 
     def request_stop(
-        self, call_id: str | None, now: float, reason: str = "stop requested", how: str = ""
+        self, call_id: str | None, now: float, text: str = "stop requested", how: str = ""
     ) -> Decision:
         """Stop: from any participant, or the robot itself when ``call_id`` is None.
 
@@ -585,8 +585,8 @@ class SafetySupervisor:
         p = self._participants.get(call_id) if call_id is not None else None
         by = LOCAL if call_id is None else (p.user if p else f"unknown call {call_id}")
         was_armed = self._armed
-        self._disarm(step, f"{reason} by {by}" + (f" ({how})" if how else ""), Reason.STOPPED)
-        detail = reason if was_armed else f"{reason} (already stopped)"
+        self._disarm(step, f"{text} by {by}" + (f" ({how})" if how else ""), Reason.STOPPED)
+        detail = text if was_armed else f"{text} (already stopped)"
         return self._decide(step, call_id, "stop", True, detail, how=how)
 
     def request_motion(self, call_id: str, now: float, what: str) -> Decision:

@@ -160,8 +160,9 @@ class DriveGate(Protocol):
         """May the caller select this camera now?"""
         ...
 
-    def stop(self, reason: str = "stop requested", how: str = "") -> None:
-        """Stop the robot and latch (never refused); ``how`` it was given, for the audit."""
+    def stop(self, text: str = "stop requested", how: str = "") -> None:
+        """Stop the robot and latch (never refused); ``text`` says why, ``how`` it was given,
+        for the audit."""
         ...
 
     def rearm(self) -> Refusal | None:
