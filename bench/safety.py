@@ -177,7 +177,7 @@ class TimedDriver(SafetyDriver):
     def apply(self, actions: Iterable[Action]) -> None:
         for action in actions:
             if isinstance(action, Stop):
-                self.nav.why = f"{action.reason}|{self._event}"
+                self.nav.why = f"{action.text}|{self._event}"
             super().apply((action,))
 
     def tick(self) -> None:
@@ -308,7 +308,7 @@ async def arm(client: RobotClient, patience: float = 10.0) -> None:
             return
         if loop.time() > deadline:
             raise RuntimeError(f"arm refused: {ack.text}")
-        if ack.reason == Reason.NOT_HOLDER:
+        if ack.code == Reason.NOT_HOLDER:
             await client.take_drive()
         await asyncio.sleep(0.05)
 

@@ -48,7 +48,7 @@ async def arm(client: RobotClient) -> None:
         ack = await client.arm()
         if ack.ok:
             return
-        if ack.reason == Reason.NOT_HOLDER:  # the drive was released: take it, then arm
+        if ack.code == Reason.NOT_HOLDER:  # the drive was released: take it, then arm
             await client.take_drive()
         if loop.time() > deadline:
             raise RuntimeError(f"arm refused: {ack.text}")

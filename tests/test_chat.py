@@ -98,7 +98,7 @@ def test_turn_is_in_degrees_positive_to_the_right(robot: Robot) -> None:
     request = robot.say("turn 90")
     assert robot.to(request)[0].text == "Turn command received"
     robot.run(10, until_final=request)
-    assert robot.final(request) == ChatReply(request, FINISHED, seq=1, reason=Reason.FINISHED)
+    assert robot.final(request) == ChatReply(request, FINISHED, seq=1, code=Reason.FINISHED)
     # Clockwise: REP-103 yaw goes down.
     assert yaw_change_deg(before, robot.stack.true_pose) == pytest.approx(-90, abs=3)
 
@@ -109,17 +109,17 @@ def test_left_and_right_turn_a_quarter(robot: Robot, command: str, expected_deg:
     request = robot.say(command)
     assert robot.to(request)[0].text == "Turn command received"
     robot.run(10, until_final=request)
-    assert robot.final(request) == ChatReply(request, FINISHED, seq=1, reason=Reason.FINISHED)
+    assert robot.final(request) == ChatReply(request, FINISHED, seq=1, code=Reason.FINISHED)
     assert yaw_change_deg(before, robot.stack.true_pose) == pytest.approx(expected_deg, abs=3)
 
 
 def test_goto_place_arrives(robot: Robot) -> None:
     request = robot.say("GoTo Room-A")
     assert robot.to(request)[0] == ChatReply(
-        request, "Goto command received", final=False, reason=Reason.ACCEPTED
+        request, "Goto command received", final=False, code=Reason.ACCEPTED
     )
     robot.run(60, until_final=request)
-    assert robot.final(request) == ChatReply(request, FINISHED, seq=1, reason=Reason.FINISHED)
+    assert robot.final(request) == ChatReply(request, FINISHED, seq=1, code=Reason.FINISHED)
     place = robot.stack.places()["room-a"]
     assert robot.stack.true_pose.distance_to(place) < 0.15
 
@@ -127,7 +127,7 @@ def test_goto_place_arrives(robot: Robot) -> None:
 def test_goto_point_arrives_facing_the_heading(robot: Robot) -> None:
     request = robot.say("goto 4 1.5 90")
     robot.run(40, until_final=request)
-    assert robot.final(request) == ChatReply(request, FINISHED, seq=1, reason=Reason.FINISHED)
+    assert robot.final(request) == ChatReply(request, FINISHED, seq=1, code=Reason.FINISHED)
     pose = robot.stack.true_pose
     assert pose.distance_to(Pose2D(4.0, 1.5)) < 0.15
     assert math.degrees(pose.yaw) == pytest.approx(90, abs=4)
@@ -153,7 +153,7 @@ def test_a_wall_ahead_ends_fwd_with_the_reason(robot: Robot) -> None:
     request = robot.say("fwd 50")
     robot.run(60, until_final=request)
     assert robot.final(request) == ChatReply(
-        request, "stopped: obstacle ahead", ok=False, seq=1, reason=Reason.OBSTACLE
+        request, "stopped: obstacle ahead", ok=False, seq=1, code=Reason.OBSTACLE
     )
 
 
@@ -168,13 +168,13 @@ def test_a_person_in_the_way_gives_one_blocked_notice_then_the_move_finishes(
     notices = [r for r in robot.to(request) if r.text.startswith("blocked")]
     assert notices == [
         ChatReply(
-            request, "blocked: obstacle ahead", final=False, ok=False, seq=1, reason=Reason.OBSTACLE
+            request, "blocked: obstacle ahead", final=False, ok=False, seq=1, code=Reason.OBSTACLE
         )
     ]
     assert robot.final(request) is None
     robot.stack.remove_obstacle(person)
     robot.run(20, until_final=request)
-    assert robot.final(request) == ChatReply(request, FINISHED, seq=2, reason=Reason.FINISHED)
+    assert robot.final(request) == ChatReply(request, FINISHED, seq=2, code=Reason.FINISHED)
     assert here.distance_to(robot.stack.true_pose) == pytest.approx(2.5, abs=0.1)
 
 
@@ -182,8 +182,8 @@ def test_stop_during_a_move_ends_both_requests(robot: Robot) -> None:
     move = robot.say("fwd 5")
     robot.run(1)
     stop = robot.say("stop")
-    assert robot.final(move) == ChatReply(move, "stopped", ok=False, seq=1, reason=Reason.STOPPED)
-    assert robot.final(stop) == ChatReply(stop, "stopped", reason=Reason.OK)
+    assert robot.final(move) == ChatReply(move, "stopped", ok=False, seq=1, code=Reason.STOPPED)
+    assert robot.final(stop) == ChatReply(stop, "stopped", code=Reason.OK)
     # The move's final reply comes before the stop's.
     assert [(r.id, r.text) for r in robot.replies[-2:]] == [(move, "stopped"), (stop, "stopped")]
     robot.run(1)
@@ -191,16 +191,12 @@ def test_stop_during_a_move_ends_both_requests(robot: Robot) -> None:
 
 
 def test_cancel_reports_the_cancelled_goal_and_nothing_when_idle(robot: Robot) -> None:
-    assert robot.ask("cancel") == ChatReply(
-        robot._next_id - 1, "nothing to cancel", reason=Reason.OK
-    )
+    assert robot.ask("cancel") == ChatReply(robot._next_id - 1, "nothing to cancel", code=Reason.OK)
     move = robot.say("fwd 3")
     robot.run(0.5)
     cancel = robot.say("cancel")
-    assert robot.final(move) == ChatReply(
-        move, "cancelled", ok=False, seq=1, reason=Reason.CANCELLED
-    )
-    assert robot.final(cancel) == ChatReply(cancel, "cancelled", reason=Reason.OK)
+    assert robot.final(move) == ChatReply(move, "cancelled", ok=False, seq=1, code=Reason.CANCELLED)
+    assert robot.final(cancel) == ChatReply(cancel, "cancelled", code=Reason.OK)
     assert robot.stack.current_goal() is None
 
 
@@ -209,26 +205,26 @@ def test_a_new_goal_replaces_the_running_one(robot: Robot) -> None:
     robot.run(0.5)
     second = robot.say("left")
     assert robot.final(first) == ChatReply(
-        first, "cancelled: replaced by a new goal", ok=False, seq=1, reason=Reason.REPLACED
+        first, "cancelled: replaced by a new goal", ok=False, seq=1, code=Reason.REPLACED
     )
     assert robot.to(second) == [
-        ChatReply(second, "Turn command received", final=False, reason=Reason.ACCEPTED)
+        ChatReply(second, "Turn command received", final=False, code=Reason.ACCEPTED)
     ]
     robot.run(10, until_final=second)
-    assert robot.final(second) == ChatReply(second, FINISHED, seq=1, reason=Reason.FINISHED)
+    assert robot.final(second) == ChatReply(second, FINISHED, seq=1, code=Reason.FINISHED)
 
 
 def test_bad_numbers_answer_the_usage_line_and_do_not_move(robot: Robot) -> None:
     for text, name in [("fwd nan", "fwd"), ("turn 1e999", "turn"), ("fwd 101", "fwd")]:
         reply = robot.ask(text)
-        assert reply == ChatReply(reply.id, USAGE[name], ok=False, reason=Reason.USAGE)
+        assert reply == ChatReply(reply.id, USAGE[name], ok=False, code=Reason.USAGE)
     assert robot.stack.current_goal() is None
 
 
 def test_an_unknown_command_says_try_help(robot: Robot) -> None:
     reply = robot.ask("dance")
     assert reply == ChatReply(
-        reply.id, "unknown command 'dance' — try help", ok=False, reason=Reason.UNKNOWN_COMMAND
+        reply.id, "unknown command 'dance' — try help", ok=False, code=Reason.UNKNOWN_COMMAND
     )
 
 
@@ -275,9 +271,7 @@ def test_battery_reports_percent_and_low(robot: Robot) -> None:
 
 
 def test_cameras_switch(robot: Robot) -> None:
-    assert robot.ask("usercam") == ChatReply(
-        robot._next_id - 1, "usercam selected", reason=Reason.OK
-    )
+    assert robot.ask("usercam") == ChatReply(robot._next_id - 1, "usercam selected", code=Reason.OK)
     assert robot.stack.active_camera == "usercam"
     assert robot.ask("NAVCAM").text == "navcam selected"
     assert robot.stack.active_camera == "navcam"
@@ -306,7 +300,7 @@ def test_help_lists_commands_and_explains_one(robot: Robot) -> None:
 def test_an_observer_may_not_drive_or_switch_cameras(text: str) -> None:
     robot = Robot(may_drive=False)
     reply = robot.ask(text)
-    assert reply == ChatReply(reply.id, OBSERVER_REFUSAL, ok=False, reason=Reason.OBSERVER)
+    assert reply == ChatReply(reply.id, OBSERVER_REFUSAL, ok=False, code=Reason.OBSERVER)
     robot.run(1)
     assert robot.stack.current_goal() is None
     assert robot.stack.active_camera == "navcam"
@@ -325,9 +319,9 @@ def test_an_observer_may_stop_a_driver_s_goal() -> None:
     move = driver.say("fwd 5")
     driver.run(1)
     observer.on_payload(encode_request(900, "stop"))
-    assert driver.final(900) == ChatReply(900, "stopped", reason=Reason.OK)
+    assert driver.final(900) == ChatReply(900, "stopped", code=Reason.OK)
     driver.run(0.1)
-    assert driver.final(move) == ChatReply(move, "stopped", ok=False, seq=1, reason=Reason.STOPPED)
+    assert driver.final(move) == ChatReply(move, "stopped", ok=False, seq=1, code=Reason.STOPPED)
     assert driver.stack.current_goal() is None
 
 
@@ -376,7 +370,7 @@ def test_a_broken_adapter_gives_an_error_reply_not_an_exception(
             1,
             "internal error: the robot could not run that",
             ok=False,
-            reason=Reason.INTERNAL_ERROR,
+            code=Reason.INTERNAL_ERROR,
         )
     ]
     assert "adapter bug in pose" in caplog.text
@@ -412,9 +406,7 @@ def test_poll_survives_a_goal_that_breaks(caplog: pytest.LogCaptureFixture) -> N
     nav = OneGoalNav()
     session = ChatSession(nav, role=Role.DRIVER, send=replies.append)  # type: ignore[arg-type]
     session.on_payload(encode_request(1, "fwd 1"))
-    assert replies == [
-        ChatReply(1, "Forward command received", final=False, reason=Reason.ACCEPTED)
-    ]
+    assert replies == [ChatReply(1, "Forward command received", final=False, code=Reason.ACCEPTED)]
     session._motions[0].handle = FailingGoal()  # type: ignore[assignment]
     session.poll()
     assert "chat poll" in caplog.text

@@ -37,7 +37,7 @@ def test_a_say_is_numbered_for_everyone_and_a_repeat_is_answered_without_a_secon
     joined = room.join("c1", "alice", "driver")
     assert joined == Message(1, "bot", "robot", "alice joined (driver)")
     said, message = room.say("c1", Say(5, " hi all "), now=0.0)
-    assert said.ok and said.reason == Reason.OK
+    assert said.ok and said.code == Reason.OK
     assert message == Message(2, "alice", "user", "hi all")
     again, none = room.say("c1", Say(5, " hi all "), now=0.1)
     assert again == said and none is None and room.seq == 2
@@ -51,7 +51,7 @@ def test_a_bad_say_is_refused_with_a_code(text: str, code: Reason) -> None:
     room = Conference("bot")
     room.join("c1", "alice", "observer")
     said, message = room.say("c1", Say(1, text), now=0.0)
-    assert not said.ok and said.reason == code and said.text and message is None
+    assert not said.ok and said.code == code and said.text and message is None
 
 
 def test_too_many_says_are_refused_until_the_window_passes() -> None:
@@ -60,10 +60,10 @@ def test_too_many_says_are_refused_until_the_window_passes() -> None:
     for i in range(RATE_LIMIT):
         assert room.say("c1", Say(i, "hi"), now=0.0)[0].ok
     said, message = room.say("c1", Say(99, "hi"), now=1.0)
-    assert said.reason == Reason.TOO_FAST and message is None
+    assert said.code == Reason.TOO_FAST and message is None
     assert room.say("c1", Say(100, "hi"), now=10.5)[0].ok
     # A call that is not in the room (its join was lost in a race) is told so.
-    assert room.say("nope", Say(1, "hi"), now=0.0)[0].reason == Reason.UNKNOWN_CALL
+    assert room.say("nope", Say(1, "hi"), now=0.0)[0].code == Reason.UNKNOWN_CALL
 
 
 def test_the_roster_marks_the_reader_and_the_driver() -> None:
@@ -109,7 +109,7 @@ def test_a_call_replacing_its_client_s_old_one_reads_as_one_reconnection() -> No
         "alice reconnected (driver)",
     ]
     # Calling again is no way round the rate limit.
-    assert room.say("c3", Say(1, "again"), now=1.0)[0].reason == Reason.TOO_FAST
+    assert room.say("c3", Say(1, "again"), now=1.0)[0].code == Reason.TOO_FAST
     # A client whose call dropped (its leave heard) comes back: a reconnection too.
     assert room.join("c5", "carol", "observer", again=True).text == "carol reconnected (observer)"
     # Only the same user's call is replaced.
@@ -179,14 +179,14 @@ async def test_two_users_see_each_other_and_each_other_s_messages(tmp_path: Path
         await wait_until(lambda: ("bot1", "robot", "bob joined (observer)") in _texts(alice))
 
         said = await bob.say("hello from bob")
-        assert said.ok and said.reason == Reason.OK
+        assert said.ok and said.code == Reason.OK
         said = await alice.say("hello bob")
         assert said.ok
         for client in (alice, bob):
             await wait_until(lambda c=client: ("bob", "user", "hello from bob") in _texts(c))
             await wait_until(lambda c=client: ("alice", "user", "hello bob") in _texts(c))
         refused = await bob.say("   ")
-        assert not refused.ok and refused.reason == Reason.EMPTY
+        assert not refused.ok and refused.code == Reason.EMPTY
 
         # A chat command's replies still go to its sender only.
         result = await alice.chat("where")
@@ -229,7 +229,7 @@ async def test_a_user_s_second_client_observes_and_only_the_call_holding_the_dri
             await wait_until(lambda: ("bot1", "robot", "alice joined (driver)") in _texts(bob))
             # The second call observes: one driver, the first call.
             refused = await page.arm()
-            assert not refused.ok and refused.reason == Reason.NOT_HOLDER
+            assert not refused.ok and refused.code == Reason.NOT_HOLDER
             assert refused.text.startswith("your other call holds the drive")
             # alice moves the drive to her page: the roster follows, the first call observes.
             assert (await page.take_drive()).ok

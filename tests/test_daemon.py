@@ -140,7 +140,7 @@ async def test_goal_through_the_goals_channel(robot: RobotClient) -> None:
     assert math.hypot(x - 3.0, y - 5.2) < 0.2  # as in the goto test: late steps run on
     assert updates[0] == "active"
     refused = await robot.goto(999.0, 999.0, timeout=10)
-    assert refused.status == "failed" and refused.reason == Reason.NO_PATH
+    assert refused.status == "failed" and refused.code == Reason.NO_PATH
     assert refused.text.startswith("no path to (999.00, 999.00): ")
 
 
@@ -190,15 +190,15 @@ async def test_chat_answers_info_commands_and_refuses_bad_ones(robot: RobotClien
 async def test_an_observer_may_not_drive_but_may_stop(daemon: Daemon) -> None:
     async with daemon.connect(daemon.observer_home) as olga:
         refused = await olga.chat("fwd 1")
-        assert not refused.ok and refused.reason == Reason.OBSERVER
+        assert not refused.ok and refused.code == Reason.OBSERVER
         # The text the docs (protocol.md §14.3) give for it:
         assert refused.final_text == "refused: olga is an observer: observers may not drive"
         goal = await olga.goto(3.0, 5.2)
-        assert goal.status == "refused" and goal.reason == Reason.OBSERVER
+        assert goal.status == "refused" and goal.code == Reason.OBSERVER
         assert (await olga.stop()).ok
         assert (await olga.chat("where?")).ok
         refused_arm = await olga.arm()
-        assert not refused_arm.ok and refused_arm.reason == Reason.OBSERVER
+        assert not refused_arm.ok and refused_arm.code == Reason.OBSERVER
 
 
 async def test_garbage_on_every_channel_is_dropped_and_the_daemon_keeps_serving(
@@ -329,10 +329,10 @@ async def test_video_follows_the_camera_switch_and_moving_forces_the_navcam(
         usercam_image = frame.image
         # Moving switches the driver's video to the navcam, and usercam is refused meanwhile.
         replies = robot.chat_replies("fwd 1.5", timeout=30)
-        assert (await anext(replies)).reason == Reason.ACCEPTED
+        assert (await anext(replies)).code == Reason.ACCEPTED
         # Asked at once: the 1.5 s move must still be running (a loaded machine is slow).
         refused = await robot.chat("usercam")
-        assert not refused.ok and refused.reason == Reason.CAMERA_WHILE_MOVING
+        assert not refused.ok and refused.code == Reason.CAMERA_WHILE_MOVING
         async with asyncio.timeout(10):
             async for frame in video:
                 if frame.camera == "navcam":

@@ -251,16 +251,16 @@ def test_driving_needs_an_armed_robot_and_the_drive() -> None:
     rig.join("c3", Role.OBSERVER)
     rig.step()
     rig.send(0.3)
-    assert rig.last().reason == Reason.NOT_ARMED and not rig.last().active
+    assert rig.last().code == Reason.NOT_ARMED and not rig.last().active
     rig.send(0.3, call_id="c2")
-    assert rig.last("c2").reason == Reason.NOT_HOLDER
+    assert rig.last("c2").code == Reason.NOT_HOLDER
     rig.send(0.3, call_id="c3")
-    assert rig.last("c3").reason == Reason.OBSERVER
+    assert rig.last("c3").code == Reason.OBSERVER
     rig.hold(0.3, seconds=0.5, call_id="c3")
     assert rig.nav.velocity().linear == 0.0 and rig.drive.driver is None
     rig.arm()
     rig.hold(0.3, seconds=1.0)
-    assert rig.last().active and rig.last().reason == Reason.OK
+    assert rig.last().active and rig.last().code == Reason.OK
     assert rig.nav.velocity().linear > 0.2
 
 
@@ -320,7 +320,7 @@ def test_no_fresh_command_for_stale_after_stops_the_robot_not_latched() -> None:
         assert rig.clock - rig.sent_at < 1.0
     # Stopped stale_after (0.3 s) after the last command, within a control cycle.
     assert 0.3 - 1e-9 <= rig.clock - rig.sent_at <= 0.3 + DT + 1e-9
-    assert rig.last().reason == Reason.STALE and not rig.last().active
+    assert rig.last().code == Reason.STALE and not rig.last().active
     for _ in range(5):
         rig.step()
     assert rig.nav.velocity().linear == 0.0
@@ -336,12 +336,12 @@ def test_release_stops_at_once_without_latching() -> None:
     rig.hold(0.5, seconds=1.5)
     assert rig.nav.velocity().linear > 0.4
     rig.send(0.0, 0.0)
-    assert rig.last().reason == Reason.RELEASED and not rig.last().active
+    assert rig.last().code == Reason.RELEASED and not rig.last().active
     rig.step()
     assert rig.nav.velocity().linear == 0.0  # within one control cycle, not braking
     assert rig.safety is not None and rig.safety.state().armed
     rig.hold(0.3, seconds=0.5)
-    assert rig.last().active and rig.last().reason == Reason.OK
+    assert rig.last().active and rig.last().code == Reason.OK
 
 
 def test_a_reordered_old_command_never_undoes_a_newer_one() -> None:
@@ -371,7 +371,7 @@ def test_a_goal_ends_driving_and_driving_cancels_a_goal() -> None:
     rig.hold(0.3, seconds=0.5)
     goal = rig.nav.navigate_to(8.0, 5.0)
     rig.step()
-    assert rig.last().reason == Reason.REPLACED and rig.drive.driver is None
+    assert rig.last().code == Reason.REPLACED and rig.drive.driver is None
     assert goal.status is GoalStatus.ACTIVE
     # The tail of the held key does not take over again: the user must let go first.
     rig.hold(0.3, seconds=0.2)
@@ -389,7 +389,7 @@ def test_a_release_just_after_a_goal_leaves_the_goal_running() -> None:
     rig.hold(0.3, seconds=0.5)
     goal = rig.nav.navigate_to(8.0, 5.0)  # before the next control cycle …
     rig.send(0.0)  # … the key is let go
-    assert rig.last().reason == Reason.REPLACED
+    assert rig.last().code == Reason.REPLACED
     rig.step()
     assert goal.status is GoalStatus.ACTIVE
 
@@ -408,7 +408,7 @@ def test_a_follow_ends_driving_and_driving_ends_a_follow() -> None:
     started = rig.follow.start("c1", None, rig.clock)
     assert not isinstance(started, type(None)) and rig.follow.goal is not None
     rig.step()
-    assert rig.last().reason == Reason.REPLACED and rig.drive.driver is None
+    assert rig.last().code == Reason.REPLACED and rig.drive.driver is None
     rig.send(0.0)
     rig.hold(0.3, seconds=0.2)
     assert rig.follow.goal is None and rig.last().active
@@ -437,7 +437,7 @@ def test_any_stop_ends_driving_and_the_robot_stays_stopped(how: str) -> None:
     else:
         call.close()
     if how != "hangup":
-        assert rig.last().reason == Reason.STOPPED and not rig.last().active
+        assert rig.last().code == Reason.STOPPED and not rig.last().active
     assert rig.drive.driver is None
     rig.heartbeats = True
     for _ in range(10):
@@ -456,13 +456,13 @@ def test_invalid_messages_are_answered_and_stop_driving() -> None:
     assert rig.last().active
     rig.raw('{"type": "drive", "seq": 1000, "linear": "' + "A" * 5000 + '", "angular": 0}')
     state = rig.last()
-    assert state.reason == Reason.INVALID and not state.active and "'linear'" in state.text
+    assert state.code == Reason.INVALID and not state.active and "'linear'" in state.text
     rig.step()
     assert rig.nav.velocity().linear == 0.0 and rig.drive.driver is None
     assert rig.safety is not None and rig.safety.state().armed  # not latched
     for garbage in (b"\x00\xff", "A" * 100_000, "[]", "{", '{"type": null}'):
         rig.raw(garbage)
-        assert rig.last().reason == Reason.INVALID and len(rig.last().text) < 200
+        assert rig.last().code == Reason.INVALID and len(rig.last().text) < 200
     before = len(rig.states())
     rig.raw('{"type": "hello"}')  # another type: dropped and counted, not answered
     assert len(rig.states()) == before and call.dropped == 1
@@ -481,10 +481,10 @@ def test_driving_into_an_obstacle_stops_before_it_and_turning_stays_allowed() ->
     pose = rig.nav.true_pose
     assert pose.x < 4.5 - 0.2 - 0.25  # never touched it
     assert rig.nav.collisions == 0
-    assert rig.last().reason == Reason.OBSTACLE and rig.last().active
+    assert rig.last().code == Reason.OBSTACLE and rig.last().active
     assert rig.nav.velocity().linear == 0.0
     rig.hold(0.0, 1.0, seconds=0.5)  # turning on the spot away from it
-    assert rig.last().reason == Reason.OK and rig.nav.velocity().angular > 0.3
+    assert rig.last().code == Reason.OK and rig.nav.velocity().angular > 0.3
 
 
 @dataclass
@@ -559,7 +559,7 @@ def test_with_a_laser_it_brakes_before_what_it_sees(ahead: float, code: str) -> 
         assert sent == 0.0
     assert turn == 0.5  # turning stays allowed
     state = decode_drive_state(call.channels["drive"].sent[-1])
-    assert state.active and state.reason == code
+    assert state.active and state.code == code
     # Reversing: allowed where the laser sees free space behind, never blind.
     call.channels["drive"].receive(DriveCommand(2, -0.2, 0.0).encode())
     assert nav.commands[-1][0] == pytest.approx(-0.2)
@@ -567,14 +567,14 @@ def test_with_a_laser_it_brakes_before_what_it_sees(ahead: float, code: str) -> 
     server.drive.nav = blind  # type: ignore[assignment]
     call.channels["drive"].receive(DriveCommand(3, -0.2, 0.0).encode())
     assert blind.commands[-1][0] == 0.0
-    assert decode_drive_state(call.channels["drive"].sent[-1]).reason == Reason.OBSTACLE
+    assert decode_drive_state(call.channels["drive"].sent[-1]).code == Reason.OBSTACLE
 
 
 def test_without_a_supervisor_observers_are_refused_by_role() -> None:
     rig = Rig(supervisor=False)
     rig.join("c1", Role.OBSERVER)
     rig.hold(0.3, seconds=0.3)
-    assert rig.last().reason == Reason.OBSERVER and rig.nav.velocity().linear == 0.0
+    assert rig.last().code == Reason.OBSERVER and rig.nav.velocity().linear == 0.0
     rig.join("c2")
     rig.hold(0.3, seconds=0.5, call_id="c2")
     assert rig.last("c2").active and rig.nav.velocity().linear > 0.1

@@ -74,7 +74,7 @@ async def test_the_robot_drives_forward_while_held_and_stops_on_release(tmp_path
             await wait_until(lambda: nav.velocity().linear > 0.2)
             await wait_until(lambda: client.drive_state is not None and client.drive_state.active)
             state = client.drive_state
-            assert state is not None and state.reason == Reason.OK
+            assert state is not None and state.code == Reason.OK
             assert 0 < state.linear <= 0.3 + 1e-9 and state.cap > 0
             await wait_until(
                 lambda: math.hypot(nav.true_pose.x - start.x, nav.true_pose.y - start.y) > 0.2
@@ -89,7 +89,7 @@ async def test_the_robot_drives_forward_while_held_and_stops_on_release(tmp_path
         )
         assert ahead > 0.15  # it went forward
         await wait_until(
-            lambda: client.drive_state is not None and client.drive_state.reason == Reason.RELEASED
+            lambda: client.drive_state is not None and client.drive_state.code == Reason.RELEASED
         )
         assert not client.drive_state.active
         assert safety.state().armed  # a release is no stop: nothing latched
@@ -106,7 +106,7 @@ async def test_a_client_that_stops_calling_drive_stops_the_robot_by_itself(
         client.drive(0.4, 0.0)  # once, hold 0.25 s: then silence
         await wait_until(lambda: nav.velocity().linear > 0.1)
         await wait_until(
-            lambda: client.drive_state is not None and client.drive_state.reason == Reason.STALE
+            lambda: client.drive_state is not None and client.drive_state.code == Reason.STALE
         )
         await wait_until(lambda: nav.velocity() == Velocity())
         assert safety.state().armed

@@ -413,12 +413,12 @@ class Guarded:
 def test_follow_is_a_motion_the_supervisor_must_allow() -> None:
     g = Guarded()
     g.follow()
-    assert g.replies[-1].reason == Reason.NOT_ARMED and not g.replies[-1].ok
+    assert g.replies[-1].code == Reason.NOT_ARMED and not g.replies[-1].ok
     assert g.service.goal is None
     g.step()
     assert g.gate.rearm() is None
     g.follow()
-    assert g.replies[-1].text == "following person 1" and g.replies[-1].reason == Reason.ACCEPTED
+    assert g.replies[-1].text == "following person 1" and g.replies[-1].code == Reason.ACCEPTED
     for _ in range(40):
         g.step()
     assert g.walk.nav.velocity().linear > 0.1
@@ -427,7 +427,7 @@ def test_follow_is_a_motion_the_supervisor_must_allow() -> None:
 def test_observers_may_not_start_a_follow() -> None:
     g = Guarded(Role.OBSERVER)
     g.follow("follow 1")
-    assert g.replies[-1].reason == Reason.OBSERVER and g.service.goal is None
+    assert g.replies[-1].code == Reason.OBSERVER and g.service.goal is None
 
 
 @pytest.mark.parametrize("how", ["stop", "key", "release"])
@@ -447,7 +447,7 @@ def test_any_stop_ends_the_follow_at_once_and_the_robot_stays_stopped(how: str) 
         g.chat.handle_text(2, "release")
     g.chat.poll()
     # Ended before any further tick: its final reply comes before the stop's.
-    texts = [(r.id, r.text, r.reason) for r in g.replies]
+    texts = [(r.id, r.text, r.code) for r in g.replies]
     final = next(t for t in texts if t[0] == 1 and t[2] == Reason.STOPPED)
     assert final[1].startswith("stopped: ")
     assert g.service.goal is None
@@ -468,7 +468,7 @@ def test_the_deadman_and_a_dropped_call_end_the_follow() -> None:
         g.step()
     assert g.service.goal is None
     final = [r for r in g.replies if r.id == 1 and r.final][-1]
-    assert final.reason == Reason.STOPPED and "link lost" in final.text
+    assert final.code == Reason.STOPPED and "link lost" in final.text
     for _ in range(20):
         g.step()
     assert g.walk.nav.velocity().linear == 0.0
@@ -525,26 +525,26 @@ def test_refusals_when_nobody_is_tracked_or_the_id_does_not_exist() -> None:
     session, replies = chat(w.service)
     w.people.visible = False
     session.handle_text(1, "follow")
-    assert (replies[-1].reason, replies[-1].ok) == (Reason.NO_PERSON, False)
+    assert (replies[-1].code, replies[-1].ok) == (Reason.NO_PERSON, False)
     assert replies[-1].text == "refused: nobody is tracked near the robot"
     w.people.visible = True
     session.handle_text(2, "follow 7")
-    assert replies[-1].reason == Reason.UNKNOWN_TRACK
+    assert replies[-1].code == Reason.UNKNOWN_TRACK
     assert replies[-1].text == "refused: no tracked person with id 7 (tracked: 1)"
     # Somebody tracked, but behind the robot: nobody in front.
     w.people.override = (2.5, 6.0)
     session.handle_text(3, "follow")
-    assert replies[-1].reason == Reason.NO_PERSON and "person 1, 1.6 m away" in replies[-1].text
+    assert replies[-1].code == Reason.NO_PERSON and "person 1, 1.6 m away" in replies[-1].text
     assert w.service.goal is None
     session.handle_text(4, "unfollow")
     assert replies[-1].text == "not following anyone"
     # A robot without people tracking, or without follow-me at all.
     w.service.people = None
     session.handle_text(5, "follow")
-    assert replies[-1].reason == Reason.NO_PEOPLE_SOURCE
+    assert replies[-1].code == Reason.NO_PEOPLE_SOURCE
     bare, bare_replies = chat(None)
     bare.handle_text(1, "follow")
-    assert bare_replies[-1].reason == Reason.NO_PEOPLE_SOURCE
+    assert bare_replies[-1].code == Reason.NO_PEOPLE_SOURCE
 
 
 def test_unfollow_ends_the_follow_and_stops_the_robot() -> None:
@@ -555,7 +555,7 @@ def test_unfollow_ends_the_follow_and_stops_the_robot() -> None:
     for _ in range(60):
         w.step()
     session.handle_text(2, "unfollow")
-    assert [(r.id, r.text, r.reason) for r in replies[-2:]] == [
+    assert [(r.id, r.text, r.code) for r in replies[-2:]] == [
         (1, "stopped following", Reason.CANCELLED),
         (2, "stopped following", Reason.OK),
     ]
@@ -593,7 +593,7 @@ def test_another_motion_replaces_the_follow() -> None:
     session.poll()
     assert w.service.goal is None
     final = [r for r in replies if r.id == 1][-1]
-    assert final.reason == Reason.REPLACED and final.final
+    assert final.code == Reason.REPLACED and final.final
     assert w.nav.current_goal() is not None  # the turn runs on
 
 
@@ -653,7 +653,7 @@ def test_the_watchdog_thread_s_stop_ends_the_follow_before_the_supervisor_latche
     assert g.driver.supervisor.armed
     assert g.service.goal is None
     final = [r for r in g.replies if r.id == 1][-1]
-    assert final.reason == Reason.STOPPED and "watchdog" in final.text
+    assert final.code == Reason.STOPPED and "watchdog" in final.text
     for _ in range(10):  # nothing drives on
         g.step()
         assert g.walk.nav.velocity() == Velocity()

@@ -84,7 +84,7 @@ async def test_a_dropped_call_ends_the_follow_and_stops_the_robot(tmp_path: Path
         assert (await client.arm()).ok
         replies = client.chat_replies("follow", timeout=30)
         first = await anext(replies)
-        assert (first.text, first.reason) == ("following person 1", Reason.ACCEPTED)
+        assert (first.text, first.code) == ("following person 1", Reason.ACCEPTED)
         await wait_for(lambda: nav.velocity().linear > 0.2, what="the robot following")
         goal = server.follow.goal
         assert goal is not None

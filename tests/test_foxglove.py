@@ -33,6 +33,7 @@ from telebot.apps.foxglove_bridge import (
 )
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.config import AppConfig, CallSettings
+from telebot.robot.grid import OccupancyGrid
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.client import RobotClient, connect
 from telebot.services.schemas import BRIDGE_SCHEMAS, SCHEMAS
@@ -280,6 +281,20 @@ async def test_foxglove_client_gets_map_pose_and_video_with_their_schemas(tmp_pa
         image = fields(fox.messages["/camera"][-1])  # CompressedImage: data 2, format 3
         assert image[3] == [b"jpeg"]
         assert image[2][0][:2] == b"\xff\xd8"  # a JPEG, as the robot sent it
+
+
+async def test_a_map_that_changes_is_logged_again_on_map(tmp_path: Path) -> None:
+    async with robot_and_user(tmp_path) as (nav, client), FoxgloveBridge(client) as bridge:
+        await wait_until(lambda: bridge.counts.get("/map") == 1, timeout=15)
+        grid = nav.map()
+        data = grid.data.copy()
+        row, col = grid.cell_of(9.5, 4.0)
+        data[row - 5 : row + 6, col - 5 : col + 6] = 100  # SLAM found a wall
+        nav.set_map(OccupancyGrid(data, grid.resolution, grid.origin_x, grid.origin_y))
+        # Telemetry says the map changed: the bridge's map follower fetches and logs it.
+        await wait_until(lambda: bridge.counts.get("/map") == 2, timeout=15)
+        assert bridge.map is not None and bridge.map.version == 1
+        assert bridge.map.grid.value_at(9.5, 4.0) == 100
 
 
 async def test_a_goal_published_from_foxglove_drives_the_robot(tmp_path: Path) -> None:
@@ -534,6 +549,9 @@ async def test_a_recording_reads_back_with_the_mcap_reader(tmp_path: Path) -> No
     assert {"state", "safety", "safety_ack"} <= events
     assert any(m["event"] == "safety" and m["request"] == "stop" for m in safety)
     assert any(m["event"] == "state" and m["armed"] for m in safety)
+    # The state's fields as on the wire (telebot.SafetyEvent): the words under "reason".
+    state = next(m for m in safety if m["event"] == "state")
+    assert set(state) == {"event", "armed", "reason", "holder", "cap", "blocked", "code"}
     goals = [json.loads(data) for _, data in messages["/telebot/goal"]]
     assert goals[0]["kind"] == "goal"
     assert goals[-1]["kind"] == "goal_update" and goals[-1]["status"] == "succeeded"
@@ -574,7 +592,7 @@ async def test_relayed_topics_are_channels_with_their_ros2msg_schema(tmp_path: P
 
 
 async def test_the_foxglove_command_serves_until_stopped(tmp_path: Path) -> None:
-    from telebot.apps.foxglove_bridge import serve_foxglove
+    from telebot.apps.foxglove_cli import serve_foxglove
 
     hub = MemoryHub(seed=4)
     config = AppConfig(call=CallSettings(timeout=GENEROUS_TIMEOUT))

@@ -84,7 +84,7 @@ async def hold(fox: FoxgloveWsClient, channel: int, payload: bytes, rate: float)
 
 
 def state_is(client: RobotClient, reason: Reason) -> Callable[[], bool]:
-    return lambda: client.drive_state is not None and client.drive_state.reason == reason
+    return lambda: client.drive_state is not None and client.drive_state.code == reason
 
 
 async def test_holding_a_teleop_direction_drives_and_letting_go_stops(tmp_path: Path) -> None:

@@ -6,7 +6,7 @@ Layers, lowest first (a module may import from its own layer and those below)::
            < router (certificates, router configs) < netem (network emulator)
            < channels.transports
            < channels (call, channel) < robot (nav, grid, ...) < rosmsg
-           < robot.sim < robot.ros2 (the adapters) < safety < services < gateway < apps
+           < robot.sim < robot.ros2 (the adapters) < safety < services < followers < gateway < apps
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ LAYERS = [
     "telebot.robot.ros2",
     "telebot.safety",
     "telebot.services",
+    "telebot.followers",
     "telebot.gateway",
     "telebot.apps",
 ]

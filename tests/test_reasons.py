@@ -82,7 +82,7 @@ def test_every_stop_how_is_documented_in_protocol_md() -> None:
 
 
 def test_a_chat_reply_carries_its_code() -> None:
-    reply = ChatReply(7, "refused: …", ok=False, reason=Reason.NOT_ARMED)
+    reply = ChatReply(7, "refused: …", ok=False, code=Reason.NOT_ARMED)
     message = json.loads(reply.encode())
     assert message["code"] == "not_armed"
     assert decode_reply(reply.encode()) == reply
@@ -100,7 +100,7 @@ def test_goal_updates_and_safety_acks_carry_text_and_code_apart() -> None:
 
 
 def test_messages_of_a_robot_without_codes_still_decode() -> None:
-    assert decode_reply('{"id":1,"seq":0,"text":"x","final":true,"ok":true}').reason == ""
+    assert decode_reply('{"id":1,"seq":0,"text":"x","final":true,"ok":true}').code == ""
     old_goal = '{"type":"status","id":1,"status":"failed","progress":0,"reason":"why"}'
     assert decode_goal_update(old_goal) == GoalUpdate(1, "failed", 0.0, "why", "")
     old_ack = '{"type":"ack","id":1,"ok":false,"reason":"why"}'
@@ -109,7 +109,7 @@ def test_messages_of_a_robot_without_codes_still_decode() -> None:
 
 def test_an_unknown_code_is_kept_and_a_bad_one_refused() -> None:
     newer = '{"id":1,"seq":0,"text":"x","final":true,"ok":false,"code":"too_windy"}'
-    assert decode_reply(newer).reason == "too_windy"
+    assert decode_reply(newer).code == "too_windy"
     for bad in ('"code":5', '"code":null', '"code":"' + "x" * 65 + '"'):
         with pytest.raises(ProtocolError, match="'code'"):
             decode_reply('{"id":1,"seq":0,"text":"x","final":true,"ok":false,' + bad + "}")

@@ -222,7 +222,7 @@ async def test_a_call_back_before_the_robot_saw_the_drop_replaces_it_with_its_dr
         await wait_until(lambda: safety.state().holder_call == client.call.id)
         state = safety.state()
         assert not state.armed and state.holder == USER
-        assert state.reason == f"driver {USER} called again (the old call is replaced)"
+        assert state.text == f"driver {USER} called again (the old call is replaced)"
         await wait_until(lambda: nav.velocity() == Velocity())
         assert nav.current_goal() is None  # cancelled, not resumed
         await wait_until(lambda: [call.id for call in endpoint.calls] == [client.call.id])

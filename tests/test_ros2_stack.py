@@ -896,7 +896,7 @@ async def test_driving_by_hand_publishes_cmd_vel_within_the_cap_and_the_laser_s_
         return [getattr(m, "twist", m).linear.x for _, m in list(nav2.cmd_vel)]
 
     channel.receive(DriveCommand(1, 0.4, 0.5).encode())  # no scan yet
-    assert decode_drive_state(channel.sent[-1]).reason == Reason.OBSTACLE
+    assert decode_drive_state(channel.sent[-1]).code == Reason.OBSTACLE
     await wait_until(lambda: len(nav2.cmd_vel) >= 1)
     twist = getattr(nav2.cmd_vel[-1][1], "twist", nav2.cmd_vel[-1][1])
     assert (twist.linear.x, twist.angular.z) == (0.0, pytest.approx(0.5))
@@ -923,7 +923,7 @@ async def test_driving_by_hand_publishes_cmd_vel_within_the_cap_and_the_laser_s_
     await wait_until(lambda: linear()[-1] == pytest.approx(-0.2))
     channel.receive(DriveCommand(4, 0.0, 0.0).encode())  # let go
     assert stack._zero.streaming
-    assert decode_drive_state(channel.sent[-1]).reason == Reason.RELEASED
+    assert decode_drive_state(channel.sent[-1]).code == Reason.RELEASED
 
 
 async def test_a_scan_that_stopped_coming_is_no_scan(

@@ -91,7 +91,7 @@ def test_motion_is_refused_until_the_holder_rearms() -> None:
     beat(sup, "a", 1.0)
     refused = sup.request_motion("a", 1.0, "fwd 2")
     assert not refused.allowed
-    assert refused.code == Reason.NOT_ARMED and "not armed since start" in refused.reason
+    assert refused.code == Reason.NOT_ARMED and "not armed since start" in refused.text
     assert not any(isinstance(a, SelectCamera) for a in refused.actions)
     rearmed = sup.rearm("a", 1.0)
     assert rearmed.allowed and sup.armed
@@ -123,7 +123,7 @@ def test_only_the_holder_may_rearm() -> None:
     assert sup.holder == "alice" and sup.holder_call == "a"
     bob = sup.rearm("b", 1.0)
     assert not bob.allowed and bob.code == Reason.NOT_HOLDER
-    assert bob.reason == "the drive is held by alice"
+    assert bob.text == "the drive is held by alice"
     olga = sup.rearm("o", 1.0)
     assert not olga.allowed and olga.code == Reason.OBSERVER
     assert not sup.rearm("x", 1.0).allowed
@@ -206,7 +206,7 @@ def test_stops_from_the_robot_itself_and_from_unknown_calls_are_honoured() -> No
 def test_the_holder_leaving_stops_latches_and_frees_the_drive(how: str, words: str) -> None:
     sup = driving()
     actions = sup.leave("a", how, 1.2)  # type: ignore[arg-type]
-    assert isinstance(actions[0], Stop) and actions[0].reason == f"driver alice {words}"
+    assert isinstance(actions[0], Stop) and actions[0].text == f"driver alice {words}"
     assert not sup.armed and sup.holder is None and sup.participant("a") is None
     record = audits(actions)[-1]
     assert record.who == "alice" and record.outcome == "stopped"
@@ -227,7 +227,7 @@ def test_deadman_fires_at_the_timeout_and_not_before() -> None:
     assert not stops(before) and sup.armed and sup.speed_cap(1.0 + TIMEOUT - 1e-6) > 0
     at = sup.tick(1.0 + TIMEOUT)
     reason = "driver alice's link lost: silent 0.50 s (deadman)"
-    assert isinstance(at[0], Stop) and at[0].reason == reason
+    assert isinstance(at[0], Stop) and at[0].text == reason
     assert sup.state().code == Reason.LINK_SILENT and sup.stop_code == Reason.LINK_SILENT
     assert not sup.armed and sup.speed_cap(1.0 + TIMEOUT) == 0.0 and sup.state().cap == 0.0
     # The cap announced just before was already rounded down to 0.
@@ -308,7 +308,7 @@ def test_a_user_s_second_call_observes_and_may_take_the_drive_from_the_first() -
     assert sup.holder_call == "a" and sup.armed
     refused = sup.request_motion("a2", 1.0, "goto lab")
     assert refused.code == Reason.NOT_HOLDER
-    assert refused.reason.startswith("your other call holds the drive")
+    assert refused.text.startswith("your other call holds the drive")
     taken = sup.take_drive("a2", 1.1)
     assert taken.allowed and isinstance(taken.actions[0], Stop) and not sup.armed
     assert sup.holder_call == "a2" and "taken from alice's call a" in taken.audit.detail
@@ -323,13 +323,13 @@ def test_an_admin_takeover_stops_and_latches() -> None:
     beat(sup, "z", 1.0)
     refused = sup.take_drive("b", 1.0)
     assert not refused.allowed and refused.code == Reason.DRIVE_HELD
-    assert refused.reason.startswith("the drive is held by alice")
+    assert refused.text.startswith("the drive is held by alice")
     taken = sup.take_drive("z", 1.1)
     assert taken.allowed and taken.audit.detail == "taken over from alice"
     assert isinstance(taken.actions[0], Stop) and not sup.armed
     assert sup.holder == "zoe" and sup.state().holder_role is Role.ADMIN
     lost = sup.request_motion("a", 1.1, "fwd 1")
-    assert not lost.allowed and lost.reason == "the drive is held by zoe"
+    assert not lost.allowed and lost.text == "the drive is held by zoe"
     assert sup.rearm("z", 1.1).allowed and sup.request_motion("z", 1.1, "fwd 1").allowed
 
 
@@ -343,7 +343,7 @@ def test_release_stops_and_frees_the_drive_for_another_driver() -> None:
     free = sup.request_motion("b", 1.1, "fwd 1")
     assert not free.allowed and free.code == Reason.NOT_HOLDER
     assert sup.take_drive("b", 1.2).allowed and sup.holder == "bob" and not sup.armed
-    assert sup.take_drive("b", 1.2).reason == "already yours"
+    assert sup.take_drive("b", 1.2).text == "already yours"
 
 
 def test_usercam_while_moving_is_refused_unless_configured() -> None:
@@ -467,7 +467,7 @@ def test_every_command_is_audited_with_who_when_and_outcome() -> None:
         "call": "a",
         "what": "motion: fwd 2",
         "outcome": "refused",
-        "detail": decisions[0].reason,
+        "detail": decisions[0].text,
     }
 
 
@@ -578,7 +578,7 @@ def test_a_frozen_picture_lowers_the_cap_and_then_stops_a_moving_robot() -> None
     assert stops(at) and not sup.armed
     state = sup.state()
     assert state.code == Reason.VIDEO_STALE and sup.stop_code == "video_stale"
-    assert state.reason == "video frozen for 1.0 s: the robot stopped itself"
+    assert state.text == "video frozen for 1.0 s: the robot stopped itself"
     record = audits(at)[-1]
     assert (record.what, record.outcome, record.who) == ("video_stale", "stopped", "alice")
     # Latched: fresh pictures do not restart it, a re-arm does (and starts nothing).
@@ -594,7 +594,7 @@ def test_at_rest_a_frozen_picture_only_lowers_the_cap_and_fresh_frames_restore_i
     assert sup.armed and sup.speed_cap(2.9) == 0.0 and not stops(actions)
     refused = sup.request_motion("a", 2.9, "fwd 1")
     assert not refused.allowed and refused.code == Reason.VIDEO_STALE
-    assert "frozen" in refused.reason
+    assert "frozen" in refused.text
     # The next report whose counter grew: a new picture, the cap is back at once.
     actions = sup.video_report("a", 11, 2.9)
     assert sup.speed_cap(2.9) == MAX and caps(actions) == [MAX]

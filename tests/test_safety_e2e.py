@@ -134,7 +134,7 @@ async def arm(client: RobotClient, patience: float = 5.0 + SLACK) -> None:
         if ack.ok:
             return
         assert loop.time() < deadline, ack.text
-        if ack.reason == Reason.NOT_HOLDER:
+        if ack.code == Reason.NOT_HOLDER:
             await client.take_drive()
         await asyncio.sleep(0.1)
 
@@ -247,7 +247,7 @@ async def test_a_frozen_driver_stops_the_robot_within_the_timeout(
     driver = start_driver(daemon, processes, lease_ms=lease_ms)
     call_id, frozen_at = await freeze_or_kill(daemon, observer, driver, signal.SIGSTOP)
     state = await safety_state(observer, lambda s: not s.armed)
-    assert "alice" in state.reason and ("link lost" in state.reason or "dropped" in state.reason)
+    assert "alice" in state.text and ("link lost" in state.text or "dropped" in state.text)
     # With a one-hour lease zenoh never declares alice gone: the call's heartbeats do.
     ended = await daemon.call_ended(call_id)
     assert ended["kind"] == "dropped" and "nothing from alice" in ended["detail"]
@@ -268,7 +268,7 @@ async def test_a_killed_driver_stops_the_robot(
     call_id, _ = await freeze_or_kill(daemon, observer, driver, signal.SIGKILL)
     # Disarmed, and the dead call's drive freed.
     state = await safety_state(observer, lambda s: not s.armed and s.holder is None)
-    assert "alice" in state.reason
+    assert "alice" in state.text
     ended = await daemon.call_ended(call_id)
     assert ended["kind"] == "dropped"
 
@@ -290,7 +290,7 @@ async def test_a_thawed_driver_finds_the_robot_stopped_until_it_is_re_armed(
         state = await safety_state(alice, lambda s: s.holder == USER)
         assert not state.armed
         refused = await alice.chat("fwd 0.3")
-        assert not refused.ok and refused.reason == Reason.NOT_ARMED
+        assert not refused.ok and refused.code == Reason.NOT_ARMED
         await arm(alice)
         armed_at = time.monotonic()
         assert (await safety_state(observer, lambda s: s.armed)).armed
@@ -323,11 +323,11 @@ async def test_an_observer_cannot_drive_but_its_stop_stops_a_moving_robot(
         assert (await alice.stop()).ok
         await arm(alice)
         refused = await observer.chat("fwd 1")
-        assert not refused.ok and refused.reason == Reason.OBSERVER
+        assert not refused.ok and refused.code == Reason.OBSERVER
         goal = await observer.goto(3.0, 5.2, timeout=10)
-        assert goal.status == "refused" and goal.reason == Reason.OBSERVER
+        assert goal.status == "refused" and goal.code == Reason.OBSERVER
         for ack in (await observer.arm(), await observer.take_drive()):
-            assert not ack.ok and ack.reason == Reason.OBSERVER
+            assert not ack.ok and ack.code == Reason.OBSERVER
         await drive_far(alice)
         # The refusals stopped nothing: alice's robot drives...
         await next_pose(observer, lambda p: abs(p.v) > 0.05, timeout=10)
@@ -339,9 +339,9 @@ async def test_an_observer_cannot_drive_but_its_stop_stops_a_moving_robot(
         after = await next_pose(observer, lambda p: p.t > acked, timeout=2 + SLACK)
         assert still(after), after
         state = await safety_state(alice, lambda s: not s.armed)
-        assert OBSERVER in state.reason
+        assert OBSERVER in state.text
         again = await alice.chat("fwd 1")
-        assert not again.ok and again.reason == Reason.NOT_ARMED
+        assert not again.ok and again.code == Reason.NOT_ARMED
 
 
 # -- a data flood ----------------------------------------------------------------------------
@@ -523,9 +523,9 @@ async def test_a_killed_daemon_comes_back_disarmed(tmp_path: Path) -> None:
         daemon.start()  # the same home, so the same audit log
         async with daemon.connect() as alice:
             state = await safety_state(alice, lambda s: s.holder == USER)
-            assert not state.armed and state.reason == "not armed since start"
+            assert not state.armed and state.text == "not armed since start"
             refused = await alice.chat("fwd 0.3")
-            assert not refused.ok and refused.reason == Reason.NOT_ARMED
+            assert not refused.ok and refused.code == Reason.NOT_ARMED
             assert "not armed since start" in refused.final_text
             assert still(await alice.pose())
             await arm(alice)

@@ -37,7 +37,7 @@ async def test_a_bad_safety_id_gets_an_error_line_and_a_bad_stop_still_stops(
         client = RobotClient(call)
         assert (await client.arm()).ok
         replies = client.chat_replies("fwd 3", timeout=30)
-        assert (await anext(replies)).reason == Reason.ACCEPTED
+        assert (await anext(replies)).code == Reason.ACCEPTED
         await wait_until(lambda: nav.velocity().linear > 0.2)
 
         # From here on this test reads the safety channel itself (the client's acks are done).
@@ -68,7 +68,7 @@ async def test_a_bad_safety_id_gets_an_error_line_and_a_bad_stop_still_stops(
         assert decode_safety_reply(json.dumps(error)) == SafetyError(error["reason"], "invalid")
         await wait_until(lambda: nav.velocity() == Velocity())
         assert not safety.supervisor.armed
-        assert "alice (key)" in safety.state().reason  # who and how, as for a valid stop
+        assert "alice (key)" in safety.state().text  # who and how, as for a valid stop
 
         # Every bad id of every request type: an error, and nothing else happens.
         for kind in ("stop", "arm", "take", "release"):

@@ -74,8 +74,8 @@ async def test_a_driver_whose_video_freezes_while_driving_gets_the_robot_stopped
             frozen = True
             await wait_until(lambda: not safety.state().armed)
             state = safety.state()
-            assert state.code == Reason.VIDEO_STALE, state.reason
-            assert state.reason == "video frozen for 1.0 s: the robot stopped itself"
+            assert state.code == Reason.VIDEO_STALE, state.text
+            assert state.text == "video frozen for 1.0 s: the robot stopped itself"
             await wait_until(lambda: nav.velocity() == Velocity())
             # The driver hears why, with the code a page or a program offers the re-arm on.
             await wait_until(

@@ -93,7 +93,7 @@ def test_the_watchdog_thread_stops_the_robot_while_the_event_loop_is_stuck(
         assert nav.emergency_stops == 1
         driver.tick()
         assert not driver.state().armed
-        assert "silent" in driver.state().reason or "lost" in driver.state().reason
+        assert "silent" in driver.state().text or "lost" in driver.state().text
 
 
 def test_the_watchdog_leaves_a_live_driver_alone(tmp_path: Path) -> None:
@@ -118,7 +118,7 @@ def test_chat_motion_needs_an_armed_robot_and_stop_latches(tmp_path: Path) -> No
     def say(text: str) -> str:
         replies.clear()
         chat.handle_text(len(replies) + 1, text)
-        return replies[-1].reason
+        return replies[-1].code
 
     assert say("fwd 1") == Reason.NOT_ARMED
     assert nav.current_goal() is None
@@ -151,7 +151,7 @@ def test_an_observer_may_stop_but_not_drive_or_arm(tmp_path: Path) -> None:
     replies: list[ChatReply] = []
     chat = ChatSession(nav, role=Role.OBSERVER, send=replies.append, gate=driver.gate("c2"))
     chat.handle_text(1, "fwd 1")
-    assert replies[-1].reason == Reason.OBSERVER
+    assert replies[-1].code == Reason.OBSERVER
     assert replies[-1].text == "refused: olga is an observer: observers may not drive"
     refusals = [
         json.loads(line)
@@ -207,7 +207,7 @@ def test_usercam_is_refused_as_soon_as_a_goal_runs_even_before_the_base_moves(
     nav.forward(2.0)
     assert nav.velocity().linear == 0.0  # accepted, not yet moving
     refusal = gate.camera("usercam")
-    assert refusal is not None and refusal.reason == Reason.CAMERA_WHILE_MOVING
+    assert refusal is not None and refusal.code == Reason.CAMERA_WHILE_MOVING
     nav.stop()
     assert gate.camera("usercam") is None
     driver.close()
@@ -233,7 +233,7 @@ async def test_a_failed_robot_step_stops_and_latches(tmp_path: Path) -> None:
     runner.cancel()
     await asyncio.gather(runner, return_exceptions=True)
     assert nav.velocity().linear == 0.0
-    assert not driver.state().armed and "step failed" in driver.state().reason
+    assert not driver.state().armed and "step failed" in driver.state().text
     driver.close()
 
 

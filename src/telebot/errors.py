@@ -122,11 +122,11 @@ class CallTimeout(CallError, TimeoutError):
 
 
 class CallEnded(CallError):
-    """The call was hung up or dropped; ``reason`` says which."""
+    """The call was hung up or dropped; ``code`` says which (the end's kind)."""
 
-    def __init__(self, message: str, reason: str = "") -> None:
+    def __init__(self, message: str, code: str = "") -> None:
         super().__init__(message)
-        self.reason = reason
+        self.code = code
 
 
 class RobotError(TelebotError):
@@ -158,11 +158,11 @@ class UnknownTopic(RobotError, LookupError):
 
 
 class RelayRefused(RobotError, PermissionError):
-    """The robot refused a topic relay; ``reason`` is its code (``"topic_not_allowed"``, …)."""
+    """The robot refused a topic relay; ``code`` is its reason code (``"topic_not_allowed"``, …)."""
 
-    def __init__(self, message: str, reason: str = "") -> None:
+    def __init__(self, message: str, code: str = "") -> None:
         super().__init__(message)
-        self.reason = reason
+        self.code = code
 
 
 class NoPath(RobotError):

@@ -146,7 +146,7 @@ class Refusal:
     """Why something was refused: the text for people and the code for programs."""
 
     text: str
-    reason: Reason
+    code: Reason
 
     def __str__(self) -> str:
         return self.text

@@ -168,8 +168,8 @@ class SafetyState:
     """A snapshot of the supervisor, for telemetry and user interfaces."""
 
     armed: bool
-    #: Why the robot was last stopped (empty while armed).
-    reason: str
+    #: Why the robot was last stopped, in words (empty while armed).
+    text: str
     #: The reason code of the latest stop (``ok`` while armed): ``link_silent`` for the
     #: deadman, ``video_stale``, ``stopped`` for a stop request, … (see ``docs/protocol.md``
     #: §18), so a user interface can tell the robot stopping itself from a STOP button.
@@ -214,9 +214,10 @@ class AuditRecord:
 
 @dataclass(frozen=True, slots=True)
 class Stop:
-    """Stop now: ``NavStack.stop()`` (cancels the running goal and halts the base)."""
+    """Stop now: ``NavStack.stop()`` (cancels the running goal and halts the base);
+    ``text`` says why."""
 
-    reason: str
+    text: str
 
 
 @dataclass(frozen=True, slots=True)
@@ -263,7 +264,8 @@ class Decision:
     """
 
     allowed: bool
-    reason: str
+    #: Why, in words (what a refusal tells the user; the audit record's detail).
+    text: str
     actions: tuple[Action, ...]
     audit: AuditRecord
     code: Reason = Reason.OK
@@ -422,7 +424,7 @@ class SafetySupervisor:
         p = self._holder_participant()
         return SafetyState(
             armed=self._armed,
-            reason=self.stop_reason,
+            text=self.stop_reason,
             code=self.stop_code,
             holder=p.user if p else None,
             holder_call=self._holder,
@@ -568,7 +570,7 @@ class SafetySupervisor:
     # -- commands ------------------------------------------------------------------------
 
     def request_stop(
-        self, call_id: str | None, now: float, reason: str = "stop requested", how: str = ""
+        self, call_id: str | None, now: float, text: str = "stop requested", how: str = ""
     ) -> Decision:
         """Stop: from any participant, or the robot itself when ``call_id`` is None.
 
@@ -583,8 +585,8 @@ class SafetySupervisor:
         p = self._participants.get(call_id) if call_id is not None else None
         by = LOCAL if call_id is None else (p.user if p else f"unknown call {call_id}")
         was_armed = self._armed
-        self._disarm(step, f"{reason} by {by}" + (f" ({how})" if how else ""), Reason.STOPPED)
-        detail = reason if was_armed else f"{reason} (already stopped)"
+        self._disarm(step, f"{text} by {by}" + (f" ({how})" if how else ""), Reason.STOPPED)
+        detail = text if was_armed else f"{text} (already stopped)"
         return self._decide(step, call_id, "stop", True, detail, how=how)
 
     def request_motion(self, call_id: str, now: float, what: str) -> Decision:

@@ -52,6 +52,11 @@ app's Service Call panel calls them; request ``{}``, response ``{"ok", "text", "
 schema ``telebot.Trigger``): the web page's buttons. They go to the robot as the page's do,
 so its supervisor decides (anyone may stop; arm, take and release are a driver's; cancel
 ends the running goal).
+
+The map follows the robot's through :class:`~telebot.followers.MapFollower` (fetched again
+when telemetry's ``map_version`` changes, and across reconnections), as the web page's
+does. The commands around the bridge (``telebot-user foxglove``, ``record``: argument
+checks, wiring, exit codes) are :mod:`telebot.apps.foxglove_cli`.
 """
 
 from __future__ import annotations
@@ -63,8 +68,6 @@ import functools
 import json
 import logging
 import math
-import os
-import socket
 import sys
 import threading
 import time
@@ -72,7 +75,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, Sequenc
 from dataclasses import asdict
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Self, TextIO
+from typing import Any, Self
 
 import foxglove
 from foxglove.channels import (
@@ -113,15 +116,14 @@ from foxglove.websocket import (
 )
 
 from telebot.apps.tasks import BackgroundTasks
-from telebot.channels.transports.base import Transport
-from telebot.config import AppConfig
 from telebot.errors import CallEnded, RelayRefused, TelebotError, UnknownTopic, excerpt
+from telebot.followers import MapFollower
 from telebot.rights import Right, may
 from telebot.services.client import ConnectionEvent, RobotClient
 from telebot.services.mapxfer import MapDownload
 from telebot.services.proto.plan import PlanUpdate
 from telebot.services.proto.relay import RelayedMessage, TopicInfo
-from telebot.services.proto.safety import SafetyAck
+from telebot.services.proto.safety import SafetyAck, SafetyStatus
 from telebot.services.proto.status import PoseUpdate
 from telebot.services.proto.video import CompleteFrame
 from telebot.services.schemas import BRIDGE_SCHEMAS, TRIGGER_REQUEST, TRIGGER_RESULT, schema_bytes
@@ -132,12 +134,8 @@ __all__ = [
     "TELEOP_RATE",
     "TELEOP_TOPIC",
     "FoxgloveBridge",
-    "check_output_file",
-    "check_port",
     "goal_from_pose_stamped",
-    "record_session",
     "recording",
-    "serve_foxglove",
     "teleop_hold",
     "velocity_from_twist",
 ]
@@ -194,6 +192,20 @@ def _yaw_of(qx: float, qy: float, qz: float, qw: float) -> float:
 
 def _json_schema(schema: dict[str, Any]) -> foxglove.Schema:
     return foxglove.Schema(name=schema["title"], encoding="jsonschema", data=schema_bytes(schema))
+
+
+def _safety_event(state: SafetyStatus) -> dict[str, Any]:
+    """A safety state as ``/telebot/safety`` logs it (``telebot.SafetyEvent``: the words
+    under ``reason`` as on the wire)."""
+    return {
+        "event": "state",
+        "armed": state.armed,
+        "reason": state.text,
+        "holder": state.holder,
+        "cap": state.cap,
+        "blocked": state.blocked,
+        "code": state.code,
+    }
 
 
 def _result(ok: bool, text: str, code: str = "") -> dict[str, Any]:
@@ -372,7 +384,6 @@ class FoxgloveBridge:
         self.port = port
         self.mcap = mcap
         self.topics = list(topics)
-        self.map_timeout = map_timeout
         self.context = foxglove.Context()
         #: Messages logged per topic (the progress line shows them).
         self.counts: dict[str, int] = {}
@@ -392,7 +403,9 @@ class FoxgloveBridge:
         self._teleop_command = (0.0, 0.0)
         self._teleop_slow = 0
         self._teleop_warned = False
-        self.map: MapDownload | None = None
+        #: The robot's map, fetched again when it changes (logged on ``/map`` as it arrives).
+        self.maps = MapFollower(client, timeout=map_timeout)
+        self.maps.on_map.append(self._log_map)
         self._server: WebSocketServer | None = None
         self._writer: foxglove.MCAPWriter | None = None
         self._tasks = BackgroundTasks("Foxglove bridge", expected=(CallEnded,))
@@ -458,16 +471,21 @@ class FoxgloveBridge:
             self._pump_plan,
             self._pump_safety,
             self._pump_telemetry,
-            self._fetch_map,
         ):
             self._tasks.spawn(pump())
+        self.maps.start()
         for topic in self.topics:
             self._tasks.spawn(self._relay(topic))
         # What is already known: a new recording starts with it.
         if (safety := client.latest_safety.value) is not None:
-            self._log_json("safety", {"event": "state", **asdict(safety)})
+            self._log_json("safety", _safety_event(safety))
         if (plan := client.plan) is not None:
             self._log_plan(plan)
+
+    @property
+    def map(self) -> MapDownload | None:
+        """The newest map that arrived (``None`` until one has)."""
+        return self.maps.map
 
     @property
     def url(self) -> str:
@@ -491,6 +509,7 @@ class FoxgloveBridge:
         if self._video is not None:
             self._video()
             self._video = None
+        await self.maps.aclose()
         await self._tasks.cancel_all()
         if self._server is not None:
             self._server.stop()
@@ -575,31 +594,13 @@ class FoxgloveBridge:
         latest = self.client.latest_safety
         while True:
             state = await latest.next()
-            self._log_json("safety", {"event": "state", **asdict(state)})
+            self._log_json("safety", _safety_event(state))
 
     async def _pump_telemetry(self) -> None:
         latest = self.client.latest_telemetry
         while True:
             telemetry = await latest.next()
             self._log_json("telemetry", asdict(telemetry))
-            if self.map is not None and self.map.version != telemetry.map_version:
-                log.info("the robot's map changed: fetching it again")
-                self.map = None
-                self._tasks.spawn(self._fetch_map())
-
-    async def _fetch_map(self) -> None:
-        while True:
-            try:
-                download = await self.client.get_map(timeout=self.map_timeout)
-                break
-            except CallEnded:
-                if self.client.finished:
-                    return
-            except (TelebotError, TimeoutError) as exc:
-                log.error("the map did not arrive: %s", exc)
-                return
-        self.map = download
-        self._log_map(download)
 
     def _log_map(self, download: MapDownload) -> None:
         grid = download.grid
@@ -894,7 +895,7 @@ class FoxgloveBridge:
             async with asyncio.timeout(COMMAND_TIMEOUT):
                 if what == "cancel":
                     chat = await client.chat("cancel")
-                    return _result(chat.ok, chat.replies[-1] if chat.replies else "", chat.reason)
+                    return _result(chat.ok, chat.replies[-1] if chat.replies else "", chat.code)
                 actions: dict[str, Callable[[], Awaitable[SafetyAck]]] = {
                     "stop": functools.partial(client.stop, how="button"),
                     "arm": client.arm,
@@ -906,9 +907,7 @@ class FoxgloveBridge:
             return _result(False, _NO_ANSWER)
         except TelebotError as exc:
             return _result(False, str(exc))
-        return _result(
-            ack.ok, ack.text or (_DONE[what] if ack.ok else f"{what} refused"), ack.reason
-        )
+        return _result(ack.ok, ack.text or (_DONE[what] if ack.ok else f"{what} refused"), ack.code)
 
 
 def _trigger_problem(payload: bytes) -> str | None:
@@ -924,87 +923,6 @@ def _trigger_problem(payload: bytes) -> str | None:
     return None
 
 
-# -- the commands -----------------------------------------------------------------------
-
-
-def check_output_file(path: Path) -> str | None:
-    """Why ``path`` cannot be written as a recording (one line), or None if it can."""
-    if path.is_dir():
-        return f"{path} is a folder, not a file"
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        return f"cannot write {path}: no folder {parent}"
-    if not os.access(parent, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
-        return f"cannot write {path}: permission denied"
-    return None
-
-
-def check_port(host: str, port: int) -> str | None:
-    """Why ``host:port`` cannot be served on (one line), or None if it was free a moment ago."""
-    if port == 0:
-        return None
-    try:
-        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
-    except OSError as exc:
-        return f"cannot serve on {host}:{port}: {exc.strerror or exc}"
-    family, kind, proto, _, address = infos[0]
-    with socket.socket(family, kind, proto) as sock:
-        # As the server will: a port in TIME_WAIT is free, one with a listener is not.
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            sock.bind(address)
-        except OSError as exc:
-            return f"cannot serve on {host}:{port}: {exc.strerror or exc}"
-    return None
-
-
-class Progress:
-    """The recording's progress on stderr: one line rewritten on a terminal, a line every
-    :attr:`every` seconds otherwise, and a summary at the end."""
-
-    def __init__(self, bridge: FoxgloveBridge, stream: TextIO = sys.stderr) -> None:
-        self.bridge = bridge
-        self.stream = stream
-        self.tty = stream.isatty()
-        self.every = 0.5 if self.tty else 10.0
-        self.started = time.monotonic()
-
-    def line(self) -> str:
-        """``12.3 s, 456 messages (camera 300, pose 120, …), 1.2 MB``."""
-        counts = self.bridge.counts
-        total = sum(counts.values())
-        top = sorted(counts.items(), key=lambda kv: -kv[1])[:4]
-        parts = ", ".join(f"{topic.rsplit('/', 1)[-1]} {n}" for topic, n in top)
-        size = ""
-        if self.bridge.mcap is not None:
-            with contextlib.suppress(OSError):
-                size = f", {self.bridge.mcap.stat().st_size / 1e6:.1f} MB"
-        elapsed = time.monotonic() - self.started
-        return f"{elapsed:.1f} s, {total} messages ({parts}){size}"
-
-    async def run(self) -> None:
-        """Show the line until cancelled."""
-        while True:
-            await asyncio.sleep(self.every)
-            if self.tty:
-                self.stream.write(f"\r\033[Krecording: {self.line()}")
-            else:
-                self.stream.write(f"recording: {self.line()}\n")
-            self.stream.flush()
-
-    def finish(self, text: str) -> None:
-        if self.tty:
-            self.stream.write("\r\033[K")
-        print(text, file=self.stream, flush=True)
-
-
-def _usage_error(text: str) -> int:
-    from telebot.apps.common import EXIT_USAGE
-
-    print(f"telebot-user: error: {text}", file=sys.stderr)
-    return EXIT_USAGE
-
-
 @contextlib.asynccontextmanager
 async def recording(client: RobotClient, path: Path | None) -> AsyncIterator[FoxgloveBridge | None]:
     """``--record FILE`` of ``ui`` and ``chat``: an MCAP of the call while the block runs."""
@@ -1014,113 +932,3 @@ async def recording(client: RobotClient, path: Path | None) -> AsyncIterator[Fox
     async with FoxgloveBridge(client, mcap=path) as bridge:
         yield bridge
     print(f"recorded to {path} ({sum(bridge.counts.values())} messages)", file=sys.stderr)
-
-
-async def serve_foxglove(
-    robot: str,
-    *,
-    home: Path,
-    config: AppConfig,
-    host: str = "127.0.0.1",
-    port: int = 8765,
-    topics: Sequence[str] = (),
-    record: Path | None = None,
-    stop: asyncio.Event | None = None,
-    announce: Callable[[str], None] = print,
-    transport: Transport | None = None,
-    teleop_topic: str = TELEOP_TOPIC,
-    teleop_rate: float = TELEOP_RATE,
-) -> int:
-    """``telebot-user foxglove``: call ``robot`` and serve it to Foxglove until Ctrl-C
-    (or ``stop``); ``transport``: an open one to share (default: one from ``config``)."""
-    from telebot.apps.common import EXIT_OK, stop_on_signals
-    from telebot.services.client import connect
-
-    if (problem := check_port(host, port)) is not None:
-        return _usage_error(problem)
-    if record is not None and (problem := check_output_file(record)) is not None:
-        return _usage_error(problem)
-    stop = stop or asyncio.Event()
-    async with connect(
-        robot, home=home, config=config, timeout=config.call.connect_timeout, transport=transport
-    ) as client:
-        bridge = FoxgloveBridge(
-            client,
-            host=host,
-            port=port,
-            mcap=record,
-            topics=topics,
-            teleop_topic=teleop_topic,
-            teleop_rate=teleop_rate,
-        )
-        try:
-            await bridge.start()
-        except OSError as exc:
-            await bridge.close()
-            return _usage_error(str(exc))
-        try:
-            client.on_connection.append(lambda event: print(f"[{event}]", file=sys.stderr))
-            announce(
-                f"Foxglove: open a connection to {bridge.url} (role {client.call.role}); "
-                "Ctrl-C to quit"
-            )
-            with stop_on_signals(stop):
-                await stop.wait()
-        finally:
-            await bridge.close()
-    return EXIT_OK
-
-
-async def record_session(
-    robot: str,
-    output: Path,
-    *,
-    home: Path,
-    config: AppConfig,
-    duration: float | None = None,
-    topics: Sequence[str] = (),
-    stop: asyncio.Event | None = None,
-    stream: TextIO = sys.stderr,
-    transport: Transport | None = None,
-    announce: Callable[[str], None] = print,
-) -> int:
-    """``telebot-user record``: write an MCAP of the robot's streams until ``duration`` s
-    have passed or Ctrl-C; the file is finished (summary, index) either way."""
-    from telebot.apps.common import EXIT_OK, stop_on_signals
-    from telebot.services.client import connect
-
-    if (problem := check_output_file(output)) is not None:
-        return _usage_error(problem)
-    stop = stop or asyncio.Event()
-    async with connect(
-        robot, home=home, config=config, timeout=config.call.connect_timeout, transport=transport
-    ) as client:
-        bridge = FoxgloveBridge(client, mcap=output, topics=topics)
-        try:
-            await bridge.start()
-        except OSError as exc:
-            await bridge.close()
-            return _usage_error(str(exc))
-        until = f"for {duration:g} s" if duration else "until Ctrl-C"
-        announce(f"recording {robot} to {output} {until}")
-        sys.stdout.flush()
-        progress = Progress(bridge, stream)
-        shown = asyncio.ensure_future(progress.run())
-        try:
-            with stop_on_signals(stop):
-                ended = asyncio.ensure_future(client.wait_finished())
-                stopped = asyncio.ensure_future(stop.wait())
-                try:
-                    await asyncio.wait(
-                        {ended, stopped}, timeout=duration, return_when=asyncio.FIRST_COMPLETED
-                    )
-                finally:
-                    ended.cancel()
-                    stopped.cancel()
-        finally:
-            shown.cancel()
-            await asyncio.gather(shown, return_exceptions=True)
-            summary = progress.line()
-            await bridge.close()
-        progress.finish(f"recorded {output}: {summary}")
-    return EXIT_OK

@@ -467,7 +467,7 @@ def main(argv: list[str] | None = None) -> int:
                 duration=args.duration,
             )
         if args.command == "ui":
-            from telebot.apps.foxglove_bridge import check_output_file
+            from telebot.apps.foxglove_cli import check_output_file
             from telebot.apps.web.server import serve_ui
 
             if args.record is not None and (problem := check_output_file(args.record)):
@@ -498,7 +498,7 @@ def main(argv: list[str] | None = None) -> int:
                 )
                 return EXIT_USAGE
         if args.command == "foxglove":
-            from telebot.apps.foxglove_bridge import serve_foxglove
+            from telebot.apps.foxglove_cli import serve_foxglove
 
             return await serve_foxglove(
                 args.robot,
@@ -512,7 +512,7 @@ def main(argv: list[str] | None = None) -> int:
                 teleop_rate=args.teleop_rate,
             )
         if args.command == "record":
-            from telebot.apps.foxglove_bridge import record_session
+            from telebot.apps.foxglove_cli import record_session
 
             return await record_session(
                 args.robot,
@@ -548,7 +548,7 @@ async def _talk(args: argparse.Namespace, home: Path) -> int:
             arm=args.arm,
         )
     if args.command == "chat":
-        from telebot.apps.foxglove_bridge import check_output_file
+        from telebot.apps.foxglove_cli import check_output_file
 
         if args.record is not None and (problem := check_output_file(args.record)):
             print(f"{PROG}: error: {problem}", file=sys.stderr)

@@ -127,7 +127,7 @@ def stopped_itself_line(state: SafetyStatus, me: str | None) -> str:
     """The one line the chat prints after the robot stopped itself (``state.stopped_itself``:
     a silent link, a frozen picture, a dropped call): what happened and that ``arm`` drives
     on (said to the drive holder; others learn who may)."""
-    what = state.reason.removesuffix(": the robot stopped itself")  # said once is enough
+    what = state.text.removesuffix(": the robot stopped itself")  # said once is enough
     if me is None or state.holder in (None, me):
         way = "Type 'arm' to drive on."
     else:
@@ -148,7 +148,7 @@ def _say_self_stops(client: RobotClient) -> None:
         # on connecting is what `status` is for), and across reconnections too.
         if previous is None or not state.stopped_itself:
             return
-        if not previous.armed and previous.reason == state.reason:
+        if not previous.armed and previous.text == state.text:
             return
         roster = client.conference.roster
         me = next((m.name for m in roster.users if m.you), None) if roster else None
@@ -714,14 +714,14 @@ class _DriveMode:
         """Say what the robot makes of the driving while in drive mode (until cancelled)."""
         while True:
             state = await self.client.latest_drive.next()
-            said = (state.active, state.reason)
+            said = (state.active, state.code)
             if not self.on or said == self._said:
                 continue
             self._said = said
-            if state.active and state.reason == "ok":
+            if state.active and state.code == "ok":
                 text = f"driving (speed cap {state.cap:.2f} m/s)"
             else:
-                text = state.reason + (f": {state.text}" if state.text else "")
+                text = state.code + (f": {state.text}" if state.text else "")
             print(f"\r\033[K[drive: {text}]", flush=True)
 
 
@@ -752,6 +752,6 @@ async def where(robot: str, *, home: Path, config: AppConfig, timeout: float) ->
             return EXIT_USAGE
     state = pose.state + (f" ({pose.detail})" if pose.detail else "")
     if not safety.armed:  # stopped and latched is not "idle": it will not move until re-armed
-        state = latched_text(safety.reason)
+        state = latched_text(safety.text)
     print(f"{format_pose(pose.x, pose.y, pose.yaw)}; {state}")
     return EXIT_OK

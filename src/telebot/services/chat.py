@@ -160,8 +160,9 @@ class DriveGate(Protocol):
         """May the caller select this camera now?"""
         ...
 
-    def stop(self, reason: str = "stop requested", how: str = "") -> None:
-        """Stop the robot and latch (never refused); ``how`` it was given, for the audit."""
+    def stop(self, text: str = "stop requested", how: str = "") -> None:
+        """Stop the robot and latch (never refused); ``text`` says why, ``how`` it was given,
+        for the audit."""
         ...
 
     def rearm(self) -> Refusal | None:
@@ -280,7 +281,7 @@ class ChatSession:
         try:
             command = parse_command(text)
         except CommandError as exc:
-            self._reply(request_id, str(exc), exc.reason, ok=False)
+            self._reply(request_id, str(exc), exc.code, ok=False)
             return
         # Who moved the robot belongs in the log; a web UI polling "status" does not.
         level = logging.INFO if isinstance(command, (*_DRIVING, Stop)) else logging.DEBUG
@@ -520,7 +521,7 @@ class ChatSession:
     # ------------------------------------------------------------------ output
 
     def _refused(self, request_id: int, refusal: Refusal) -> None:
-        self._reply(request_id, f"refused: {refusal}", refusal.reason, ok=False)
+        self._reply(request_id, f"refused: {refusal}", refusal.code, ok=False)
 
     def _final_reply(self, request_id: int, handle: GoalHandle) -> None:
         ok = handle.status is GoalStatus.SUCCEEDED
@@ -530,7 +531,7 @@ class ChatSession:
         self,
         request_id: int,
         text: str,
-        reason: str = Reason.OK,
+        code: str = Reason.OK,
         *,
         final: bool = True,
         ok: bool = True,
@@ -540,7 +541,7 @@ class ChatSession:
         if not final:
             self._seq[request_id] = seq + 1
         reply = ChatReply(
-            request_id, text, final=final, ok=ok, attachment=attachment, seq=seq, reason=reason
+            request_id, text, final=final, ok=ok, attachment=attachment, seq=seq, code=code
         )
         try:
             self._send(reply)

@@ -134,7 +134,7 @@ RELEASE_REPEATS = 3
 class ChatResult:
     """All replies to one chat command; ``ok`` is the final reply's verdict.
 
-    ``reason`` is the final reply's code (:class:`~telebot.reasons.Reason`:
+    ``code`` is the final reply's reason code (:class:`~telebot.reasons.Reason`:
     ``"finished"``, ``"not_armed"``, ``"observer"``, …): decide on it, never on the text.
     """
 
@@ -142,7 +142,7 @@ class ChatResult:
     replies: list[str] = field(default_factory=list)
     ok: bool = False
     attachment: str | None = None
-    reason: str = ""
+    code: str = ""
 
     @property
     def final_text(self) -> str:
@@ -575,7 +575,7 @@ class RobotClient:
                             first
                             and reply.final
                             and not reply.ok
-                            and reply.reason == Reason.RTT_UNMEASURED
+                            and reply.code == Reason.RTT_UNMEASURED
                             and attempt < UNMEASURED_RETRIES
                         ):
                             break
@@ -587,7 +587,7 @@ class RobotClient:
                                 "text": reply.text,
                                 "ok": reply.ok,
                                 "final": reply.final,
-                                "code": reply.reason,
+                                "code": reply.code,
                             },
                         )
                         yield reply
@@ -637,7 +637,7 @@ class RobotClient:
             if reply.final:
                 result.ok = reply.ok
                 result.attachment = reply.attachment
-                result.reason = reply.reason
+                result.code = reply.code
         return result
 
     async def stop(self, *, how: str = "api", timeout: float = 5.0) -> SafetyAck:
@@ -692,7 +692,7 @@ class RobotClient:
                         continue  # lost one way or the other: say it again
                     self._note(
                         "safety_ack",
-                        {"request": kind, "ok": ack.ok, "text": ack.text, "code": ack.reason},
+                        {"request": kind, "ok": ack.ok, "text": ack.text, "code": ack.code},
                     )
                     return ack
         finally:
@@ -734,7 +734,7 @@ class RobotClient:
     @property
     def drive_state(self) -> DriveState | None:
         """The robot's newest ``drive_state`` (None before the first): ``active``, the code
-        (``reason``: ``ok``, ``released``, ``stale``, ``obstacle``, ``not_armed``, …), the
+        (``code``: ``ok``, ``released``, ``stale``, ``obstacle``, ``not_armed``, …), the
         velocity it commands now and the speed cap."""
         return self.latest_drive.value
 
@@ -800,7 +800,7 @@ class RobotClient:
                 update = await self._one_goal(x, y, yaw, on_update)
                 # Refused only because the robot has not measured the new call's round
                 # trip yet (just after set-up): ask again shortly, as chat does.
-                if not (update.status == "refused" and update.reason == Reason.RTT_UNMEASURED):
+                if not (update.status == "refused" and update.code == Reason.RTT_UNMEASURED):
                     return update
                 if attempt < UNMEASURED_RETRIES:
                     await asyncio.sleep(RESEND_AFTER / 3)
@@ -835,7 +835,7 @@ class RobotClient:
                     self._send(core.goals, start)  # the goal itself was lost
                     continue
                 heard = True
-                if not (update.status == "refused" and update.reason == Reason.RTT_UNMEASURED):
+                if not (update.status == "refused" and update.code == Reason.RTT_UNMEASURED):
                     self._note(
                         "goal_update",
                         {
@@ -846,7 +846,7 @@ class RobotClient:
                             "status": update.status,
                             "progress": update.progress,
                             "text": update.text,
-                            "code": update.reason,
+                            "code": update.code,
                         },
                     )
                     if on_update is not None:
@@ -976,7 +976,7 @@ class RobotClient:
         robot's cap); ``latest_only``: the robot keeps only the newest unsent message. The
         relay ends when the block is left, and with the call it started on (iteration then
         stops). Raises :class:`~telebot.errors.UnknownTopic` (its message and ``near`` list
-        near matches) or :class:`~telebot.errors.RelayRefused` (``reason``: a reason code,
+        near matches) or :class:`~telebot.errors.RelayRefused` (``code``: a reason code,
         ``"topic_not_allowed"`` when the caller's role may not relay it).
         """
         return self._relay_stream(topic, rate, latest_only, timeout)

@@ -116,7 +116,7 @@ class _Room:
             if status.armed != self._armed:
                 was, self._armed = self._armed, status.armed
                 if was is not None:  # not at start-up: only real changes are news
-                    text = "armed" if status.armed else f"stopped: {status.reason or 'stopped'}"
+                    text = "armed" if status.armed else f"stopped: {status.text or 'stopped'}"
                     self.broadcast(self.conference.announce(text))
         if changed or now >= self._next_roster:
             self._next_roster = now + ROSTER_EVERY

@@ -140,7 +140,7 @@ class CallDrive:
         """Send ``state`` if ``active`` or ``code`` changed (or ``force``); while active,
         :meth:`tick` repeats it at 5 Hz."""
         sent = self._sent
-        changed = sent is None or (sent.active, sent.reason) != (state.active, state.reason)
+        changed = sent is None or (sent.active, sent.code) != (state.active, state.code)
         self._sent = state
         if state.active:
             if changed:
@@ -246,13 +246,13 @@ class DriveService:
         # A new start: what a goal needs.
         if call.refused is not None and gap < self.settings.stale_after:
             state, key, when = call.refused
-            retry = UNMEASURED_RETRY if state.reason == Reason.RTT_UNMEASURED else REFUSAL_RETRY
+            retry = UNMEASURED_RETRY if state.code == Reason.RTT_UNMEASURED else REFUSAL_RETRY
             if key == self._safety_key() and now - when < retry:
                 call.report(self._with_seq(state, call), now)
                 return
         refusal = self._may_start(call)
         if refusal is not None:
-            state = DriveState(0, False, refusal.reason, refusal.text, 0.0, 0.0, self._cap())
+            state = DriveState(0, False, refusal.code, refusal.text, 0.0, 0.0, self._cap())
             call.refused = (state, self._safety_key(), now)
             call.report(self._with_seq(state, call), now, force=True)
             return
@@ -394,7 +394,7 @@ class DriveService:
 
     def _safety_refusal(self, state: SafetyState, driver: CallDrive) -> str | None:
         if not state.armed:
-            return state.reason or "the robot was stopped"
+            return state.text or "the robot was stopped"
         if state.holder_call != driver.call_id:
             return "the drive changed hands"
         return None
@@ -436,7 +436,7 @@ class DriveService:
     def _with_seq(state: DriveState, call: CallDrive) -> DriveState:
         seq = call.seq if call.seq is not None else 0
         return DriveState(
-            seq, state.active, state.reason, state.text, state.linear, state.angular, state.cap
+            seq, state.active, state.code, state.text, state.linear, state.angular, state.cap
         )
 
 

@@ -283,7 +283,7 @@ class FollowService:
 
     def _safety_refusal(self, state: SafetyState) -> str | None:
         if not state.armed:
-            return state.reason or "stopped"
+            return state.text or "stopped"
         if state.holder_call != self._call:
             return "the drive changed hands"
         return None

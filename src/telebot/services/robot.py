@@ -179,7 +179,7 @@ class CallServices:
         if refusal is None:
             ack = SafetyAck(request.id, True, "", Reason.OK).encode()
         else:
-            ack = SafetyAck(request.id, False, refusal.text, refusal.reason).encode()
+            ack = SafetyAck(request.id, False, refusal.text, refusal.code).encode()
         _remember(self._safety_acks, request.id, ack)
         self.server.emit(
             {"event": "safety", "peer": self.call.peer, "type": request.type, "ok": refusal is None}
@@ -257,7 +257,7 @@ class CallServices:
             observer = Refusal(_OBSERVER, Reason.OBSERVER)
             refusal = None if may_drive(self.call.role) else observer
         if refusal is not None:
-            refused = GoalUpdate(command.id, "refused", 0.0, refusal.text, refusal.reason)
+            refused = GoalUpdate(command.id, "refused", 0.0, refusal.text, refusal.code)
             _remember(self._goals, command.id, refused)
         else:
             try:
@@ -273,7 +273,7 @@ class CallServices:
     def _goal_update(self, goal_id: int) -> GoalUpdate:
         entry = self._goals.get(goal_id)
         if entry is None:
-            return GoalUpdate(goal_id, "unknown", reason=Reason.UNKNOWN_GOAL)
+            return GoalUpdate(goal_id, "unknown", code=Reason.UNKNOWN_GOAL)
         if isinstance(entry, GoalUpdate):
             return entry
         if entry.status is GoalStatus.ACTIVE:
@@ -408,7 +408,7 @@ class CallServices:
             role=str(self.call.role) if self.call.role is not None else "",
             diagnostics=dict(nav.diagnostics()),
             armed=safety.armed,
-            stop_reason=safety.reason,
+            stop_reason=safety.text,
             holder=safety.holder,
             video_fps=round(video.fps, 2) if video is not None else 0.0,
             video_width=video.width if video is not None else 0,
@@ -492,9 +492,7 @@ def default_robot_services() -> ServiceRegistry[RobotServer]:
 
 def _status(state: SafetyState) -> SafetyStatus:
     """The supervisor's state as the ``safety`` channel tells it."""
-    return SafetyStatus(
-        state.armed, state.reason, state.holder, state.cap, state.blocked, state.code
-    )
+    return SafetyStatus(state.armed, state.text, state.holder, state.cap, state.blocked, state.code)
 
 
 def _remember(table: OrderedDict[int, Any], key: int, value: Any) -> None:

@@ -160,9 +160,9 @@ class SafetyDriver:
             now = self._clock()
             self.apply(self.supervisor.video_report(call.id, report.frames, now, bye=report.bye))
 
-    def stop(self, call_id: str | None, reason: str = "stop requested", how: str = "") -> Decision:
+    def stop(self, call_id: str | None, text: str = "stop requested", how: str = "") -> Decision:
         """Stop (anyone may; ``call_id`` None: the robot itself); ``how``: see ``STOP_HOWS``."""
-        return self.carry_out(self.supervisor.request_stop(call_id, self._clock(), reason, how))
+        return self.carry_out(self.supervisor.request_stop(call_id, self._clock(), text, how))
 
     def heard(self, call_id: str) -> None:
         """Tell the supervisor ``call_id``'s latest sign of life and link quality now, not
@@ -206,8 +206,8 @@ class SafetyDriver:
         """Carry out the supervisor's actions in order."""
         for action in actions:
             match action:
-                case Stop(reason):
-                    log.warning("safety stop: %s", reason)
+                case Stop(text):
+                    log.warning("safety stop: %s", text)
                     self.nav.stop()
                 case SetSpeedCap(linear):
                     self.nav.set_speed_limit(linear)
@@ -263,7 +263,7 @@ class CallGate:
 
     def _decide(self, decision: Decision) -> Refusal | None:
         self._driver.carry_out(decision)
-        return None if decision.allowed else Refusal(decision.reason, decision.code)
+        return None if decision.allowed else Refusal(decision.text, decision.code)
 
     def motion(self, what: str) -> Refusal | None:
         """May this call start ``what`` (a motion command) now?"""
@@ -279,9 +279,10 @@ class CallGate:
         sup = self._driver.supervisor
         return self._decide(sup.request_camera(self.call_id, name, moving, self._driver._clock()))
 
-    def stop(self, reason: str = "stop requested", how: str = "") -> None:
-        """Stop the robot (never refused); ``how`` it was given goes to the audit log."""
-        self._driver.stop(self.call_id, reason, how)
+    def stop(self, text: str = "stop requested", how: str = "") -> None:
+        """Stop the robot (never refused); ``text`` says why, ``how`` it was given goes to
+        the audit log."""
+        self._driver.stop(self.call_id, text, how)
 
     def rearm(self) -> Refusal | None:
         """Re-arm the robot (the drive holder only)."""

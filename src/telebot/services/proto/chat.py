@@ -86,13 +86,13 @@ MAX_TURN_DEG = 360.0
 class CommandError(ProtocolError):
     """A chat line that is not a valid command; ``str(exc)`` is the exact reply text.
 
-    ``reason`` is the reply's code: :attr:`Reason.USAGE` for bad arguments (the text is the
+    ``code`` is the reply's code: :attr:`Reason.USAGE` for bad arguments (the text is the
     usage line), :attr:`Reason.UNKNOWN_COMMAND` for an unknown word or an empty line.
     """
 
-    def __init__(self, text: str, reason: Reason = Reason.USAGE) -> None:
+    def __init__(self, text: str, code: Reason = Reason.USAGE) -> None:
         super().__init__(text)
-        self.reason = reason
+        self.code = code
 
 
 # ---------------------------------------------------------------------------- commands
@@ -519,7 +519,7 @@ class ChatReply:
     failure, a blocked robot). ``attachment`` names what follows on another channel
     (``"map"``). ``seq`` numbers the replies to one request from 0, so that a client can
     drop the copies a robot sends again when a request is repeated over the lossy link.
-    ``reason`` is the stable code to decide on (the wire's ``code``, see
+    ``code`` is the stable code to decide on (the wire's ``code``, see
     :class:`~telebot.reasons.Reason`; ``""`` from a robot that sends none).
     """
 
@@ -529,7 +529,7 @@ class ChatReply:
     ok: bool = True
     attachment: str | None = None
     seq: int = 0
-    reason: str = ""
+    code: str = ""
 
     def encode(self) -> str:
         """The reply as a JSON text datagram (text shortened to :data:`MAX_REPLY_TEXT`)."""
@@ -545,8 +545,8 @@ class ChatReply:
         }
         if self.attachment is not None:
             message["attachment"] = self.attachment
-        if self.reason:
-            message["code"] = self.reason
+        if self.code:
+            message["code"] = self.code
         return encode_object(message)
 
 

@@ -91,17 +91,17 @@ class Since:
 
 @dataclass(frozen=True, slots=True)
 class Said:
-    """The robot's answer to :class:`Say` ``id`` (``text``: why, for people; ``reason``: code)."""
+    """The robot's answer to :class:`Say` ``id`` (``text``: why, for people; ``code``: its reason code)."""
 
     id: int
     ok: bool
     text: str = ""
-    reason: str = ""
+    code: str = ""
 
     def encode(self) -> str:
         """The datagram text."""
         return encode_object(
-            {"type": "said", "id": self.id, "ok": self.ok, "reason": self.text, "code": self.reason}
+            {"type": "said", "id": self.id, "ok": self.ok, "reason": self.text, "code": self.code}
         )
 
 

@@ -82,14 +82,14 @@ class DriveCommand:
 class DriveState:
     """The robot's direct-driving state, as the user hears it.
 
-    ``reason`` is the code (:class:`~telebot.reasons.Reason`: ``ok``, ``released``,
+    ``code`` is the reason code (:class:`~telebot.reasons.Reason`: ``ok``, ``released``,
     ``stale``, ``replaced``, ``stopped``, ``obstacle``, ``invalid`` or a motion refusal);
     ``text`` says why in words (the wire's ``reason`` field), empty while all is well.
     """
 
     seq: int
     active: bool
-    reason: str
+    code: str
     text: str = ""
     linear: float = 0.0
     angular: float = 0.0
@@ -102,7 +102,7 @@ class DriveState:
                 "type": "drive_state",
                 "seq": self.seq,
                 "active": self.active,
-                "code": self.reason,
+                "code": self.code,
                 "reason": self.text,
                 "linear": round(self.linear, 3),
                 "angular": round(self.angular, 3),

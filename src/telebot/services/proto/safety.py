@@ -116,19 +116,19 @@ class SafetyRequest:
 class SafetyAck:
     """The robot's answer to request ``id``.
 
-    ``text`` says why in words (the wire's ``reason`` field); ``reason`` is the stable code
+    ``text`` says why in words (the wire's ``reason`` field); ``code`` is the stable code
     to decide on (the wire's ``code``, see :class:`~telebot.reasons.Reason`).
     """
 
     id: int
     ok: bool
     text: str = ""
-    reason: str = ""
+    code: str = ""
 
     def encode(self) -> str:
         """The datagram text."""
         return encode_object(
-            {"type": "ack", "id": self.id, "ok": self.ok, "reason": self.text, "code": self.reason}
+            {"type": "ack", "id": self.id, "ok": self.ok, "reason": self.text, "code": self.code}
         )
 
 
@@ -136,18 +136,16 @@ class SafetyAck:
 class SafetyError:
     """The robot's answer to a request that does not decode (it has no valid ``id`` to ack).
 
-    ``text`` says what was wrong in one line (the wire's ``reason``); ``reason`` is the code
+    ``text`` says what was wrong in one line (the wire's ``reason``); ``code`` is the code
     (the wire's ``code``, ``invalid``).
     """
 
     text: str
-    reason: str
+    code: str
 
     def encode(self) -> str:
         """The datagram text."""
-        return encode_object(
-            {"type": "error", "ok": False, "reason": self.text, "code": self.reason}
-        )
+        return encode_object({"type": "error", "ok": False, "reason": self.text, "code": self.code})
 
 
 class InvalidSafetyRequest(ProtocolError):
@@ -174,7 +172,8 @@ class SafetyStatus:
     """
 
     armed: bool
-    reason: str
+    #: Why the robot was last stopped, in words (the wire's ``reason``; empty while armed).
+    text: str
     holder: str | None
     cap: float
     blocked: bool
@@ -192,7 +191,7 @@ class SafetyStatus:
             {
                 "type": "state",
                 "armed": self.armed,
-                "reason": self.reason,
+                "reason": self.text,
                 "code": self.code,
                 "holder": self.holder,
                 "cap": round(self.cap, 3),

@@ -143,7 +143,7 @@ class GoalUpdate:
     """Where goal ``id`` stands (robot → user).
 
     ``text`` says why in words (the wire's ``reason`` field: ``"no path to (1.00, 2.00):
-    inside an obstacle"``); ``reason`` is the stable code to decide on (the wire's ``code``:
+    inside an obstacle"``); ``code`` is the stable code to decide on (the wire's ``code``:
     ``"no_path"``, see :class:`~telebot.reasons.Reason`).
     """
 
@@ -151,7 +151,7 @@ class GoalUpdate:
     status: str
     progress: float = 0.0
     text: str = ""
-    reason: str = ""
+    code: str = ""
 
     @property
     def final(self) -> bool:
@@ -167,7 +167,7 @@ class GoalUpdate:
                 "status": self.status,
                 "progress": round(self.progress, 4),
                 "reason": self.text,
-                "code": self.reason,
+                "code": self.code,
             }
         )
 
@@ -186,7 +186,7 @@ def decode_goal_update(payload: str | bytes) -> GoalUpdate:
         status=status,
         progress=finite_number(msg, "progress", what=what),
         text=_text(msg, "reason", what, default=""),
-        reason=decode_code(msg, what=what),
+        code=decode_code(msg, what=what),
     )
 
 
