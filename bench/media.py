@@ -1,6 +1,6 @@
 """Media: H.264 against JPEG, and a stop while media streams both ways; browser parts by hook.
 
-Run ``.venv/bin/python bench/media.py`` (about 30 s; ``--quick``: a check that it runs, 15
+Run ``.venv/bin/python bench/media.py`` (about 30 s; ``--quick``: a check that it runs, 30
 frames in A, 2 s in B, C at 320 × 240 for 3 s a part). Loopback,
 one process. What it measures:
 
@@ -210,7 +210,7 @@ def pct(values: list[float], q: float) -> float:
 
 
 async def main(quick: bool) -> None:
-    n = 15 if quick else 120
+    n = 30 if quick else 120
     print(f"A. H.264 against JPEG q80, 640 x 480, {n} frames at {FPS} fps")
     sim_ratio = compare("A1 simulator camera", sim_frames(n))
     tex_ratio = compare("A2 textured scene", textured_frames(n))
