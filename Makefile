@@ -4,7 +4,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: install install-debian demo test lint bench clean
+.PHONY: install install-debian demo test lint bench bench-quick clean
 
 install: $(VENV)/.installed
 
@@ -33,18 +33,17 @@ node_modules/.installed: package-lock.json | install-debian
 	npm ci --no-audit --no-fund
 	touch $@
 
-bench: install
-	$(BIN)/python bench/channels.py
-	$(BIN)/python bench/nav.py
-	$(BIN)/python bench/mapxfer.py
-	$(BIN)/python bench/video.py
-	$(BIN)/python bench/safety.py
-	$(BIN)/python bench/fleet.py
-	$(BIN)/python bench/ros2.py
-	.ci/install-debian
-	$(BIN)/python bench/ui.py
-	$(BIN)/python bench/media.py
-	$(BIN)/python bench/browser.py
+# Every benchmark in full (tens of minutes); bench-quick runs each in its --quick mode
+# (seconds each, tiny sizes: a check that none rots, its figures are noise), as
+# tests/test_bench_quick.py does in `make test`.
+BENCHES := channels nav mapxfer video safety fleet ros2 routers wan people record relay \
+	ui media browser
+
+bench: install install-debian
+	set -e; for b in $(BENCHES); do $(BIN)/python bench/$$b.py; done
+
+bench-quick: install install-debian
+	set -e; for b in $(BENCHES); do $(BIN)/python bench/$$b.py --quick; done
 
 install-debian:
 	.ci/install-debian

@@ -54,7 +54,8 @@ How to read it: ``ratio_*`` = telebot msgs/s ÷ raw msgs/s (higher is better; ta
 ≥ 0.30 / 0.40 / 0.60 for 64 B / 1 KB / 32 KB); ``rtt_*_ratio`` = telebot RTT ÷ raw
 RTT (lower is better; targets ≤ 1.5 for p50 and ≤ 2 for p99). PASS/MISS is
 informational; the exit status is non-zero only when the benchmark itself broke.
-The last line (``RESULT ...``) is meant for scripts.
+The last line (``RESULT ...``) is meant for scripts. ``--quick``: 0.2 s floods, 40 pings, a
+0.5 s flood and one 1 s cut in D and E (a check that it runs; the figures are noise).
 
 Children (internal): ``--child raw|transport PORT``, ``--child raw-aead PORT SUITE KEY``
 and ``--child telebot PORT HOME``.
@@ -88,6 +89,7 @@ from typing import Any, Generic, NamedTuple, TypeVar
 
 import zenoh
 
+import _survival
 from _survival import Survival, measure_survival, survival_report
 from telebot.channels.call import Call, RobotEndpoint, UserEndpoint
 from telebot.channels.channel import ReceivedDatagram
@@ -888,7 +890,12 @@ def main() -> None:
     parser.add_argument(
         "--survival-only", action="store_true", help="run sections D and E only (about 60 s)"
     )
+    parser.add_argument("--quick", action="store_true", help="a little of each (seconds)")
     args = parser.parse_args()
+    if args.quick:
+        global DURATION, WARMUP_PINGS, PINGS, PING_ROUNDS
+        DURATION, WARMUP_PINGS, PINGS, PING_ROUNDS = 0.2, 10, 40, 2
+        _survival.FLOOD_SECONDS, _survival.CUTS, _survival.CUT_SECONDS = 0.5, 1, 1.0
     if args.child:
         run_child(args.child, args.profile)
         return

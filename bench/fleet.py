@@ -39,10 +39,13 @@ Run: ``python bench/fleet.py`` (about a minute). Targets: listing of 100 robots 
 p99 <= 20 ms at N = 50, router memory <= 2 MB per robot. The last line is
 ``RESULT list100_ms=... stop_p99_ms_n50=... router_mb_per_robot=...`` (memory per robot:
 router RSS at N = 100 with 50 streamed calls minus its RSS with no client, over 100).
+``--quick``: N = 2 and 4 (4 streamed calls, one observer process), 5 stops, one listing (a
+check that it runs; the RESULT keys keep their names).
 """
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import contextlib
 import json
@@ -488,4 +491,8 @@ if __name__ == "__main__":
     if sys.argv[1:2] == ["--child"]:
         child_main(sys.argv[2:])
     else:
+        parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+        parser.add_argument("--quick", action="store_true", help="N = 2 and 4, 5 stops")
+        if parser.parse_args().quick:
+            STEPS, OBSERVERS, OBSERVED, STOPS, LISTINGS, PINGS = (2, 4), 1, 4, 5, 1, 10
         asyncio.run(main())

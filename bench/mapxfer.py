@@ -21,7 +21,8 @@ takes several chunks, B and C are repeated (informational) on the same map with 
 its known cells flipped at random, as a noisy SLAM map would look.
 
 Each target line prints target ÷ measured (above 1 = within the target). The last line
-(``RESULT ...``) is for scripts. Child (internal): ``--child PORT HOME``; it prints
+(``RESULT ...``) is for scripts. ``--quick``: 2 encodes, 3 fetches, 3 lossy runs (a check
+that it runs). Child (internal): ``--child PORT HOME``; it prints
 ``ready`` and serves until its stdin closes.
 """
 
@@ -221,10 +222,14 @@ def chunks_of(encoded: EncodedMap) -> int:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--child", nargs=2, metavar=("PORT", "HOME"), help=argparse.SUPPRESS)
+    parser.add_argument("--quick", action="store_true", help="a few runs of each (seconds)")
     args = parser.parse_args()
     if args.child:
         asyncio.run(robot_child(int(args.child[0]), Path(args.child[1])))
         return
+    if args.quick:
+        global ENCODE_RUNS, ZENOH_RUNS, LOSSY_RUNS
+        ENCODE_RUNS, ZENOH_RUNS, LOSSY_RUNS = 2, 3, 3
     started = time.monotonic()
     grid = default_grid()
     default, noisy = encode_map(grid, "building"), encode_map(speckled(grid), "building-speckled")

@@ -1,6 +1,7 @@
 """Media: H.264 against JPEG, and a stop while media streams both ways; browser parts by hook.
 
-Run ``.venv/bin/python bench/media.py`` (about 30 s; ``--quick`` for a short run). Loopback,
+Run ``.venv/bin/python bench/media.py`` (about 30 s; ``--quick``: a check that it runs, 30
+frames in A, 2 s in B, B and C at 320 × 240, 3 s a part in C). Loopback,
 one process. What it measures:
 
 A. Bytes per frame and PSNR, H.264 (libx264 Constrained Baseline, ultrafast/zerolatency,
@@ -144,12 +145,15 @@ def compare(name: str, frames: list[Image]) -> float:
     return ratio
 
 
-async def stop_while_streaming(seconds: float) -> list[float]:
+async def stop_while_streaming(seconds: float, size: tuple[int, int]) -> list[float]:
     """Stop round trips (s) while media streams both ways: the robot daemon in its own
-    process (``telebot-robot run``, its default ``[media]``: H.264, 440 Hz microphone) and
-    this process its user over zenoh loopback, sending its camera and a 1 kHz tone."""
+    process (``telebot-robot run``, its default ``[media]``: H.264, 440 Hz microphone, its
+    camera ``size``) and this process its user over zenoh loopback, sending its camera and
+    a 1 kHz tone."""
     with tempfile.TemporaryDirectory() as tmp:
-        daemon = Daemon(Path(tmp), sim={"map": "small", "camera_width": 640, "camera_height": 480})
+        width, height = size
+        sim = {"map": "small", "camera_width": width, "camera_height": height}
+        daemon = Daemon(Path(tmp), sim=sim)
         daemon.start()
         times: list[float] = []
         try:
@@ -209,12 +213,12 @@ def pct(values: list[float], q: float) -> float:
 
 
 async def main(quick: bool) -> None:
-    n = 45 if quick else 120
+    n = 30 if quick else 120
     print(f"A. H.264 against JPEG q80, 640 x 480, {n} frames at {FPS} fps")
     sim_ratio = compare("A1 simulator camera", sim_frames(n))
     tex_ratio = compare("A2 textured scene", textured_frames(n))
     print("B. stop round trip while media streams both ways (robot daemon, zenoh loopback)")
-    times = await stop_while_streaming(3.0 if quick else 10.0)
+    times = await stop_while_streaming(2.0 if quick else 10.0, (320, 240) if quick else (640, 480))
     stop_p50, stop_p99 = pct(times, 0.5) * 1000, pct(times, 0.99) * 1000
     print(f"  {len(times)} stops: p50 {stop_p50:.2f} ms, p99 {stop_p99:.2f} ms")
     print("C. browser (bench/_media_browser.py)")

@@ -14,11 +14,13 @@ B. with a :class:`~telebot.apps.foxglove_bridge.FoxgloveBridge` writing an MCAP 
 
 The phases alternate (A B A B) so that drift in the machine's load falls on both. The
 recording's cost is B − A in % of one core; target ≤ 10 %. The last line is
-``RESULT record_cpu_pct=… fps=… mcap_mb_per_min=…``.
+``RESULT record_cpu_pct=… fps=… mcap_mb_per_min=…``. ``--quick``: one round of a second
+each (a check that it runs).
 """
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import sys
 import tempfile
@@ -32,6 +34,7 @@ from telebot.apps.foxglove_bridge import FoxgloveBridge
 from telebot.services.client import RobotClient
 from telebot.services.proto.video import CompleteFrame
 
+WARMUP = 2.0
 DURATION = 5.0
 ROUNDS = 2
 TARGET_PCT = 10.0
@@ -66,7 +69,7 @@ async def main() -> None:
                 # identical frames would compress to nothing in the MCAP's chunks).
                 assert (await client.arm(timeout=10)).ok
                 turning = asyncio.ensure_future(turn_forever(client))
-                await asyncio.sleep(2.0)  # warm-up: video running, map fetched once
+                await asyncio.sleep(WARMUP)  # video running, map fetched once
                 idle: list[float] = []
                 busy: list[float] = []
                 size = 0
@@ -106,4 +109,8 @@ async def main() -> None:
 
 
 if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="one round of a second (seconds)")
+    if parser.parse_args().quick:
+        WARMUP, DURATION, ROUNDS = 0.5, 1.0, 1
     asyncio.run(main())

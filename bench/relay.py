@@ -22,7 +22,8 @@ Percentiles are nearest-rank; targets: added relay latency p99 <= 20 ms, stop p9
 - **Recording**: ``bench/record.py`` runs after the rest (its own robot, 30 fps video): the
   CPU, in percent of one core, that recording the session as MCAP adds (target <= 10 %).
 
-The last line (``RESULT ...``) is for scripts.
+The last line (``RESULT ...``) is for scripts. ``--quick``: 5 raw samples, 2 stops, no
+recording (``bench/record.py --quick`` checks that one) (a check that it runs).
 """
 
 from __future__ import annotations
@@ -172,7 +173,11 @@ async def main_async(args: argparse.Namespace) -> int:
                 node.close()
             daemon.stop(graceful=True)
             sim.stop(graceful=True)
-    record_cpu = recording_cost()
+    if args.quick:
+        print("recording: left out of a quick run")
+        record_cpu = "n/a"
+    else:
+        record_cpu = recording_cost()
     print(
         f"RESULT relay_p99_ms={percentile(added, 99):.2f} "
         f"stop_p99_ms={percentile(stops, 99):.2f} record_cpu_pct={record_cpu}"
@@ -202,7 +207,11 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--samples", type=int, default=100, help="raw zenoh samples")
     parser.add_argument("--stops", type=int, default=20, help="stops measured")
-    return asyncio.run(main_async(parser.parse_args()))
+    parser.add_argument("--quick", action="store_true", help="--samples 5 --stops 2, no recording")
+    args = parser.parse_args()
+    if args.quick:
+        args.samples, args.stops = 5, 2
+    return asyncio.run(main_async(args))
 
 
 if __name__ == "__main__":

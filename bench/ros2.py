@@ -31,6 +31,7 @@ D. **Map**: the probe publishes a new 4000 × 4000 ``/map`` (transient local, as
 
 Percentiles are nearest-rank; each target line prints target ÷ measured (above 1 = within the
 target); PASS/MISS is informational. The last line (``RESULT ...``) is for scripts.
+``--quick``: ``--samples 5 --stops 3 --maps 1`` (a check that it runs).
 """
 
 from __future__ import annotations
@@ -397,7 +398,11 @@ def main() -> int:
     parser.add_argument("--samples", type=int, default=100, help="goals and raw samples")
     parser.add_argument("--stops", type=int, default=30, help="stops measured")
     parser.add_argument("--maps", type=int, default=5, help="maps published")
-    return asyncio.run(main_async(parser.parse_args()))
+    parser.add_argument("--quick", action="store_true", help="--samples 5 --stops 3 --maps 1")
+    args = parser.parse_args()
+    if args.quick:
+        args.samples, args.stops, args.maps = 5, 3, 1
+    return asyncio.run(main_async(args))
 
 
 if __name__ == "__main__":

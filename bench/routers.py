@@ -18,13 +18,15 @@ B. Raw zenoh round trip: a CONTROL-QoS put answered by a second bare session (``
    certificates) that sits on the site router, from a session on the site router (one
    router) and from one on the cloud router (two routers), :data:`PINGS` each.
 
-Run: ``python bench/routers.py`` (about half a minute). The last line is
+Run: ``python bench/routers.py`` (about half a minute; ``--quick``: 5 stops and 5 round trips
+each, a check that it runs). The last line is
 ``RESULT stop_p50_ms_one=... stop_p50_ms_two=... stop_added_p50_ms=... stop_ratio_p50=...
 stop_p99_ms_one=... stop_p99_ms_two=... raw_added_p50_ms=... raw_ratio_p50=...``.
 """
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import logging
 import os
@@ -207,4 +209,8 @@ async def main() -> None:
 
 
 if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="5 stops and 5 round trips each")
+    if parser.parse_args().quick:
+        STOPS, PINGS = 5, 5
     asyncio.run(main())

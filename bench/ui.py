@@ -12,7 +12,7 @@ Targets: key-to-stop p99 ≤ 30 ms; pose-to-screen p99 ≤ 50 ms. The last line 
 ``RESULT key_stop_p99_ms=… pose_draw_p99_ms=…``.
 
 Run: ``.venv/bin/python bench/ui.py [--presses 50]`` (needs aiohttp, playwright and
-/usr/bin/chromium: ``.ci/install-browser``).
+/usr/bin/chromium: ``.ci/install-browser``). ``--quick``: 2 presses (a check that it runs).
 """
 
 from __future__ import annotations
@@ -69,10 +69,11 @@ async def bench(presses: int) -> tuple[list[float], list[float]]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--presses", type=int, default=200, help="key presses (≥ 50)")
+    parser.add_argument("--quick", action="store_true", help="2 presses")
     args = parser.parse_args()
     logging.getLogger("telebot").setLevel(logging.ERROR)  # the stops are expected here
     started = time.monotonic()
-    key_stop, pose_draw = asyncio.run(bench(max(50, args.presses)))
+    key_stop, pose_draw = asyncio.run(bench(2 if args.quick else max(50, args.presses)))
     for name, values, target in (
         ("key press -> zero velocity at the base", key_stop, KEY_STOP_TARGET_MS),
         ("pose update -> drawn on the page", pose_draw, POSE_DRAW_TARGET_MS),

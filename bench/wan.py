@@ -1,6 +1,6 @@
 """telebot across the networks people really have: Wi-Fi that roams, 4G, another continent.
 
-Run ``.venv/bin/python bench/wan.py`` (about 13 minutes; ``--quick``: about 30 s a row).
+Run ``.venv/bin/python bench/wan.py`` (about 13 minutes; ``--quick``: two rows of seconds).
 
 One robot, ``telebot-robot run`` with the simulator (the small map, a fast base: 1.5 m/s,
 3 m/s²; its camera 640 × 480, the default video) in its own process, the product's call
@@ -57,7 +57,8 @@ release_p99_ms=…``: each the worst row but the baseline (``false_trips_4g_h``:
 the three 4G links); the table above it has them all.
 
 ``--quick``: a few samples and seconds per row (the trip figures then come from seconds of
-driving: noise); ``--row PROFILE/LINK`` (repeatable) measures only those rows.
+driving: noise), and only the rows ``lan`` and ``4g`` (a check that it runs); ``--row
+PROFILE/LINK`` (repeatable) measures only those rows.
 """
 
 from __future__ import annotations
@@ -103,6 +104,8 @@ ROWS: tuple[tuple[str, str], ...] = (
     ("4g", "udp"),
     ("4g", "quic"),
 )
+#: The rows of a quick run: the baseline and one profile, so that the ratios print.
+QUICK_ROWS: tuple[tuple[str, str], ...] = ((BASELINE, DEFAULT_LINK), ("4g", DEFAULT_LINK))
 #: Profiles whose watch window is long: the false-trip figures (and the baseline's).
 TRIP_PROFILES = (BASELINE, "wifi", "4g")
 LATE_LOSS = 0.10
@@ -142,7 +145,7 @@ class Amounts:
 
 
 FULL = Amounts(stops=20, releases=12, watch_s=10.0, trip_watch_s=40.0, late_s=8.0, outages=3)
-QUICK = Amounts(stops=3, releases=3, watch_s=3.0, trip_watch_s=4.0, late_s=3.0, outages=1)
+QUICK = Amounts(stops=2, releases=2, watch_s=1.5, trip_watch_s=1.5, late_s=1.5, outages=1)
 
 
 # -- pure helpers (tests/test_bench_wan.py) ---------------------------------------------------
@@ -776,7 +779,9 @@ def run_rows(selected: list[tuple[str, str]], amounts: Amounts) -> tuple[list[Ro
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="a few seconds a row")
+    parser.add_argument(
+        "--quick", action="store_true", help="a few seconds a row, rows lan and 4g only"
+    )
     parser.add_argument(
         "--row",
         action="append",
@@ -786,7 +791,9 @@ def main() -> None:
     )
     args = parser.parse_args()
     try:
-        selected = [parse_row(text) for text in args.row] or list(ROWS)
+        selected = [parse_row(text) for text in args.row] or list(
+            QUICK_ROWS if args.quick else ROWS
+        )
     except ValueError as exc:
         parser.error(f"--row: {exc}")
     logging.basicConfig(level=logging.ERROR)  # reconnections and stops are logged as warnings

@@ -1,26 +1,38 @@
-"""The layers stay visible: sans-IO protocol code does no I/O, nothing imports upwards.
+"""The layers stay visible: sans-IO protocol code does no I/O, nothing imports upwards, and
+no module imports itself back through others (no import cycle, ``TYPE_CHECKING`` and
+function-level imports included).
 
 Layers, lowest first (a module may import from its own layer and those below)::
 
     errors < registry < config < channels.proto < identity < reasons, rights
            < router (certificates, router configs) < netem (network emulator)
            < channels.transports
-           < channels (call, channel) < robot (nav, grid, ...) < rosmsg
-           < robot.sim < robot.ros2 (the adapters) < safety < services < followers < gateway < apps
+           < channels (call, channel) < robot, rosmsg (ROS message encoding) < safety
+           < services < followers < gateway < testing (contract suites) < apps
+
+Sub-layers inside a layer (see :data:`SUBLAYERS`): in ``services/``, base.py < a service's
+``wire.py`` < its ``robot.py`` and ``user.py`` < the hosts (``robot.py``, ``client.py``) <
+``registry.py``; ROS message encoding (``telebot.rosmsg``) < the robot adapters
+(``telebot.robot.sim``, ``telebot.robot.ros2``), and the simulator never imports the ROS 2
+adapter.
 """
 
 from __future__ import annotations
 
 import ast
+import itertools
+import re
 import subprocess
 import sys
+from collections import deque
 from pathlib import Path
 
 import pytest
 
 SRC = Path(__file__).resolve().parent.parent / "src" / "telebot"
 
-LAYERS = [
+# One entry per layer: a package prefix, or a tuple of prefixes that share a layer.
+LAYERS: list[str | tuple[str, ...]] = [
     "telebot.errors",
     "telebot.registry",
     "telebot.config",
@@ -32,14 +44,12 @@ LAYERS = [
     "telebot.netem",
     "telebot.channels.transports",
     "telebot.channels",
-    "telebot.robot",
-    "telebot.rosmsg",
-    "telebot.robot.sim",
-    "telebot.robot.ros2",
+    ("telebot.robot", "telebot.rosmsg"),
     "telebot.safety",
     "telebot.services",
     "telebot.followers",
     "telebot.gateway",
+    "telebot.testing",
     "telebot.apps",
 ]
 
@@ -55,8 +65,9 @@ SANS_IO_FORBIDDEN = {
 }
 
 
-def module_name(path: Path) -> str:
-    parts = path.relative_to(SRC.parent).with_suffix("").parts
+def module_name(path: Path, root: Path = SRC) -> str:
+    """The dotted name of ``path``, a file of the package folder ``root``."""
+    parts = path.relative_to(root.parent).with_suffix("").parts
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
@@ -64,30 +75,144 @@ def layer_of(module: str) -> int | None:
     """Index of the most specific layer ``module`` belongs to (None for telebot itself)."""
     best: int | None = None
     best_len = -1
-    for index, prefix in enumerate(LAYERS):
-        if (module == prefix or module.startswith(prefix + ".")) and len(prefix) > best_len:
-            best, best_len = index, len(prefix)
+    for index, entry in enumerate(LAYERS):
+        for prefix in (entry,) if isinstance(entry, str) else entry:
+            if (module == prefix or module.startswith(prefix + ".")) and len(prefix) > best_len:
+                best, best_len = index, len(prefix)
     return best
+
+
+def _import_statements(path: Path, root: Path) -> list[tuple[int, str, list[str]]]:
+    """(line, module, names) of every import anywhere in the file (inside functions and
+    ``TYPE_CHECKING`` too), relative imports resolved; names are those of ``from m import
+    names`` (empty for ``import m``)."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    found: list[tuple[int, str, list[str]]] = []
+    package = module_name(path, root)
+    if path.name != "__init__.py":
+        package = package.rsplit(".", 1)[0]
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found.extend((node.lineno, alias.name, []) for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            names = [alias.name for alias in node.names]
+            if node.level:
+                base = package.split(".")
+                base = base[: len(base) - (node.level - 1)]
+                found.append(
+                    (node.lineno, ".".join([*base, node.module] if node.module else base), names)
+                )
+            elif node.module:
+                found.append((node.lineno, node.module, names))
+    return found
 
 
 def imports_of(path: Path) -> list[str]:
     """Every module imported anywhere in the file (inside functions and TYPE_CHECKING too)."""
-    tree = ast.parse(path.read_text(encoding="utf-8"))
-    found: list[str] = []
-    package = (
-        module_name(path).rsplit(".", 1)[0] if path.name != "__init__.py" else module_name(path)
-    )
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import):
-            found.extend(alias.name for alias in node.names)
-        elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = package.split(".")
-                base = base[: len(base) - (node.level - 1)]
-                found.append(".".join([*base, node.module] if node.module else base))
-            elif node.module:
-                found.append(node.module)
-    return found
+    return [module for _, module, _ in _import_statements(path, SRC)]
+
+
+def import_graph(root: Path) -> dict[str, dict[str, int]]:
+    """Module -> {module of the same package it imports: line of the first such import}.
+
+    Every import counts (module level, ``if TYPE_CHECKING:``, inside functions): each of
+    them is a dependency a reader must follow. ``import a.b`` is an import of ``a.b``, and
+    ``from a import b`` one of ``a.b`` when that is a module, else of ``a``. A module's own
+    name (a package's ``__init__`` importing a name it defines) is no edge.
+    """
+    files = {module_name(path, root): path for path in sorted(root.rglob("*.py"))}
+    graph: dict[str, dict[str, int]] = {}
+    for module, path in files.items():
+        edges: dict[str, int] = {}
+        for line, imported, names in _import_statements(path, root):
+            targets = [f"{imported}.{name}" for name in names if f"{imported}.{name}" in files]
+            if len(targets) < len(names) or not names:
+                # Names that are not submodules, or a plain `import a.b`: the module itself,
+                # or its closest enclosing module of the package.
+                while imported and imported not in files:
+                    imported = imported.rpartition(".")[0]
+                if imported:
+                    targets.append(imported)
+            for target in targets:
+                if target != module:
+                    edges.setdefault(target, line)
+        graph[module] = edges
+    return graph
+
+
+def _strongly_connected(graph: dict[str, dict[str, int]]) -> list[list[str]]:
+    """Tarjan's strongly connected components of ``graph`` (each sorted)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    components: list[list[str]] = []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        on_stack.add(node)
+        for succ in graph.get(node, {}):
+            if succ not in index:
+                visit(succ)
+                low[node] = min(low[node], low[succ])
+            elif succ in on_stack:
+                low[node] = min(low[node], index[succ])
+        if low[node] == index[node]:
+            component = []
+            while True:
+                member = stack.pop()
+                on_stack.discard(member)
+                component.append(member)
+                if member == node:
+                    break
+            components.append(sorted(component))
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return components
+
+
+def import_cycles(graph: dict[str, dict[str, int]]) -> list[list[str]]:
+    """Cycles of ``graph`` as ``[a, b, ..., a]``: shortest ones, enough of them that every
+    import taking part in a cycle is in one (listing every cycle could be exponential)."""
+    cycles: list[list[str]] = []
+    for component in _strongly_connected(graph):
+        members = set(component)
+        inner = sorted((a, b) for a in component for b in graph[a] if b in members)
+        covered: set[tuple[str, str]] = set()
+        for first, second in inner:
+            if (first, second) in covered or len(members) < 2:
+                continue
+            # Shortest way back from `second` to `first` inside the component.
+            came_from: dict[str, str] = {second: second}
+            queue = deque([second])
+            while first not in came_from:
+                node = queue.popleft()
+                for succ in sorted(graph[node]):
+                    if succ in members and succ not in came_from:
+                        came_from[succ] = node
+                        queue.append(succ)
+            path = [first]
+            while path[-1] != second:
+                path.append(came_from[path[-1]])
+            cycle = [first, *reversed(path[1:])]
+            covered.update(zip(cycle, [*cycle[1:], first], strict=True))
+            start = cycle.index(min(cycle))
+            cycle = cycle[start:] + cycle[:start]
+            cycles.append([*cycle, cycle[0]])
+    return cycles
+
+
+def describe_cycles(graph: dict[str, dict[str, int]], cycles: list[list[str]]) -> str:
+    """One line per cycle, ``a → b → … → a``, and where each of its imports is."""
+    lines = []
+    for cycle in cycles:
+        lines.append("  " + " → ".join(cycle))
+        where = ", ".join(f"{a} line {graph[a][b]}" for a, b in itertools.pairwise(cycle))
+        lines.append(f"      (imports at {where})")
+    return "\n".join(lines)
 
 
 SOURCES = sorted(SRC.rglob("*.py"))
@@ -117,6 +242,145 @@ def test_nothing_imports_from_a_layer_above_it(path: Path) -> None:
     assert upward == [], f"{module_name(path)} imports from layers above it: {upward}"
 
 
+def test_no_import_cycles() -> None:
+    # A cycle hides the order in which a reader (and Python) must take the modules, and a
+    # typing-only import on the way back is still a cycle of ideas.
+    graph = import_graph(SRC)
+    cycles = import_cycles(graph)
+    assert cycles == [], (
+        f"{len(cycles)} import cycle(s) in src/ (a → b means a imports b; TYPE_CHECKING and "
+        f"function-level imports count):\n{describe_cycles(graph, cycles)}"
+    )
+
+
+def test_the_cycle_finder_sees_typing_and_late_imports(tmp_path: Path) -> None:
+    # Guard against a finder that silently finds nothing: a tiny package whose cycles close
+    # through `if TYPE_CHECKING:`, a function body, `import a.b` and `from pkg import sub`.
+    package = tmp_path / "pkg"
+    (package / "sub").mkdir(parents=True)
+    files = {
+        "__init__.py": "",
+        "a.py": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from pkg.b import B\n",
+        "b.py": "from .c import C\n",
+        "c.py": "def late():\n    from . import a\n",
+        "d.py": "import pkg.sub.e\n",
+        "sub/__init__.py": "",
+        "sub/e.py": "from pkg import d\n",
+        "f.py": "from pkg.sub import e\nimport os\n",
+    }
+    for name, text in files.items():
+        (package / name).write_text(text)
+    graph = import_graph(package)
+    assert graph["pkg.a"] == {"pkg.b": 3} and graph["pkg.c"] == {"pkg.a": 2}
+    assert import_cycles(graph) == [
+        ["pkg.a", "pkg.b", "pkg.c", "pkg.a"],
+        ["pkg.d", "pkg.sub.e", "pkg.d"],
+    ]
+    assert "pkg.a → pkg.b → pkg.c → pkg.a" in describe_cycles(graph, import_cycles(graph))
+    # Acyclic once the typing import goes and e no longer imports d back.
+    (package / "a.py").write_text("import os\n")
+    (package / "sub" / "e.py").write_text("from pkg.sub import __name__ as n\n")
+    assert import_cycles(import_graph(package)) == []
+
+
+# Sub-layers, lowest first: a module matching a rank's pattern may not import one matching a
+# higher rank's; ``False`` after a rank's patterns forbids imports between its own members
+# too. Patterns name the target layout: a rule whose modules do not exist checks nothing.
+SUBLAYERS: dict[str, list[tuple[tuple[str, ...], bool]]] = {
+    "services": [
+        ((r"telebot\.services\.base",), True),
+        # A service's wire format may use another's (shared message types).
+        ((r"telebot\.services\.\w+\.wire",), True),
+        # A service side uses base.py, wire formats and lower layers: never another side.
+        ((r"telebot\.services\.\w+\.(robot|user)",), False),
+        ((r"telebot\.services\.robot", r"telebot\.services\.client"), True),
+        ((r"telebot\.services\.registry",), True),
+    ],
+    "robot adapters": [
+        ((r"telebot\.rosmsg(\..+)?",), True),
+        ((r"telebot\.robot\.sim(\..+)?",), True),
+        # The ROS 2 adapter may reuse the simulator (telebot-sim serves it over ROS 2);
+        # the simulator never needs the ROS 2 adapter.
+        ((r"telebot\.robot\.ros2(\..+)?",), True),
+    ],
+}
+
+
+def sublayer_of(rules: list[tuple[tuple[str, ...], bool]], module: str) -> int | None:
+    """The rank of ``module`` in ``rules`` (None when no pattern matches)."""
+    for rank, (patterns, _) in enumerate(rules):
+        if any(re.fullmatch(pattern, module) for pattern in patterns):
+            return rank
+    return None
+
+
+def sublayer_violations(
+    graph: dict[str, dict[str, int]], rules: list[tuple[tuple[str, ...], bool]]
+) -> list[str]:
+    """``a line N imports b`` for every import from a rank to a higher one (or to its own
+    rank where that is closed)."""
+    found = []
+    for module, edges in sorted(graph.items()):
+        own = sublayer_of(rules, module)
+        if own is None:
+            continue
+        for imported, line in sorted(edges.items()):
+            target = sublayer_of(rules, imported)
+            if target is not None and (target > own or (target == own and not rules[own][1])):
+                found.append(f"{module} line {line} imports {imported}")
+    return found
+
+
+def test_the_sublayer_patterns_name_the_target_layout() -> None:
+    services, robots = SUBLAYERS["services"], SUBLAYERS["robot adapters"]
+    ranks = {
+        name: sublayer_of(services, name)
+        for name in (
+            "telebot.services.base",
+            "telebot.services.chat.wire",
+            "telebot.services.chat.robot",
+            "telebot.services.people.user",
+            "telebot.services.robot",
+            "telebot.services.client",
+            "telebot.services.registry",
+            "telebot.services.chat",
+            "telebot.services.codecs",
+        )
+    }
+    assert list(ranks.values()) == [0, 1, 2, 2, 3, 3, 4, None, None]
+    assert [sublayer_of(robots, name) for name in ("telebot.rosmsg", "telebot.rosmsg.cdr")] == [
+        0,
+        0,
+    ]
+    assert sublayer_of(robots, "telebot.robot.sim.stack") == 1
+    assert sublayer_of(robots, "telebot.robot.ros2") == 2
+    assert sublayer_of(robots, "telebot.robot.nav") is None
+    graph = {
+        "telebot.services.chat.wire": {"telebot.services.people.wire": 1},
+        "telebot.services.chat.robot": {
+            "telebot.services.chat.user": 2,
+            "telebot.services.base": 3,
+        },
+        "telebot.services.base": {"telebot.services.client": 4},
+        "telebot.robot.sim.stack": {"telebot.robot.ros2.types": 5, "telebot.rosmsg": 6},
+    }
+    assert sublayer_violations(graph, services) == [
+        "telebot.services.base line 4 imports telebot.services.client",
+        "telebot.services.chat.robot line 2 imports telebot.services.chat.user",
+    ]
+    assert sublayer_violations(graph, robots) == [
+        "telebot.robot.sim.stack line 5 imports telebot.robot.ros2.types"
+    ]
+
+
+@pytest.mark.parametrize("name", sorted(SUBLAYERS))
+def test_sublayers_import_only_downwards(name: str) -> None:
+    bad = sublayer_violations(import_graph(SRC), SUBLAYERS[name])
+    assert bad == [], f"{name}: imports from a sub-layer above (or beside) their own:\n  " + (
+        "\n  ".join(bad)
+    )
+
+
 # Protocol logic, service protocols and the simulated robot (stepped by the caller's clock)
 # are sans-IO.
 SANS_IO_SOURCES = sorted(
@@ -124,6 +388,8 @@ SANS_IO_SOURCES = sorted(
         *(SRC / "channels" / "proto").rglob("*.py"),
         *(SRC / "robot" / "sim").rglob("*.py"),
         *(SRC / "services" / "proto").rglob("*.py"),
+        *SRC.glob("services/*/wire.py"),
+        *(SRC / "rosmsg").rglob("*.py"),
         SRC / "safety.py",
         SRC / "reasons.py",
         SRC / "rights.py",

@@ -7,14 +7,11 @@ import logging
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 from telebot.channels.proto.frames import encode_datagram, validate_channel_name
 from telebot.channels.transports.base import Lane
 from telebot.errors import CallEnded, DatagramTooLarge
-
-if TYPE_CHECKING:
-    from telebot.channels.call import CallEnd
 
 __all__ = ["Channel", "ChannelStats", "DatagramTap", "ReceivedDatagram"]
 
@@ -49,11 +46,19 @@ class ChannelStats:
     rejected: int = 0
 
 
+class _CallEnd(Protocol):
+    """Why the call ended, as a channel reports it (``telebot.channels.call.CallEnd``: the
+    channel does not import the call, which imports it)."""
+
+    @property
+    def kind(self) -> str: ...
+
+
 class _CallLink(Protocol):
     """What a channel needs from its call (kept narrow so the two stay decoupled)."""
 
     @property
-    def end(self) -> CallEnd | None: ...
+    def end(self) -> _CallEnd | None: ...
 
     def send_plaintext(self, plaintext: bytes, lane: Lane) -> None: ...
 
