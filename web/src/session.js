@@ -177,7 +177,7 @@ export class RobotSession {
     s.safety = new SafetyService(theCall, {
       random,
       onState: (state) => {
-        const msg = { type: "safety", armed: state.armed, reason: state.reason, code: state.code, holder: state.holder, cap: state.cap, blocked: state.blocked };
+        const msg = { type: "safety", armed: state.armed, text: state.reason, code: state.code, holder: state.holder, cap: state.cap, blocked: state.blocked };
         this.latest.safety = msg;
         this.emit(msg);
       },
@@ -479,7 +479,10 @@ export class RobotSession {
       case "say":
         return this.say(msg.id, String(msg.text ?? ""));
       case "camera":
-        if (msg.name === "navcam" || msg.name === "usercam") this.chat(msg.id, msg.name);
+        if (msg.name !== "navcam" && msg.name !== "usercam") {
+          return this.pageError("camera: 'name' must be navcam or usercam");
+        }
+        this.chat(msg.id, msg.name);
         return;
       case "ping":
         this.emit({ type: "pong", t: msg.t });
@@ -505,7 +508,7 @@ export class RobotSession {
   /**
    * Stop the robot now (anyone may, never refused): repeated every 50 ms until the robot
    * acknowledges. Resolves with the ack as the page gets it ({type: "ack", what: "stop",
-   * ok, reason, code}), which is also emitted.
+   * ok, text, code}), which is also emitted.
    * @param {string} [how] "button" | "key" | "tab_closed" | "exit" | "api"
    */
   stop(how = "button") {
@@ -515,8 +518,8 @@ export class RobotSession {
 
   safety(what, how = "") {
     return new Promise((resolve) => {
-      const answer = (ok, reason, code) => {
-        const msg = { type: "ack", what, ok, reason, code };
+      const answer = (ok, text, code) => {
+        const msg = { type: "ack", what, ok, text, code };
         this.emit(msg);
         resolve(msg);
       };
@@ -559,9 +562,9 @@ export class RobotSession {
     this.services?.drive.cancel(); // the goal ends direct driving: no repeat may replace it
     const token = {};
     this.goalId = token;
-    const update = (status, progress = 0, reason = "", code = "") => {
+    const update = (status, progress = 0, text = "", code = "") => {
       if (this.goalId !== token) return; // a newer goal is the page's goal now
-      const goal = { type: "goal", x, y, yaw, status, progress, reason, code };
+      const goal = { type: "goal", x, y, yaw, status, progress, text, code };
       this.latest.goal = goal;
       this.emit(goal);
     };
@@ -614,7 +617,9 @@ export class RobotSession {
   }
 
   onDriveState(state) {
-    const msg = { type: "drive_state", ...state };
+    // The page's message calls the robot's words `text` (its wire field is `reason`).
+    const { reason, ...fields } = state;
+    const msg = { type: "drive_state", ...fields, text: reason };
     this.latest.drive = msg;
     this.emit(msg);
   }
@@ -642,7 +647,7 @@ export class RobotSession {
   }
 
   say(id, text) {
-    const answer = (ok, reason, code) => this.emit({ type: "said", id, ok, reason, code });
+    const answer = (ok, text, code) => this.emit({ type: "said", id, ok, text, code });
     this.onCall(
       () => this.services.conference.say(text, { now: this.clock.now() }).then(
         (said) => answer(said.ok, said.reason, said.code),
