@@ -5,7 +5,7 @@ Layers, lowest first (a module may import from its own layer and those below)::
     errors < registry < config < channels.proto < identity < reasons, rights
            < router (certificates, router configs) < netem (network emulator)
            < channels.transports
-           < channels (call, channel) < robot < safety < services < gateway < apps
+           < channels (call, channel) < robot < safety < services < followers < gateway < apps
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ LAYERS = [
     "telebot.robot",
     "telebot.safety",
     "telebot.services",
+    "telebot.followers",
     "telebot.gateway",
     "telebot.apps",
 ]
