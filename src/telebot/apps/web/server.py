@@ -60,9 +60,10 @@ subscribed while a page is open), so after a reconnection the map, pose and vide
 on the page without a reload; a motion that was running at the drop is reported failed,
 and the robot stays stopped until re-armed.
 
-The map follows the robot's: when telemetry's ``map_version`` differs from the version of
-the map held here, it is fetched again, ``/map.png`` serves the new one and the pages get a
-new ``map`` message (they reload the image).
+The map follows the robot's (:class:`telebot.followers.MapFollower`, as the Foxglove
+bridge's): when telemetry's ``map_version`` differs from the version of the map held here,
+it is fetched again, ``/map.png`` serves the new one and the pages get a new ``map``
+message (they reload the image).
 
 Safety: a ``stop`` is handed to :meth:`RobotClient.stop` at once (before anything else
 the message loop does). When a page's websocket closes (tab closed, browser crashed: the
@@ -109,6 +110,7 @@ from telebot.apps.web.messages import (
 from telebot.apps.web.pageserver import PageServer
 from telebot.config import AppConfig
 from telebot.errors import CallEnded, TelebotError
+from telebot.followers import MapFollower
 from telebot.reasons import Reason
 from telebot.rights import Right, may
 from telebot.services.client import ConnectionEvent, RobotClient
@@ -168,11 +170,8 @@ class WebUI(PageServer):
         super().__init__(host=host, port=port, owner="web UI")
         self.client = client
         self.user = user
-        self.map_timeout = map_timeout
-        self.map: MapDownload | None = None
-        #: Maps fetched again because the robot's map changed.
-        self.map_refreshes = 0
-        self._map_fetch: asyncio.Task[Any] | None = None
+        #: The robot's map, fetched again when it changes and across reconnections.
+        self.maps = MapFollower(client, timeout=map_timeout)
         self.pages: set[_Page] = set()
         #: Stops sent because a page closed while the robot moved (for tests and logs).
         self.close_stops = 0
@@ -229,7 +228,9 @@ class WebUI(PageServer):
         self.client.conference.on_message.append(self._on_conference_message)
         self.client.conference.on_roster.append(self._on_roster)
         self.client.on_people_alert.append(self._on_people_alert)
-        self._map_fetch = self._tasks.spawn(self._fetch_map())
+        self.maps.on_map.append(self._on_map)
+        self.maps.on_error.append(self._on_map_error)
+        self.maps.start()
         pumps = (
             self._pump_pose,
             self._pump_telemetry,
@@ -249,6 +250,7 @@ class WebUI(PageServer):
             return
         self._closing = True
         self.media.close()
+        await self.maps.aclose()
         with contextlib.suppress(ValueError):
             self.client.on_connection.remove(self._on_connection)
         with contextlib.suppress(ValueError):
@@ -271,23 +273,32 @@ class WebUI(PageServer):
         return self.html("index.html")
 
     async def _map_png(self, request: web.Request) -> web.StreamResponse:
-        if self.map is None:
+        if (download := self.maps.map) is None:
             return web.Response(status=503, text="the map has not arrived yet")
-        return web.Response(body=self.map.png, content_type="image/png")
+        return web.Response(body=download.png, content_type="image/png")
 
     def _map_message(self) -> dict[str, Any] | None:
-        if self.map is None:
+        if (download := self.maps.map) is None:
             return None
         return {
             "type": "map",
             "url": "map.png",  # relative: the page may live under a prefix (fleet page)
-            "resolution": self.map.resolution,
-            "origin_x": self.map.origin_x,
-            "origin_y": self.map.origin_y,
-            "width": self.map.width,
-            "height": self.map.height,
-            "version": self.map.version,
+            "resolution": download.resolution,
+            "origin_x": download.origin_x,
+            "origin_y": download.origin_y,
+            "width": download.width,
+            "height": download.height,
+            "version": download.version,
         }
+
+    def _on_map(self, download: MapDownload) -> None:
+        """A map arrived (the first, or the robot's changed one): the pages show it."""
+        message = self._map_message()
+        if message is not None:
+            self._broadcast(message)
+
+    def _on_map_error(self, exc: Exception) -> None:
+        self._broadcast({"type": "error", "text": f"the map did not arrive: {exc}"})
 
     # -- websocket --------------------------------------------------------------------
 
@@ -589,15 +600,6 @@ class WebUI(PageServer):
         while True:
             telemetry = await latest.next()
             self._broadcast({"type": "telemetry", **asdict(telemetry)})
-            self._follow_map(telemetry.map_version)
-
-    def _follow_map(self, version: int) -> None:
-        """Fetch the map again when the robot says it changed (one fetch at a time)."""
-        if self.map is None or self.map.version == version or self._map_fetch is not None:
-            return
-        log.info("the robot's map changed (version %s): fetching it again", version)
-        self.map_refreshes += 1
-        self._map_fetch = self._tasks.spawn(self._fetch_map())
 
     @staticmethod
     def _plan_message(plan: PlanUpdate) -> dict[str, Any]:
@@ -677,27 +679,6 @@ class WebUI(PageServer):
             stats = self.client.call.stats
             self._broadcast({"type": "link", "rtt": stats.rtt, "loss": stats.loss})
             await asyncio.sleep(LINK_EVERY)
-
-    async def _fetch_map(self) -> None:
-        try:
-            while True:
-                try:
-                    self.map = await self.client.get_map(timeout=self.map_timeout)
-                    break
-                except CallEnded as exc:
-                    if self.client.finished:
-                        log.error("the map did not arrive: %s", exc)
-                        return
-                    # The call dropped mid-transfer: fetch it again on the next call.
-                except (TelebotError, TimeoutError) as exc:
-                    log.error("the map did not arrive: %s", exc)
-                    self._broadcast({"type": "error", "text": f"the map did not arrive: {exc}"})
-                    return
-        finally:
-            self._map_fetch = None
-        message = self._map_message()
-        assert message is not None
-        self._broadcast(message)
 
     def _video_wanted(self) -> None:
         """Receive video while at least one page is open."""
