@@ -80,6 +80,7 @@ def test_each_page_message_parses_into_its_type() -> None:
         ({"type": "drive"}, ROBOT_PAGE, "a drive needs finite numbers linear, angular", "drive"),
         ({"type": "camera", "id": 1, "name": "rearcam"}, ROBOT_PAGE, "camera: 'name' must be navcam or usercam", "camera"),
         ({"type": "chat", "id": [1], "text": "x"}, ROBOT_PAGE, "chat: 'id' must be a number, a text of at most 64 characters or null", "chat"),
+        ('{"type": "say", "id": Infinity, "text": "x"}', ROBOT_PAGE, "say: 'id' must be a number, a text of at most 64 characters or null", "say"),
         ({"type": "ping", "t": "now"}, ROBOT_PAGE, "ping: 't' must be a finite number or null", "ping"),
         ({"type": "open"}, FLEET_PAGE, "open: 'robot' must be a name", "open"),
         ({"type": "close", "robot": 3}, FLEET_PAGE, "close: 'robot' must be a name", "close"),

@@ -71,6 +71,17 @@ function revokeMapUrl(url) {
   if (url && url.startsWith("blob:") && typeof URL.revokeObjectURL === "function") URL.revokeObjectURL(url);
 }
 
+/** Longest text id a page may use in `chat`, `say`, `camera` (as the Python client). */
+const MAX_ID = 64;
+
+/** Why a page message's `id` is not a number, a short text or null ("" when it is). */
+function badId(msg) {
+  const id = msg.id ?? null;
+  if (id === null || (typeof id === "number" && Number.isFinite(id))) return "";
+  if (typeof id === "string" && id.length <= MAX_ID) return "";
+  return `${msg.type}: 'id' must be a number, a text of at most ${MAX_ID} characters or null`;
+}
+
 /** Seconds before reconnection attempt `attempt` (0 first): base doubled, capped, jittered. */
 export function backoffDelay(attempt, { base = 0.1, cap = 2.0 } = {}, random = Math.random) {
   const ceiling = Math.min(cap, base * 2 ** Math.min(attempt, 32));
@@ -470,6 +481,7 @@ export class RobotSession {
       case "drive":
         return this.onDrive(msg);
       case "chat": {
+        if (badId(msg)) return this.pageError(badId(msg));
         const line = String(msg.text ?? "");
         const said = sayText(line);
         if (said !== null) this.say(msg.id, said);
@@ -477,15 +489,20 @@ export class RobotSession {
         return;
       }
       case "say":
+        if (badId(msg)) return this.pageError(badId(msg));
         return this.say(msg.id, String(msg.text ?? ""));
       case "camera":
         if (msg.name !== "navcam" && msg.name !== "usercam") {
           return this.pageError("camera: 'name' must be navcam or usercam");
         }
+        if (badId(msg)) return this.pageError(badId(msg));
         this.chat(msg.id, msg.name);
         return;
       case "ping":
-        this.emit({ type: "pong", t: msg.t });
+        if (msg.t != null && !(typeof msg.t === "number" && Number.isFinite(msg.t))) {
+          return this.pageError("ping: 't' must be a finite number or null");
+        }
+        this.emit({ type: "pong", t: msg.t ?? null });
         return;
       case "media":
         return this.onMedia(msg);

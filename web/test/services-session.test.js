@@ -119,6 +119,8 @@ test("page → client: stop, arm, chat, camera, say, goal, ping and bad messages
   session.send({ type: "ping", t: 1234.5 });
   session.send({ type: "goal", x: "a", y: 2 });
   session.send({ type: "camera", id: 7, name: "rearcam" });
+  session.send({ type: "chat", id: [1], text: "where?" });
+  session.send({ type: "ping", t: "now" });
   session.send({ type: "warp" });
   session.send(null);
   await clock.advance(0.2);
@@ -142,6 +144,8 @@ test("page → client: stop, arm, chat, camera, say, goal, ping and bad messages
   assert.deepEqual(ofType(out, "pong"), [{ type: "pong", t: 1234.5 }]);
   assert.deepEqual(ofType(out, "error").map((m) => m.text), [
     "a goal needs numbers x, y (and yaw)", "camera: 'name' must be navcam or usercam",
+    "chat: 'id' must be a number, a text of at most 64 characters or null",
+    "ping: 't' must be a finite number or null",
     "unknown message type 'warp'", "not a JSON message with a type",
   ]);
 });

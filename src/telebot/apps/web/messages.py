@@ -87,8 +87,8 @@ def _finite(obj: Mapping[str, Any], name: str) -> float | None:
 
 def _request_id(obj: Mapping[str, Any], kind: str) -> RequestId:
     value = obj.get("id")
-    if value is None or (isinstance(value, int | float) and not isinstance(value, bool)):
-        return value
+    if value is None or _finite(obj, "id") is not None:
+        return value  # as it came (an int stays an int)
     if isinstance(value, str) and len(value) <= MAX_ID:
         return value
     raise PageMessageError(
