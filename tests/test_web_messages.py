@@ -30,6 +30,9 @@ from telebot.apps.web.messages import (
     message_table,
     parse_page_message,
 )
+from telebot.apps.web.server import WebUI
+from telebot.services.proto.drive import DriveState
+from telebot.services.proto.safety import SafetyStatus
 
 PROTOCOL = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
 
@@ -116,3 +119,15 @@ def test_the_protocol_document_quotes_the_types() -> None:
     screen = "\n".join("  " + line for line in message_table(SCREEN_PAGE).splitlines())
     assert screen in section19_2
     assert message_table(FLEET_PAGE) in section21
+
+
+def test_what_the_server_tells_a_page_calls_the_code_code_and_the_words_text() -> None:
+    """§19: in a page's message the machine-readable reason is ``code`` and the words for
+    people ``text`` (a robot's datagram calls its words ``reason``; the page's does not)."""
+    state = SafetyStatus(False, "driver alice's link lost", "alice", 0.0, False, "link_silent")
+    message = WebUI._safety_message(state)
+    assert message["text"] == "driver alice's link lost" and message["code"] == "link_silent"
+    drive = DriveState(9, False, "not_armed", "the robot is stopped: re-arm it", cap=0.5)
+    message = WebUI._drive_message(drive)
+    assert message["text"] == "the robot is stopped: re-arm it" and message["code"] == "not_armed"
+    assert "reason" not in WebUI._safety_message(state) and "reason" not in message
