@@ -40,7 +40,7 @@ import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, assert_never
 
 from aiohttp import web
 
@@ -458,8 +458,8 @@ class FleetUI(PageServer):
                 self._tasks.spawn(self._open_for(ws, name))
             case CloseRobot(robot=name):
                 self._tasks.spawn(self.close_robot(name))
-            case _:  # a type of another page (the parser took only this page's)
-                self._send(ws, {"type": "error", "text": f"unknown message type {msg.TYPE!r}"})
+            case _:
+                assert_never(msg)
 
     async def _open_for(self, ws: web.WebSocketResponse, name: str) -> None:
         problem = await self.open(name)

@@ -22,7 +22,7 @@ import types
 import typing
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, ClassVar, Final, Literal, Self, TypeAlias
+from typing import Any, ClassVar, Final, Literal, Self, TypeAlias, TypeVar, cast
 
 from telebot.errors import excerpt
 
@@ -37,6 +37,7 @@ __all__ = [
     "Chat",
     "CloseRobot",
     "Drive",
+    "FleetPageMessage",
     "Goal",
     "Keyframe",
     "MediaCaps",
@@ -46,7 +47,9 @@ __all__ = [
     "Ping",
     "ReleaseDrive",
     "RequestId",
+    "RobotPageMessage",
     "Say",
+    "ScreenPageMessage",
     "Stop",
     "StopAll",
     "TakeDrive",
@@ -312,8 +315,8 @@ class StopAll(_Message):
     TYPE: ClassVar[str] = "stop_all"
 
 
-#: Any page message.
-PageMessage: TypeAlias = (
+#: What the robot's page sends.
+RobotPageMessage: TypeAlias = (
     Stop
     | Arm
     | TakeDrive
@@ -326,12 +329,17 @@ PageMessage: TypeAlias = (
     | Ping
     | MediaCaps
     | Keyframe
-    | OpenRobot
-    | CloseRobot
-    | StopAll
 )
+#: What the fleet page sends.
+FleetPageMessage: TypeAlias = OpenRobot | CloseRobot | StopAll
+#: What the robot's screen sends.
+ScreenPageMessage: TypeAlias = Keyframe
+#: Any page message.
+PageMessage: TypeAlias = RobotPageMessage | FleetPageMessage
+#: A type of page message (parse_page_message gives one of the kinds it is asked for).
+M = TypeVar("M", bound=PageMessage)
 #: What the robot's page sends (§19, §19.1).
-ROBOT_PAGE: Final[tuple[type[PageMessage], ...]] = (
+ROBOT_PAGE: Final[tuple[type[RobotPageMessage], ...]] = (
     Stop,
     Arm,
     TakeDrive,
@@ -346,12 +354,12 @@ ROBOT_PAGE: Final[tuple[type[PageMessage], ...]] = (
     Keyframe,
 )
 #: What the fleet page sends (§21).
-FLEET_PAGE: Final[tuple[type[PageMessage], ...]] = (OpenRobot, CloseRobot, StopAll)
+FLEET_PAGE: Final[tuple[type[FleetPageMessage], ...]] = (OpenRobot, CloseRobot, StopAll)
 #: What the robot's screen sends (§19.2).
-SCREEN_PAGE: Final[tuple[type[PageMessage], ...]] = (Keyframe,)
+SCREEN_PAGE: Final[tuple[type[ScreenPageMessage], ...]] = (Keyframe,)
 
 
-def parse_page_message(text: str, kinds: tuple[type[PageMessage], ...]) -> PageMessage:
+def parse_page_message(text: str, kinds: tuple[type[M], ...]) -> M:
     """One websocket text message of a page that sends ``kinds``; a
     :class:`PageMessageError` (one line) if it is not one of them."""
     try:
@@ -361,7 +369,7 @@ def parse_page_message(text: str, kinds: tuple[type[PageMessage], ...]) -> PageM
         raise PageMessageError("not a JSON message with a type") from None
     for cls in kinds:
         if kind == cls.TYPE:
-            return cls.parse(obj)
+            return cast(M, cls.parse(obj))  # cls is one of kinds: its parse gives an M
     shown = excerpt(kind, 40) if isinstance(kind, str) else excerpt(repr(kind), 40)
     raise PageMessageError(f"unknown message type {shown!r}")
 

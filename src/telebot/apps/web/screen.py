@@ -27,7 +27,7 @@ import contextlib
 import json
 import logging
 from collections.abc import AsyncIterator, Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, assert_never
 
 from aiohttp import web
 
@@ -175,7 +175,7 @@ class RobotScreen(PageServer):
                 except Exception:
                     log.exception("keyframe request failed")
             case _:
-                log.debug("screen page message ignored: %s", msg.TYPE)
+                assert_never(msg)
 
 
 def parse_screen_option(text: str, settings: ScreenSettings) -> ScreenSettings:

@@ -84,7 +84,7 @@ import time
 from collections.abc import Callable, Coroutine, Mapping
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, assert_never
 
 from aiohttp import web
 
@@ -443,8 +443,8 @@ class WebUI(PageServer):
                 self.send(page, {"type": "pong", "t": t})
             case MediaCaps() | Keyframe():
                 self.media.on_message(page, msg)
-            case _:  # a type of another page (the parser took only this page's)
-                self.send(page, {"type": "error", "text": f"unknown message type {msg.TYPE!r}"})
+            case _:
+                assert_never(msg)
 
     def _on_drive(self, page: _Page, linear: float, angular: float) -> None:
         """Drive by hand (§27): the page sends this at 20 Hz while its user holds a key,
