@@ -149,7 +149,7 @@ async def test_the_fleet_page_lists_opens_two_and_stops_all(tmp_path: Path) -> N
             r["robot"]: r for r in await page.evaluate("() => window.telebotFleet.state.stopAll")
         }
         assert results["bot1"]["ok"] and results["bot2"]["ok"]
-        assert not results["bot3"]["ok"] and "did not answer" in results["bot3"]["reason"]
+        assert not results["bot3"]["ok"] and "did not answer" in results["bot3"]["text"]
         shown = await page.inner_text("#stop-result")
         assert "bot1 stopped" in shown and "bot3: did not answer" in shown
         ARTIFACTS.mkdir(exist_ok=True)
@@ -216,7 +216,7 @@ async def test_bad_names_a_vanished_robot_and_stop_all_say_why(tmp_path: Path) -
         )
         results = {r["robot"]: r for r in await fleet.stop_all()}
         assert results["bot1"]["ok"] and results["bot3"]["ok"]
-        assert not results["bot2"]["ok"] and "did not answer" in results["bot2"]["reason"]
+        assert not results["bot2"]["ok"] and "did not answer" in results["bot2"]["text"]
         # It comes back: the same client calls it again and the page is still open.
         hub.heal("bot2", "alice")
         await wait_until(

@@ -132,13 +132,32 @@ def test_a_bad_screen_option_is_a_usage_error(homes: Homes) -> None:
     )
 
 
+class _Sink:
+    """A page server for the relay (the :class:`PageSink` it talks to): records what goes
+    to the pages."""
+
+    def __init__(self, pages: set[object]) -> None:
+        self.pages = pages
+        self.sent: list[tuple[object, dict[str, Any]]] = []
+        self.audio: list[bytes] = []
+
+    def send(self, page: object, message: dict[str, Any]) -> None:
+        self.sent.append((page, message))
+
+    def broadcast_audio(self, data: bytes) -> None:
+        self.audio.append(data)
+
+    def codecs_changed(self) -> None:
+        pass
+
+
 async def test_the_robots_reports_on_the_users_camera_go_to_the_sending_page() -> None:
     """Each REPORT of ``video/user`` reaches the page that sends the camera as an
     ``uplink_report`` (its encoder's bit rate follows it); a reordered one and a BYE do not."""
-    sent: list[tuple[object, dict[str, Any]]] = []
     page, other = object(), object()
-    ui = SimpleNamespace(pages={page, other}, _send=lambda p, m: sent.append((p, m)))
-    relay = MediaRelay(cast(Any, ui))
+    sink = _Sink({page, other})
+    sent = sink.sent
+    relay = MediaRelay(sink, cast(Any, SimpleNamespace()))  # the reports need no client
     relay.encode = {page: ("vp8",), other: ("vp8",)}
     relay.sender = page
 

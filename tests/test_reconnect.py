@@ -458,7 +458,7 @@ async def test_the_page_shows_the_reconnection_and_gets_pose_and_video_again(
             assert states[0] == "connected" and states[-2:] == ["reconnecting", "reconnected"]
             back = next(t for t, kind, _ in got if t > healed and kind == "pose")
             assert back - healed < 1.0 + SLACK, f"pose {back - healed:.2f} s after the heal"
-            assert ui.map is not None and not r.safety.state().armed
+            assert ui.maps.map is not None and not r.safety.state().armed
         finally:
             reader.cancel()
             await asyncio.gather(reader, return_exceptions=True)

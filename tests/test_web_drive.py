@@ -150,16 +150,16 @@ async def test_arrow_keys_and_wasd_drive_while_held_and_keyup_releases() -> None
         drives = await sent(page, "drive")
         assert zero(drives[-1]) and sum(zero(m) for m in drives) == 2, drives[-3:]
         # The robot's answers are shown.
-        state = {"type": "drive_state", "seq": 9, "active": True, "code": "ok", "reason": ""}
+        state = {"type": "drive_state", "seq": 9, "active": True, "code": "ok", "text": ""}
         await feed(page, {**state, "linear": 0.3, "angular": -0.5, "cap": 0.42})
         assert (await page.inner_text("#drive-state")).startswith("driving 0.30 m/s")
-        reason = "the robot is stopped: re-arm it"
+        text = "the robot is stopped: re-arm it"
         await feed(
             page,
-            {**state, "active": False, "code": "not_armed", "reason": reason}
+            {**state, "active": False, "code": "not_armed", "text": text}
             | {"linear": 0, "angular": 0, "cap": 0},
         )
-        assert await page.inner_text("#drive-state") == f"refused: {reason}"
+        assert await page.inner_text("#drive-state") == f"refused: {text}"
         await feed(
             page, {**state, "active": False, "code": "stale", "linear": 0, "angular": 0, "cap": 0}
         )

@@ -95,7 +95,7 @@ async def test_the_page_runs_on_a_port_object_messages_media_goals_and_stops() -
             {
                 "type": "safety",
                 "armed": True,
-                "reason": "",
+                "text": "",
                 "holder": "alice",
                 "cap": 1.0,
                 "blocked": False,

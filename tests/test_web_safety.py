@@ -34,12 +34,12 @@ HELLO = {
 }
 
 
-def safety(armed: bool, reason: str = "", holder: str | None = "alice", **more: Any) -> dict:
+def safety(armed: bool, text: str = "", holder: str | None = "alice", **more: Any) -> dict:
     """A §18 state as the port passes it on (``code`` only when given: older robots)."""
     return {
         "type": "safety",
         "armed": armed,
-        "reason": reason,
+        "text": text,
         "holder": holder,
         "cap": 0.5 if armed else 0.0,
         "blocked": False,
@@ -129,7 +129,7 @@ async def test_a_self_stop_offers_one_rearm_and_a_users_stop_the_plain_state() -
         assert a["shown"] and a["arm"] and a["text"].startswith("Your video froze"), a
         await feed(page, safety(False, "driver alice dropped", code="dropped"))
         assert (await alert(page))["text"].startswith("Your call dropped")
-        # A robot without the state's code: told apart by its reason.
+        # A robot without the state's code: told apart by its text.
         await feed(page, safety(False, "driver alice's link lost"))
         assert (await alert(page))["text"].startswith("Your link went silent")
         await feed(page, safety(False, deadman))

@@ -308,7 +308,7 @@ async def test_the_page_loads_and_shows_the_map(rig: Rig) -> None:
 async def test_the_page_follows_a_map_that_changes(rig: Rig) -> None:
     async with browser_page(rig.ui.url) as page:
         await page_ready(page)
-        old = rig.ui.map
+        old = rig.ui.maps.map
         assert old is not None and old.version == 0
         grid = rig.nav.map()
         data = grid.data.copy()
@@ -321,9 +321,9 @@ async def test_the_page_follows_a_map_that_changes(rig: Rig) -> None:
             " && window.telebotUI.mapReady()",
             timeout=15000,
         )
-        new = rig.ui.map
+        new = rig.ui.maps.map
         assert new is not None and new.version == 1 and new.sha256 != old.sha256
-        assert new.grid.value_at(9.5, 4.0) == 100 and rig.ui.map_refreshes == 1
+        assert new.grid.value_at(9.5, 4.0) == 100 and rig.ui.maps.refreshes == 1
         async with aiohttp.ClientSession() as http, http.get(rig.ui.url + "map.png") as response:
             assert await response.read() == new.png
 

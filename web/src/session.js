@@ -71,6 +71,17 @@ function revokeMapUrl(url) {
   if (url && url.startsWith("blob:") && typeof URL.revokeObjectURL === "function") URL.revokeObjectURL(url);
 }
 
+/** Longest text id a page may use in `chat`, `say`, `camera` (as the Python client). */
+const MAX_ID = 64;
+
+/** Why a page message's `id` is not a number, a short text or null ("" when it is). */
+function badId(msg) {
+  const id = msg.id ?? null;
+  if (id === null || (typeof id === "number" && Number.isFinite(id))) return "";
+  if (typeof id === "string" && id.length <= MAX_ID) return "";
+  return `${msg.type}: 'id' must be a number, a text of at most ${MAX_ID} characters or null`;
+}
+
 /** Seconds before reconnection attempt `attempt` (0 first): base doubled, capped, jittered. */
 export function backoffDelay(attempt, { base = 0.1, cap = 2.0 } = {}, random = Math.random) {
   const ceiling = Math.min(cap, base * 2 ** Math.min(attempt, 32));
@@ -177,7 +188,7 @@ export class RobotSession {
     s.safety = new SafetyService(theCall, {
       random,
       onState: (state) => {
-        const msg = { type: "safety", armed: state.armed, reason: state.reason, code: state.code, holder: state.holder, cap: state.cap, blocked: state.blocked };
+        const msg = { type: "safety", armed: state.armed, text: state.reason, code: state.code, holder: state.holder, cap: state.cap, blocked: state.blocked };
         this.latest.safety = msg;
         this.emit(msg);
       },
@@ -470,6 +481,7 @@ export class RobotSession {
       case "drive":
         return this.onDrive(msg);
       case "chat": {
+        if (badId(msg)) return this.pageError(badId(msg));
         const line = String(msg.text ?? "");
         const said = sayText(line);
         if (said !== null) this.say(msg.id, said);
@@ -477,12 +489,20 @@ export class RobotSession {
         return;
       }
       case "say":
+        if (badId(msg)) return this.pageError(badId(msg));
         return this.say(msg.id, String(msg.text ?? ""));
       case "camera":
-        if (msg.name === "navcam" || msg.name === "usercam") this.chat(msg.id, msg.name);
+        if (msg.name !== "navcam" && msg.name !== "usercam") {
+          return this.pageError("camera: 'name' must be navcam or usercam");
+        }
+        if (badId(msg)) return this.pageError(badId(msg));
+        this.chat(msg.id, msg.name);
         return;
       case "ping":
-        this.emit({ type: "pong", t: msg.t });
+        if (msg.t != null && !(typeof msg.t === "number" && Number.isFinite(msg.t))) {
+          return this.pageError("ping: 't' must be a finite number or null");
+        }
+        this.emit({ type: "pong", t: msg.t ?? null });
         return;
       case "media":
         return this.onMedia(msg);
@@ -505,7 +525,7 @@ export class RobotSession {
   /**
    * Stop the robot now (anyone may, never refused): repeated every 50 ms until the robot
    * acknowledges. Resolves with the ack as the page gets it ({type: "ack", what: "stop",
-   * ok, reason, code}), which is also emitted.
+   * ok, text, code}), which is also emitted.
    * @param {string} [how] "button" | "key" | "tab_closed" | "exit" | "api"
    */
   stop(how = "button") {
@@ -515,8 +535,8 @@ export class RobotSession {
 
   safety(what, how = "") {
     return new Promise((resolve) => {
-      const answer = (ok, reason, code) => {
-        const msg = { type: "ack", what, ok, reason, code };
+      const answer = (ok, text, code) => {
+        const msg = { type: "ack", what, ok, text, code };
         this.emit(msg);
         resolve(msg);
       };
@@ -559,9 +579,9 @@ export class RobotSession {
     this.services?.drive.cancel(); // the goal ends direct driving: no repeat may replace it
     const token = {};
     this.goalId = token;
-    const update = (status, progress = 0, reason = "", code = "") => {
+    const update = (status, progress = 0, text = "", code = "") => {
       if (this.goalId !== token) return; // a newer goal is the page's goal now
-      const goal = { type: "goal", x, y, yaw, status, progress, reason, code };
+      const goal = { type: "goal", x, y, yaw, status, progress, text, code };
       this.latest.goal = goal;
       this.emit(goal);
     };
@@ -614,7 +634,9 @@ export class RobotSession {
   }
 
   onDriveState(state) {
-    const msg = { type: "drive_state", ...state };
+    // The page's message calls the robot's words `text` (its wire field is `reason`).
+    const { reason, ...fields } = state;
+    const msg = { type: "drive_state", ...fields, text: reason };
     this.latest.drive = msg;
     this.emit(msg);
   }
@@ -642,7 +664,7 @@ export class RobotSession {
   }
 
   say(id, text) {
-    const answer = (ok, reason, code) => this.emit({ type: "said", id, ok, reason, code });
+    const answer = (ok, text, code) => this.emit({ type: "said", id, ok, text, code });
     this.onCall(
       () => this.services.conference.say(text, { now: this.clock.now() }).then(
         (said) => answer(said.ok, said.reason, said.code),

@@ -161,7 +161,7 @@ test("the page's drive goes on the call, drive_state comes back to the page", as
   call().toUser("drive", JSON.stringify(STATE));
   await clock.advance(0.5);
   assert.ok(call().sent("drive").length >= 5, "repeated for the hold");
-  assert.deepEqual(out.filter((m) => m.type === "drive_state"), [{ type: "drive_state", seq: 41, active: true, code: "ok", reason: "", linear: 0.3, angular: -0.5, cap: 0.42 }]);
+  assert.deepEqual(out.filter((m) => m.type === "drive_state"), [{ type: "drive_state", seq: 41, active: true, code: "ok", text: "", linear: 0.3, angular: -0.5, cap: 0.42 }]);
   s.send({ type: "drive", linear: 0, angular: 0 });
   await clock.advance(0.5);
   assert.deepEqual(call().sent("drive").slice(-3).map((m) => m.linear + m.angular), [0, 0, 0]);

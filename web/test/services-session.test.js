@@ -82,7 +82,7 @@ test("hello, then the robot's streams in the page's shapes", async () => {
   delete pose.recv;
   assert.deepEqual(pose, { type: "pose", x: 1, y: 2, yaw: 0.5, v: 0.3, w: 0, state: "moving", detail: "goto lab", goal: 7, t: 12.5, cov: [0.1, 0.1, 0.01] });
   assert.deepEqual(ofType(out, "telemetry"), [{ type: "telemetry", ...TELEMETRY }]);
-  assert.deepEqual(ofType(out, "safety"), [{ type: "safety", armed: false, reason: "stop requested by bob (key)", code: "stopped", holder: "bob", cap: 0, blocked: false }], "the state's code (§18) goes to the page");
+  assert.deepEqual(ofType(out, "safety"), [{ type: "safety", armed: false, text: "stop requested by bob (key)", code: "stopped", holder: "bob", cap: 0, blocked: false }], "the state's code (§18) goes to the page");
   assert.deepEqual(ofType(out, "plan"), [{ type: "plan", seq: 3, goal: 7, points: [[1, 2], [3, 4]] }], "an older plan is dropped");
   assert.deepEqual(ofType(out, "places"), [{ type: "places", places: [{ name: "lab", x: 1, y: 2, yaw: null }] }], "once while unchanged");
   assert.deepEqual(ofType(out, "people"), [{ ...people, tracks: [{ ...people.tracks[0], src: ["camera", "laser"] }] }]);
@@ -118,29 +118,35 @@ test("page → client: stop, arm, chat, camera, say, goal, ping and bad messages
   session.send({ type: "goal", x: 1, y: 2, yaw: null });
   session.send({ type: "ping", t: 1234.5 });
   session.send({ type: "goal", x: "a", y: 2 });
+  session.send({ type: "camera", id: 7, name: "rearcam" });
+  session.send({ type: "chat", id: [1], text: "where?" });
+  session.send({ type: "ping", t: "now" });
   session.send({ type: "warp" });
   session.send(null);
   await clock.advance(0.2);
   const stops = call().sent("safety").filter((m) => m.type === "stop");
   assert.deepEqual([...new Set(stops.map((s) => s.how))].sort(), ["button", "key"], "an unknown how is a button");
   assert.deepEqual(ofType(out, "ack"), [
-    { type: "ack", what: "stop", ok: true, reason: "", code: "ok" },
-    { type: "ack", what: "stop", ok: true, reason: "", code: "ok" },
-    { type: "ack", what: "arm", ok: true, reason: "", code: "ok" },
+    { type: "ack", what: "stop", ok: true, text: "", code: "ok" },
+    { type: "ack", what: "stop", ok: true, text: "", code: "ok" },
+    { type: "ack", what: "arm", ok: true, text: "", code: "ok" },
   ]);
   assert.deepEqual(ofType(out, "chat"), [
     { type: "chat", id: 4, text: "ran where?", ok: true, final: true, code: "ok" },
     { type: "chat", id: 6, text: "ran usercam", ok: true, final: true, code: "ok" },
   ]);
-  assert.deepEqual(ofType(out, "said"), [{ type: "said", id: 5, ok: true, reason: "", code: "ok" }]);
+  assert.deepEqual(ofType(out, "said"), [{ type: "said", id: 5, ok: true, text: "", code: "ok" }]);
   assert.deepEqual(call().sent("conference").filter((m) => m.type === "say").map((m) => m.text), ["hello all"]);
   assert.deepEqual(ofType(out, "goal"), [
-    { type: "goal", x: 1, y: 2, yaw: null, status: "sent", progress: 0, reason: "", code: "" },
-    { type: "goal", x: 1, y: 2, yaw: null, status: "active", progress: 0.5, reason: "", code: "accepted" },
+    { type: "goal", x: 1, y: 2, yaw: null, status: "sent", progress: 0, text: "", code: "" },
+    { type: "goal", x: 1, y: 2, yaw: null, status: "active", progress: 0.5, text: "", code: "accepted" },
   ]);
   assert.deepEqual(ofType(out, "pong"), [{ type: "pong", t: 1234.5 }]);
   assert.deepEqual(ofType(out, "error").map((m) => m.text), [
-    "a goal needs numbers x, y (and yaw)", "unknown message type 'warp'", "not a JSON message with a type",
+    "a goal needs numbers x, y (and yaw)", "camera: 'name' must be navcam or usercam",
+    "chat: 'id' must be a number, a text of at most 64 characters or null",
+    "ping: 't' must be a finite number or null",
+    "unknown message type 'warp'", "not a JSON message with a type",
   ]);
 });
 
@@ -174,7 +180,7 @@ test("a dropped call: reconnecting, reconnected with seconds, a request in fligh
   assert.ok(reconnected.seconds > 0);
   await clock.advance(0.1);
   assert.equal(made[1].sent("safety").filter((m) => m.type === "stop").length >= 1, true);
-  assert.deepEqual(ofType(out, "ack").at(-1), { type: "ack", what: "stop", ok: true, reason: "", code: "ok" });
+  assert.deepEqual(ofType(out, "ack").at(-1), { type: "ack", what: "stop", ok: true, text: "", code: "ok" });
   assert.equal(made[0].sent("chat").every((m) => m.text === "fwd 1"), true);
   assert.equal(made[1].sent("chat").length, 0, "the old request is never sent on the new call");
   await session.close();

@@ -863,6 +863,16 @@ class UserMedia:
         if self._service is not None:
             self._service.sources_changed()
 
+    def send_audio(self, packet: bytes, capture_time: float) -> bool:
+        """Send one already encoded Opus packet (a browser page's microphone) on the
+        current call while the robot asks for the user's voice; False when not sent (no
+        call, not asked). TelebotError if the call refuses it."""
+        service = self._service
+        if service is None or not service.audio_out.watching(service._loop.time()):
+            return False
+        service.audio_out.send(packet, capture_time)
+        return True
+
     def end(self) -> None:
         """The client closes: receivers end."""
         if self.ended:

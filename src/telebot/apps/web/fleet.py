@@ -17,19 +17,17 @@ frames. ``stop all`` stops every robot the user has a call with, all at once, an
 each robot's answer; one that does not answer within :data:`STOP_ALL_TIMEOUT` is reported
 and does not hold up the others.
 
-Fleet websocket (``/fleet/ws``, JSON)::
+Fleet websocket (``/fleet/ws``, JSON; docs/protocol.md §21). The page sends ``open``,
+``close`` (``robot``: a name) and ``stop_all``, typed in :mod:`telebot.apps.web.messages`::
 
-    page → server
-      {"type": "open", "robot": NAME} | {"type": "close", "robot": NAME}
-      {"type": "stop_all"}                       stop every robot with a call
     server → page
       {"type": "hello", "user"}
       {"type": "fleet", "robots": [{"name", "online", "trusted", "called", "open",
         "url", "role", "battery", "battery_low", "state", "armed", "holder", "rtt",
         "loss", "connection", "problem"}, ...]}         on change and every 0.5 s
       {"type": "opened", "robot", "url"} | {"type": "closed", "robot"}
-      {"type": "stopped", "robot", "ok", "reason"}       each robot's answer to stop all
-      {"type": "stop_all", "results": [{"robot", "ok", "reason"}, ...]}
+      {"type": "stopped", "robot", "ok", "text"}         each robot's answer to stop all
+      {"type": "stop_all", "results": [{"robot", "ok", "text"}, ...]}
       {"type": "error", "text"}                          a one-line reason
 """
 
@@ -37,18 +35,25 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Self
+from typing import Any, assert_never
 
-from aiohttp import WSMsgType, web
+from aiohttp import web
 
-from telebot.apps.tasks import BackgroundTasks
-from telebot.apps.web.server import STATIC, WS_HEARTBEAT, WebUI
+from telebot.apps.web.messages import (
+    FLEET_PAGE,
+    CloseRobot,
+    OpenRobot,
+    PageMessageError,
+    StopAll,
+    parse_page_message,
+)
+from telebot.apps.web.pageserver import STATIC, PageServer
+from telebot.apps.web.server import WS_HEARTBEAT, WebUI
 from telebot.channels.call import UserEndpoint
 from telebot.channels.proto.frames import validate_name
 from telebot.channels.transports.base import Subscription
@@ -135,7 +140,7 @@ class FleetRobot:
         return row
 
 
-class FleetUI:
+class FleetUI(PageServer):
     """The fleet page: ``async with FleetUI(endpoint, port=8080) as fleet: print(fleet.url)``.
 
     ``endpoint`` is the user's open :class:`~telebot.channels.call.UserEndpoint` (the caller
@@ -156,9 +161,8 @@ class FleetUI:
         stop_timeout: float = STOP_ALL_TIMEOUT,
         watch: bool = True,
     ) -> None:
+        super().__init__(host=host, port=port, owner="fleet")
         self.endpoint = endpoint
-        self.host = host
-        self.port = port
         self.user = user or endpoint.identity.name
         self.reconnect = reconnect if reconnect is not None else ReconnectSettings()
         self.call_timeout = call_timeout
@@ -170,34 +174,21 @@ class FleetUI:
         self.robots: dict[str, FleetRobot] = {}
         self.pages: set[web.WebSocketResponse] = set()
         self._watch: Subscription | None = None
-        self._runner: web.AppRunner | None = None
-        self._tasks = BackgroundTasks("fleet")
         self._closing = False
         self._prefix = f"{endpoint.namespace}/presence/robot/"
 
-    @property
-    def url(self) -> str:
-        """The fleet page's address."""
-        host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"http://{host}:{self.port}/"
-
     # -- lifecycle --------------------------------------------------------------------
+
+    def routes(self, router: web.UrlDispatcher) -> None:
+        """The fleet page, its websocket and each opened robot's page."""
+        router.add_get("/", self._index)
+        router.add_get("/fleet/ws", self._websocket)
+        router.add_get("/robot/{name}", self._robot_bare)
+        router.add_get("/robot/{name}/{tail:.*}", self._robot_page)
 
     async def start(self) -> None:
         """Serve the page and start watching presence."""
-        app = web.Application()
-        app.router.add_get("/", self._index)
-        app.router.add_get("/fleet/ws", self._websocket)
-        app.router.add_static("/static/", Path(str(STATIC)), show_index=False)
-        app.router.add_get("/robot/{name}", self._robot_bare)
-        app.router.add_get("/robot/{name}/{tail:.*}", self._robot_page)
-        self._runner = web.AppRunner(app, handle_signals=False, access_log=None)
-        await self._runner.setup()
-        site = web.TCPSite(self._runner, self.host, self.port)
-        await site.start()
-        if self.port == 0:
-            sockets = getattr(site._server, "sockets", None) or []
-            self.port = int(sockets[0].getsockname()[1])
+        await self.serve()
         self._watch = self.endpoint.transport.watch_presence(
             f"{self._prefix}*/*", self._on_presence
         )
@@ -223,16 +214,7 @@ class FleetUI:
             if robot.client is not None:
                 await _hang_up(robot.client)
                 robot.client = None
-        if self._runner is not None:
-            await self._runner.cleanup()
-        await self._tasks.cancel_all()
-
-    async def __aenter__(self) -> Self:
-        await self.start()
-        return self
-
-    async def __aexit__(self, *exc: object) -> None:
-        await self.close()
+        await self.stop_serving()
 
     # -- presence and calls -----------------------------------------------------------
 
@@ -407,32 +389,29 @@ class FleetUI:
             try:
                 ack = await client.stop(how="button", timeout=self.stop_timeout)
             except TimeoutError:
-                reason = f"did not answer within {self.stop_timeout:g} s"
-                result = {"robot": name, "ok": False, "reason": reason}
+                text = f"did not answer within {self.stop_timeout:g} s"
+                result = {"robot": name, "ok": False, "text": text}
             except TelebotError as exc:  # the call dropped under the stop, or has ended
-                result = {"robot": name, "ok": False, "reason": f"did not answer: {exc}"}
+                result = {"robot": name, "ok": False, "text": f"did not answer: {exc}"}
             except Exception as exc:  # anything else: still report it, never lose the others
                 log.exception("stop all: %s", name)
-                result = {"robot": name, "ok": False, "reason": f"stop failed: {exc}"}
+                result = {"robot": name, "ok": False, "text": f"stop failed: {exc}"}
             else:
-                result = {"robot": name, "ok": ack.ok, "reason": ack.text or "stopped"}
+                result = {"robot": name, "ok": ack.ok, "text": ack.text or "stopped"}
             self._broadcast({"type": "stopped", **result})
             return result
 
         results = list(await asyncio.gather(*(one(name, c) for name, c in targets)))
         for result in results:
             if not result["ok"]:
-                log.warning("stop all: %s %s", result["robot"], result["reason"])
+                log.warning("stop all: %s %s", result["robot"], result["text"])
         self._broadcast({"type": "stop_all", "results": results})
         return results
 
     # -- HTTP -------------------------------------------------------------------------
 
     async def _index(self, request: web.Request) -> web.StreamResponse:
-        html = (STATIC / "fleet.html").read_text(encoding="utf-8")
-        return web.Response(
-            text=html, content_type="text/html", headers={"Cache-Control": "no-store"}
-        )
+        return self.html("fleet.html")
 
     async def _robot_bare(self, request: web.Request) -> web.StreamResponse:
         # The page's URLs are relative: it must be at ".../NAME/", with the slash.
@@ -452,40 +431,35 @@ class FleetUI:
         return await robot.ui.handle(request, tail)
 
     async def _websocket(self, request: web.Request) -> web.StreamResponse:
-        ws = web.WebSocketResponse(heartbeat=WS_HEARTBEAT, max_msg_size=1 << 16)
-        await ws.prepare(request)
+        ws = await self.accept(request, heartbeat=WS_HEARTBEAT, max_msg_size=1 << 16)
         self.pages.add(ws)
         try:
             await ws.send_json({"type": "hello", "user": self.user})
             await ws.send_json(self._list())
-            async for msg in ws:
-                if msg.type == WSMsgType.TEXT:
-                    self._on_message(ws, msg.data)
-                elif msg.type == WSMsgType.ERROR:
-                    break
+            async for data in self.received(ws):
+                if isinstance(data, str):
+                    self._on_message(ws, data)
+                else:
+                    self._send(ws, {"type": "error", "text": "the fleet page sends no binary"})
         finally:
             self.pages.discard(ws)
         return ws
 
     def _on_message(self, ws: web.WebSocketResponse, text: str) -> None:
         try:
-            msg = json.loads(text)
-            kind = msg["type"]
-        except (ValueError, KeyError, TypeError):
-            self._send(ws, {"type": "error", "text": "not a JSON message with a type"})
+            msg = parse_page_message(text, FLEET_PAGE)
+        except PageMessageError as exc:
+            self._send(ws, {"type": "error", "text": str(exc)})
             return
-        if kind == "stop_all":
-            self._tasks.spawn(self.stop_all())  # first, without waiting for anything else
-        elif kind in ("open", "close"):
-            name = msg.get("robot")
-            if not isinstance(name, str):
-                self._send(ws, {"type": "error", "text": f"{kind}: 'robot' must be a name"})
-            elif kind == "open":
+        match msg:
+            case StopAll():
+                self._tasks.spawn(self.stop_all())  # first, without waiting for anything else
+            case OpenRobot(robot=name):
                 self._tasks.spawn(self._open_for(ws, name))
-            else:
+            case CloseRobot(robot=name):
                 self._tasks.spawn(self.close_robot(name))
-        else:
-            self._send(ws, {"type": "error", "text": f"unknown message type {kind!r}"})
+            case _:
+                assert_never(msg)
 
     async def _open_for(self, ws: web.WebSocketResponse, name: str) -> None:
         problem = await self.open(name)
@@ -504,14 +478,10 @@ class FleetUI:
         self._broadcast(self._list())
 
     def _send(self, ws: web.WebSocketResponse, message: dict[str, Any]) -> None:
-        if not ws.closed:
-            self._tasks.spawn(ws.send_str(json.dumps(message)))
+        self.send_json(ws, message)
 
     def _broadcast(self, message: dict[str, Any]) -> None:
-        text = json.dumps(message)
-        for ws in list(self.pages):
-            if not ws.closed:
-                self._tasks.spawn(ws.send_str(text))
+        self.send_all(list(self.pages), message)
 
     async def _pump_list(self) -> None:
         while True:

@@ -20,10 +20,11 @@ import asyncio
 import json
 import logging
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Collection, Hashable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Final, Literal
+from typing import TYPE_CHECKING, Any, Final, Generic, Literal, Protocol, TypeVar
 
+from telebot.apps.web.messages import PAGE_CODECS, PAGE_DECODES, Keyframe, MediaCaps
 from telebot.channels.transports.base import Lane
 from telebot.errors import CallEnded, ProtocolError, TelebotError
 from telebot.services.proto.media import (
@@ -39,20 +40,18 @@ from telebot.services.proto.messages import is_finite_number
 from telebot.services.proto.video import CompleteFrame, Report, fragment, serial_diff
 
 if TYPE_CHECKING:
-    from telebot.apps.web.server import WebUI, _Page
     from telebot.channels.call import Call
     from telebot.channels.channel import Channel, ReceivedDatagram
-    from telebot.services.media import UserMedia, UserMediaService
+    from telebot.services.client import RobotClient
 
 __all__ = [
     "MAX_AUDIO_PACKET",
     "MAX_HEADER",
     "MAX_PAGE_MESSAGE",
     "MAX_VIDEO_FRAME",
-    "MEDIA_TYPES",
-    "PAGE_CODECS",
     "MediaMessage",
     "MediaRelay",
+    "PageSink",
     "pack_media",
     "parse_media",
     "uplink_report",
@@ -65,13 +64,9 @@ MAX_HEADER: Final = 1024
 MAX_VIDEO_FRAME: Final = 2_000_000
 #: Largest Opus packet (RFC 6716: 1275 bytes per frame; a little room for framing).
 MAX_AUDIO_PACKET: Final = 1500
-#: Codecs a page may send its camera in (what WebCodecs encodes; never JPEG).
-PAGE_CODECS: Final = ("vp8", "h264")
 _U32: Final = 1 << 32
 #: Largest websocket message a page may send (a picture and its header).
 MAX_PAGE_MESSAGE: Final = MAX_VIDEO_FRAME + 4 + MAX_HEADER
-#: Text message types of the page the relay handles.
-MEDIA_TYPES: Final = frozenset({"media", "keyframe"})
 #: Video codecs a page decodes when it says nothing (the web UI's first format).
 JPEG_ONLY: Final = ("jpeg",)
 
@@ -187,7 +182,7 @@ class _Uplink:
     the call's first report, for :data:`USER_MEDIA_PROBE` s from the first picture (the
     robot asks only once pictures came)."""
 
-    def __init__(self, relay: MediaRelay) -> None:
+    def __init__(self, relay: MediaRelay[Any]) -> None:
         self.relay = relay
         self.call: Call | None = None
         self.channel: Channel | None = None
@@ -290,27 +285,56 @@ class _Uplink:
         return True
 
 
-class MediaRelay:
+#: A page, as the page server knows it (the relay only tells pages apart).
+P = TypeVar("P", bound=Hashable)
+
+
+class PageSink(Protocol[P]):
+    """What the relay needs of the page server (:class:`~telebot.apps.web.server.WebUI`):
+    the open pages and the ways to reach them."""
+
+    @property
+    def pages(self) -> Collection[P]:
+        """The pages open now."""
+        ...
+
+    def send(self, page: P, message: dict[str, Any]) -> None:
+        """A JSON text message to ``page``."""
+        ...
+
+    def broadcast_audio(self, data: bytes) -> None:
+        """A binary audio message to every page (small, in order)."""
+        ...
+
+    def codecs_changed(self) -> None:
+        """What the pages decode changed (:meth:`MediaRelay.codecs`): ask the robot again."""
+        ...
+
+
+class MediaRelay(Generic[P]):
     """The web UI's media: the robot's video and voice to the pages, the page's camera and
     microphone to the robot, as encoded bytes (never decoded or re-encoded here).
 
-    One page at a time sends the user's camera and microphone (the first that can; the
-    next when it closes): a user with two tabs open is one user to the robot.
+    ``sink`` is the page server; ``client`` the call's client (its current call, video
+    feed and media). One page at a time sends the user's camera and microphone (the
+    first that can; the next when it closes): a user with two tabs open is one user to
+    the robot.
     """
 
-    def __init__(self, ui: WebUI) -> None:
-        self.ui = ui
+    def __init__(self, sink: PageSink[P], client: RobotClient) -> None:
+        self.sink = sink
+        self.client = client
         #: What each open page decodes and encodes (from its ``media`` message).
-        self.decode: dict[_Page, tuple[str, ...]] = {}
-        self.encode: dict[_Page, tuple[str, ...]] = {}
+        self.decode: dict[P, tuple[str, ...]] = {}
+        self.encode: dict[P, tuple[str, ...]] = {}
         #: The page whose camera and microphone go to the robot.
-        self.sender: _Page | None = None
+        self.sender: P | None = None
         self.uplink = _Uplink(self)
         #: Page messages dropped as malformed (each page is told once per kind of fault).
         self.malformed = 0
         self.audio_sent = 0
         self._audio_unsub: Callable[[], None] | None = None
-        self._told: dict[_Page, dict[str, Any]] = {}
+        self._told: dict[P, dict[str, Any]] = {}
 
     # -- what the pages can do
 
@@ -321,20 +345,18 @@ class MediaRelay:
         so a page opening does not switch the others to JPEG for a moment; JPEG while no
         page has said anything.
         """
-        lists = [self.decode[page] for page in self.ui.pages if page in self.decode]
+        lists = [self.decode[page] for page in self.sink.pages if page in self.decode]
         lists = lists or [JPEG_ONLY]
         common = [c for c in lists[0] if all(c in other for other in lists[1:])]
-        ids = [codec_id(c) for c in common if c in ("h264", "vp8", "jpeg")]
+        ids = [codec_id(c) for c in common if c in PAGE_DECODES]
         return tuple(ids) or (codec_id("jpeg"),)
 
-    def page_opened(self, page: _Page) -> None:
+    def page_opened(self, page: P) -> None:
         """A page connected: start hearing the robot (its voice goes to every page)."""
         if self._audio_unsub is None:
-            media = self._user_media()
-            if media is not None:
-                self._audio_unsub = media.subscribe_audio(self._on_robot_audio)
+            self._audio_unsub = self.client.media.subscribe_audio(self._on_robot_audio)
 
-    def page_closed(self, page: _Page) -> None:
+    def page_closed(self, page: P) -> None:
         """A page went away: forget it; another page may take over the camera."""
         self.decode.pop(page, None)
         self.encode.pop(page, None)
@@ -342,10 +364,10 @@ class MediaRelay:
         if self.sender is page:
             self.sender = None
             self.tell_pages()
-        if not self.ui.pages and self._audio_unsub is not None:
+        if not self.sink.pages and self._audio_unsub is not None:
             self._audio_unsub()
             self._audio_unsub = None
-        self.ui._video_resubscribe()
+        self.sink.codecs_changed()
 
     def close(self) -> None:
         """The web UI closes."""
@@ -357,40 +379,35 @@ class MediaRelay:
 
     # -- page -> relay
 
-    def on_message(self, page: _Page, msg: dict[str, Any]) -> None:
-        """A text message of :data:`MEDIA_TYPES` from ``page``."""
-        if msg["type"] == "keyframe":
-            self.ui.client.video_feed.request_keyframe()
+    def on_message(self, page: P, msg: MediaCaps | Keyframe) -> None:
+        """A media text message from ``page``."""
+        if isinstance(msg, Keyframe):
+            self.client.video_feed.request_keyframe()
             return
-        decode = msg.get("decode")
-        encode = msg.get("encode")
-        self.decode[page] = _names(decode, ("h264", "vp8", "jpeg")) or JPEG_ONLY
-        self.encode[page] = _names(encode, PAGE_CODECS)
-        self.ui._video_resubscribe()
+        self.decode[page] = msg.decode or JPEG_ONLY
+        self.encode[page] = msg.encode
+        self.sink.codecs_changed()
         self.tell_pages()
 
-    def on_binary(self, page: _Page, data: bytes) -> None:
+    def on_binary(self, page: P, data: bytes) -> None:
         """A binary message (the user's camera or microphone) from ``page``."""
         codecs = self.encode.get(page, PAGE_CODECS)
         try:
             msg = parse_media(data, codecs)
         except ValueError as exc:
             self.malformed += 1
-            self.ui._send(page, {"type": "error", "text": f"media dropped: {exc}"})
+            self.sink.send(page, {"type": "error", "text": f"media dropped: {exc}"})
             return
         if page is not self.sender:
             return  # another tab sends the camera; this one's is not wanted
-        self.uplink.bind(self.ui.client.call)
+        self.uplink.bind(self.client.call)
         if msg.kind == "video":
             self.uplink.send(msg.codec, msg.key, msg.capture_time, msg.data)
             return
-        service = self._audio_service()
-        if service is None:
-            return
-        out = service.audio_out
+        # The current call's media service owns audio/user (its sender's numbering and
+        # the robot's reports); the page's Opus packets go out through it as they are.
         try:
-            if out.watching(asyncio.get_running_loop().time()):
-                out.send(msg.data, msg.capture_time)
+            if self.client.media.send_audio(msg.data, msg.capture_time):
                 self.audio_sent += 1
         except TelebotError as exc:
             log.debug("page audio not sent: %s", exc)
@@ -399,19 +416,20 @@ class MediaRelay:
 
     def tell_pages(self) -> None:
         """Tell each page whether to send its camera and microphone, and in which codec."""
-        if self.sender is not None and self.sender not in self.ui.pages:
+        pages = self.sink.pages
+        if self.sender is not None and self.sender not in pages:
             self.sender = None
         if self.sender is None:
-            self.sender = next((p for p in self.ui.pages if self.encode.get(p)), None)
-        for page in list(self.ui.pages):
+            self.sender = next((p for p in pages if self.encode.get(p)), None)
+        for page in list(pages):
             if page not in self.encode:
                 continue  # it has not said what it can do yet
             message = self._media_message(page)
             if self._told.get(page) != message:
                 self._told[page] = message
-                self.ui._send(page, message)
+                self.sink.send(page, message)
 
-    def _media_message(self, page: _Page) -> dict[str, Any]:
+    def _media_message(self, page: P) -> dict[str, Any]:
         if page is not self.sender:
             note = (
                 "another page of this call sends your camera and microphone"
@@ -436,33 +454,16 @@ class MediaRelay:
         """A robot's REPORT on the user's camera: to the sending page, whose encoder's bit
         rate follows it (static/uplink-rate.js)."""
         if self.sender is not None:
-            self.ui._send(self.sender, uplink_report(report))
+            self.sink.send(self.sender, uplink_report(report))
 
     def ask_page_keyframe(self) -> None:
         """The robot lost a picture of the user's camera: the sending page makes a keyframe."""
         if self.sender is not None:
-            self.ui._send(self.sender, {"type": "keyframe_request"})
+            self.sink.send(self.sender, {"type": "keyframe_request"})
 
     def _on_robot_audio(self, packets: list[AudioPacket | None]) -> None:
         for packet in packets:
             if packet is None:
                 continue  # lost: the page's jitter buffer conceals it
             header = {"kind": "audio", "seq": packet.seq, "capture_time": packet.capture_time}
-            self.ui._broadcast_audio(pack_media(header, packet.data))
-
-    # -- media-core's user side
-
-    def _user_media(self) -> UserMedia:
-        return self.ui.client.media
-
-    def _audio_service(self) -> UserMediaService | None:
-        # The current call's media service owns audio/user (its sender's numbering and the
-        # robot's reports); the page's Opus packets go out through it as they are.
-        return self.ui.client.media._service
-
-
-def _names(value: Any, known: tuple[str, ...]) -> tuple[str, ...]:
-    """The known codec names of a page's list, in its order, once each."""
-    if not isinstance(value, list):
-        return ()
-    return tuple(dict.fromkeys(v for v in value if isinstance(v, str) and v in known))
+            self.sink.broadcast_audio(pack_media(header, packet.data))

@@ -27,15 +27,13 @@ import contextlib
 import json
 import logging
 from collections.abc import AsyncIterator, Callable
-from importlib import resources
-from pathlib import Path
-from types import TracebackType
-from typing import TYPE_CHECKING, Any, Self
+from typing import TYPE_CHECKING, Any, assert_never
 
-from aiohttp import WSMsgType, web
+from aiohttp import web
 
-from telebot.apps.tasks import BackgroundTasks
 from telebot.apps.web.media_relay import pack_media
+from telebot.apps.web.messages import SCREEN_PAGE, Keyframe, PageMessageError, parse_page_message
+from telebot.apps.web.pageserver import PageServer
 from telebot.config import ScreenSettings
 from telebot.services.proto.media import CODEC_H264, CODEC_JPEG, CODEC_NAMES, CODEC_VP8
 
@@ -48,7 +46,6 @@ __all__ = ["RobotScreen", "bind_screen", "parse_screen_option", "robot_screen"]
 
 log = logging.getLogger("telebot.screen")
 
-STATIC = resources.files("telebot.apps.web") / "static"
 #: Media messages a page may have in flight before audio is dropped (video: one at a time).
 MAX_AUDIO_IN_FLIGHT = 8
 #: What the screen page decodes (WebCodecs; JPEG as the browser's image decoder does).
@@ -63,7 +60,7 @@ class _Page:
         self.frames_skipped = 0
 
 
-class RobotScreen:
+class RobotScreen(PageServer):
     """Serves the robot's screen page: ``async with RobotScreen(port=8090) as screen: ...``.
 
     Feed it with :meth:`show_state`, :meth:`video` and :meth:`audio` (encoded, as they came
@@ -72,8 +69,9 @@ class RobotScreen:
     """
 
     def __init__(self, *, host: str = "127.0.0.1", port: int = 8090) -> None:
-        self.host = host
-        self.port = port
+        super().__init__(
+            host=host, port=port, owner="screen page", expected=(ConnectionError, RuntimeError)
+        )
         self.pages: set[_Page] = set()
         #: Called when a page asks for a keyframe of the user's video.
         self.on_keyframe: Callable[[], None] = lambda: None
@@ -85,33 +83,15 @@ class RobotScreen:
             "video": False,
         }
         self.frames_sent = 0
-        self._runner: web.AppRunner | None = None
-        self._tasks = BackgroundTasks("screen page", expected=(ConnectionError, RuntimeError))
 
-    @property
-    def url(self) -> str:
-        """The page's address."""
-        host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"http://{host}:{self.port}/"
+    def routes(self, router: web.UrlDispatcher) -> None:
+        """The screen page and its websocket."""
+        router.add_get("/", self._index)
+        router.add_get("/ws", self._websocket)
 
     async def start(self) -> None:
         """Serve the page (OSError if the address is taken)."""
-        app = web.Application()
-        app.router.add_get("/", self._index)
-        app.router.add_get("/ws", self._websocket)
-        app.router.add_static("/static/", Path(str(STATIC)), show_index=False)
-        self._runner = web.AppRunner(app, handle_signals=False, access_log=None)
-        await self._runner.setup()
-        site = web.TCPSite(self._runner, self.host, self.port)
-        try:
-            await site.start()
-        except OSError:
-            await self._runner.cleanup()
-            self._runner = None
-            raise
-        if self.port == 0:
-            sockets = getattr(site._server, "sockets", None) or []
-            self.port = int(sockets[0].getsockname()[1])
+        await self.serve()
         log.info("robot screen at %s", self.url)
 
     async def close(self) -> None:
@@ -119,22 +99,7 @@ class RobotScreen:
         for page in list(self.pages):
             with contextlib.suppress(Exception):
                 await page.ws.close()
-        if self._runner is not None:
-            await self._runner.cleanup()
-            self._runner = None
-        await self._tasks.cancel_all()
-
-    async def __aenter__(self) -> Self:
-        await self.start()
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.close()
+        await self.stop_serving()
 
     # -- what the page shows ----------------------------------------------------------
 
@@ -145,10 +110,7 @@ class RobotScreen:
         if state == self.state:
             return
         self.state = state
-        raw = json.dumps(state)
-        for page in list(self.pages):
-            if not page.ws.closed:
-                self._tasks.spawn(page.ws.send_str(raw))
+        self.send_all([page.ws for page in self.pages], state)
 
     def video(self, codec: str, key: bool, frame_id: int, capture_time: float, data: bytes) -> None:
         """One encoded picture of the user's camera (H.264 Annex B, VP8 or JPEG)."""
@@ -184,37 +146,36 @@ class RobotScreen:
     # -- HTTP -------------------------------------------------------------------------
 
     async def _index(self, request: web.Request) -> web.StreamResponse:
-        html = (STATIC / "screen.html").read_text(encoding="utf-8")
-        return web.Response(
-            text=html, content_type="text/html", headers={"Cache-Control": "no-store"}
-        )
+        return self.html("screen.html")
 
     async def _websocket(self, request: web.Request) -> web.StreamResponse:
-        ws = web.WebSocketResponse(heartbeat=2.0, max_msg_size=1 << 12)
-        await ws.prepare(request)
+        ws = await self.accept(request, heartbeat=2.0, max_msg_size=1 << 12)
         page = _Page(ws)
         self.pages.add(page)
         try:
             await ws.send_str(json.dumps(self.state))
-            async for msg in ws:
-                if msg.type == WSMsgType.TEXT:
-                    self._on_message(msg.data)
-                elif msg.type == WSMsgType.ERROR:
-                    break
+            async for data in self.received(ws):
+                if isinstance(data, str):
+                    self._on_message(data)
         finally:
             self.pages.discard(page)
         return ws
 
     def _on_message(self, text: str) -> None:
         try:
-            kind = json.loads(text).get("type")
-        except (ValueError, AttributeError):
-            return  # the page is ours; anything else is ignored
-        if kind == "keyframe":
-            try:
-                self.on_keyframe()
-            except Exception:
-                log.exception("keyframe request failed")
+            msg = parse_page_message(text, SCREEN_PAGE)
+        except PageMessageError as exc:
+            # The page is the robot's own: a bad message is a bug to log, never an answer.
+            log.debug("screen page message ignored: %s", exc)
+            return
+        match msg:
+            case Keyframe():
+                try:
+                    self.on_keyframe()
+                except Exception:
+                    log.exception("keyframe request failed")
+            case _:
+                assert_never(msg)
 
 
 def parse_screen_option(text: str, settings: ScreenSettings) -> ScreenSettings:

@@ -6,19 +6,11 @@ as ``/map.png``, and a websocket at ``/ws`` (the page's URLs are relative, so th
 page serves the same page at ``/robot/NAME/`` through :meth:`WebUI.handle`). Any number of pages may be open; the robot
 streams video while at least one is.
 
-Websocket protocol (JSON text messages unless stated)::
-
-    page → client
-      {"type": "stop", "how": "button" | "key" | "touch" | "page_hidden"}   stop now (anyone)
-      {"type": "arm"} | {"type": "take"} | {"type": "release"}
-      {"type": "goal", "x": 1.0, "y": 2.0, "yaw": 0.5}   map frame; yaw may be null
-      {"type": "chat", "id": 3, "text": "fwd 1"}         a Table I command ("say …": a say)
-      {"type": "say", "id": 5, "text": "hello all"}      to everyone in the robot's calls
-      {"type": "camera", "id": 4, "name": "usercam"}     switch camera (a chat command)
-      {"type": "ping", "t": 1234.5}                      answered with pong (page ↔ client)
-      {"type": "drive", "linear": 0.3, "angular": -0.5}  drive by hand: client.drive(L, A),
-                                                         sent by the page at 20 Hz while
-                                                         held; zeros release
+Websocket protocol (JSON text messages unless stated; docs/protocol.md §19). What the
+page sends is typed in :mod:`telebot.apps.web.messages` (``stop``, ``arm``, ``take``,
+``release``, ``goal``, ``drive``, ``chat``, ``say``, ``camera``, ``ping``, ``media``,
+``keyframe``), parsed once and handled with ``match``; a bad one is answered with one
+``error``. A machine-readable reason is ``code``, the words for people ``text``::
 
     client → page
       {"type": "hello", "robot", "user", "role", "may_drive", "map": MAP | null}
@@ -28,13 +20,13 @@ Websocket protocol (JSON text messages unless stated)::
       {"type": "pose", "x", "y", "yaw", "v", "w", "state", "detail", "goal", "t",
        "recv": UNIX_MS}                                  recv: when the client got it
       {"type": "telemetry", ...}                         the robot's Telemetry fields
-      {"type": "safety", "armed", "reason", "holder", "cap", "blocked", "code"}
+      {"type": "safety", "armed", "text", "holder", "cap", "blocked", "code"}
       {"type": "link", "rtt": S | null, "loss": 0..1}    the call's heartbeats, every 0.5 s
       {"type": "connection", "state": "connected" | "reconnecting" | "reconnected"
        | "ended", "detail", "seconds"}                   the call to the robot dropped /
                                                          came back (seconds of outage) /
                                                          ended for good
-      {"type": "goal", "x", "y", "yaw", "status", "progress", "reason", "code"}
+      {"type": "goal", "x", "y", "yaw", "status", "progress", "text", "code"}
       {"type": "plan", "seq", "goal", "points": [[x, y], ...]}   the robot's planned path
                                                          (map frame; [] when it has none)
       {"type": "places", "places": [{"name", "x", "y", "yaw"}, ...]}   named places
@@ -43,13 +35,13 @@ Websocket protocol (JSON text messages unless stated)::
                                                          robot's ``people`` message)
       {"type": "people_alert", "kind", "id", "text", "distance", "bearing"}   once each
       {"type": "chat", "id", "text", "ok", "final", "code"}   replies, to the page that asked
-      {"type": "ack", "what": "stop" | "arm" | ..., "ok", "reason", "code"}
+      {"type": "ack", "what": "stop" | "arm" | ..., "ok", "text", "code"}
       {"type": "pong", "t"}
       {"type": "roster", "users": [{"name", "role", "driving", "you"}, ...]}   on change
       {"type": "msg", "seq", "from", "kind": "user" | "robot", "text"}   the conference's
                                                          messages (the last 50 on opening)
-      {"type": "said", "id", "ok", "reason", "code"}     the answer to this page's say
-      {"type": "drive_state", "seq", "active", "code", "reason", "linear", "angular",
+      {"type": "said", "id", "ok", "text", "code"}     the answer to this page's say
+      {"type": "drive_state", "seq", "active", "code", "text", "linear", "angular",
        "cap"}                                            the robot's drive_state (§27)
       binary: video frame = 4-byte big-endian header length, UTF-8 JSON header
               {"kind": "video", "codec", "key", "camera", "frame_id", "capture_time"},
@@ -68,15 +60,16 @@ subscribed while a page is open), so after a reconnection the map, pose and vide
 on the page without a reload; a motion that was running at the drop is reported failed,
 and the robot stays stopped until re-armed.
 
-The map follows the robot's: when telemetry's ``map_version`` differs from the version of
-the map held here, it is fetched again, ``/map.png`` serves the new one and the pages get a
-new ``map`` message (they reload the image).
+The map follows the robot's (:class:`telebot.followers.MapFollower`, as the Foxglove
+bridge's): when telemetry's ``map_version`` differs from the version of the map held here,
+it is fetched again, ``/map.png`` serves the new one and the pages get a new ``map``
+message (they reload the image).
 
 Safety: a ``stop`` is handed to :meth:`RobotClient.stop` at once (before anything else
 the message loop does). When a page's websocket closes (tab closed, browser crashed: the
 websocket heartbeat notices within 2 s) while the robot moves and this user may drive,
-the client stops the robot (a stop with ``how`` ``tab_closed``). ``reason`` is text for
-people; ``code`` the robot's reason code (``docs/protocol.md`` §13.1).
+the client stops the robot (a stop with ``how`` ``tab_closed``). ``text`` is for people;
+``code`` the robot's reason code (``docs/protocol.md`` §13.1).
 """
 
 from __future__ import annotations
@@ -86,36 +79,47 @@ import contextlib
 import functools
 import json
 import logging
-import math
 import sys
 import time
 from collections.abc import Callable, Coroutine, Mapping
 from dataclasses import asdict
-from importlib import resources
 from pathlib import Path
-from types import TracebackType
-from typing import Any, Self
+from typing import Any, assert_never
 
-from aiohttp import WSMsgType, web
+from aiohttp import web
 
-from telebot.apps.tasks import BackgroundTasks
-from telebot.apps.web.media_relay import (
-    MAX_PAGE_MESSAGE,
-    MEDIA_TYPES,
-    MediaRelay,
-    pack_media,
-    video_header,
+from telebot.apps.web.media_relay import MAX_PAGE_MESSAGE, MediaRelay, pack_media, video_header
+from telebot.apps.web.messages import (
+    ROBOT_PAGE,
+    Arm,
+    Camera,
+    Chat,
+    Drive,
+    Goal,
+    Keyframe,
+    MediaCaps,
+    PageMessageError,
+    Ping,
+    ReleaseDrive,
+    RequestId,
+    Say,
+    Stop,
+    TakeDrive,
+    parse_page_message,
 )
+from telebot.apps.web.pageserver import PageServer
 from telebot.config import AppConfig
 from telebot.errors import CallEnded, TelebotError
+from telebot.followers import MapFollower
 from telebot.reasons import Reason
 from telebot.rights import Right, may
 from telebot.services.client import ConnectionEvent, RobotClient
 from telebot.services.mapxfer import MapDownload
 from telebot.services.proto.conference import Message, Roster, say_text
+from telebot.services.proto.drive import DriveState
 from telebot.services.proto.people import PeopleAlertMessage
 from telebot.services.proto.plan import Place, PlanUpdate
-from telebot.services.proto.safety import STOP_HOWS, SafetyAck
+from telebot.services.proto.safety import SafetyAck, SafetyStatus
 from telebot.services.proto.status import GoalUpdate, PoseUpdate
 from telebot.services.proto.video import CompleteFrame
 
@@ -123,8 +127,6 @@ __all__ = ["WebUI", "serve_ui"]
 
 log = logging.getLogger("telebot.web")
 
-#: Where the page's files are (shipped as package data).
-STATIC = resources.files("telebot.apps.web") / "static"
 #: Seconds between websocket pings; a page silent for twice this is taken as gone.
 WS_HEARTBEAT = 1.0
 #: Seconds between link-quality messages to the pages.
@@ -133,13 +135,6 @@ LINK_EVERY = 0.5
 
 def _now_ms() -> float:
     return time.time() * 1000.0
-
-
-def _finite(value: Any) -> float | None:
-    """``value`` as a float when it is a finite JSON number (not a bool), else None."""
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        return None
-    return float(value)
 
 
 class _Page:
@@ -155,7 +150,7 @@ class _Page:
         self.driving = False
 
 
-class WebUI:
+class WebUI(PageServer):
     """The web UI of one call: ``async with WebUI(client, port=8080) as ui: print(ui.url)``.
 
     ``client`` is an already-connected :class:`RobotClient` (the caller owns it); ``user``
@@ -172,21 +167,15 @@ class WebUI:
         user: str = "",
         map_timeout: float = 120.0,
     ) -> None:
+        super().__init__(host=host, port=port, owner="web UI")
         self.client = client
-        self.host = host
-        self.port = port
         self.user = user
-        self.map_timeout = map_timeout
-        self.map: MapDownload | None = None
-        #: Maps fetched again because the robot's map changed.
-        self.map_refreshes = 0
-        self._map_fetch: asyncio.Task[Any] | None = None
+        #: The robot's map, fetched again when it changes and across reconnections.
+        self.maps = MapFollower(client, timeout=map_timeout)
         self.pages: set[_Page] = set()
         #: Stops sent because a page closed while the robot moved (for tests and logs).
         self.close_stops = 0
         self._goal: dict[str, Any] | None = None
-        self._tasks = BackgroundTasks("web UI")
-        self._runner: web.AppRunner | None = None
         #: Unsubscribes from the client's video feed (set while a page is open).
         self._video: Callable[[], None] | None = None
         self._closing = False
@@ -194,7 +183,7 @@ class WebUI:
         #: The codecs the video feed was subscribed with (re-subscribed when they change).
         self._video_codecs: tuple[int, ...] = ()
         #: Camera, microphone and the robot's voice (media_relay.py).
-        self.media = MediaRelay(self)
+        self.media: MediaRelay[_Page] = MediaRelay(self, client)
         #: The newest connection state as the pages get it.
         self.connection: dict[str, Any] = {
             "type": "connection",
@@ -210,27 +199,15 @@ class WebUI:
         """Whether this user's role may drive (observers may only watch and stop)."""
         return may(self.client.call.role, Right.DRIVE)
 
-    @property
-    def url(self) -> str:
-        """The page's address."""
-        host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"http://{host}:{self.port}/"
+    def routes(self, router: web.UrlDispatcher) -> None:
+        """The page, its map and its websocket."""
+        router.add_get("/", self._index)
+        router.add_get("/map.png", self._map_png)
+        router.add_get("/ws", self._websocket)
 
     async def start(self) -> None:
         """Serve the page and start following the robot's streams."""
-        app = web.Application()
-        app.router.add_get("/", self._index)
-        app.router.add_get("/map.png", self._map_png)
-        app.router.add_get("/ws", self._websocket)
-        app.router.add_static("/static/", Path(str(STATIC)), show_index=False)
-        self._runner = web.AppRunner(app, handle_signals=False, access_log=None)
-        await self._runner.setup()
-        site = web.TCPSite(self._runner, self.host, self.port)
-        await site.start()
-        if self.port == 0:
-            server = site._server
-            sockets = getattr(server, "sockets", None) or []
-            self.port = int(sockets[0].getsockname()[1])
+        await self.serve()
         self.follow()
         log.info("web UI for %s at %s", self.client.robot, self.url)
 
@@ -251,7 +228,9 @@ class WebUI:
         self.client.conference.on_message.append(self._on_conference_message)
         self.client.conference.on_roster.append(self._on_roster)
         self.client.on_people_alert.append(self._on_people_alert)
-        self._map_fetch = self._tasks.spawn(self._fetch_map())
+        self.maps.on_map.append(self._on_map)
+        self.maps.on_error.append(self._on_map_error)
+        self.maps.start()
         pumps = (
             self._pump_pose,
             self._pump_telemetry,
@@ -271,6 +250,7 @@ class WebUI:
             return
         self._closing = True
         self.media.close()
+        await self.maps.aclose()
         with contextlib.suppress(ValueError):
             self.client.on_connection.remove(self._on_connection)
         with contextlib.suppress(ValueError):
@@ -285,67 +265,56 @@ class WebUI:
         for page in list(self.pages):
             with contextlib.suppress(Exception):
                 await page.ws.close()
-        if self._runner is not None:
-            await self._runner.cleanup()
-        await self._tasks.cancel_all()
-
-    async def __aenter__(self) -> Self:
-        await self.start()
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.close()
+        await self.stop_serving()
 
     # -- HTTP -------------------------------------------------------------------------
 
     async def _index(self, request: web.Request) -> web.StreamResponse:
-        html = (STATIC / "index.html").read_text(encoding="utf-8")
-        return web.Response(
-            text=html, content_type="text/html", headers={"Cache-Control": "no-store"}
-        )
+        return self.html("index.html")
 
     async def _map_png(self, request: web.Request) -> web.StreamResponse:
-        if self.map is None:
+        if (download := self.maps.map) is None:
             return web.Response(status=503, text="the map has not arrived yet")
-        return web.Response(body=self.map.png, content_type="image/png")
+        return web.Response(body=download.png, content_type="image/png")
 
     def _map_message(self) -> dict[str, Any] | None:
-        if self.map is None:
+        if (download := self.maps.map) is None:
             return None
         return {
             "type": "map",
             "url": "map.png",  # relative: the page may live under a prefix (fleet page)
-            "resolution": self.map.resolution,
-            "origin_x": self.map.origin_x,
-            "origin_y": self.map.origin_y,
-            "width": self.map.width,
-            "height": self.map.height,
-            "version": self.map.version,
+            "resolution": download.resolution,
+            "origin_x": download.origin_x,
+            "origin_y": download.origin_y,
+            "width": download.width,
+            "height": download.height,
+            "version": download.version,
         }
+
+    def _on_map(self, download: MapDownload) -> None:
+        """A map arrived (the first, or the robot's changed one): the pages show it."""
+        message = self._map_message()
+        if message is not None:
+            self._broadcast(message)
+
+    def _on_map_error(self, exc: Exception) -> None:
+        self._broadcast({"type": "error", "text": f"the map did not arrive: {exc}"})
 
     # -- websocket --------------------------------------------------------------------
 
     async def _websocket(self, request: web.Request) -> web.StreamResponse:
-        ws = web.WebSocketResponse(heartbeat=WS_HEARTBEAT, max_msg_size=MAX_PAGE_MESSAGE)
-        await ws.prepare(request)
+        ws = await self.accept(request, heartbeat=WS_HEARTBEAT, max_msg_size=MAX_PAGE_MESSAGE)
         page = _Page(ws)
         self.pages.add(page)
         self._video_wanted()
         self.media.page_opened(page)
         try:
             await self._greet(page)
-            async for msg in ws:
-                if msg.type == WSMsgType.TEXT:
-                    self._on_message(page, msg.data)
-                elif msg.type == WSMsgType.BINARY:
-                    self.media.on_binary(page, msg.data)
-                elif msg.type == WSMsgType.ERROR:
-                    break
+            async for data in self.received(ws):
+                if isinstance(data, str):
+                    self._on_message(page, data)
+                else:
+                    self.media.on_binary(page, data)
         finally:
             self.pages.discard(page)
             if page.driving:  # gone while driving by hand: released now, not 0.55 s later
@@ -371,7 +340,7 @@ class WebUI:
         if (pose := client.latest_pose.value) is not None:
             await page.ws.send_json(self._pose_message(pose, _now_ms()))
         if (safety := client.latest_safety.value) is not None:
-            await page.ws.send_json({"type": "safety", **asdict(safety)})
+            await page.ws.send_json(self._safety_message(safety))
         if (telemetry := client.latest_telemetry.value) is not None:
             await page.ws.send_json({"type": "telemetry", **asdict(telemetry)})
         if self._goal is not None:
@@ -409,20 +378,22 @@ class WebUI:
             self._last_roster = message
             self._broadcast(message)
 
-    async def _say(self, page: _Page, request_id: Any, text: str) -> None:
+    async def _say(self, page: _Page, request_id: RequestId, text: str) -> None:
         try:
             said = await self.client.say(text)
         except (TimeoutError, TelebotError) as exc:
-            reason = "no answer" if isinstance(exc, TimeoutError) else str(exc)
-            self._send(page, {"type": "said", "id": request_id, "ok": False, "reason": reason})
+            text = "no answer" if isinstance(exc, TimeoutError) else str(exc)
+            self.send(
+                page, {"type": "said", "id": request_id, "ok": False, "text": text, "code": ""}
+            )
             return
-        self._send(
+        self.send(
             page,
             {
                 "type": "said",
                 "id": request_id,
                 "ok": said.ok,
-                "reason": said.text,
+                "text": said.text,
                 "code": said.reason,
             },
         )
@@ -438,69 +409,48 @@ class WebUI:
 
     def _on_message(self, page: _Page, text: str) -> None:
         try:
-            msg = json.loads(text)
-            kind = msg["type"]
-        except (ValueError, KeyError, TypeError):
-            self._send(page, {"type": "error", "text": "not a JSON message with a type"})
-            return
-        if kind == "stop":
-            # First and without waiting: the stop's datagram leaves in this loop turn.
-            how = msg.get("how")
-            self._tasks.spawn(self._safety(page, "stop", how if how in STOP_HOWS else "button"))
-        elif kind in ("arm", "take", "release"):
-            self._tasks.spawn(self._safety(page, kind))
-        elif kind == "goal":
-            self._on_goal(page, msg)
-        elif kind == "drive":
-            self._on_drive(page, msg)
-        elif kind == "chat":
-            text = str(msg.get("text", ""))
-            if (said := say_text(text)) is not None:  # "say …": to everyone in the call
-                self._tasks.spawn(self._say(page, msg.get("id"), said))
-            else:
-                self._tasks.spawn(self._chat(page, msg.get("id"), text))
-        elif kind == "say":
-            self._tasks.spawn(self._say(page, msg.get("id"), str(msg.get("text", ""))))
-        elif kind == "camera":
-            name = msg.get("name")
-            if name in ("navcam", "usercam"):
-                self._tasks.spawn(self._chat(page, msg.get("id"), name))
-        elif kind == "ping":
-            self._send(page, {"type": "pong", "t": msg.get("t")})
-        elif kind in MEDIA_TYPES:
-            self.media.on_message(page, msg)
-        else:
-            self._send(page, {"type": "error", "text": f"unknown message type {kind!r}"})
-
-    def _on_goal(self, page: _Page, msg: dict[str, Any]) -> None:
-        try:
-            x, y = float(msg["x"]), float(msg["y"])
-            yaw = None if msg.get("yaw") is None else float(msg["yaw"])
-        except (KeyError, TypeError, ValueError):
-            self._send(page, {"type": "error", "text": "a goal needs numbers x, y (and yaw)"})
-            return
-        if not all(math.isfinite(v) for v in (x, y, yaw or 0.0)):
-            self._send(page, {"type": "error", "text": "a goal needs finite numbers"})
-            return
-        if not self.may_drive:
-            self._send(page, {"type": "error", "text": "observers may not send goals"})
-            return
-        self._tasks.spawn(self._run_goal(x, y, yaw))
-
-    def _on_drive(self, page: _Page, msg: dict[str, Any]) -> None:
-        """Drive by hand (§27): the page sends this at 20 Hz while its user holds a key,
-        the gamepad's stick or the joystick, and zeros once on release."""
-        linear, angular = _finite(msg.get("linear")), _finite(msg.get("angular"))
-        if linear is None or angular is None:
-            if page.driving:  # fail safe: a page that says nonsense stops driving
+            msg = parse_page_message(text, ROBOT_PAGE)
+        except PageMessageError as exc:
+            if exc.kind == Drive.TYPE and page.driving:
+                # Fail safe: a page that says nonsense while it drives stops driving.
                 page.driving = False
                 self.client.drive(0.0, 0.0)
-            self._send(
-                page, {"type": "error", "text": "a drive needs finite numbers linear, angular"}
-            )
+            self.send(page, {"type": "error", "text": str(exc)})
             return
+        match msg:
+            case Stop(how=how):
+                # First and without waiting: the stop's datagram leaves in this loop turn.
+                self._tasks.spawn(self._safety(page, "stop", how))
+            case Arm() | TakeDrive() | ReleaseDrive():
+                self._tasks.spawn(self._safety(page, msg.TYPE))
+            case Goal(x=x, y=y, yaw=yaw):
+                if not self.may_drive:
+                    self.send(page, {"type": "error", "text": "observers may not send goals"})
+                else:
+                    self._tasks.spawn(self._run_goal(x, y, yaw))
+            case Drive(linear=linear, angular=angular):
+                self._on_drive(page, linear, angular)
+            case Chat(id=request_id, text=line):
+                if (said := say_text(line)) is not None:  # "say …": to everyone in the call
+                    self._tasks.spawn(self._say(page, request_id, said))
+                else:
+                    self._tasks.spawn(self._chat(page, request_id, line))
+            case Say(id=request_id, text=line):
+                self._tasks.spawn(self._say(page, request_id, line))
+            case Camera(id=request_id, name=name):
+                self._tasks.spawn(self._chat(page, request_id, name))
+            case Ping(t=t):
+                self.send(page, {"type": "pong", "t": t})
+            case MediaCaps() | Keyframe():
+                self.media.on_message(page, msg)
+            case _:
+                assert_never(msg)
+
+    def _on_drive(self, page: _Page, linear: float, angular: float) -> None:
+        """Drive by hand (§27): the page sends this at 20 Hz while its user holds a key,
+        the gamepad's stick or the joystick, and zeros once on release."""
         if not self.may_drive:
-            self._send(page, {"type": "error", "text": "observers may not drive"})
+            self.send(page, {"type": "error", "text": "observers may not drive"})
             return
         page.driving = linear != 0.0 or angular != 0.0
         self.client.drive(linear, angular)
@@ -514,7 +464,7 @@ class WebUI:
                 "yaw": yaw,
                 "status": status.status,
                 "progress": status.progress,
-                "reason": status.text,
+                "text": status.text,
                 "code": status.reason,
             }
             self._broadcast(self._goal)
@@ -538,23 +488,21 @@ class WebUI:
         try:
             ack = await actions[kind]()
         except (TimeoutError, TelebotError) as exc:
-            reason = "no answer" if isinstance(exc, TimeoutError) else str(exc)
-            self._send(
-                page, {"type": "ack", "what": kind, "ok": False, "reason": reason, "code": ""}
-            )
+            text = "no answer" if isinstance(exc, TimeoutError) else str(exc)
+            self.send(page, {"type": "ack", "what": kind, "ok": False, "text": text, "code": ""})
             return
-        self._send(
+        self.send(
             page,
-            {"type": "ack", "what": kind, "ok": ack.ok, "reason": ack.text, "code": ack.reason},
+            {"type": "ack", "what": kind, "ok": ack.ok, "text": ack.text, "code": ack.reason},
         )
 
-    async def _chat(self, page: _Page, request_id: Any, text: str) -> None:
+    async def _chat(self, page: _Page, request_id: RequestId, text: str) -> None:
         text = text.strip()
         if not text:
             return
         try:
             async for reply in self.client.chat_replies(text, timeout=600.0):
-                self._send(
+                self.send(
                     page,
                     {
                         "type": "chat",
@@ -566,7 +514,7 @@ class WebUI:
                     },
                 )
         except TimeoutError:
-            self._send(
+            self.send(
                 page,
                 {"type": "chat", "id": request_id, "text": "timed out", "ok": False, "final": True},
             )
@@ -595,7 +543,8 @@ class WebUI:
 
     # -- sending ----------------------------------------------------------------------
 
-    def _send(self, page: _Page, message: dict[str, Any]) -> None:
+    def send(self, page: _Page, message: dict[str, Any]) -> None:
+        """A JSON text message to ``page`` (dropped if it closed)."""
         if page.ws.closed:
             return
         task = self._tasks.spawn(page.ws.send_str(json.dumps(message)))
@@ -603,12 +552,9 @@ class WebUI:
         task.add_done_callback(page.sends.discard)
 
     def _broadcast(self, message: dict[str, Any]) -> None:
-        text = json.dumps(message)
-        for page in list(self.pages):
-            if not page.ws.closed:
-                self._tasks.spawn(page.ws.send_str(text))
+        self.send_all([page.ws for page in self.pages], message)
 
-    def _broadcast_audio(self, data: bytes) -> None:
+    def broadcast_audio(self, data: bytes) -> None:
         """An audio packet to every page: small and in order (video skips a busy page)."""
         for page in list(self.pages):
             if not page.ws.closed and len(page.sends) < 32:
@@ -654,15 +600,6 @@ class WebUI:
         while True:
             telemetry = await latest.next()
             self._broadcast({"type": "telemetry", **asdict(telemetry)})
-            self._follow_map(telemetry.map_version)
-
-    def _follow_map(self, version: int) -> None:
-        """Fetch the map again when the robot says it changed (one fetch at a time)."""
-        if self.map is None or self.map.version == version or self._map_fetch is not None:
-            return
-        log.info("the robot's map changed (version %s): fetching it again", version)
-        self.map_refreshes += 1
-        self._map_fetch = self._tasks.spawn(self._fetch_map())
 
     @staticmethod
     def _plan_message(plan: PlanUpdate) -> dict[str, Any]:
@@ -704,41 +641,44 @@ class WebUI:
     async def _pump_drive(self) -> None:
         latest = self.client.latest_drive
         while True:
-            state = await latest.next()
-            self._broadcast(json.loads(state.encode()))  # the wire's fields, as they came
+            self._broadcast(self._drive_message(await latest.next()))
+
+    @staticmethod
+    def _safety_message(state: SafetyStatus) -> dict[str, Any]:
+        return {
+            "type": "safety",
+            "armed": state.armed,
+            "text": state.reason,
+            "code": state.code,
+            "holder": state.holder,
+            "cap": state.cap,
+            "blocked": state.blocked,
+        }
+
+    @staticmethod
+    def _drive_message(state: DriveState) -> dict[str, Any]:
+        """The robot's drive_state (§27) for the pages: its code, and its words as ``text``."""
+        return {
+            "type": "drive_state",
+            "seq": state.seq,
+            "active": state.active,
+            "code": state.reason,
+            "text": state.text,
+            "linear": round(state.linear, 3),
+            "angular": round(state.angular, 3),
+            "cap": round(state.cap, 3),
+        }
 
     async def _pump_safety(self) -> None:
         latest = self.client.latest_safety
         while True:
-            state = await latest.next()
-            self._broadcast({"type": "safety", **asdict(state)})
+            self._broadcast(self._safety_message(await latest.next()))
 
     async def _pump_link(self) -> None:
         while True:
             stats = self.client.call.stats
             self._broadcast({"type": "link", "rtt": stats.rtt, "loss": stats.loss})
             await asyncio.sleep(LINK_EVERY)
-
-    async def _fetch_map(self) -> None:
-        try:
-            while True:
-                try:
-                    self.map = await self.client.get_map(timeout=self.map_timeout)
-                    break
-                except CallEnded as exc:
-                    if self.client.finished:
-                        log.error("the map did not arrive: %s", exc)
-                        return
-                    # The call dropped mid-transfer: fetch it again on the next call.
-                except (TelebotError, TimeoutError) as exc:
-                    log.error("the map did not arrive: %s", exc)
-                    self._broadcast({"type": "error", "text": f"the map did not arrive: {exc}"})
-                    return
-        finally:
-            self._map_fetch = None
-        message = self._map_message()
-        assert message is not None
-        self._broadcast(message)
 
     def _video_wanted(self) -> None:
         """Receive video while at least one page is open."""
@@ -751,8 +691,8 @@ class WebUI:
             self._video()
             self._video = None
 
-    def _video_resubscribe(self) -> None:
-        """The pages decode other codecs now: ask the robot again with the new list."""
+    def codecs_changed(self) -> None:
+        """The pages may decode other codecs now: ask the robot again when the list changed."""
         if self._video is not None and self.media.codecs() != self._video_codecs:
             self._video()
             self._video = None

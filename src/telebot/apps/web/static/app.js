@@ -141,7 +141,7 @@
         break;
       }
       case "ack":
-        if (!m.ok) addChat(m.what + " refused: " + m.reason, "fail");
+        if (!m.ok) addChat(m.what + " refused: " + m.text, "fail");
         break;
       case "error": addChat("error: " + m.text, "fail"); break;
       default: {
@@ -181,7 +181,7 @@
     el.textContent = s.armed ? "armed" : "stopped";
     el.className = s.armed ? "armed" : "stopped";
     const parts = [];
-    if (!s.armed && s.reason) parts.push(s.reason);
+    if (!s.armed && s.text) parts.push(s.text);
     if (s.blocked) parts.push("blocked by an obstacle");
     parts.push("speed cap " + s.cap.toFixed(2) + " m/s");
     $("safety-reason").textContent = parts.join(" · ");
@@ -191,7 +191,7 @@
     const g = ui.state.goal;
     $("goal").textContent = "(" + g.x.toFixed(2) + ", " + g.y.toFixed(2) + ") " + g.status +
       (g.status === "active" ? " " + Math.round(g.progress * 100) + "%" : "") +
-      (g.reason ? " — " + g.reason : "");
+      (g.text ? " — " + g.text : "");
   }
 
   // ------------------------------------------------------------------ map
@@ -405,7 +405,7 @@
   canvas.addEventListener("pointerup", pointerEnd);
   canvas.addEventListener("pointercancel", pointerEnd);
   function sendGoal(x, y, yaw) {
-    ui.state.goal = { type: "goal", x, y, yaw, status: "sent", progress: 0, reason: "" };
+    ui.state.goal = { type: "goal", x, y, yaw, status: "sent", progress: 0, text: "" };
     showGoal();
     send({ type: "goal", x, y, yaw });
   }
@@ -501,11 +501,11 @@
   // after a silent link, its driver's call dropped, or the driver's video froze (§18 state
   // `code` link_silent, dropped, video_stale). The page says what happened in one sentence
   // and offers one action, a big Re-arm (to the drive holder); a stop someone made shows
-  // the plain stopped state. Robots before the state's `code`: told apart by its reason.
+  // the plain stopped state. Robots before the state's `code`: told apart by its text.
   function selfStop(s) {
     if (!s || s.armed) return "";
     if (s.code) return SELF_STOP_WORDS[s.code] ? s.code : "";
-    const r = s.reason || "";
+    const r = s.text || "";
     if (/^driver .*'s link lost/.test(r)) return "link_silent";
     if (/^driver .* (dropped|called again)/.test(r)) return "dropped";
     if (/video froze|video frozen/.test(r)) return "video_stale";
@@ -516,9 +516,9 @@
     dropped: "call dropped, so the robot stopped itself",
     video_stale: "video froze, so the robot stopped itself rather than drive blind",
   };
-  // Whose link, call or video: the driver the robot's reason names (this user: "your").
+  // Whose link, call or video: the driver the robot's text names (this user: "your").
   function selfStopText(code, s) {
-    const named = /^driver (.+?)(?:'s link lost| dropped| called again)/.exec(s.reason || "");
+    const named = /^driver (.+?)(?:'s link lost| dropped| called again)/.exec(s.text || "");
     const who = named ? named[1] : code === "video_stale" ? s.holder : null;
     const whose = who === ui.state.user ? "Your" : who ? who + "'s" : "The driver's";
     return whose + " " + SELF_STOP_WORDS[code] + ": re-arm to drive on";

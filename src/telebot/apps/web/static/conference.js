@@ -24,6 +24,6 @@
     else ui.addChat("[" + m.from + "] " + m.text, me && me.name === m.from ? "cmd" : "say");
   };
   ui.handlers.said = (m) => {
-    if (!m.ok) ui.addChat("say refused: " + m.reason, "fail");
+    if (!m.ok) ui.addChat("say refused: " + m.text, "fail");
   };
 })();

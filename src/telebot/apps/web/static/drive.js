@@ -239,9 +239,9 @@
       return ["driving " + m.linear.toFixed(2) + " m/s, " + m.angular.toFixed(2) + " rad/s (cap " + m.cap.toFixed(2) + ")", "good"];
     }
     if (m.code in ENDED) return [ENDED[m.code], m.code === "stale" ? "bad" : ""];
-    if (m.code === "obstacle") return ["obstacle: " + (m.reason || "the robot stopped"), "bad"];
-    if (m.code === "invalid") return ["invalid command: " + m.reason, "bad"];
-    return ["refused: " + (m.reason || m.code), "bad"];
+    if (m.code === "obstacle") return ["obstacle: " + (m.text || "the robot stopped"), "bad"];
+    if (m.code === "invalid") return ["invalid command: " + m.text, "bad"];
+    return ["refused: " + (m.text || m.code), "bad"];
   }
   function show() {
     const touch = touchScreen && ui.state.mayDrive;

@@ -114,7 +114,7 @@
 
   function showStops() {
     const results = fleet.state.stopAll || Object.values(fleet.state.stopped);
-    const parts = results.map((r) => r.robot + (r.ok ? " stopped" : ": " + r.reason));
+    const parts = results.map((r) => r.robot + (r.ok ? " stopped" : ": " + r.text));
     const failed = results.some((r) => !r.ok);
     $("stop-result").textContent = parts.join(" · ");
     $("stop-result").className = failed ? "bad" : "good";
