@@ -394,7 +394,7 @@ class WebUI(PageServer):
                 "id": request_id,
                 "ok": said.ok,
                 "text": said.text,
-                "code": said.reason,
+                "code": said.code,
             },
         )
 
@@ -465,7 +465,7 @@ class WebUI(PageServer):
                 "status": status.status,
                 "progress": status.progress,
                 "text": status.text,
-                "code": status.reason,
+                "code": status.code,
             }
             self._broadcast(self._goal)
 
@@ -473,7 +473,7 @@ class WebUI(PageServer):
         try:
             final = await self.client.goto(x, y, yaw, on_update=update)
         except CallEnded as exc:
-            update(GoalUpdate(0, "failed", text=str(exc), reason=Reason.FAILED))
+            update(GoalUpdate(0, "failed", text=str(exc), code=Reason.FAILED))
             return
         update(final)
 
@@ -493,7 +493,7 @@ class WebUI(PageServer):
             return
         self.send(
             page,
-            {"type": "ack", "what": kind, "ok": ack.ok, "text": ack.text, "code": ack.reason},
+            {"type": "ack", "what": kind, "ok": ack.ok, "text": ack.text, "code": ack.code},
         )
 
     async def _chat(self, page: _Page, request_id: RequestId, text: str) -> None:
@@ -510,7 +510,7 @@ class WebUI(PageServer):
                         "text": reply.text,
                         "ok": reply.ok,
                         "final": reply.final,
-                        "code": reply.reason,
+                        "code": reply.code,
                     },
                 )
         except TimeoutError:
@@ -648,7 +648,7 @@ class WebUI(PageServer):
         return {
             "type": "safety",
             "armed": state.armed,
-            "text": state.reason,
+            "text": state.text,
             "code": state.code,
             "holder": state.holder,
             "cap": state.cap,
@@ -662,7 +662,7 @@ class WebUI(PageServer):
             "type": "drive_state",
             "seq": state.seq,
             "active": state.active,
-            "code": state.reason,
+            "code": state.code,
             "text": state.text,
             "linear": round(state.linear, 3),
             "angular": round(state.angular, 3),
