@@ -44,8 +44,8 @@ from telebot.robot.sim.stack import SimNavStack
 from telebot.services.base import ServiceRegistry
 from telebot.services.client import ConnectionEvent, RobotClient, backoff_delay, connect
 from telebot.services.robot import RobotServer
-from telebot.services.supervision import SafetyDriver
-from telebot.services.video import VideoSettings
+from telebot.services.safety.robot import SafetyDriver
+from telebot.services.video.wire import VideoSettings
 
 #: How long the link stays cut (the issue's Wi-Fi blip).
 OUTAGE = 2.0

@@ -32,7 +32,7 @@ from telebot.identity import Identity, KnownRobots
 from telebot.services.client import RobotClient
 from telebot.services.recording import Recorder
 from telebot.services.robot import default_robot_services
-from telebot.services.supervision import SafetyDriver
+from telebot.services.safety.robot import SafetyDriver
 
 
 @contextlib.asynccontextmanager

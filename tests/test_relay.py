@@ -31,7 +31,8 @@ from telebot.robot.ros2.node import Ros2Node
 from telebot.robot.ros2.types import TypeLibrary
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.client import RobotClient
-from telebot.services.proto.relay import (
+from telebot.services.relay.robot import RelayService, allowed_topic, near_topics
+from telebot.services.relay.wire import (
     MAX_LIST_TEXT,
     ListRequest,
     RelayEnded,
@@ -47,9 +48,8 @@ from telebot.services.proto.relay import (
     fragment_message,
     relay_reassembler,
 )
-from telebot.services.relay import RelayService, allowed_topic, near_topics
 from telebot.services.robot import RobotServer
-from telebot.services.supervision import SafetyDriver
+from telebot.services.safety.robot import SafetyDriver
 
 LIB = TypeLibrary()
 

@@ -22,11 +22,11 @@ from telebot.errors import RobotError
 from telebot.gateway.robot import robot_gateway
 from telebot.identity import ContactBook, Identity
 from telebot.robot import create_robot
-from telebot.services.media import install_robot_media, media_settings, media_video_settings
+from telebot.services.media.robot import install_robot_media, media_settings, media_video_settings
 from telebot.services.recording import Recorder
 from telebot.services.robot import EventSink, RobotServer, default_robot_services
-from telebot.services.supervision import SafetyDriver
-from telebot.services.video import VideoSettings
+from telebot.services.safety.robot import SafetyDriver
+from telebot.services.video.wire import VideoSettings
 
 __all__ = ["SHUTDOWN_REASON", "deadman_time", "serve_robot"]
 

@@ -5,7 +5,7 @@ robot uses loads here unchanged, and :func:`save_map` writes what ``map_saver`` 
 binary PGM: free 254, occupied 0, unknown 205, plus its YAML), so any ROS tool loads our maps.
 
 This module is the one home of the map_server image and YAML conventions; the map transfer
-(:mod:`telebot.services.proto.mapxfer`) uses them through :func:`grid_to_image`,
+(:mod:`telebot.services.mapxfer.wire`) uses them through :func:`grid_to_image`,
 :func:`image_to_grid` and :func:`map_yaml`. Writing, each cell becomes a pixel of
 map_saver's trinary image:
 

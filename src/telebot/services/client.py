@@ -53,17 +53,18 @@ from telebot.errors import (
 from telebot.identity import Identity, KnownRobots
 from telebot.reasons import Reason
 from telebot.services.base import CLIENT_TICK, OpenServices, ServiceRegistry
-from telebot.services.conference import ConferenceReceiver, ConferenceState
-from telebot.services.media import AudioReceiver, UserMedia, open_user_media
-from telebot.services.people import PeopleReceiver
-from telebot.services.plan import PlanReceiver
-from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
-from telebot.services.proto.chat import ChatReply, decode_reply, encode_request
-from telebot.services.proto.conference import Said
-from telebot.services.proto.drive import DRIVE, DriveCommand, DriveState, decode_drive_state
-from telebot.services.proto.people import PeopleAlertMessage, PeopleUpdate, TrackInfo
-from telebot.services.proto.plan import Place, PlanUpdate
-from telebot.services.proto.relay import (
+from telebot.services.chat.wire import CHAT, ChatReply, decode_reply, encode_request
+from telebot.services.conference.user import ConferenceReceiver, ConferenceState
+from telebot.services.conference.wire import Said
+from telebot.services.drive.wire import DRIVE, DriveCommand, DriveState, decode_drive_state
+from telebot.services.mapxfer.wire import MAP
+from telebot.services.media.user import AudioReceiver, UserMedia, open_user_media
+from telebot.services.people.user import PeopleReceiver
+from telebot.services.people.wire import PeopleAlertMessage, PeopleUpdate, TrackInfo
+from telebot.services.plan.user import PlanReceiver
+from telebot.services.plan.wire import Place, PlanUpdate
+from telebot.services.relay.user import RelayReceiver, TopicStream
+from telebot.services.relay.wire import (
     RelayedMessage,
     RelayRefusal,
     Started,
@@ -71,7 +72,7 @@ from telebot.services.proto.relay import (
     StopRequest,
     TopicInfo,
 )
-from telebot.services.proto.safety import (
+from telebot.services.safety.wire import (
     SAFETY,
     RequestType,
     SafetyAck,
@@ -80,7 +81,10 @@ from telebot.services.proto.safety import (
     SafetyStatus,
     decode_safety_reply,
 )
-from telebot.services.proto.status import (
+from telebot.services.status.wire import (
+    GOALS,
+    POSE,
+    TELEMETRY,
     GoalCommand,
     GoalUpdate,
     PoseUpdate,
@@ -89,11 +93,11 @@ from telebot.services.proto.status import (
     decode_pose,
     decode_telemetry,
 )
-from telebot.services.relay import RelayReceiver, TopicStream
-from telebot.services.video import VideoFeed, VideoFeedService, VideoReceiver, video_channel
+from telebot.services.video.stream import video_channel
+from telebot.services.video.user import VideoFeed, VideoFeedService, VideoReceiver
 
 if TYPE_CHECKING:
-    from telebot.services.mapxfer import MapDownload
+    from telebot.services.mapxfer.user import MapDownload
 
 __all__ = [
     "ChatResult",
@@ -922,7 +926,7 @@ class RobotClient:
     ) -> MapDownload:
         """Download the robot's map (cropped PNG with its georeference)."""
         # Imported here: the map transfer needs numpy, OpenCV and YAML, chat and poses don't.
-        from telebot.services.mapxfer import fetch_map
+        from telebot.services.mapxfer.user import fetch_map
 
         async with asyncio.timeout(timeout):
             core = await self._core()
@@ -941,7 +945,7 @@ class RobotClient:
 
     def audio(self, **options: Any) -> AudioReceiver:
         """The robot's microphone: ``async with robot.audio() as audio: async for block in
-        audio`` (:class:`~telebot.services.media.AudioBlock`: 20 ms of 48 kHz mono int16).
+        audio`` (:class:`~telebot.services.media.robot.AudioBlock`: 20 ms of 48 kHz mono int16).
 
         The robot sends audio only while a receiver is open.
         """
@@ -949,7 +953,7 @@ class RobotClient:
 
     def talk(self, mic: Any = None, camera: Any = None) -> None:
         """Send a microphone (``"wav:PATH"``, ``"tone:1000"``, ``"default"`` or an
-        :class:`~telebot.services.audio.AudioSource`) and/or a camera (a function returning
+        :class:`~telebot.services.media.audio.AudioSource`) and/or a camera (a function returning
         BGR pictures) to the robot while it asks for them; ``talk()`` stops both."""
         self.media.talk(mic=mic, camera=camera)
 

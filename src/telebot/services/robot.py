@@ -43,17 +43,18 @@ from telebot.robot.nav import GoalHandle, GoalStatus, NavStack, PoseNotifier, St
 from telebot.robot.perception.runner import PeoplePerception
 from telebot.safety import SafetyState
 from telebot.services.base import OpenServices, ServiceRegistry
-from telebot.services.chat import NO_SUPERVISOR, ChatSession, error_reason, goal_reason
-from telebot.services.conference import RobotConference
-from telebot.services.drive import CallDrive, DriveService
-from telebot.services.follow import CallFollow, FollowService, TrackSource
-from telebot.services.mapxfer import MapService
-from telebot.services.people import PeopleService
-from telebot.services.plan import PlanService
-from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
-from telebot.services.proto.chat import ChatReply, decode_request
-from telebot.services.proto.mapxfer import MAX_MAP_VERSION, EncodedMap, encode_map
-from telebot.services.proto.safety import (
+from telebot.services.chat.robot import NO_SUPERVISOR, ChatSession, error_reason, goal_reason
+from telebot.services.chat.wire import CHAT, ChatReply, decode_request
+from telebot.services.conference.robot import RobotConference
+from telebot.services.drive.follow import CallFollow, FollowService, TrackSource
+from telebot.services.drive.robot import CallDrive, DriveService
+from telebot.services.mapxfer.robot import MapService
+from telebot.services.mapxfer.wire import MAP, MAX_MAP_VERSION, EncodedMap, encode_map
+from telebot.services.people.robot import PeopleService
+from telebot.services.plan.robot import PlanService
+from telebot.services.relay.robot import RelayService
+from telebot.services.safety.robot import SafetyDriver
+from telebot.services.safety.wire import (
     SAFETY,
     InvalidSafetyRequest,
     SafetyAck,
@@ -61,15 +62,17 @@ from telebot.services.proto.safety import (
     SafetyStatus,
     decode_safety_request,
 )
-from telebot.services.proto.status import (
+from telebot.services.status.wire import (
+    GOALS,
+    POSE,
+    TELEMETRY,
     GoalUpdate,
     PoseUpdate,
     Telemetry,
     decode_goal_command,
 )
-from telebot.services.relay import RelayService
-from telebot.services.supervision import SafetyDriver
-from telebot.services.video import VideoSender, VideoSettings
+from telebot.services.video.robot import VideoSender
+from telebot.services.video.wire import VideoSettings
 
 __all__ = [
     "CallServices",
@@ -474,11 +477,11 @@ def _core(server: RobotServer, call: Call) -> CallServices:
 
 def default_robot_services() -> ServiceRegistry[RobotServer]:
     """The robot's built-in services: ``core`` (:class:`CallServices`), ``video``,
-    ``plan`` (:class:`~telebot.services.plan.PlanService`: planned path and places),
-    ``relay`` (:class:`~telebot.services.relay.RelayService`: topics relayed as CDR),
-    ``conference`` (:class:`~telebot.services.conference.RobotConference`: roster, messages),
-    ``people`` (:class:`~telebot.services.people.PeopleService`: tracked people, alerts) and
-    ``drive`` (:class:`~telebot.services.drive.CallDrive`: driving by hand)."""
+    ``plan`` (:class:`~telebot.services.plan.robot.PlanService`: planned path and places),
+    ``relay`` (:class:`~telebot.services.relay.robot.RelayService`: topics relayed as CDR),
+    ``conference`` (:class:`~telebot.services.conference.robot.RobotConference`: roster, messages),
+    ``people`` (:class:`~telebot.services.people.robot.PeopleService`: tracked people, alerts) and
+    ``drive`` (:class:`~telebot.services.drive.robot.CallDrive`: driving by hand)."""
     registry: ServiceRegistry[RobotServer] = ServiceRegistry()
     registry.register("core", _core)
     registry.register("video", RobotVideo)

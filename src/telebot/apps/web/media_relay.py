@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any, Final, Literal
 
 from telebot.channels.transports.base import Lane
 from telebot.errors import CallEnded, ProtocolError, TelebotError
-from telebot.services.proto.media import (
+from telebot.services.media.wire import (
     CODEC_NAMES,
     USER_MEDIA_PROBE,
     USER_VIDEO,
@@ -35,14 +35,14 @@ from telebot.services.proto.media import (
     codec_id,
     parse_media_report,
 )
-from telebot.services.proto.messages import is_finite_number
-from telebot.services.proto.video import CompleteFrame, Report, fragment, serial_diff
+from telebot.services.messages import is_finite_number
+from telebot.services.video.wire import CompleteFrame, Report, fragment, serial_diff
 
 if TYPE_CHECKING:
     from telebot.apps.web.server import WebUI, _Page
     from telebot.channels.call import Call
     from telebot.channels.channel import Channel, ReceivedDatagram
-    from telebot.services.media import UserMedia, UserMediaService
+    from telebot.services.media.user import UserMedia, UserMediaService
 
 __all__ = [
     "MAX_AUDIO_PACKET",
