@@ -55,7 +55,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 import yaml
@@ -269,6 +268,8 @@ def _decode_image(yaml_path: Path, image_path: Path) -> npt.NDArray[Any]:
     raw = _read_file(image_path, where, missing="no such file", directory="is a directory")
     # imdecode is imread's decoder without imread's stderr chatter and path-encoding pitfalls.
     image: npt.NDArray[Any] | None = None
+    import cv2  # here, not at the top: a user's client imports this module, never this decoder
+
     if raw:
         try:
             image = cv2.imdecode(np.frombuffer(raw, dtype=np.uint8), cv2.IMREAD_UNCHANGED)

@@ -44,7 +44,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Final, Generic, Literal, TypeVar
 
-import cv2
 import numpy as np
 
 from telebot.channels.proto.frames import MAX_DATAGRAM
@@ -133,15 +132,19 @@ MAX_TEXT: Final = 256
 
 #: zlib level; with the RLE strategy below it changes nothing (RLE has one speed).
 PNG_COMPRESSION: Final = 6
+
+
 # Z_RLE: on the 4000² building map 10 ms and 5.6 KB against 18 ms and 4.8 KB for level 9
 # of the default strategy, and, unlike that, its time does not grow with noise (a noisy
 # SLAM map takes 10 ms, not 190 ms), so the ≤ 50 ms budget holds for any map.
-_PNG_PARAMS: Final = [
-    cv2.IMWRITE_PNG_COMPRESSION,
-    PNG_COMPRESSION,
-    cv2.IMWRITE_PNG_STRATEGY,
-    cv2.IMWRITE_PNG_STRATEGY_RLE,
-]
+def _png_params(cv2: Any) -> list[int]:
+    return [
+        cv2.IMWRITE_PNG_COMPRESSION,
+        PNG_COMPRESSION,
+        cv2.IMWRITE_PNG_STRATEGY,
+        cv2.IMWRITE_PNG_STRATEGY_RLE,
+    ]
+
 
 _SHA256_HEX = re.compile(r"[0-9a-f]{64}")
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -197,7 +200,9 @@ def encode_map(grid: OccupancyGrid, name: str = "map", *, version: int = 0) -> E
     if bounds is None:
         raise MapError(f"map {name!r} has no known cells")
     cropped = grid.crop(*bounds)
-    ok, buffer = cv2.imencode(".png", grid_to_image(cropped), _PNG_PARAMS)
+    import cv2  # here, not at the top: a user's client that never fetches a map never loads it
+
+    ok, buffer = cv2.imencode(".png", grid_to_image(cropped), _png_params(cv2))
     if not ok:
         raise MapError(f"map {name!r}: OpenCV could not encode it as PNG")
     png = buffer.tobytes()
@@ -235,6 +240,8 @@ def decode_map(png: bytes, resolution: float, origin_x: float, origin_y: float) 
     width, height = png_size(png)
     if width * height > MAX_MAP_CELLS:
         raise ProtocolError(f"map image of {width} × {height} pixels is too large")
+    import cv2  # here, not at the top: see encode_map
+
     try:
         image = cv2.imdecode(np.frombuffer(png, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error:
