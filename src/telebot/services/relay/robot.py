@@ -20,7 +20,8 @@ Flooding cannot starve control:
   and a message that would wait more than :data:`MAX_BACKLOG` seconds is dropped and counted.
 
 The stop, safety and chat channels are on other lanes and never queue behind relay data.
-Relays end with the call (:meth:`RelayService.close`). Refused relays (a topic the caller's
+Relays end with the call (:meth:`RelayService.close`), and each one whose topic is gone
+from the robot ends by itself (an ``ended`` message: the user's stream ends). Refused relays (a topic the caller's
 role may not have, by ``[relay]``) are written to the safety audit log.
 
 On the user's side, :class:`RelayReceiver` rebuilds messages and hands them to the
@@ -83,6 +84,8 @@ MAX_BACKLOG = 1.0
 BURST = 0.05
 #: Request answers remembered per call (a repeated request gets the same answer).
 REMEMBERED = 64
+#: How often (s) a call with relays checks that their topics are still there.
+TOPIC_CHECK_EVERY = 1.0
 
 
 def allowed_topic(settings: RelaySettings, role: Role | None, topic: str) -> bool:
@@ -187,14 +190,32 @@ class RelayService:
         self._wake_lock = threading.Lock()
         self._timer: asyncio.TimerHandle | None = None
         self._closed = False
+        self._next_topic_check = -math.inf
         #: Datagrams from the user that did not decode (dropped).
         self.rejected = 0
 
     # -- the service seam
 
     def tick(self, now: float) -> None:
-        """Send what is due (a safety net: arrivals and timers normally do it)."""
+        """Send what is due (a safety net: arrivals and timers normally do it), and end
+        the relays whose topic is gone (every :data:`TOPIC_CHECK_EVERY` seconds)."""
         self._pump()
+        if self.relays and now >= self._next_topic_check:
+            self._next_topic_check = now + TOPIC_CHECK_EVERY
+            self._end_vanished()
+
+    def _end_vanished(self) -> None:
+        """End each relay whose topic the robot no longer has: its user's stream ends."""
+        if self.source is None:
+            return
+        try:
+            names = {t.name for t in self.source.topics()}
+        except Exception:  # a listing that failed says nothing about the topics
+            log.exception("the robot's topics cannot be listed")
+            return
+        for stream, relay in list(self.relays.items()):
+            if relay.info.name not in names:
+                self.end_stream(stream, f"{relay.info.name} is gone: the topic's source closed")
 
     def close(self) -> None:
         """End every relay of the call."""
