@@ -24,7 +24,8 @@ from telebot.identity import ContactBook, Identity
 from telebot.robot import create_robot
 from telebot.services.media.robot import install_robot_media, media_settings, media_video_settings
 from telebot.services.recording import Recorder
-from telebot.services.robot import EventSink, RobotServer, default_robot_services
+from telebot.services.registry import robot_services
+from telebot.services.robot import EventSink, RobotServer
 from telebot.services.safety.robot import SafetyDriver
 from telebot.services.video.wire import VideoSettings
 
@@ -112,7 +113,7 @@ async def serve_robot(
             audit_path=audit,
         )
         recorder = _recorder(config, audit, home)
-        services = default_robot_services()
+        services = robot_services()
         if recorder is not None:
             services.register("recording", recorder.service)
             safety.on_audit = recorder.audit

@@ -2,7 +2,7 @@
 
 Every call to a robot opens the ``conference`` channel (protocol:
 :mod:`telebot.services.conference.wire`, ``docs/protocol.md`` §20). On the robot one
-:class:`Conference` per :class:`~telebot.services.robot.RobotServer` (its *room*) knows
+:class:`ConferenceRoom` per robot (its per-robot service) knows
 every call: it pushes the roster (who is watching, who drives) to each call when it
 changes and once a second, relays each user's ``say`` to every call with the sender's name,
 and announces what everyone should know (who joined, reconnected, left, holds the drive,
@@ -16,12 +16,12 @@ from __future__ import annotations
 
 import logging
 import math
-import weakref
 from typing import TYPE_CHECKING
 
 from telebot.channels.channel import ReceivedDatagram
 from telebot.channels.transports.base import Lane
 from telebot.errors import ProtocolError, TelebotError
+from telebot.services.base import HostService, RobotHost
 from telebot.services.conference.wire import (
     CONFERENCE,
     RESEND_AFTER,
@@ -33,9 +33,8 @@ from telebot.services.conference.wire import (
 
 if TYPE_CHECKING:
     from telebot.channels.call import Call
-    from telebot.services.robot import RobotServer
 
-__all__ = ["ROSTER_EVERY", "RobotConference", "announce", "room_of"]
+__all__ = ["ROSTER_EVERY", "ConferenceRoom", "RobotConference"]
 
 log = logging.getLogger("telebot.conference")
 
@@ -45,12 +44,14 @@ ROSTER_EVERY = 1.0
 _DROPS_KEPT = 64
 
 
-class _Room:
-    """One robot's conference: the sans-IO :class:`Conference` and each call's channel."""
+class ConferenceRoom(HostService[RobotHost]):
+    """One robot's conference (its per-robot service): the sans-IO :class:`Conference` and
+    each call's :class:`RobotConference`, which it opens."""
 
-    def __init__(self, server: RobotServer, robot: str) -> None:
+    def __init__(self, server: RobotHost) -> None:
+        super().__init__(server)
         self.server = server
-        self.conference = Conference(robot)
+        self.conference = Conference()
         self.calls: dict[str, RobotConference] = {}
         self._tick_at = -math.inf
         self._next_roster = -math.inf
@@ -75,7 +76,7 @@ class _Room:
             service.send(self.conference.roster(call_id, driving).encode())
 
     def tick(self, now: float) -> None:
-        """Once per robot cycle (every call's tick has the same ``now``): announce drive
+        """Once per robot cycle (the robot's tick and every call's have the same ``now``): announce drive
         and stop changes, and push the roster when it changed or is due."""
         if now == self._tick_at:
             return
@@ -103,33 +104,23 @@ class _Room:
             self._next_roster = now + ROSTER_EVERY
             self.push_roster()
 
+    def open(self, call: Call) -> RobotConference:
+        """The room on ``call``: the caller joins."""
+        self.conference.robot = self.server.name  # known once the robot answers calls
+        return RobotConference(self, call)
 
-_ROOMS: weakref.WeakKeyDictionary[RobotServer, _Room] = weakref.WeakKeyDictionary()
-
-
-def room_of(server: RobotServer, robot: str = "robot") -> _Room:
-    """The conference room of ``server`` (made on first use; ``robot``: its name)."""
-    room = _ROOMS.get(server)
-    if room is None:
-        room = _ROOMS[server] = _Room(server, robot)
-    return room
-
-
-def announce(server: RobotServer, text: str) -> None:
-    """Tell every user in ``server``'s calls ``text``, from the robot (robot-side code)."""
-    room = room_of(server)
-    room.broadcast(room.conference.announce(text))
+    def announce(self, text: str) -> None:
+        """Tell every user in the robot's calls ``text``, from the robot."""
+        self.broadcast(self.conference.announce(text))
 
 
 class RobotConference:
     """The robot's ``conference`` service on one call (registered as ``conference``)."""
 
-    def __init__(self, server: RobotServer, call: Call) -> None:
-        self.server = server
+    def __init__(self, room: ConferenceRoom, call: Call) -> None:
+        self.server = server = room.server
         self.call = call
-        endpoint = getattr(call, "_endpoint", None)
-        identity = getattr(endpoint, "identity", None)
-        self.room = room_of(server, getattr(identity, "name", "robot"))
+        self.room = room
         self.channel = call.channel(CONFERENCE, lane=Lane.CONTROL)
         self.channel.set_callback(self._on_datagram)
         self.rejected = 0

@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 from telebot.channels.channel import ReceivedDatagram
 from telebot.channels.transports.base import Lane
 from telebot.errors import CallEnded, ProtocolError, TelebotError
+from telebot.services.base import ClientHost, HostService
 from telebot.services.conference.wire import (
     CONFERENCE,
     HISTORY,
@@ -38,22 +39,23 @@ from telebot.services.conference.wire import (
 
 if TYPE_CHECKING:
     from telebot.channels.call import Call
-    from telebot.services.client import RobotClient
 
 __all__ = ["ConferenceReceiver", "ConferenceState"]
 
 log = logging.getLogger("telebot.conference")
 
 
-class ConferenceState:
-    """What a user's client knows of the conference, across reconnections.
+class ConferenceState(HostService[ClientHost]):
+    """What a user's client knows of the conference, across reconnections (the user side's
+    per-client service: it opens a :class:`ConferenceReceiver` on each call).
 
     ``roster``: the latest :class:`Roster` (None before the first); ``messages``: the
     last :data:`KEEP` messages heard (users' and the robot's), in the robot's order; listeners in ``on_message`` and
     ``on_roster`` are called on the event loop with each new one.
     """
 
-    def __init__(self, client: RobotClient) -> None:
+    def __init__(self, client: ClientHost) -> None:
+        super().__init__(client)
         self._client = client
         self.roster: Roster | None = None
         self.messages: list[Message] = []
@@ -65,6 +67,10 @@ class ConferenceState:
         self._asked = -math.inf
         self._said: dict[int, asyncio.Queue[Said]] = {}
         self._ids = 0
+
+    def open(self, call: Call) -> ConferenceReceiver:
+        """Hear the conference on ``call``."""
+        return ConferenceReceiver(self, call)
 
     # -- from the channel -------------------------------------------------------------
 
@@ -140,14 +146,14 @@ class ConferenceState:
         payload = Say(say_id, text).encode()
         try:
             async with asyncio.timeout(timeout):
-                await client._core()  # waits out a reconnection
-                receiver = client.services.get(CONFERENCE)
+                await client.live_call()  # waits out a reconnection
+                receiver = client.service(CONFERENCE)
                 if not isinstance(receiver, ConferenceReceiver):
                     raise TelebotError("this client has no conference service registered")
                 while True:
                     receiver.send(payload)
                     try:
-                        return await client._next(answers, RESEND_AFTER, receiver.call)
+                        return await client.answer(answers, RESEND_AFTER, receiver.call)
                     except TimeoutError:
                         continue
         finally:
@@ -164,9 +170,9 @@ def _call(listener: Callable[[Any], None], value: Any) -> None:
 class ConferenceReceiver:
     """The user's ``conference`` service on one call: feeds ``client.conference``."""
 
-    def __init__(self, client: RobotClient, call: Call) -> None:
+    def __init__(self, state: ConferenceState, call: Call) -> None:
         self.call = call
-        self.state: ConferenceState = client.conference
+        self.state = state
         self._loop = asyncio.get_running_loop()
         self.channel = call.channel(CONFERENCE, lane=Lane.CONTROL)
         self.channel.set_callback(self._on_datagram)

@@ -1,7 +1,7 @@
 """The ``people`` service: tracked people and alerts about them, robot → user at 5 Hz.
 
 On the robot, :class:`PeopleService` (registered as ``people`` by
-:func:`~telebot.services.robot.default_robot_services`) sends each call a ``people`` message
+:func:`~telebot.services.registry.robot_services`) sends each call a ``people`` message
 ``stream_hz`` times a second (``[people]`` of the config) with the confirmed tracks of the
 robot's :class:`~telebot.robot.perception.runner.PeoplePerception`, and each new alert a few
 times (:data:`ALERT_REPEATS`, same ``seq``: the channel is lossy). The perception itself runs

@@ -1,7 +1,7 @@
 """The ``plan`` service: the robot's planned path and named places, for the user's map view.
 
 On the robot, :class:`PlanService` (registered as ``plan`` by
-:func:`~telebot.services.robot.default_robot_services`) sends each call a ``plan`` message
+:func:`~telebot.services.registry.robot_services`) sends each call a ``plan`` message
 as soon as the plan changes (a new goal, a replan, the goal's end: then an empty one) and
 again every :data:`PLAN_EVERY` seconds, so a lost one heals and a user who joins sees the
 plan at once; and the ``places`` at the call's start, on change and every

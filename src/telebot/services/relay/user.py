@@ -1,7 +1,7 @@
 """The ``relay`` service: any robot topic to the user, as CDR, over the call.
 
 On the robot, :class:`RelayService` (registered as ``relay`` by
-:func:`~telebot.services.robot.default_robot_services`) answers a call's ``relay`` requests
+:func:`~telebot.services.registry.robot_services`) answers a call's ``relay`` requests
 (:mod:`telebot.services.relay.wire`): the topic list, and relays started and stopped per
 request. Topics come from the NavStack when it is a :class:`~telebot.robot.nav.TopicSource`
 (the ROS 2 robot: any topic on its zenoh network; the simulator: its own streams).

@@ -1,0 +1,1 @@
+"""The map transfer (part of every call's core)."""
