@@ -1,30 +1,37 @@
-"""The service seam: a :class:`CallService` is opened on a call, ticked, and closed with it.
+"""The service seam: hosts, per-host services and per-call services.
 
-Both ends hold a :class:`ServiceRegistry`: a name → factory table, in registration order.
-When a call comes up, every registered factory is called with the *host* (the
-:class:`~telebot.services.robot.RobotServer` on the robot, the
-:class:`~telebot.services.client.RobotClient` on the user's side) and the call; it opens
-its channels and returns the call's service object. The host then ticks every open
-service (the robot at its control rate, the user at :data:`CLIENT_TICK`) and closes
-them all when the call ends. A new service (audio, relay, follow-me) is one module with a
-factory plus one :meth:`ServiceRegistry.register` line::
+A *host* is the robot (:class:`~telebot.services.robot.RobotServer`) or a user's client
+(:class:`~telebot.services.client.RobotClient`); a service sees it only through
+:class:`RobotHost` or :class:`ClientHost` (plus, where a service needs more, a Protocol of
+its own that extends one). Both hosts hold a :class:`ServiceRegistry`, name → service in
+registration order (the built-ins and plug-ins: :mod:`telebot.services.registry`).
+``registry.start(host)`` makes each service once for the host: a :class:`HostService`
+subclass (per-robot or per-client state, Nav2-plugin style: start, tick, open a call,
+close) or a plain factory ``(host, call) -> CallService`` (nothing per host). When a call
+comes up the host opens every service on it; each returns the call's
+:class:`CallService`, which opens its channels. The host ticks the per-host services and
+every open per-call one (the robot at its control rate, the user at :data:`CLIENT_TICK`)
+and closes the per-call ones when the call ends. A new service is one folder plus one
+registration line; in code, one :meth:`ServiceRegistry.register` call::
 
     class Echo:                                    # one per call
-        def __init__(self, host: RobotServer, call: Call) -> None:
+        def __init__(self, host: RobotHost, call: Call) -> None:
             self.channel = call.channel("echo")
             self.channel.set_callback(lambda d: self.channel.send(d.payload))
 
         def tick(self, now: float) -> None: ...    # loop time; periodic work goes here
         def close(self) -> None: ...               # the call ended (or the host closes)
 
-    server = RobotServer(nav, services=default_robot_services())
-    server.registry.register("echo", Echo)
+    services = robot_services()                    # telebot.services.registry
+    services.register("echo", Echo)
+    server = RobotServer(nav, services=services)
 
 On the user's side a call may be replaced: when the link drops, the client calls the
 robot again (see :mod:`telebot.services.client`) and opens every registered service on
 the new call after closing the old call's. So what a user subscribes to (``async for``
-iterators, callbacks) lives on the host, and a service only moves bytes between its
-channels and the host: subscribers keep working across calls.
+iterators, callbacks) lives in the per-client service or on the host, and a per-call
+service only moves bytes between its channels and them: subscribers keep working across
+calls.
 
 Every call of a service's method is guarded: an exception is logged and does not reach
 the other services, the host's loop or the call. A factory that raises while a call is

@@ -1199,4 +1199,8 @@ async def connect(
 
 
 if TYPE_CHECKING:  # the client is a host every user-side service may run on
-    _HOST: ClientHost = cast(RobotClient, None)
+    from telebot.services.media.user import MediaClient
+
+    _CLIENT = cast(RobotClient, None)
+    _HOST: ClientHost = _CLIENT
+    _MEDIA_CLIENT: MediaClient = _CLIENT

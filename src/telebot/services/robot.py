@@ -801,4 +801,14 @@ class RobotServer:
 
 
 if TYPE_CHECKING:  # the server is a host every robot-side service may run on
-    _HOST: RobotHost = cast(RobotServer, None)
+    from telebot.services.drive.robot import DriveHost
+    from telebot.services.media.robot import MediaHost
+    from telebot.services.people.robot import PeopleHost
+    from telebot.services.relay.robot import RelayHost
+
+    _SERVER = cast(RobotServer, None)
+    _HOST: RobotHost = _SERVER
+    _DRIVE_HOST: DriveHost = _SERVER
+    _MEDIA_HOST: MediaHost = _SERVER
+    _PEOPLE_HOST: PeopleHost = _SERVER
+    _RELAY_HOST: RelayHost = _SERVER

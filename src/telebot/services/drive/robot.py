@@ -33,7 +33,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -51,6 +51,7 @@ from telebot.robot.follow import (
 )
 from telebot.robot.nav import GoalStatus, LaserSource, NavStack, NavState
 from telebot.safety import SafetyState
+from telebot.services.base import RobotHost
 from telebot.services.drive.follow import Drivable, FollowService, _limits_of
 from telebot.services.drive.wire import (
     DRIVE,
@@ -65,7 +66,6 @@ from telebot.services.drive.wire import (
 if TYPE_CHECKING:
     from telebot.channels.call import Call
     from telebot.channels.channel import ReceivedDatagram
-    from telebot.services.robot import RobotServer
     from telebot.services.safety.robot import SafetyDriver
 
 __all__ = ["DRIVE_WHAT", "STATE_EVERY", "CallDrive", "DriveService"]
@@ -87,10 +87,16 @@ DRIVE_WHAT = "drive by hand"
 _OBSERVER = "observers may not drive: ask the driver"
 
 
+class DriveHost(RobotHost, Protocol):
+    """What a call's drive uses of the robot: the robot's :class:`DriveService` too."""
+
+    drive: DriveService
+
+
 class CallDrive:
     """The ``drive`` service of one call: decodes its commands, sends its drive states."""
 
-    def __init__(self, server: RobotServer, call: Call) -> None:
+    def __init__(self, server: DriveHost, call: Call) -> None:
         self.service = server.drive
         self.call = call
         self.call_id = call.id

@@ -56,10 +56,11 @@ import subprocess
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from telebot.channels.transports.base import Lane
 from telebot.errors import ProtocolError, TelebotError
+from telebot.services.base import RobotHost
 from telebot.services.codecs import OpusDecoder, OpusEncoder, VideoDecoder
 from telebot.services.media.stream import AudioBlock, Unsubscribe, _AudioIn, _AudioOut, _pace
 from telebot.services.media.wire import (
@@ -82,9 +83,9 @@ if TYPE_CHECKING:
 
     from telebot.channels.call import Call
     from telebot.config import MediaConfig
+    from telebot.services.base import ServiceRegistry
     from telebot.services.chat.wire import ChatReply
     from telebot.services.media.audio import AudioSink, AudioSource
-    from telebot.services.robot import RobotServer
 
 __all__ = [
     "AudioBlock",
@@ -105,6 +106,14 @@ log = logging.getLogger("telebot.services.media")
 USER_VIDEO_STALE = 2.0
 #: User frames waiting for the robot's decoder thread before new ones are dropped.
 MAX_DECODE_QUEUE = 8
+
+
+class MediaHost(RobotHost, Protocol):
+    """What the robot's media uses of the robot: chat replies to speak, and the registry
+    it registers its per-call service in."""
+
+    chat_listeners: list[Callable[[Call, ChatReply], None]]
+    registry: ServiceRegistry[Any]
 
 
 @dataclass(frozen=True, slots=True)
@@ -246,7 +255,7 @@ class RobotMedia:
                 log.warning("%s", self.voice.error)
         self.spoken = 0
         self._state = CallState("no call")
-        self._server: RobotServer | None = None
+        self._server: MediaHost | None = None
 
     # -- the screen's API
 
@@ -308,7 +317,7 @@ class RobotMedia:
 
     # -- wiring
 
-    def attach(self, server: RobotServer) -> None:
+    def attach(self, server: MediaHost) -> None:
         """Register the per-call service on ``server`` and hear its chat replies."""
         self._server = server
         server.registry.register("media", self._open_call)
@@ -330,7 +339,7 @@ class RobotMedia:
 
     # -- internals
 
-    def _open_call(self, server: RobotServer, call: Call) -> RobotMediaService:
+    def _open_call(self, server: MediaHost, call: Call) -> RobotMediaService:
         return RobotMediaService(self, server, call)
 
     def _spoken(self, future: asyncio.Future[npt.NDArray[np.int16]]) -> None:
@@ -480,7 +489,7 @@ def _replace_ring(settings: MediaSettings) -> MediaSettings:
 class RobotMediaService:
     """The ``media`` service of one call on the robot (see :class:`RobotMedia`)."""
 
-    def __init__(self, media: RobotMedia, server: RobotServer, call: Call) -> None:
+    def __init__(self, media: RobotMedia, server: MediaHost, call: Call) -> None:
         self.media = media
         self.call = call
         loop = self._loop = asyncio.get_running_loop()
@@ -563,7 +572,7 @@ def media_video_settings(config: MediaConfig, *, simulated: bool) -> dict[str, A
     }
 
 
-def install_robot_media(server: RobotServer, settings: MediaSettings | None = None) -> RobotMedia:
+def install_robot_media(server: MediaHost, settings: MediaSettings | None = None) -> RobotMedia:
     """A :class:`RobotMedia` on ``server``: its ``media`` service opens on every call."""
     media = RobotMedia(settings)
     media.attach(server)

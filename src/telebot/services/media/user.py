@@ -54,11 +54,12 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import TYPE_CHECKING, Any, Self, cast
+from typing import TYPE_CHECKING, Any, Protocol, Self, cast
 
 from telebot.channels.transports.base import Lane
 from telebot.errors import ProtocolError, TelebotError
 from telebot.robot.nav import CameraFrame
+from telebot.services.base import ClientHost
 from telebot.services.codecs import OpusDecoder, OpusEncoder
 from telebot.services.media.stream import AudioBlock, Unsubscribe, _AudioIn, _AudioOut, _pace
 from telebot.services.media.wire import (
@@ -79,7 +80,6 @@ if TYPE_CHECKING:
     import numpy.typing as npt
 
     from telebot.channels.call import Call
-    from telebot.services.client import RobotClient
     from telebot.services.media.audio import AudioSource
 
 __all__ = [
@@ -391,6 +391,12 @@ class AudioReceiver:
         self._ready.set()
 
 
-def open_user_media(client: RobotClient, call: Call) -> UserMediaService:
+class MediaClient(ClientHost, Protocol):
+    """What the user's media uses of the client: its :class:`UserMedia` too."""
+
+    media: UserMedia
+
+
+def open_user_media(client: MediaClient, call: Call) -> UserMediaService:
     """The user's ``media`` call service factory (registered by the client)."""
     return UserMediaService(client.media, call)

@@ -17,12 +17,13 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 from telebot.channels.channel import ReceivedDatagram
 from telebot.channels.transports.base import Lane
 from telebot.errors import TelebotError
 from telebot.robot.nav import normalize_angle
+from telebot.services.base import RobotHost
 from telebot.services.people.wire import (
     MAX_SEQ,
     PEOPLE,
@@ -33,7 +34,7 @@ from telebot.services.people.wire import (
 
 if TYPE_CHECKING:
     from telebot.channels.call import Call
-    from telebot.services.robot import RobotServer
+    from telebot.robot.perception.runner import PeoplePerception
 
 __all__ = ["ALERT_REPEATS", "PeopleService"]
 
@@ -43,10 +44,16 @@ log = logging.getLogger("telebot.people")
 ALERT_REPEATS = 3
 
 
+class PeopleHost(RobotHost, Protocol):
+    """What the people service uses of the robot: its people tracker too."""
+
+    perception: PeoplePerception
+
+
 class PeopleService:
     """The robot's ``people`` service on one call (see the module docstring)."""
 
-    def __init__(self, server: RobotServer, call: Call) -> None:
+    def __init__(self, server: PeopleHost, call: Call) -> None:
         self.perception = server.perception
         self.call = call
         self.channel = call.channel(PEOPLE, lane=Lane.DATA)

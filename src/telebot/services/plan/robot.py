@@ -25,6 +25,7 @@ from telebot.channels.channel import ReceivedDatagram
 from telebot.channels.transports.base import Lane
 from telebot.errors import TelebotError
 from telebot.robot.nav import NavStack, Pose2D
+from telebot.services.base import RobotHost
 from telebot.services.plan.wire import (
     MAX_SEQ,
     PLAN,
@@ -36,7 +37,6 @@ from telebot.services.plan.wire import (
 
 if TYPE_CHECKING:
     from telebot.channels.call import Call
-    from telebot.services.robot import RobotServer
 
 __all__ = ["PLACES_EVERY", "PLAN_EVERY", "PlanService", "PlanSource"]
 
@@ -124,7 +124,7 @@ def shared_source(nav: NavStack) -> PlanSource:
 class PlanService:
     """The robot's ``plan`` service on one call (see the module docstring)."""
 
-    def __init__(self, server: RobotServer, call: Call) -> None:
+    def __init__(self, server: RobotHost, call: Call) -> None:
         self.nav = server.nav
         self.call = call
         self.channel = call.channel(PLAN, lane=Lane.DATA)

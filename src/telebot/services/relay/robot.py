@@ -41,7 +41,7 @@ import threading
 import time
 from collections import OrderedDict, deque
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 from telebot.channels.channel import ReceivedDatagram
 from telebot.channels.transports.base import Lane
@@ -51,6 +51,7 @@ from telebot.identity import Role
 from telebot.reasons import Reason
 from telebot.robot.nav import SourceTopic, TopicSource, TopicSubscription
 from telebot.safety import Audit, AuditRecord
+from telebot.services.base import RobotHost
 from telebot.services.relay.wire import (
     MAX_DATA,
     RELAY,
@@ -70,7 +71,6 @@ from telebot.services.relay.wire import (
 
 if TYPE_CHECKING:
     from telebot.channels.call import Call
-    from telebot.services.robot import RobotServer
 
 __all__ = ["MAX_BACKLOG", "QUEUE", "RelayService", "allowed_topic", "near_topics"]
 
@@ -163,10 +163,16 @@ class _Relay:
             return bool(self._queue)
 
 
+class RelayHost(RobotHost, Protocol):
+    """What the relay uses of the robot: its ``[relay]`` settings too."""
+
+    relay_settings: RelaySettings
+
+
 class RelayService:
     """The robot's ``relay`` service on one call (see the module docstring)."""
 
-    def __init__(self, server: RobotServer, call: Call) -> None:
+    def __init__(self, server: RelayHost, call: Call) -> None:
         self.call = call
         self.server = server
         self.settings: RelaySettings = server.relay_settings
