@@ -31,7 +31,7 @@ from telebot.robot.ros2.node import Ros2Node
 from telebot.robot.ros2.types import TypeLibrary
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.client import RobotClient
-from telebot.services.relay.robot import RelayService, allowed_topic, near_topics
+from telebot.services.relay.robot import RelayService, near_topics
 from telebot.services.relay.wire import (
     MAX_LIST_TEXT,
     ListRequest,
@@ -43,6 +43,7 @@ from telebot.services.relay.wire import (
     StopRequest,
     TopicInfo,
     TopicList,
+    allowed_topic,
     decode_relay_message,
     encode_topic_list,
     fragment_message,

@@ -64,7 +64,7 @@ from telebot.services.chat.wire import CHAT, ChatReply, decode_reply, encode_req
 from telebot.services.conference.user import ConferenceState
 from telebot.services.conference.wire import Said
 from telebot.services.drive.wire import DRIVE, DriveCommand, DriveState, decode_drive_state
-from telebot.services.mapxfer.wire import MAP
+from telebot.services.mapxfer import MAP
 from telebot.services.media.user import AudioReceiver, UserMedia
 from telebot.services.people.user import PeopleReceiver
 from telebot.services.people.wire import PeopleAlertMessage, PeopleUpdate, TrackInfo

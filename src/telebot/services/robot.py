@@ -47,8 +47,9 @@ from telebot.services.chat.robot import NO_SUPERVISOR, ChatSession, error_reason
 from telebot.services.chat.wire import CHAT, ChatReply, decode_request
 from telebot.services.drive.follow import CallFollow, FollowService, TrackSource
 from telebot.services.drive.robot import DriveService
+from telebot.services.mapxfer import MAP
 from telebot.services.mapxfer.robot import MapService
-from telebot.services.mapxfer.wire import MAP, MAX_MAP_VERSION, EncodedMap, encode_map
+from telebot.services.mapxfer.wire import MAX_MAP_VERSION, EncodedMap, encode_map
 from telebot.services.registry import robot_services
 from telebot.services.safety.robot import SafetyDriver
 from telebot.services.safety.wire import (

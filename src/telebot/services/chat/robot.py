@@ -70,7 +70,7 @@ from telebot.services.chat.wire import (
     parse_command,
 )
 from telebot.services.mapxfer.wire import EncodedMap, encode_map
-from telebot.services.relay.robot import allowed_topic
+from telebot.services.relay.wire import allowed_topic
 from telebot.services.safety.wire import latched_text
 
 __all__ = [

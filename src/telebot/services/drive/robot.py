@@ -66,7 +66,6 @@ from telebot.services.drive.wire import (
 if TYPE_CHECKING:
     from telebot.channels.call import Call
     from telebot.channels.channel import ReceivedDatagram
-    from telebot.services.safety.robot import SafetyDriver
 
 __all__ = ["DRIVE_WHAT", "STATE_EVERY", "CallDrive", "DriveService"]
 
@@ -85,6 +84,32 @@ CRAWL = 0.03
 #: What the supervisor's audit log calls driving by hand.
 DRIVE_WHAT = "drive by hand"
 _OBSERVER = "observers may not drive: ask the driver"
+
+
+class MotionGate(Protocol):
+    """A call's gate of the safety supervisor: may this call move the robot now?"""
+
+    def motion(self, what: str) -> Refusal | None:
+        """None if the call may move the robot; else why not (refusals are audited)."""
+        ...
+
+
+class DriveSafety(Protocol):
+    """What driving by hand uses of the safety supervisor (its driver is one)."""
+
+    watchdog_stops: int
+
+    def gate(self, call_id: str) -> MotionGate:
+        """The gate of call ``call_id``."""
+        ...
+
+    def state(self) -> SafetyState:
+        """The supervisor's state now."""
+        ...
+
+    def note(self, call_id: str | None, what: str, detail: str = "") -> None:
+        """Write an audit record."""
+        ...
 
 
 class DriveHost(RobotHost, Protocol):
@@ -178,7 +203,7 @@ class DriveService:
         nav: NavStack,
         settings: DriveSettings | None = None,
         *,
-        safety: SafetyDriver | None = None,
+        safety: DriveSafety | None = None,
         follow: FollowService | None = None,
         limits: MotionLimits | None = None,
     ) -> None:

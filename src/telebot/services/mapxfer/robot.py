@@ -31,13 +31,8 @@ from typing import TYPE_CHECKING
 from telebot.channels.channel import Channel, ReceivedDatagram
 from telebot.channels.transports.base import Lane
 from telebot.errors import CallEnded, TelebotError
-from telebot.services.mapxfer.wire import (
-    IDLE_TIMEOUT,
-    MAP,
-    MAX_CHUNK_DATA,
-    EncodedMap,
-    MapSender,
-)
+from telebot.services.mapxfer import MAP
+from telebot.services.mapxfer.wire import IDLE_TIMEOUT, MAX_CHUNK_DATA, EncodedMap, MapSender
 
 if TYPE_CHECKING:
     from telebot.channels.call import Call

@@ -62,7 +62,6 @@ __all__ = [
     "CHUNK_HEADER",
     "CHUNK_KIND",
     "IDLE_TIMEOUT",
-    "MAP",
     "MAX_CHUNKS",
     "MAX_CHUNK_DATA",
     "MAX_MAP_BYTES",
@@ -83,8 +82,6 @@ __all__ = [
     "png_size",
 ]
 
-#: The map channel's name (both ends open it by this name).
-MAP = "map"
 
 # --------------------------------------------------------------------------- constants
 

@@ -34,7 +34,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import difflib
-import fnmatch
 import logging
 import math
 import threading
@@ -47,7 +46,6 @@ from telebot.channels.channel import ReceivedDatagram
 from telebot.channels.transports.base import Lane
 from telebot.config import RelaySettings
 from telebot.errors import CallEnded, ProtocolError, TelebotError
-from telebot.identity import Role
 from telebot.reasons import Reason
 from telebot.robot.nav import SourceTopic, TopicSource, TopicSubscription
 from telebot.safety import Audit, AuditRecord
@@ -64,6 +62,7 @@ from telebot.services.relay.wire import (
     Stopped,
     StopRequest,
     TopicInfo,
+    allowed_topic,
     decode_relay_message,
     encode_topic_list,
     fragment_message,
@@ -72,7 +71,7 @@ from telebot.services.relay.wire import (
 if TYPE_CHECKING:
     from telebot.channels.call import Call
 
-__all__ = ["MAX_BACKLOG", "QUEUE", "RelayService", "allowed_topic", "near_topics"]
+__all__ = ["MAX_BACKLOG", "QUEUE", "RelayService", "near_topics"]
 
 log = logging.getLogger("telebot.relay")
 
@@ -86,12 +85,6 @@ BURST = 0.05
 REMEMBERED = 64
 #: How often (s) a call with relays checks that their topics are still there.
 TOPIC_CHECK_EVERY = 1.0
-
-
-def allowed_topic(settings: RelaySettings, role: Role | None, topic: str) -> bool:
-    """Whether ``role`` may relay ``topic`` by ``settings`` (globs; admins as drivers)."""
-    patterns = settings.observer if role in (None, Role.OBSERVER) else settings.driver
-    return any(fnmatch.fnmatchcase(topic, pattern) for pattern in patterns)
 
 
 def near_topics(name: str, names: list[str], limit: int = 5) -> list[str]:

@@ -28,11 +28,14 @@ with its first answer, so nothing starts twice. Code: this module; the robot's s
 
 from __future__ import annotations
 
+import fnmatch
 import math
 from dataclasses import dataclass
 from typing import Any, Final
 
+from telebot.config import RelaySettings
 from telebot.errors import ProtocolError
+from telebot.identity import Role
 from telebot.services.messages import decode_object, encode_object, require_int
 from telebot.services.video.wire import (
     CODEC_CDR,
@@ -60,6 +63,7 @@ __all__ = [
     "Stopped",
     "TopicInfo",
     "TopicList",
+    "allowed_topic",
     "decode_relay_message",
     "encode_topic_list",
     "fragment_message",
@@ -407,3 +411,9 @@ def stream_of(camera: str) -> int | None:
 def relay_reassembler() -> Reassembler:
     """A reassembler of one relay stream's fragments (latest message wins)."""
     return Reassembler(codec=CODEC_CDR)
+
+
+def allowed_topic(settings: RelaySettings, role: Role | None, topic: str) -> bool:
+    """Whether ``role`` may relay ``topic`` by ``settings`` (globs; admins as drivers)."""
+    patterns = settings.observer if role in (None, Role.OBSERVER) else settings.driver
+    return any(fnmatch.fnmatchcase(topic, pattern) for pattern in patterns)
