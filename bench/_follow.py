@@ -4,7 +4,7 @@ Run ``python bench/_follow.py`` (about 15 s; the simulation runs on a fast clock
 sleeping). A simulated person (two legs in the laser, a figure in the cameras) walks at
 0.4 m/s from room A through its door, 7 m east along the corridor and through room B's
 door, then stands; the robot follows it through
-:class:`~telebot.services.follow.FollowService` on ``[follow]``'s defaults (1.2 m behind,
+:class:`~telebot.services.drive.follow.FollowService` on ``[follow]``'s defaults (1.2 m behind,
 0.5 m/s at most). Twice: tracked by the robot's own people tracker (laser legs and the HOG
 camera detector, :class:`~telebot.robot.perception.runner.PeoplePerception`, the figure
 that counts), and tracked without error (the controller alone). ``bench/people.py``

@@ -38,7 +38,7 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 from telebot.channels.channel import Channel
-from telebot.services.proto.video import CODEC_KEYFRAME, FRAGMENT_HEADER, KIND_FRAGMENT
+from telebot.services.video.wire import CODEC_KEYFRAME, FRAGMENT_HEADER, KIND_FRAGMENT
 from test_media_web import MediaRig, media_rig, stats, wait_stats
 
 __all__ = ["browser_results"]

@@ -77,7 +77,7 @@ from telebot.robot.sim.stack import SimNavStack
 from telebot.services.base import ServiceRegistry
 from telebot.services.client import RobotClient, connect
 from telebot.services.robot import CallServices, RobotServer
-from telebot.services.supervision import SafetyDriver
+from telebot.services.safety.robot import SafetyDriver
 
 STEPS = (10, 50, 100)
 #: Robots per child process: 100 Python processes would not fit on a 2-core machine.

@@ -49,8 +49,9 @@ from telebot.identity import ContactBook, Identity, KnownRobots, create_paired_h
 from telebot.robot.grid import OccupancyGrid
 from telebot.robot.mapfile import load_map
 from telebot.robot.sim.building import resolve_map
-from telebot.services.mapxfer import MapDownload, MapService, fetch_map, map_channel
-from telebot.services.proto.mapxfer import EncodedMap, encode_map
+from telebot.services.mapxfer.robot import MapService, map_channel
+from telebot.services.mapxfer.user import MapDownload, fetch_map
+from telebot.services.mapxfer.wire import EncodedMap, encode_map
 from telebot.testing.net import free_port
 
 ROBOT = "mapbot"

@@ -50,8 +50,8 @@ from rig import Daemon
 from telebot.config import SimSettings
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.codecs import VideoDecoder, VideoEncoder
-from telebot.services.media import TestPattern
-from telebot.services.proto.media import CODEC_H264, CODEC_JPEG
+from telebot.services.media.user import TestPattern
+from telebot.services.media.wire import CODEC_H264, CODEC_JPEG
 
 # HOOK (media-web): the browser half of this benchmark.
 try:

@@ -32,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from rig import Daemon
 from telebot.apps.foxglove_bridge import FoxgloveBridge
 from telebot.services.client import RobotClient
-from telebot.services.proto.video import CompleteFrame
+from telebot.services.video.wire import CompleteFrame
 
 WARMUP = 2.0
 DURATION = 5.0

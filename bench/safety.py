@@ -4,7 +4,7 @@ Run ``.venv/bin/python bench/safety.py`` (about 2 minutes on 2 cores). Three pro
 one machine, zenoh in peer mode over TCP on 127.0.0.1 with multicast scouting off:
 
 - the robot (a child, ``--child robot PORT HOME``): the simulated robot on the small map
-  with a fast base (1.5 m/s, 3 m/s²), the :class:`~telebot.services.supervision.SafetyDriver`
+  with a fast base (1.5 m/s, 3 m/s²), the :class:`~telebot.services.safety.robot.SafetyDriver`
   (deadman = the default call timeout, 0.5 s; watchdog thread) and the
   :class:`~telebot.services.robot.RobotServer`, as ``telebot-robot run`` wires them, on a
   ``RobotEndpoint`` listening on a free port. Its NavStack is :class:`TimedNavStack`: a
@@ -89,10 +89,10 @@ from telebot.reasons import Reason
 from telebot.robot.nav import Velocity
 from telebot.robot.sim.stack import SimNavStack
 from telebot.safety import Action, Stop
+from telebot.services.chat.wire import ChatReply
 from telebot.services.client import RobotClient
-from telebot.services.proto.chat import ChatReply
 from telebot.services.robot import RobotServer
-from telebot.services.supervision import SafetyDriver
+from telebot.services.safety.robot import SafetyDriver
 from telebot.testing.net import free_port
 
 ROBOT = "safebot"

@@ -20,8 +20,8 @@ from telebot.config import CallSettings, ServiceSettings, SimSettings
 from telebot.identity import ContactBook, Identity, KnownRobots, Role
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.robot import RobotServer
-from telebot.services.supervision import SafetyDriver
-from telebot.services.video import VideoSettings
+from telebot.services.safety.robot import SafetyDriver
+from telebot.services.video.wire import VideoSettings
 
 # No test here is about drop timing: a preempted process keeps its calls.
 CALLS = CallSettings(timeout=GENEROUS_TIMEOUT)

@@ -7,7 +7,7 @@ room B: two rooms, two doors and a 7 m straight stretch. It is a simulated perso
 cameras; the base cannot drive into it) and is tracked without error
 (:class:`TruthTracks`): this measures the follow controller, not the detector. The
 simulation is stepped with a fast clock (numbers, no sleeping) through
-:class:`~telebot.services.follow.FollowService`, the robot's own path.
+:class:`~telebot.services.drive.follow.FollowService`, the robot's own path.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from telebot.robot.perception.runner import PeoplePerception
 from telebot.robot.perception.tracks import PersonTrack
 from telebot.robot.sim.people import Walker
 from telebot.robot.sim.stack import SimNavStack
-from telebot.services.follow import FollowService
+from telebot.services.drive.follow import FollowService
 
 #: Where the robot starts: in room A, facing south towards the walker and the door.
 ROBOT_START = Pose2D(2.5, 4.4, -math.pi / 2)

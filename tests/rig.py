@@ -68,8 +68,8 @@ from telebot.robot.sim.stack import SimNavStack, resolve_map
 from telebot.services.base import ServiceRegistry
 from telebot.services.client import RobotClient, connect
 from telebot.services.robot import RobotServer
-from telebot.services.supervision import SafetyDriver
-from telebot.services.video import VideoSettings
+from telebot.services.safety.robot import SafetyDriver
+from telebot.services.video.wire import VideoSettings
 from telebot.testing.net import free_port
 
 ROBOT = "guiabot"

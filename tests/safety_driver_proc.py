@@ -27,8 +27,8 @@ from typing import Any
 
 from telebot.config import AppConfig, load_toml
 from telebot.reasons import Reason
+from telebot.services.chat.wire import ChatReply
 from telebot.services.client import RobotClient, connect
-from telebot.services.proto.chat import ChatReply
 
 #: Far ends of the small map's corridor: a goto between them is several metres long.
 PLACES = {"start": (1.0, 1.2), "corridor": (10.5, 1.2)}

@@ -16,9 +16,9 @@ from telebot.reasons import Reason
 from telebot.robot.nav import GoalStatus, Pose2D
 from telebot.robot.sim.stack import SimNavStack
 from telebot.robot.sim.world import Obstacle
-from telebot.services.chat import FINISHED, OBSERVER_REFUSAL, UNBLOCK_POLLS, ChatSession
-from telebot.services.proto.chat import HELP_TEXT, USAGE, ChatReply, encode_request
-from telebot.services.proto.mapxfer import encode_map
+from telebot.services.chat.robot import FINISHED, OBSERVER_REFUSAL, UNBLOCK_POLLS, ChatSession
+from telebot.services.chat.wire import HELP_TEXT, USAGE, ChatReply, encode_request
+from telebot.services.mapxfer.wire import encode_map
 
 TICK = 0.05
 

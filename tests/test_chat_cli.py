@@ -35,10 +35,10 @@ from telebot.apps.user_client import (
     drive_keys,
     where,
 )
-from telebot.services.proto.chat import MAX_REQUEST_TEXT
-from telebot.services.proto.conference import MAX_TEXT
-from telebot.services.proto.safety import LATCHED
-from telebot.services.proto.status import PoseUpdate
+from telebot.services.chat.wire import MAX_REQUEST_TEXT
+from telebot.services.conference.wire import MAX_TEXT
+from telebot.services.safety.wire import LATCHED
+from telebot.services.status.wire import PoseUpdate
 
 pytestmark = pytest.mark.zenoh
 

@@ -10,7 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from telebot.errors import ProtocolError
-from telebot.services.proto.chat import (
+from telebot.services.chat.wire import (
     HELP_TEXT,
     MAX_REPLY_TEXT,
     MAX_REQUEST_TEXT,
@@ -275,7 +275,7 @@ def test_any_text_parses_or_raises_command_error(text: str) -> None:
     if isinstance(result, CommandError):
         assert str(result)
     else:
-        assert type(result).__module__ == "telebot.services.proto.chat"
+        assert type(result).__module__ == "telebot.services.chat.wire"
 
 
 _WORDS = st.sampled_from(

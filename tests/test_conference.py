@@ -16,7 +16,7 @@ from telebot.errors import ProtocolError
 from telebot.identity import Identity, KnownRobots, Role
 from telebot.reasons import Reason
 from telebot.services.client import RobotClient
-from telebot.services.proto.conference import (
+from telebot.services.conference.wire import (
     MAX_TEXT,
     RATE_LIMIT,
     Conference,

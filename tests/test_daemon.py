@@ -26,7 +26,7 @@ from telebot.reasons import Reason
 from telebot.robot.mapfile import load_map, places_path_for
 from telebot.robot.sim.building import resolve_map
 from telebot.services.client import RobotClient
-from telebot.services.proto.mapxfer import decode_map
+from telebot.services.mapxfer.wire import decode_map
 
 pytestmark = pytest.mark.zenoh
 

@@ -25,9 +25,9 @@ from telebot.robot.nav import GoalStatus, MotionLimits, Pose2D
 from telebot.robot.perception.tracks import PersonTrack
 from telebot.robot.sim.stack import SimNavStack
 from telebot.robot.sim.world import Obstacle
-from telebot.services.drive import CallDrive, DriveService
-from telebot.services.follow import FollowService
-from telebot.services.proto.drive import (
+from telebot.services.drive.follow import FollowService
+from telebot.services.drive.robot import CallDrive, DriveService
+from telebot.services.drive.wire import (
     DriveCommand,
     DriveState,
     InvalidDriveCommand,
@@ -36,7 +36,7 @@ from telebot.services.proto.drive import (
     decode_drive_state,
     seq_newer,
 )
-from telebot.services.supervision import SafetyDriver
+from telebot.services.safety.robot import SafetyDriver
 
 DT = 0.05
 

@@ -22,7 +22,7 @@ from telebot.reasons import Reason
 from telebot.robot.nav import Velocity
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.client import RELEASE_REPEATS, ClientDrive, RobotClient
-from telebot.services.supervision import SafetyDriver
+from telebot.services.safety.robot import SafetyDriver
 
 
 @contextlib.asynccontextmanager

@@ -35,9 +35,8 @@ from telebot.robot.follow import (
 from telebot.robot.nav import GoalStatus, MotionLimits, Pose2D, Velocity
 from telebot.robot.perception.tracks import PersonTrack
 from telebot.robot.sim.world import Obstacle
-from telebot.services.chat import ChatSession
-from telebot.services.follow import CallFollow, FollowService
-from telebot.services.proto.chat import (
+from telebot.services.chat.robot import ChatSession
+from telebot.services.chat.wire import (
     USAGE,
     ChatReply,
     CommandError,
@@ -45,7 +44,8 @@ from telebot.services.proto.chat import (
     Unfollow,
     parse_command,
 )
-from telebot.services.supervision import SafetyDriver
+from telebot.services.drive.follow import CallFollow, FollowService
+from telebot.services.safety.robot import SafetyDriver
 
 SETTINGS = FollowSettings()
 LIMITS = MotionLimits()

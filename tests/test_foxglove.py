@@ -37,7 +37,7 @@ from telebot.robot.grid import OccupancyGrid
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.client import RobotClient, connect
 from telebot.services.schemas import BRIDGE_SCHEMAS, SCHEMAS
-from telebot.services.video import VideoSettings
+from telebot.services.video.wire import VideoSettings
 
 #: The ws-protocol spec's subprotocol is "foxglove.websocket.v1"; foxglove-sdk servers speak
 #: the same protocol as "foxglove.sdk.v1" (and refuse the old name), so a client offers both,

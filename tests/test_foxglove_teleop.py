@@ -40,7 +40,7 @@ from telebot.reasons import Reason
 from telebot.robot.nav import Velocity
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.client import RobotClient, connect
-from telebot.services.supervision import SafetyDriver
+from telebot.services.safety.robot import SafetyDriver
 from test_foxglove import FoxgloveWsClient, ws_client
 
 #: As the panel: its channel's schema name (ROS 1 style, whatever the robot runs).

@@ -39,7 +39,7 @@ from rig import FAST_SIM, ROBOT, SLACK, USER, Daemon
 from telebot.config import SimSettings
 from telebot.identity import Identity, encode_key
 from telebot.robot.sim.stack import SimNavStack
-from telebot.services.proto.mapxfer import MAX_CHUNK_DATA, encode_map
+from telebot.services.mapxfer.wire import MAX_CHUNK_DATA, encode_map
 from telebot.testing.net import free_port
 
 ROOT = Path(__file__).resolve().parent.parent

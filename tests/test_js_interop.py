@@ -43,10 +43,10 @@ from telebot.config import CipherChoice
 from telebot.identity import Identity, encode_key
 from telebot.robot.nav import Velocity
 from telebot.robot.sim.stack import SimNavStack
-from telebot.services.mapxfer import MapService
+from telebot.services.mapxfer.robot import MapService
 from telebot.services.robot import RobotServer
-from telebot.services.supervision import SafetyDriver
-from telebot.services.video import VideoSettings
+from telebot.services.safety.robot import SafetyDriver
+from telebot.services.video.wire import VideoSettings
 
 ROOT = Path(__file__).resolve().parent.parent
 CLIENT = ROOT / "web" / "test" / "interop" / "client.mjs"

@@ -387,8 +387,8 @@ SANS_IO_SOURCES = sorted(
     [
         *(SRC / "channels" / "proto").rglob("*.py"),
         *(SRC / "robot" / "sim").rglob("*.py"),
-        *(SRC / "services" / "proto").rglob("*.py"),
-        *SRC.glob("services/*/wire.py"),
+        *(SRC / "services").glob("*/wire.py"),
+        SRC / "services" / "messages.py",
         # rosmsg.types guards its type cache with a lock (both adapters' threads use it) and
         # rosmsg.topics stamps messages with the wall clock: only the message encoding is pure.
         SRC / "rosmsg" / "messages.py",
@@ -526,7 +526,7 @@ async def main(base: Path) -> None:
         # The guard sees a heavy import when one happens: video decoding loads PyAV.
         from telebot.errors import ProtocolError
         from telebot.services.codecs import VideoDecoder
-        from telebot.services.proto.media import CODEC_H264
+        from telebot.services.media.wire import CODEC_H264
         try:
             VideoDecoder().decode(b"not h264", CODEC_H264)
         except ProtocolError:

@@ -20,8 +20,9 @@ from telebot.config import CallSettings
 from telebot.errors import CallEnded, ProtocolError
 from telebot.robot.grid import OccupancyGrid
 from telebot.robot.mapfile import load_map
-from telebot.services.mapxfer import MapService, fetch_map, map_channel
-from telebot.services.proto.mapxfer import ALREADY_RUNNING, MAX_CHUNK_DATA, EncodedMap, encode_map
+from telebot.services.mapxfer.robot import MapService, map_channel
+from telebot.services.mapxfer.user import fetch_map
+from telebot.services.mapxfer.wire import ALREADY_RUNNING, MAX_CHUNK_DATA, EncodedMap, encode_map
 
 
 def noisy_grid(seed: int = 1) -> OccupancyGrid:

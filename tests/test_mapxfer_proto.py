@@ -24,7 +24,7 @@ from telebot.channels.proto.frames import MAX_DATAGRAM
 from telebot.errors import MapError, ProtocolError
 from telebot.robot.grid import OccupancyGrid
 from telebot.robot.mapfile import CELL_FREE_MAX, CELL_OCCUPIED_MIN, load_map, map_yaml
-from telebot.services.proto.mapxfer import (
+from telebot.services.mapxfer.wire import (
     ALREADY_RUNNING,
     CHUNK_HEADER,
     IDLE_TIMEOUT,

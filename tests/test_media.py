@@ -22,16 +22,6 @@ from telebot.channels.transports.memory import MemoryHub
 from telebot.config import ServiceSettings, SimSettings
 from telebot.errors import ProtocolError
 from telebot.robot.sim.stack import SimNavStack
-from telebot.services import audio as audio_mod
-from telebot.services.audio import (
-    MemorySink,
-    ToneSource,
-    WavSink,
-    WavSource,
-    dominant_frequency,
-    open_sink,
-    open_source,
-)
 from telebot.services.client import RobotClient
 from telebot.services.codecs import (
     OpusDecoder,
@@ -41,18 +31,23 @@ from telebot.services.codecs import (
     read_number,
     stamp_number,
 )
-from telebot.services.media import (
-    AudioBlock,
-    CallState,
-    MediaSettings,
-    RobotMedia,
-    TestPattern,
-    Voice,
+from telebot.services.media import audio as audio_mod
+from telebot.services.media.audio import (
+    MemorySink,
+    ToneSource,
+    WavSink,
+    WavSource,
+    dominant_frequency,
+    open_sink,
+    open_source,
 )
-from telebot.services.proto.media import CODEC_H264, CODEC_JPEG, CODEC_VP8, SAMPLE_RATE
-from telebot.services.proto.video import CompleteFrame, VideoSettings
+from telebot.services.media.robot import CallState, MediaSettings, RobotMedia, Voice
+from telebot.services.media.stream import AudioBlock
+from telebot.services.media.user import TestPattern
+from telebot.services.media.wire import CODEC_H264, CODEC_JPEG, CODEC_VP8, SAMPLE_RATE
 from telebot.services.robot import RobotServer
-from telebot.services.video import VideoFrame
+from telebot.services.video.user import VideoFrame
+from telebot.services.video.wire import CompleteFrame, VideoSettings
 
 FAST = SimSettings(map="small", camera_width=320, camera_height=240, control_hz=50)
 
@@ -318,8 +313,8 @@ async def test_talk_with_a_missing_wav_file_is_a_usage_error(tmp_path: Path) -> 
 
 async def test_garbage_on_the_media_channels_is_dropped_and_counted(homes: Homes) -> None:
     from telebot.channels.transports.base import Lane
-    from telebot.services.proto.media import USER_AUDIO, USER_VIDEO
-    from telebot.services.proto.video import fragment
+    from telebot.services.media.wire import USER_AUDIO, USER_VIDEO
+    from telebot.services.video.wire import fragment
 
     async with media_call(homes) as rig:
         await wait_until(lambda: rig.media.user_frames_decoded >= 2 and rig.speaker.total > 0)
@@ -358,8 +353,8 @@ async def test_the_robot_asks_for_the_users_media_only_once_it_came(homes: Homes
     the call sends voice or pictures, the robot reports on that stream (and only on it)."""
     from telebot.channels.channel import ReceivedDatagram
     from telebot.channels.transports.base import Lane
-    from telebot.services.proto.media import USER_AUDIO, USER_VIDEO, encode_audio
-    from telebot.services.proto.video import encode_jpeg, fragment
+    from telebot.services.media.wire import USER_AUDIO, USER_VIDEO, encode_audio
+    from telebot.services.video.wire import encode_jpeg, fragment
 
     loop = asyncio.get_running_loop()
     nav = SimNavStack.from_settings(FAST, now=loop.time())
@@ -407,7 +402,7 @@ async def test_the_users_media_stops_unasked_after_the_probe(homes: Homes) -> No
     microphone go out for the probe time only, then stop; the call goes on."""
     from telebot.channels.channel import ReceivedDatagram
     from telebot.channels.transports.base import Lane
-    from telebot.services.proto.media import USER_AUDIO, USER_MEDIA_PROBE, USER_VIDEO
+    from telebot.services.media.wire import USER_AUDIO, USER_MEDIA_PROBE, USER_VIDEO
 
     got: dict[str, list[float]] = {USER_VIDEO: [], USER_AUDIO: []}
     async with memory_endpoints(homes, MemoryHub(seed=4)) as (robot_endpoint, user_endpoint):

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from telebot.errors import ProtocolError
-from telebot.services.proto.media import (
+from telebot.services.media.wire import (
     AUDIO_HEADER,
     CODEC_H264,
     CODEC_JPEG,
@@ -30,7 +30,7 @@ from telebot.services.proto.media import (
     parse_audio,
     parse_media_report,
 )
-from telebot.services.proto.video import (
+from telebot.services.video.wire import (
     REPORT,
     Reassembler,
     Report,

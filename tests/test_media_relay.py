@@ -18,7 +18,7 @@ from telebot.apps.web.media_relay import MAX_VIDEO_FRAME, MediaRelay, pack_media
 from telebot.apps.web.screen import parse_screen_option, robot_screen
 from telebot.channels.channel import ReceivedDatagram
 from telebot.config import ScreenSettings
-from telebot.services.proto.video import Report
+from telebot.services.video.wire import Report
 
 
 def test_video_and_audio_round_trip() -> None:

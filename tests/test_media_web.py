@@ -36,14 +36,14 @@ from telebot.channels.transports.memory import MemoryHub
 from telebot.config import ServiceSettings, SimSettings
 from telebot.identity import Identity, create_paired_homes
 from telebot.robot.sim.stack import SimNavStack
-from telebot.services.audio import MemorySink, ToneSource, dominant_frequency
 from telebot.services.client import RobotClient
 from telebot.services.codecs import read_number
-from telebot.services.media import MediaSettings, RobotMedia
-from telebot.services.proto.media import CODEC_H264, CODEC_JPEG, CODEC_VP8
-from telebot.services.proto.video import FLAG_KEYFRAME, KIND_REPORT, VideoSettings
+from telebot.services.media.audio import MemorySink, ToneSource, dominant_frequency
+from telebot.services.media.robot import MediaSettings, RobotMedia
+from telebot.services.media.wire import CODEC_H264, CODEC_JPEG, CODEC_VP8
 from telebot.services.robot import RobotServer
-from telebot.services.video import video_channel
+from telebot.services.video.stream import video_channel
+from telebot.services.video.wire import FLAG_KEYFRAME, KIND_REPORT, VideoSettings
 
 CHROMIUM = "/usr/bin/chromium"
 assert Path(CHROMIUM).exists(), "chromium missing: run .ci/install-debian"

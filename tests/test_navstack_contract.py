@@ -31,8 +31,8 @@ from telebot.robot.nav import (
     require_finite,
 )
 from telebot.robot.sim.stack import SimNavStack
-from telebot.services.drive import DriveService
-from telebot.services.follow import FollowService
+from telebot.services.drive.follow import FollowService
+from telebot.services.drive.robot import DriveService
 from telebot.testing.navstack import (
     OPTIONAL,
     NavStackContract,

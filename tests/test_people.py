@@ -33,7 +33,7 @@ from telebot.robot.sim.people import Walker
 from telebot.robot.sim.stack import SimNavStack
 from telebot.robot.sim.world import Obstacle
 from telebot.services.client import RobotClient
-from telebot.services.proto.people import (
+from telebot.services.people.wire import (
     PeopleAlertMessage,
     PeopleUpdate,
     TrackInfo,

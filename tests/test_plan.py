@@ -25,9 +25,10 @@ from telebot.errors import ProtocolError
 from telebot.robot.nav import Pose2D
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.client import RobotClient
-from telebot.services.plan import PlanReceiver, PlanSource
-from telebot.services.proto.messages import MAX_MESSAGE
-from telebot.services.proto.plan import (
+from telebot.services.messages import MAX_MESSAGE
+from telebot.services.plan.robot import PlanSource
+from telebot.services.plan.user import PlanReceiver
+from telebot.services.plan.wire import (
     MAX_PLAN_POINTS,
     Place,
     PlacesUpdate,

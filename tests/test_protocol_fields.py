@@ -28,13 +28,12 @@ from telebot.channels.channel import ReceivedDatagram
 from telebot.channels.transports import Lane
 from telebot.channels.transports.memory import MemoryHub
 from telebot.reasons import Reason
-from telebot.services.audio import MemorySink, ToneSource
 from telebot.services.client import RobotClient
-from telebot.services.media import MediaSettings, RobotMedia
-from telebot.services.proto import GOALS, POSE, TELEMETRY
-from telebot.services.proto.messages import is_finite_number
-from telebot.services.proto.plan import PLAN
-from telebot.services.proto.status import GoalCommand
+from telebot.services.media.audio import MemorySink, ToneSource
+from telebot.services.media.robot import MediaSettings, RobotMedia
+from telebot.services.messages import is_finite_number
+from telebot.services.plan.wire import PLAN
+from telebot.services.status.wire import GOALS, POSE, TELEMETRY, GoalCommand
 
 PROTOCOL = Path(__file__).resolve().parents[1] / "docs" / "protocol.md"
 _HEADER = re.compile(r"^\| `?([\w ]+?)`? field \| type \| meaning \|$")

@@ -12,15 +12,15 @@ from telebot.errors import ProtocolError
 from telebot.identity import Role
 from telebot.reasons import DESCRIPTIONS, Reason
 from telebot.rights import RIGHTS, Right, may, rights_of
-from telebot.services.proto.chat import ChatReply, decode_reply
-from telebot.services.proto.safety import (
+from telebot.services.chat.wire import ChatReply, decode_reply
+from telebot.services.safety.wire import (
     STOP_HOWS,
     SafetyAck,
     SafetyRequest,
     decode_safety_reply,
     decode_safety_request,
 )
-from telebot.services.proto.status import GoalUpdate, decode_goal_update
+from telebot.services.status.wire import GoalUpdate, decode_goal_update
 
 PROTOCOL = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
 

@@ -44,8 +44,8 @@ from telebot.robot.sim.stack import SimNavStack
 from telebot.services.base import ServiceRegistry
 from telebot.services.client import ConnectionEvent, RobotClient, backoff_delay, connect
 from telebot.services.robot import RobotServer
-from telebot.services.supervision import SafetyDriver
-from telebot.services.video import VideoSettings
+from telebot.services.safety.robot import SafetyDriver
+from telebot.services.video.wire import VideoSettings
 
 #: How long the link stays cut (the issue's Wi-Fi blip).
 OUTAGE = 2.0
@@ -349,13 +349,12 @@ class Toy:
 async def test_a_registered_service_opens_ticks_closes_and_reopens_with_the_call(
     tmp_path: Path,
 ) -> None:
-    from telebot.services.client import default_client_services
-    from telebot.services.robot import default_robot_services
+    from telebot.services import registry
 
     log = ToyLog()
-    robot_services = default_robot_services()
+    robot_services = registry.robot_services()
     robot_services.register("toy", lambda server, call: Toy(log, "robot", call))
-    user_services = default_client_services()
+    user_services = registry.user_services()
     user_services.register("toy", lambda client, call: Toy(log, "user", call))
     async with rig(tmp_path, robot_services=robot_services, user_services=user_services) as r:
         first = r.client.call.id

@@ -31,8 +31,8 @@ from telebot.config import CallSettings, ServiceSettings
 from telebot.identity import Identity, KnownRobots
 from telebot.services.client import RobotClient
 from telebot.services.recording import Recorder
-from telebot.services.robot import default_robot_services
-from telebot.services.supervision import SafetyDriver
+from telebot.services.registry import robot_services
+from telebot.services.safety.robot import SafetyDriver
 
 
 @contextlib.asynccontextmanager
@@ -41,7 +41,7 @@ async def recorded_robot(
 ) -> AsyncIterator[tuple[SafetyDriver, RobotClient, UserEndpoint]]:
     """A simulated robot whose calls ``recorder`` records, and a driver's client in a call
     (and the driver's endpoint, for more calls)."""
-    services = default_robot_services()
+    services = robot_services()
     services.register("recording", recorder.service)
     hub = MemoryHub(seed=3)
     async with (

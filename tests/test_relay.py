@@ -31,7 +31,8 @@ from telebot.robot.ros2.node import Ros2Node
 from telebot.robot.sim.stack import SimNavStack
 from telebot.rosmsg.types import TypeLibrary
 from telebot.services.client import RobotClient
-from telebot.services.proto.relay import (
+from telebot.services.relay.robot import RelayService, near_topics
+from telebot.services.relay.wire import (
     MAX_LIST_TEXT,
     ListRequest,
     RelayEnded,
@@ -42,14 +43,14 @@ from telebot.services.proto.relay import (
     StopRequest,
     TopicInfo,
     TopicList,
+    allowed_topic,
     decode_relay_message,
     encode_topic_list,
     fragment_message,
     relay_reassembler,
 )
-from telebot.services.relay import RelayService, allowed_topic, near_topics
 from telebot.services.robot import RobotServer
-from telebot.services.supervision import SafetyDriver
+from telebot.services.safety.robot import SafetyDriver
 
 LIB = TypeLibrary()
 
@@ -163,6 +164,29 @@ class FloodingSim(SimNavStack):
         class Handle:
             def close(self) -> None:
                 done.set()
+
+        return Handle()
+
+
+class VanishingSim(SimNavStack):
+    """The simulator plus ``/blip``, a topic whose source goes away when ``vanish`` is set."""
+
+    vanish = threading.Event()
+
+    def topics(self) -> list[SourceTopic]:
+        blip = [] if self.vanish.is_set() else [SourceTopic("/blip", "std_msgs/msg/Empty", "")]
+        return [*super().topics(), *blip]
+
+    def subscribe_topic(
+        self, name: str, callback: Callable[[bytes, float], None]
+    ) -> contextlib.AbstractContextManager[None] | object:
+        if name != "/blip":
+            return super().subscribe_topic(name, callback)
+        callback(b"\x00\x01\x00\x00", 0.0)  # one message, then silence
+
+        class Handle:
+            def close(self) -> None:
+                pass
 
         return Handle()
 
@@ -310,6 +334,19 @@ async def test_a_relay_ends_with_the_call(tmp_path: Path) -> None:
             assert scans.ended and scans.end_reason == "the call ended"
         await wait_until(lambda: not rig.server.open)
         assert not topics._topics["/scan"].subscribers  # the robot unsubscribed
+
+
+async def test_a_relay_whose_topic_vanishes_ends_for_the_user(tmp_path: Path) -> None:
+    VanishingSim.vanish = threading.Event()
+    async with robot_in_a_call(tmp_path, nav_class=VanishingSim) as rig:
+        async with rig.client.relay("/blip") as blips:
+            await anext(aiter(blips))
+            VanishingSim.vanish.set()  # the publisher is gone from the robot's network
+            async with asyncio.timeout(30):  # a hang guard: without the end this never ends
+                async for _ in blips:
+                    pass
+            assert blips.ended and "/blip is gone" in blips.end_reason
+        await wait_until(lambda: not relay_service(rig).relays)
 
 
 async def test_a_flooding_topic_is_rate_limited_and_counted_and_stops_still_go_through(

@@ -11,11 +11,12 @@ from collections.abc import Iterator
 
 import pytest
 
-from conftest import SLACK, Process, free_port
+from conftest import SLACK, Process
 from rig import FAST_SIM, write_config
 from telebot.config import RobotConfig
 from telebot.robot.ros2.stack import Ros2NavStack
 from telebot.testing.navstack import NavStackContract, Subject, check_optional
+from telebot.testing.net import free_port
 
 # The module's first test also starts telebot-sim and joins it (slow on a loaded machine).
 pytestmark = [pytest.mark.zenoh, pytest.mark.timeout(180)]

@@ -42,9 +42,9 @@ from telebot.robot.ros2.keys import QoS
 from telebot.robot.ros2.node import Ros2Node
 from telebot.robot.ros2.stack import Ros2NavStack
 from telebot.robot.sim.building import resolve_map
-from telebot.services.drive import CallDrive, DriveService
-from telebot.services.follow import FollowService
-from telebot.services.proto.drive import DriveCommand, decode_drive_state
+from telebot.services.drive.follow import FollowService
+from telebot.services.drive.robot import CallDrive, DriveService
+from telebot.services.drive.wire import DriveCommand, decode_drive_state
 from telebot.testing.net import free_port
 from test_drive import FakeCall
 

@@ -51,11 +51,11 @@ from telebot.reasons import Reason
 from telebot.robot.nav import Velocity
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services import client as client_module
+from telebot.services.chat.wire import ChatReply
 from telebot.services.client import RobotClient
-from telebot.services.proto.chat import ChatReply
-from telebot.services.proto.safety import SafetyStatus
-from telebot.services.proto.status import PoseUpdate
-from telebot.services.supervision import SafetyDriver
+from telebot.services.safety.robot import SafetyDriver
+from telebot.services.safety.wire import SafetyStatus
+from telebot.services.status.wire import PoseUpdate
 
 #: The default call timeout: the robot must be stopped within it of the driver going silent
 #: (the deadman itself fires one heartbeat earlier, see robot_daemon.deadman_time) (s).

@@ -20,7 +20,7 @@ from telebot.channels.transports.memory import MemoryHub
 from telebot.reasons import Reason
 from telebot.robot.nav import Velocity
 from telebot.services.client import RobotClient
-from telebot.services.proto.safety import SAFETY, SafetyError, decode_safety_reply
+from telebot.services.safety.wire import SAFETY, SafetyError, decode_safety_reply
 
 BAD_IDS: list[Any] = ["7", 7.5, 7.0, -1, 2**32, None, True, [7]]
 

@@ -18,10 +18,10 @@ from telebot.config import RobotConfig, SafetySettings, load_toml
 from telebot.errors import ConfigError
 from telebot.reasons import Reason
 from telebot.robot.nav import Velocity
+from telebot.services.chat.wire import ChatReply
 from telebot.services.client import RobotClient
-from telebot.services.proto.chat import ChatReply
-from telebot.services.proto.video import CompleteFrame, VideoSettings
-from telebot.services.video import VideoFeedService
+from telebot.services.video.user import VideoFeedService
+from telebot.services.video.wire import CompleteFrame, VideoSettings
 
 #: The product's stale-video lockout (rigs default to a generous one).
 PRODUCT_STALE_VIDEO = SafetySettings().stale_video

@@ -21,9 +21,9 @@ from telebot.reasons import Reason
 from telebot.robot.grid import OccupancyGrid
 from telebot.robot.nav import Pose2D
 from telebot.robot.sim.stack import SimNavStack
-from telebot.services.chat import ChatSession
-from telebot.services.proto.chat import ChatReply
-from telebot.services.supervision import SafetyDriver
+from telebot.services.chat.robot import ChatSession
+from telebot.services.chat.wire import ChatReply
+from telebot.services.safety.robot import SafetyDriver
 
 
 @dataclass

@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 
 from telebot.channels.proto.frames import MAX_DATAGRAM
 from telebot.errors import ProtocolError
-from telebot.services.proto.video import (
+from telebot.services.video.wire import (
     FRAGMENT_HEADER,
     JUMP_SLACK,
     MAX_FRAGMENTS,

@@ -31,8 +31,8 @@ from telebot.apps.web.messages import (
     parse_page_message,
 )
 from telebot.apps.web.server import WebUI
-from telebot.services.proto.drive import DriveState
-from telebot.services.proto.safety import SafetyStatus
+from telebot.services.drive.wire import DriveState
+from telebot.services.safety.wire import SafetyStatus
 
 PROTOCOL = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
 

@@ -35,8 +35,8 @@ from telebot.robot.grid import OccupancyGrid
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.client import RobotClient
 from telebot.services.robot import RobotServer
-from telebot.services.supervision import SafetyDriver
-from telebot.services.video import VideoSettings
+from telebot.services.safety.robot import SafetyDriver
+from telebot.services.video.wire import VideoSettings
 
 CHROMIUM = "/usr/bin/chromium"
 ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts"

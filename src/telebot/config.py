@@ -421,7 +421,7 @@ class VideoConfig(StrictModel):
 
 class MediaConfig(StrictModel):
     """``[media]``: the call's video codec, the robot's microphone and speaker, its voice
-    (see :mod:`telebot.services.media`, ``docs/protocol.md`` §25)."""
+    (see :mod:`telebot.services.media.robot`, ``docs/protocol.md`` §25)."""
 
     #: Video codec the robot prefers; a user that cannot take it gets another it can
     #: (JPEG for old clients).
@@ -555,7 +555,7 @@ class FollowSettings(StrictModel):
 
 
 class DriveSettings(StrictModel):
-    """``[drive]``: driving by hand (the ``drive`` channel, :mod:`telebot.services.drive`)."""
+    """``[drive]``: driving by hand (the ``drive`` channel, :mod:`telebot.services.drive.robot`)."""
 
     #: The robot obeys only while fresh commands arrive: none for this long (s) and it
     #: stops (not latched; the user's client repeats them at 20 Hz).

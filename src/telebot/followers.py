@@ -31,7 +31,7 @@ if TYPE_CHECKING:
     from types import TracebackType
 
     from telebot.services.client import ConnectionEvent, RobotClient
-    from telebot.services.mapxfer import MapDownload
+    from telebot.services.mapxfer.user import MapDownload
 
 __all__ = ["MapFollower"]
 

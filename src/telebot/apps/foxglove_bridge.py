@@ -120,13 +120,13 @@ from telebot.errors import CallEnded, RelayRefused, TelebotError, UnknownTopic, 
 from telebot.followers import MapFollower
 from telebot.rights import Right, may
 from telebot.services.client import ConnectionEvent, RobotClient
-from telebot.services.mapxfer import MapDownload
-from telebot.services.proto.plan import PlanUpdate
-from telebot.services.proto.relay import RelayedMessage, TopicInfo
-from telebot.services.proto.safety import SafetyAck, SafetyStatus
-from telebot.services.proto.status import PoseUpdate
-from telebot.services.proto.video import CompleteFrame
+from telebot.services.mapxfer.user import MapDownload
+from telebot.services.plan.wire import PlanUpdate
+from telebot.services.relay.wire import RelayedMessage, TopicInfo
+from telebot.services.safety.wire import SafetyAck, SafetyStatus
 from telebot.services.schemas import BRIDGE_SCHEMAS, TRIGGER_REQUEST, TRIGGER_RESULT, schema_bytes
+from telebot.services.status.wire import PoseUpdate
+from telebot.services.video.wire import CompleteFrame
 
 __all__ = [
     "COMMANDS",

@@ -22,11 +22,12 @@ from telebot.errors import RobotError
 from telebot.gateway.robot import robot_gateway
 from telebot.identity import ContactBook, Identity
 from telebot.robot import create_robot
-from telebot.services.media import install_robot_media, media_settings, media_video_settings
+from telebot.services.media.robot import install_robot_media, media_settings, media_video_settings
 from telebot.services.recording import Recorder
-from telebot.services.robot import EventSink, RobotServer, default_robot_services
-from telebot.services.supervision import SafetyDriver
-from telebot.services.video import VideoSettings
+from telebot.services.registry import robot_services
+from telebot.services.robot import EventSink, RobotServer
+from telebot.services.safety.robot import SafetyDriver
+from telebot.services.video.wire import VideoSettings
 
 __all__ = ["SHUTDOWN_REASON", "deadman_time", "serve_robot"]
 
@@ -121,7 +122,7 @@ async def serve_robot(
             audit_path=audit,
         )
         recorder = _recorder(config, audit, home)
-        services = default_robot_services()
+        services = robot_services()
         if recorder is not None:
             services.register("recording", recorder.service)
             safety.on_audit = recorder.audit

@@ -15,9 +15,9 @@ from typing import TextIO
 from telebot.apps.common import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, stop_on_signals
 from telebot.config import AppConfig
 from telebot.errors import TelebotError
-from telebot.services.audio import AudioSink, AudioSource, open_sink, open_source
 from telebot.services.client import connect
-from telebot.services.media import TestPattern
+from telebot.services.media.audio import AudioSink, AudioSource, open_sink, open_source
+from telebot.services.media.user import TestPattern
 
 __all__ = ["mic_spec", "talk"]
 

@@ -16,13 +16,13 @@ from typing import Any, TextIO
 from telebot.apps.common import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from telebot.config import AppConfig
 from telebot.errors import CallEnded, ProtocolError
+from telebot.services.chat.wire import ChatReply
 from telebot.services.client import ConnectionEvent, RobotClient, connect
-from telebot.services.proto.chat import ChatReply
-from telebot.services.proto.conference import MAX_TEXT as MAX_SAY_TEXT
-from telebot.services.proto.conference import Message, Roster, say_text
-from telebot.services.proto.people import PeopleAlertMessage
-from telebot.services.proto.safety import SafetyStatus, latched_text
-from telebot.services.proto.status import PoseUpdate
+from telebot.services.conference.wire import MAX_TEXT as MAX_SAY_TEXT
+from telebot.services.conference.wire import Message, Roster, say_text
+from telebot.services.people.wire import PeopleAlertMessage
+from telebot.services.safety.wire import SafetyStatus, latched_text
+from telebot.services.status.wire import PoseUpdate
 
 __all__ = [
     "DRIVE_HOLD",

@@ -28,9 +28,10 @@ import numpy.typing as npt
 from telebot.apps.common import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from telebot.config import AppConfig
 from telebot.services.client import connect
-from telebot.services.proto.media import CODEC_H264, CODEC_JPEG, CODEC_VP8
+from telebot.services.media.wire import CODEC_H264, CODEC_JPEG, CODEC_VP8
 from telebot.services.shm import FrameRingReader, FrameRingWriter, validate_ring_name
-from telebot.services.video import VideoFrame, VideoReceiver, video_channel
+from telebot.services.video.stream import video_channel
+from telebot.services.video.user import VideoFrame, VideoReceiver
 
 __all__ = ["MAX_FILL", "Recorder", "video", "video_log"]
 

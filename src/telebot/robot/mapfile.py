@@ -5,7 +5,7 @@ robot uses loads here unchanged, and :func:`save_map` writes what ``map_saver`` 
 binary PGM: free 254, occupied 0, unknown 205, plus its YAML), so any ROS tool loads our maps.
 
 This module is the one home of the map_server image and YAML conventions; the map transfer
-(:mod:`telebot.services.proto.mapxfer`) uses them through :func:`grid_to_image`,
+(:mod:`telebot.services.mapxfer.wire`) uses them through :func:`grid_to_image`,
 :func:`image_to_grid` and :func:`map_yaml`. Writing, each cell becomes a pixel of
 map_saver's trinary image:
 
@@ -55,7 +55,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 import yaml
@@ -269,6 +268,8 @@ def _decode_image(yaml_path: Path, image_path: Path) -> npt.NDArray[Any]:
     raw = _read_file(image_path, where, missing="no such file", directory="is a directory")
     # imdecode is imread's decoder without imread's stderr chatter and path-encoding pitfalls.
     image: npt.NDArray[Any] | None = None
+    import cv2  # here, not at the top: a user's client imports this module, never this decoder
+
     if raw:
         try:
             image = cv2.imdecode(np.frombuffer(raw, dtype=np.uint8), cv2.IMREAD_UNCHANGED)

@@ -1,7 +1,8 @@
-"""The robot's services on a call's channels: chat (Table I), map, pose, goals, telemetry.
+"""The robot's services on a call's channels: chat (Table I), map, pose, goals, telemetry, ...
 
-Sans-IO logic (command parsing, map transfer, message formats) lives in
-:mod:`telebot.services.proto`; the modules here drive it with a call's channels and the
-robot's :class:`~telebot.robot.nav.NavStack`. Channel names and payloads are in
-``docs/protocol.md``.
+One folder per service (``chat``, ``mapxfer``, ``video``, ``relay``, ...): ``wire.py`` is
+its sans-IO wire format, ``robot.py`` its robot side, ``user.py`` its user side. The hosts
+(:mod:`telebot.services.robot`, :mod:`telebot.services.client`) open them on every call
+through :mod:`telebot.services.registry`; :mod:`telebot.services.base` is the seam between
+them. Channel names and payloads are in ``docs/protocol.md``.
 """

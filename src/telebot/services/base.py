@@ -1,30 +1,37 @@
-"""The service seam: a :class:`CallService` is opened on a call, ticked, and closed with it.
+"""The service seam: hosts, per-host services and per-call services.
 
-Both ends hold a :class:`ServiceRegistry`: a name → factory table, in registration order.
-When a call comes up, every registered factory is called with the *host* (the
-:class:`~telebot.services.robot.RobotServer` on the robot, the
-:class:`~telebot.services.client.RobotClient` on the user's side) and the call; it opens
-its channels and returns the call's service object. The host then ticks every open
-service (the robot at its control rate, the user at :data:`CLIENT_TICK`) and closes
-them all when the call ends. A new service (audio, relay, follow-me) is one module with a
-factory plus one :meth:`ServiceRegistry.register` line::
+A *host* is the robot (:class:`~telebot.services.robot.RobotServer`) or a user's client
+(:class:`~telebot.services.client.RobotClient`); a service sees it only through
+:class:`RobotHost` or :class:`ClientHost` (plus, where a service needs more, a Protocol of
+its own that extends one). Both hosts hold a :class:`ServiceRegistry`, name → service in
+registration order (the built-ins and plug-ins: :mod:`telebot.services.registry`).
+``registry.start(host)`` makes each service once for the host: a :class:`HostService`
+subclass (per-robot or per-client state, Nav2-plugin style: start, tick, open a call,
+close) or a plain factory ``(host, call) -> CallService`` (nothing per host). When a call
+comes up the host opens every service on it; each returns the call's
+:class:`CallService`, which opens its channels. The host ticks the per-host services and
+every open per-call one (the robot at its control rate, the user at :data:`CLIENT_TICK`)
+and closes the per-call ones when the call ends. A new service is one folder plus one
+registration line; in code, one :meth:`ServiceRegistry.register` call::
 
     class Echo:                                    # one per call
-        def __init__(self, host: RobotServer, call: Call) -> None:
+        def __init__(self, host: RobotHost, call: Call) -> None:
             self.channel = call.channel("echo")
             self.channel.set_callback(lambda d: self.channel.send(d.payload))
 
         def tick(self, now: float) -> None: ...    # loop time; periodic work goes here
         def close(self) -> None: ...               # the call ended (or the host closes)
 
-    server = RobotServer(nav, services=default_robot_services())
-    server.registry.register("echo", Echo)
+    services = robot_services()                    # telebot.services.registry
+    services.register("echo", Echo)
+    server = RobotServer(nav, services=services)
 
 On the user's side a call may be replaced: when the link drops, the client calls the
 robot again (see :mod:`telebot.services.client`) and opens every registered service on
 the new call after closing the old call's. So what a user subscribes to (``async for``
-iterators, callbacks) lives on the host, and a service only moves bytes between its
-channels and the host: subscribers keep working across calls.
+iterators, callbacks) lives in the per-client service or on the host, and a per-call
+service only moves bytes between its channels and them: subscribers keep working across
+calls.
 
 Every call of a service's method is guarded: an exception is logged and does not reach
 the other services, the host's loop or the call. A factory that raises while a call is
@@ -34,19 +41,28 @@ robot then hangs the call up: a call served by half its services must not stay u
 
 from __future__ import annotations
 
+import asyncio
+import importlib
 import logging
 from collections.abc import Callable, Iterator
-from typing import TYPE_CHECKING, Generic, Protocol, TypeVar
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Generic, Literal, Protocol, TypeVar, cast
 
 if TYPE_CHECKING:
     from telebot.channels.call import Call
+    from telebot.robot.nav import NavStack
 
 __all__ = [
     "CLIENT_TICK",
     "CallService",
+    "ClientHost",
+    "HostService",
+    "HostedServices",
     "OpenServices",
+    "RobotHost",
     "ServiceFactory",
     "ServiceRegistry",
+    "ServiceSpec",
 ]
 
 log = logging.getLogger("telebot.services")
@@ -56,6 +72,126 @@ CLIENT_TICK = 0.05
 
 Host = TypeVar("Host", contravariant=True)
 H = TypeVar("H")
+T = TypeVar("T")
+
+
+class RobotHost(Protocol):
+    """What a robot-side service may use of the robot (:class:`~telebot.services.robot.RobotServer`
+    is one): never more, so a service runs on any host that gives these."""
+
+    #: The robot's navigation stack.
+    nav: NavStack
+    #: The robot's name (its identity's, once it answers calls).
+    name: str
+    #: Where robot events go (``{"event": ..., ...}``: the daemon's JSON lines).
+    emit: Callable[[dict[str, Any]], None]
+    #: The safety supervisor's driver (:class:`~telebot.services.safety.robot.SafetyDriver`),
+    #: None on a robot run without one.
+    safety: Any
+
+    def now(self) -> float:
+        """The robot's clock (the event loop's)."""
+        ...
+
+    def safety_status(self) -> Any:
+        """The safety state as users see it (:class:`~telebot.services.safety.wire.SafetyStatus`)."""
+        ...
+
+    def encoded_map(self) -> Any:
+        """The map, encoded once per version (:class:`~telebot.services.mapxfer.wire.EncodedMap`)."""
+        ...
+
+    def replaces(self, call_id: str) -> str | None:
+        """The call that call ``call_id`` replaced (its client's previous call), if any."""
+        ...
+
+
+class ClientHost(Protocol):
+    """What a user-side service may use of the user's client
+    (:class:`~telebot.services.client.RobotClient` is one)."""
+
+    #: Datagrams from the robot that did not decode (a service counts its own here).
+    rejected: int
+
+    @property
+    def robot(self) -> str:
+        """The robot's name."""
+        ...
+
+    async def live_call(self) -> Call:
+        """The call once it is up, waiting out a reconnection (CallEnded once none will come)."""
+        ...
+
+    async def answer(self, answers: asyncio.Queue[T], wait: float, call: Call) -> T:
+        """The next of ``answers`` within ``wait`` s (TimeoutError), CallEnded if ``call`` ends."""
+        ...
+
+    def service(self, name: str) -> CallService | None:
+        """The service ``name`` open on the current call, if any."""
+        ...
+
+
+class HostService(Generic[H]):
+    """A service once per host (one robot, one user's client), beside its per-call objects.
+
+    As Nav2 configures a plug-in with narrow handles and then activates it: made with the
+    host's narrow interface (:class:`RobotHost` or :class:`ClientHost`), :meth:`start` ed
+    once, :meth:`tick` ed with the host, :meth:`open` ed on every call, :meth:`close` d with
+    the host. State that outlives one call (a robot's conference room, a user's video feed)
+    lives here, never in a module global. The defaults do nothing.
+    """
+
+    def __init__(self, host: H) -> None:
+        self.host = host
+
+    def start(self) -> None:
+        """Begin (once, before the first call)."""
+
+    def tick(self, now: float) -> None:
+        """Periodic per-host work (``now``: loop time)."""
+
+    def open(self, call: Call) -> CallService | None:
+        """This service on ``call`` (None: nothing per call)."""
+        return None
+
+    def close(self) -> None:
+        """The host is closing."""
+
+
+class _PerCall(HostService[H]):
+    """A per-call factory as a host service (a service with no per-host state)."""
+
+    def __init__(self, host: H, factory: ServiceFactory[H]) -> None:
+        super().__init__(host)
+        self.factory = factory
+
+    def open(self, call: Call) -> CallService:
+        return self.factory(self.host, call)
+
+
+@dataclass(frozen=True, slots=True)
+class ServiceSpec:
+    """A service's two sides, each a :class:`ServiceFactory`, a :class:`HostService` class, or
+    ``"module:attribute"`` naming one (imported on first use); None: no such side.
+
+    This is what a plug-in's ``telebot.services`` entry point names (see
+    :mod:`telebot.services.registry`).
+    """
+
+    robot: object = None
+    user: object = None
+
+    def side(self, which: Literal["robot", "user"]) -> object:
+        """The robot or user side (still a name if not yet loaded)."""
+        return self.robot if which == "robot" else self.user
+
+
+def load(factory: object) -> object:
+    """``factory`` itself, or the object a ``"module:attribute"`` string names."""
+    if not isinstance(factory, str):
+        return factory
+    module, _, attribute = factory.partition(":")
+    return getattr(importlib.import_module(module), attribute)
 
 
 class CallService(Protocol):
@@ -122,13 +258,77 @@ class OpenServices:
             _guarded(name, "close", service.close)
 
 
+class HostedServices(Generic[H]):
+    """The services of one host (made by :meth:`ServiceRegistry.start`), by name."""
+
+    def __init__(self, registry: ServiceRegistry[H], host: H) -> None:
+        self._registry = registry
+        self._host = host
+        self._services: dict[str, HostService[H]] = {}
+        self.closed = False
+        try:
+            self.catch_up()
+        except BaseException:
+            self.close()
+            raise
+
+    def catch_up(self) -> None:
+        """Start the services registered since (in registration order)."""
+        for name in self._registry.names():
+            if name not in self._services:
+                service = self._registry.make(name, self._host)
+                self._services[name] = service
+                service.start()
+
+    def get(self, name: str) -> HostService[H] | None:
+        """The host service ``name``, if registered."""
+        return self._services.get(name)
+
+    def names(self) -> list[str]:
+        """The names, in registration order."""
+        return list(self._services)
+
+    def open(self, call: Call) -> OpenServices:
+        """Open every registered service on ``call``; if one fails, close the others and raise."""
+        self.catch_up()
+        opened: dict[str, CallService] = {}
+        try:
+            for name in self._registry.names():  # an unregistered one opens no more
+                service = self._services[name]
+                per_call = service.open(call)
+                if per_call is not None:
+                    opened[name] = per_call
+        except BaseException:
+            OpenServices(call, opened).close()
+            raise
+        return OpenServices(call, opened)
+
+    def tick(self, now: float) -> None:
+        """Tick every host service (each guarded)."""
+        for name, service in list(self._services.items()):
+            _guarded(name, "tick", service.tick, now)
+
+    def close(self) -> None:
+        """Close every host service (each guarded, in reverse order); idempotent."""
+        if self.closed:
+            return
+        self.closed = True
+        for name, service in reversed(list(self._services.items())):
+            _guarded(name, "close", service.close)
+
+
 class ServiceRegistry(Generic[H]):
-    """Name → :class:`ServiceFactory` for hosts of type ``H``; opened in registration order."""
+    """Name → service for hosts of type ``H``; opened in registration order.
+
+    A service is a :class:`ServiceFactory` (per call), a :class:`HostService` subclass (per
+    host, opening its per-call objects), or ``"module:attribute"`` naming either, imported
+    when a host starts (so a registry of built-ins imports nothing until used).
+    """
 
     def __init__(self) -> None:
-        self._factories: dict[str, ServiceFactory[H]] = {}
+        self._factories: dict[str, object] = {}
 
-    def register(self, name: str, factory: ServiceFactory[H], *, replace: bool = False) -> None:
+    def register(self, name: str, factory: object, *, replace: bool = False) -> None:
         """Open ``factory`` on every call from now on under ``name``.
 
         Registering a taken name is a ValueError unless ``replace`` (which keeps its place).
@@ -158,16 +358,24 @@ class ServiceRegistry(Generic[H]):
         other._factories = dict(self._factories)
         return other
 
+    def start(self, host: H) -> HostedServices[H]:
+        """Make and start every service for ``host`` (a failing one is raised, the others
+        closed); services registered later start when the host opens its next call."""
+        return HostedServices(self, host)
+
+    def make(self, name: str, host: H) -> HostService[H]:
+        """The host service ``name`` for ``host``, loaded if given by name (not started)."""
+        loaded = load(self._factories[name])
+        if isinstance(loaded, type) and issubclass(loaded, HostService):
+            return cast("HostService[H]", loaded(host))
+        if callable(loaded):
+            return _PerCall(host, cast("ServiceFactory[H]", loaded))
+        raise TypeError(f"service {name!r} is neither a factory nor a HostService")
+
     def open(self, host: H, call: Call) -> OpenServices:
-        """Open every registered service on ``call``; if one fails, close the others and raise."""
-        opened: dict[str, CallService] = {}
-        try:
-            for name, factory in self._factories.items():
-                opened[name] = factory(host, call)
-        except BaseException:
-            OpenServices(call, opened).close()
-            raise
-        return OpenServices(call, opened)
+        """Open every registered service on ``call`` for a host that keeps no host services
+        (each per-host service is made for this call alone)."""
+        return self.start(host).open(call)
 
 
 def _guarded(name: str, what: str, action: Callable[..., None], *args: float) -> None:

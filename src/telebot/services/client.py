@@ -6,7 +6,7 @@ repeated until the robot answers; the robot answers a repeat with what it alread
 so nothing runs twice.
 
 Services are opened from a :class:`~telebot.services.base.ServiceRegistry`
-(:func:`default_client_services`: ``core``, the channels above, and ``video``). What a
+(:func:`~telebot.services.registry.user_services`: ``core``, the channels above, and ``video``). What a
 user subscribes to lives on the client, not on the call: :attr:`RobotClient.latest_pose`,
 :meth:`RobotClient.poses`, :attr:`RobotClient.plan`, :meth:`RobotClient.plans`,
 :attr:`RobotClient.places`, :meth:`RobotClient.video`, the video feed.
@@ -33,7 +33,7 @@ import secrets
 from collections.abc import AsyncGenerator, AsyncIterator, Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar, cast
 
 from telebot.channels.call import Call, CallEnd, UserEndpoint
 from telebot.channels.channel import Channel, ReceivedDatagram
@@ -52,18 +52,27 @@ from telebot.errors import (
 )
 from telebot.identity import Identity, KnownRobots
 from telebot.reasons import Reason
-from telebot.services.base import CLIENT_TICK, OpenServices, ServiceRegistry
-from telebot.services.conference import ConferenceReceiver, ConferenceState
-from telebot.services.media import AudioReceiver, UserMedia, open_user_media
-from telebot.services.people import PeopleReceiver
-from telebot.services.plan import PlanReceiver
-from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
-from telebot.services.proto.chat import ChatReply, decode_reply, encode_request
-from telebot.services.proto.conference import Said
-from telebot.services.proto.drive import DRIVE, DriveCommand, DriveState, decode_drive_state
-from telebot.services.proto.people import PeopleAlertMessage, PeopleUpdate, TrackInfo
-from telebot.services.proto.plan import Place, PlanUpdate
-from telebot.services.proto.relay import (
+from telebot.services.base import (
+    CLIENT_TICK,
+    CallService,
+    ClientHost,
+    HostedServices,
+    OpenServices,
+    ServiceRegistry,
+)
+from telebot.services.chat.wire import CHAT, ChatReply, decode_reply, encode_request
+from telebot.services.conference.user import ConferenceState
+from telebot.services.conference.wire import Said
+from telebot.services.drive.wire import DRIVE, DriveCommand, DriveState, decode_drive_state
+from telebot.services.mapxfer import MAP
+from telebot.services.media.user import AudioReceiver, UserMedia
+from telebot.services.people.user import PeopleReceiver
+from telebot.services.people.wire import PeopleAlertMessage, PeopleUpdate, TrackInfo
+from telebot.services.plan.user import PlanReceiver
+from telebot.services.plan.wire import Place, PlanUpdate
+from telebot.services.registry import user_services
+from telebot.services.relay.user import RelayReceiver, TopicStream
+from telebot.services.relay.wire import (
     RelayedMessage,
     RelayRefusal,
     Started,
@@ -71,7 +80,7 @@ from telebot.services.proto.relay import (
     StopRequest,
     TopicInfo,
 )
-from telebot.services.proto.safety import (
+from telebot.services.safety.wire import (
     SAFETY,
     RequestType,
     SafetyAck,
@@ -80,7 +89,10 @@ from telebot.services.proto.safety import (
     SafetyStatus,
     decode_safety_reply,
 )
-from telebot.services.proto.status import (
+from telebot.services.status.wire import (
+    GOALS,
+    POSE,
+    TELEMETRY,
     GoalCommand,
     GoalUpdate,
     PoseUpdate,
@@ -89,11 +101,11 @@ from telebot.services.proto.status import (
     decode_pose,
     decode_telemetry,
 )
-from telebot.services.relay import RelayReceiver, TopicStream
-from telebot.services.video import VideoFeed, VideoFeedService, VideoReceiver, video_channel
+from telebot.services.video.stream import video_channel
+from telebot.services.video.user import VideoFeed, VideoFeedService, VideoReceiver
 
 if TYPE_CHECKING:
-    from telebot.services.mapxfer import MapDownload
+    from telebot.services.mapxfer.user import MapDownload
 
 __all__ = [
     "ChatResult",
@@ -107,7 +119,6 @@ __all__ = [
     "TopicStream",
     "backoff_delay",
     "connect",
-    "default_client_services",
 ]
 
 log = logging.getLogger("telebot.client")
@@ -254,37 +265,24 @@ class ClientDrive:
         self.channel.set_callback(None)
 
 
-def _video(client: RobotClient, call: Call) -> VideoFeedService:
+def open_video(client: RobotClient, call: Call) -> VideoFeedService:
+    """The ``video`` service on ``call``: frames into the client's :attr:`~RobotClient.video_feed`."""
     return VideoFeedService(client.video_feed, call)
 
 
-def _plan(client: RobotClient, call: Call) -> PlanReceiver:
+def open_plan(client: RobotClient, call: Call) -> PlanReceiver:
+    """The ``plan`` service on ``call``: plans and places into the client's latest values."""
     return PlanReceiver(call, client.latest_plan.set, client.latest_places.set)
 
 
-def _people(client: RobotClient, call: Call) -> PeopleReceiver:
-    return PeopleReceiver(call, client.latest_people.set, client._on_people_alert)
+def open_people(client: RobotClient, call: Call) -> PeopleReceiver:
+    """The ``people`` service on ``call``: tracks and alerts into the client."""
+    return PeopleReceiver(call, client.latest_people.set, client.people_alert)
 
 
-def _relay(client: RobotClient, call: Call) -> RelayReceiver:
+def open_relay(client: RobotClient, call: Call) -> RelayReceiver:
+    """The ``relay`` service on ``call`` (its streams: :meth:`RobotClient.relay`)."""
     return RelayReceiver(call)
-
-
-def default_client_services() -> ServiceRegistry[RobotClient]:
-    """The user side's built-in services: ``core`` (:class:`ClientCore`), ``video``,
-    ``plan`` (the robot's planned path and named places), ``relay`` (relayed topics) and
-    ``conference`` (the roster and messages of everyone in the robot's calls),
-    ``people`` (tracked people and alerts), ``media`` and ``drive`` (driving by hand)."""
-    registry: ServiceRegistry[RobotClient] = ServiceRegistry()
-    registry.register("core", ClientCore)
-    registry.register("video", _video)
-    registry.register("plan", _plan)
-    registry.register("relay", _relay)
-    registry.register("conference", ConferenceReceiver)
-    registry.register("people", _people)
-    registry.register("media", open_user_media)
-    registry.register("drive", ClientDrive)
-    return registry
 
 
 class RobotClient:
@@ -294,10 +292,11 @@ class RobotClient:
     which ticks the services and, with reconnection on, replaces a dropped call.
     """
 
-    def __init__(self, call: Call, *, services: ServiceRegistry[RobotClient] | None = None) -> None:
+    def __init__(self, call: Call, *, services: ServiceRegistry[Any] | None = None) -> None:
         self.call = call
-        #: What each call of this client gets (:func:`default_client_services` unless given).
-        self.registry = services if services is not None else default_client_services()
+        #: What each call of this client gets (:func:`~telebot.services.registry.user_services`
+        #: unless given); each service's per-client object is an attribute (``client.battery``).
+        self.registry: ServiceRegistry[Any] = services if services is not None else user_services()
         #: The robot's video across calls (``robot.video()`` and the web UI read it).
         self.video_feed = VideoFeed()
         #: The robot's audio and the user's microphone and camera across calls.
@@ -354,12 +353,12 @@ class RobotClient:
         self._drive_until = -math.inf
         self._drive_zeros = 0
         self._drive_timer: asyncio.TimerHandle | None = None
-        #: The robot's conference: roster, messages, ``say`` (lives across reconnections).
-        self.conference = ConferenceState(self)
         # Fire-and-forget work (a relay's stop), kept referenced until done.
         self._background: set[asyncio.Future[Any]] = set()
+        #: Each service once for this client (its state across calls), by name.
+        self.hosted: HostedServices[Any] = self.registry.start(self)
         #: The services open on the current call.
-        self.services: OpenServices = self.registry.open(self, call)
+        self.services: OpenServices = self.hosted.open(call)
 
     @property
     def robot(self) -> str:
@@ -394,6 +393,7 @@ class RobotClient:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._supervisor
         self.services.close()
+        self.hosted.close()
         self.video_feed.end()
         self.media.end()
         # Relay stops still waiting for their acknowledgement: no call will answer them now.
@@ -484,7 +484,7 @@ class RobotClient:
                 log.info("reconnection attempt %d failed: %s", attempt, exc)
                 continue
             try:
-                self.services = self.registry.open(self, call)
+                self.services = self.hosted.open(call)
             except Exception:
                 log.exception("opening the services on the new call failed")
                 call.hangup_now("user error: the call could not be served")
@@ -523,6 +523,34 @@ class RobotClient:
     def _ended_error(self) -> CallEnded:
         end = self._finished.result() if self._finished.done() else self.call.end
         return CallEnded(f"the call with {self.robot} {end}", end.kind if end else "")
+
+    def __getattr__(self, name: str) -> Any:
+        # Only for names not found the usual way: a service's per-client object.
+        hosted = self.__dict__.get("hosted")
+        service = hosted.get(name) if hosted is not None else None
+        if service is None:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        return service
+
+    @property
+    def conference(self) -> ConferenceState:
+        """The robot's conference: roster, messages, ``say`` (lives across reconnections)."""
+        state = self.hosted.get("conference")
+        if not isinstance(state, ConferenceState):
+            raise TelebotError("this client has no conference service registered")
+        return state
+
+    def service(self, name: str) -> CallService | None:
+        """The service ``name`` open on the current call, if any."""
+        return self.services.get(name)
+
+    async def live_call(self) -> Call:
+        """The call once it is up, waiting out a reconnection (CallEnded once none will come)."""
+        return (await self._core()).call
+
+    async def answer(self, answers: asyncio.Queue[T], wait: float, call: Call) -> T:
+        """The next of ``answers`` within ``wait`` s (TimeoutError); CallEnded if ``call`` ends."""
+        return await self._next(answers, wait, call)
 
     async def _core(self) -> ClientCore:
         """The core service of a live call, waiting out a reconnection."""
@@ -899,7 +927,7 @@ class RobotClient:
         while True:
             yield await self._until_finished(self.latest_people_alert.next())
 
-    def _on_people_alert(self, alert: PeopleAlertMessage) -> None:
+    def people_alert(self, alert: PeopleAlertMessage) -> None:
         self.latest_people_alert.set(alert)
         for callback in list(self.on_people_alert):
             try:
@@ -922,7 +950,7 @@ class RobotClient:
     ) -> MapDownload:
         """Download the robot's map (cropped PNG with its georeference)."""
         # Imported here: the map transfer needs numpy, OpenCV and YAML, chat and poses don't.
-        from telebot.services.mapxfer import fetch_map
+        from telebot.services.mapxfer.user import fetch_map
 
         async with asyncio.timeout(timeout):
             core = await self._core()
@@ -941,7 +969,7 @@ class RobotClient:
 
     def audio(self, **options: Any) -> AudioReceiver:
         """The robot's microphone: ``async with robot.audio() as audio: async for block in
-        audio`` (:class:`~telebot.services.media.AudioBlock`: 20 ms of 48 kHz mono int16).
+        audio`` (:class:`~telebot.services.media.robot.AudioBlock`: 20 ms of 48 kHz mono int16).
 
         The robot sends audio only while a receiver is open.
         """
@@ -949,7 +977,7 @@ class RobotClient:
 
     def talk(self, mic: Any = None, camera: Any = None) -> None:
         """Send a microphone (``"wav:PATH"``, ``"tone:1000"``, ``"default"`` or an
-        :class:`~telebot.services.audio.AudioSource`) and/or a camera (a function returning
+        :class:`~telebot.services.media.audio.AudioSource`) and/or a camera (a function returning
         BGR pictures) to the robot while it asks for them; ``talk()`` stops both."""
         self.media.talk(mic=mic, camera=camera)
 
@@ -1133,7 +1161,7 @@ async def connect(
     transport: Transport | None = None,
     timeout: float | None = None,
     reconnect: bool | None = None,
-    services: ServiceRegistry[RobotClient] | None = None,
+    services: ServiceRegistry[Any] | None = None,
 ) -> AsyncIterator[RobotClient]:
     """Call ``robot`` and yield a started :class:`RobotClient`; hangs up on exit.
 
@@ -1141,7 +1169,7 @@ async def connect(
     user config dir); ``config`` the transport, call and reconnection settings (default:
     zenoh peer, reconnect on); pass an open ``transport`` to share one between several
     calls. ``reconnect`` overrides ``config.reconnect.enabled``; ``services`` replaces
-    :func:`default_client_services`.
+    :func:`~telebot.services.registry.user_services`.
     """
     config = config if config is not None else AppConfig()
     home = home if home is not None else default_home("user")
@@ -1168,3 +1196,11 @@ async def connect(
             with contextlib.suppress(TelebotError):
                 await client.call.hangup()
             await client.aclose()
+
+
+if TYPE_CHECKING:  # the client is a host every user-side service may run on
+    from telebot.services.media.user import MediaClient
+
+    _CLIENT = cast(RobotClient, None)
+    _HOST: ClientHost = _CLIENT
+    _MEDIA_CLIENT: MediaClient = _CLIENT

@@ -1,5 +1,5 @@
 """Video and audio codecs with PyAV (``import av``; its wheels carry FFmpeg with libx264,
-libvpx and libopus): what the media streams of :mod:`telebot.services.proto.media` carry.
+libvpx and libopus): what the media streams of :mod:`telebot.services.media.wire` carry.
 
 * :class:`VideoEncoder`: H.264 Constrained Baseline (no B-frames, Annex B with SPS/PPS on
   every keyframe, ultrafast/zerolatency, keyframes capped in size by the VBV to about two
@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any, Final, cast
 
 from telebot.channels.proto.frames import MAX_DATAGRAM
 from telebot.errors import ProtocolError
-from telebot.services.proto.media import (
+from telebot.services.media.wire import (
     CODEC_H264,
     CODEC_JPEG,
     CODEC_NAMES,
@@ -29,7 +29,7 @@ from telebot.services.proto.media import (
     FRAME_SAMPLES,
     SAMPLE_RATE,
 )
-from telebot.services.proto.video import MAX_PIXELS, decode_jpeg, encode_jpeg
+from telebot.services.video.wire import MAX_PIXELS, decode_jpeg, encode_jpeg
 
 if TYPE_CHECKING:
     import numpy as np
@@ -234,7 +234,7 @@ class VideoDecoder:
     :meth:`decode` returns the BGR picture, or raises ProtocolError for a frame that does
     not decode (corrupt, truncated, oversized or a codec it does not know). Decoders are
     state machines: feed every frame of a delta codec in order (a
-    :class:`~telebot.services.proto.media.KeyframeGate` says which).
+    :class:`~telebot.services.media.wire.KeyframeGate` says which).
     """
 
     def __init__(self, *, max_pixels: int = MAX_PIXELS) -> None:

@@ -4,7 +4,7 @@
 it if it is a :class:`~telebot.robot.nav.SteppedNavStack` (``loop.time()`` is the
 simulation's clock; a robot that runs by itself is not stepped). Each call gets every
 service of the server's :class:`~telebot.services.base.ServiceRegistry`
-(:func:`default_robot_services`: ``core``, the :class:`CallServices` of chat, map, pose,
+(:func:`~telebot.services.registry.robot_services`: ``core``, the :class:`CallServices` of chat, map, pose,
 goals, telemetry and safety; ``video``; ``plan``, the planned path and named places;
 ``people``, tracked people and alerts),
 ticked on every cycle and closed when the call ends. The map is encoded once per
@@ -23,7 +23,7 @@ import logging
 import math
 from collections import OrderedDict
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar, cast
 
 from telebot.channels.call import Call, RobotEndpoint
 from telebot.channels.channel import Channel, ReceivedDatagram
@@ -42,18 +42,17 @@ from telebot.rights import Right, may
 from telebot.robot.nav import GoalHandle, GoalStatus, NavStack, PoseNotifier, SteppedNavStack
 from telebot.robot.perception.runner import PeoplePerception
 from telebot.safety import SafetyState
-from telebot.services.base import OpenServices, ServiceRegistry
-from telebot.services.chat import NO_SUPERVISOR, ChatSession, error_reason, goal_reason
-from telebot.services.conference import RobotConference
-from telebot.services.drive import CallDrive, DriveService
-from telebot.services.follow import CallFollow, FollowService, TrackSource
-from telebot.services.mapxfer import MapService
-from telebot.services.people import PeopleService
-from telebot.services.plan import PlanService
-from telebot.services.proto import CHAT, GOALS, MAP, POSE, TELEMETRY
-from telebot.services.proto.chat import ChatReply, decode_request
-from telebot.services.proto.mapxfer import MAX_MAP_VERSION, EncodedMap, encode_map
-from telebot.services.proto.safety import (
+from telebot.services.base import HostedServices, OpenServices, RobotHost, ServiceRegistry
+from telebot.services.chat.robot import NO_SUPERVISOR, ChatSession, error_reason, goal_reason
+from telebot.services.chat.wire import CHAT, ChatReply, decode_request
+from telebot.services.drive.follow import CallFollow, FollowService, TrackSource
+from telebot.services.drive.robot import DriveService
+from telebot.services.mapxfer import MAP
+from telebot.services.mapxfer.robot import MapService
+from telebot.services.mapxfer.wire import MAX_MAP_VERSION, EncodedMap, encode_map
+from telebot.services.registry import robot_services
+from telebot.services.safety.robot import SafetyDriver
+from telebot.services.safety.wire import (
     SAFETY,
     InvalidSafetyRequest,
     SafetyAck,
@@ -61,15 +60,17 @@ from telebot.services.proto.safety import (
     SafetyStatus,
     decode_safety_request,
 )
-from telebot.services.proto.status import (
+from telebot.services.status.wire import (
+    GOALS,
+    POSE,
+    TELEMETRY,
     GoalUpdate,
     PoseUpdate,
     Telemetry,
     decode_goal_command,
 )
-from telebot.services.relay import RelayService
-from telebot.services.supervision import SafetyDriver
-from telebot.services.video import VideoSender, VideoSettings
+from telebot.services.video.robot import VideoSender
+from telebot.services.video.wire import VideoSettings
 
 __all__ = [
     "CallServices",
@@ -77,7 +78,6 @@ __all__ = [
     "RobotServer",
     "RobotVideo",
     "SteppedNavStack",
-    "default_robot_services",
     "may_drive",
 ]
 
@@ -467,29 +467,6 @@ class RobotVideo:
         self.sender.stop()
 
 
-def _core(server: RobotServer, call: Call) -> CallServices:
-    # Looked up when a call opens (not bound at import), so a test may replace the class.
-    return CallServices(server, call)
-
-
-def default_robot_services() -> ServiceRegistry[RobotServer]:
-    """The robot's built-in services: ``core`` (:class:`CallServices`), ``video``,
-    ``plan`` (:class:`~telebot.services.plan.PlanService`: planned path and places),
-    ``relay`` (:class:`~telebot.services.relay.RelayService`: topics relayed as CDR),
-    ``conference`` (:class:`~telebot.services.conference.RobotConference`: roster, messages),
-    ``people`` (:class:`~telebot.services.people.PeopleService`: tracked people, alerts) and
-    ``drive`` (:class:`~telebot.services.drive.CallDrive`: driving by hand)."""
-    registry: ServiceRegistry[RobotServer] = ServiceRegistry()
-    registry.register("core", _core)
-    registry.register("video", RobotVideo)
-    registry.register("plan", PlanService)
-    registry.register("relay", RelayService)
-    registry.register("conference", RobotConference)
-    registry.register("people", PeopleService)
-    registry.register("drive", CallDrive)
-    return registry
-
-
 def _status(state: SafetyState) -> SafetyStatus:
     """The supervisor's state as the ``safety`` channel tells it."""
     return SafetyStatus(state.armed, state.text, state.holder, state.cap, state.blocked, state.code)
@@ -515,7 +492,7 @@ class RobotServer:
         emit: EventSink | None = None,
         safety: SafetyDriver | None = None,
         video: VideoSettings | None = None,
-        services: ServiceRegistry[RobotServer] | None = None,
+        services: ServiceRegistry[Any] | None = None,
         relay: RelaySettings | None = None,
         follow: FollowSettings | None = None,
         people: TrackSource | None = None,
@@ -523,14 +500,16 @@ class RobotServer:
         drive: DriveSettings | None = None,
     ) -> None:
         self.nav = nav
+        #: The robot's name (its identity's, from :meth:`attach` on).
+        self.name = "robot"
         #: Person detection and tracking (``[people]``), stepped with the robot; the
         #: ``people`` service streams its tracks and alerts.
         self.perception = PeoplePerception(nav, people_settings)
         #: Who may relay which topics, and the relay's limits (``[relay]`` of the config).
         self.relay_settings = relay if relay is not None else RelaySettings()
-        #: What every call gets (:func:`default_robot_services` unless given); register
-        #: more before calls come in.
-        self.registry = services if services is not None else default_robot_services()
+        #: What every call gets (:func:`~telebot.services.registry.robot_services` unless
+        #: given); one registered later opens from the next call on.
+        self.registry: ServiceRegistry[Any] = services if services is not None else robot_services()
         #: Called with (call, reply) for every chat reply sent (the media service speaks them).
         self.chat_listeners: list[Callable[[Call, ChatReply], None]] = []
         # Decided once: a robot that runs by itself has no step() and is not stepped.
@@ -575,6 +554,8 @@ class RobotServer:
             # A robot whose poses arrive by themselves (ROS 2): send each one when it comes,
             # not at the next control cycle (up to 1/control_hz late), pose_hz still the cap.
             nav.add_pose_listener(self._pose_arrived)
+        #: The services of this robot (each registered service once: see HostService).
+        self.hosted: HostedServices[Any] = self.registry.start(self)
 
     def _pose_arrived(self) -> None:
         """From any thread: wake the loop once to send the new pose (coalesced)."""
@@ -650,6 +631,7 @@ class RobotServer:
         def on_call(call: Call) -> None:
             self.serve(call)
 
+        self.name = endpoint.identity.name
         endpoint.on_call = on_call
 
     def video_of(self, call_id: str) -> VideoSender | None:
@@ -723,7 +705,7 @@ class RobotServer:
             # the call's keys) goes now rather than at its timeout.
             log.info("call %s from %s replaces call %s", call.id, call.peer, previous.id)
             previous.hangup_now("replaced by a new call from the same client")
-        opened = self.registry.open(self, call)
+        opened = self.hosted.open(call)
         self.open[call.id] = opened
         services = opened.get("core")
         if not isinstance(services, CallServices):
@@ -796,6 +778,7 @@ class RobotServer:
                 except Exception:
                     log.exception("driving by hand failed: stopping the robot")
                     self._emergency("driving by hand failed")
+                self.hosted.tick(now)  # each service guarded
                 for opened in list(self.open.values()):
                     opened.tick(now)  # each service guarded
                 next_step += period
@@ -805,6 +788,7 @@ class RobotServer:
                     delay = 0.0
                 await asyncio.sleep(max(delay, 0.0))
         finally:
+            self.hosted.close()
             self.perception.close()  # its detector thread
 
     @staticmethod
@@ -813,3 +797,17 @@ class RobotServer:
             action(*args)
         except Exception:
             log.exception("service handler failed")
+
+
+if TYPE_CHECKING:  # the server is a host every robot-side service may run on
+    from telebot.services.drive.robot import DriveHost
+    from telebot.services.media.robot import MediaHost
+    from telebot.services.people.robot import PeopleHost
+    from telebot.services.relay.robot import RelayHost
+
+    _SERVER = cast(RobotServer, None)
+    _HOST: RobotHost = _SERVER
+    _DRIVE_HOST: DriveHost = _SERVER
+    _MEDIA_HOST: MediaHost = _SERVER
+    _PEOPLE_HOST: PeopleHost = _SERVER
+    _RELAY_HOST: RelayHost = _SERVER

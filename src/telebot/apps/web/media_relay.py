@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any, Final, Generic, Literal, Protocol, TypeVa
 from telebot.apps.web.messages import PAGE_CODECS, PAGE_DECODES, Keyframe, MediaCaps
 from telebot.channels.transports.base import Lane
 from telebot.errors import CallEnded, ProtocolError, TelebotError
-from telebot.services.proto.media import (
+from telebot.services.media.wire import (
     CODEC_NAMES,
     USER_MEDIA_PROBE,
     USER_VIDEO,
@@ -36,8 +36,8 @@ from telebot.services.proto.media import (
     codec_id,
     parse_media_report,
 )
-from telebot.services.proto.messages import is_finite_number
-from telebot.services.proto.video import CompleteFrame, Report, fragment, serial_diff
+from telebot.services.messages import is_finite_number
+from telebot.services.video.wire import CompleteFrame, Report, fragment, serial_diff
 
 if TYPE_CHECKING:
     from telebot.channels.call import Call

@@ -35,12 +35,12 @@ from telebot.apps.web.media_relay import pack_media
 from telebot.apps.web.messages import SCREEN_PAGE, Keyframe, PageMessageError, parse_page_message
 from telebot.apps.web.pageserver import PageServer
 from telebot.config import ScreenSettings
-from telebot.services.proto.media import CODEC_H264, CODEC_JPEG, CODEC_NAMES, CODEC_VP8
+from telebot.services.media.wire import CODEC_H264, CODEC_JPEG, CODEC_NAMES, CODEC_VP8
 
 if TYPE_CHECKING:
-    from telebot.services.media import CallState, RobotMedia
-    from telebot.services.proto.media import AudioPacket
-    from telebot.services.proto.video import CompleteFrame
+    from telebot.services.media.robot import CallState, RobotMedia
+    from telebot.services.media.wire import AudioPacket
+    from telebot.services.video.wire import CompleteFrame
 
 __all__ = ["RobotScreen", "bind_screen", "parse_screen_option", "robot_screen"]
 

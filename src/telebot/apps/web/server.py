@@ -55,7 +55,7 @@ page sends is typed in :mod:`telebot.apps.web.messages` (``stop``, ``arm``, ``ta
                     binary: the user's camera / microphone, as above
       client → page {"type": "media", "send", "codec", "note"} | {"type": "keyframe_request"}
 
-Video comes from the client's video feed (:class:`~telebot.services.video.VideoFeed`,
+Video comes from the client's video feed (:class:`~telebot.services.video.robot.VideoFeed`,
 subscribed while a page is open), so after a reconnection the map, pose and video resume
 on the page without a reload; a motion that was running at the drop is reported failed,
 and the robot stays stopped until re-armed.
@@ -114,14 +114,14 @@ from telebot.followers import MapFollower
 from telebot.reasons import Reason
 from telebot.rights import Right, may
 from telebot.services.client import ConnectionEvent, RobotClient
-from telebot.services.mapxfer import MapDownload
-from telebot.services.proto.conference import Message, Roster, say_text
-from telebot.services.proto.drive import DriveState
-from telebot.services.proto.people import PeopleAlertMessage
-from telebot.services.proto.plan import Place, PlanUpdate
-from telebot.services.proto.safety import SafetyAck, SafetyStatus
-from telebot.services.proto.status import GoalUpdate, PoseUpdate
-from telebot.services.proto.video import CompleteFrame
+from telebot.services.conference.wire import Message, Roster, say_text
+from telebot.services.drive.wire import DriveState
+from telebot.services.mapxfer.user import MapDownload
+from telebot.services.people.wire import PeopleAlertMessage
+from telebot.services.plan.wire import Place, PlanUpdate
+from telebot.services.safety.wire import SafetyAck, SafetyStatus
+from telebot.services.status.wire import GoalUpdate, PoseUpdate
+from telebot.services.video.wire import CompleteFrame
 
 __all__ = ["WebUI", "serve_ui"]
 

@@ -1,0 +1,1 @@
+"""The ``chat`` channel's commands (part of every call's core)."""

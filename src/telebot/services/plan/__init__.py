@@ -1,0 +1,11 @@
+"""The ``plan`` service: the robot's planned path and named places.
+
+``wire.py``: the wire format; ``robot.py``: the robot side; ``user.py``: the user side.
+"""
+
+from telebot.services.base import ServiceSpec
+
+#: Its sides, loaded when a host starts (see :mod:`telebot.services.registry`).
+SERVICE = ServiceSpec(
+    robot="telebot.services.plan.robot:PlanService", user="telebot.services.client:open_plan"
+)

@@ -1,0 +1,1 @@
+"""Pose, goals and telemetry (part of every call's core)."""
