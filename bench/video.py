@@ -51,9 +51,9 @@ from telebot.channels.transports.zenoh import ZenohTransport
 from telebot.config import CallSettings, SimSettings, ZenohSettings
 from telebot.identity import ContactBook, Identity, KnownRobots, create_paired_homes
 from telebot.robot.sim.stack import SimNavStack
-from telebot.services.video.robot import VideoSender
+from telebot.services.video.receiver import VideoReceiver
+from telebot.services.video.sender import VideoSender
 from telebot.services.video.stream import video_channel
-from telebot.services.video.user import VideoReceiver
 from telebot.services.video.wire import VideoSettings
 from telebot.testing.net import free_port
 

@@ -11,8 +11,9 @@ Layers, lowest first (a module may import from its own layer and those below)::
            < services < followers < gateway < testing (contract suites) < apps
 
 Sub-layers inside a layer (see :data:`SUBLAYERS`): in ``services/``, base.py < a service's
-``wire.py`` < its ``robot.py`` and ``user.py`` < the hosts (``robot.py``, ``client.py``) <
-``registry.py``; ROS message encoding (``telebot.rosmsg``) < the robot adapters
+``wire.py`` < its stream machinery (``stream.py``, ``sender.py``, ``receiver.py``,
+``audio.py``) < its ``robot.py`` and ``user.py`` < ``registry.py`` (names only) < the hosts
+(``robot.py``, ``client.py``); ROS message encoding (``telebot.rosmsg``) < the robot adapters
 (``telebot.robot.sim``, ``telebot.robot.ros2``), and the simulator never imports the ROS 2
 adapter.
 """
@@ -291,10 +292,16 @@ SUBLAYERS: dict[str, list[tuple[tuple[str, ...], bool]]] = {
         ((r"telebot\.services\.base",), True),
         # A service's wire format may use another's (shared message types).
         ((r"telebot\.services\.\w+\.wire",), True),
+        # A service's stream machinery (video's sender and receiver, media's audio codecs)
+        # sits between the wire formats and the sides: another service may reuse it (the
+        # user's camera is video's sender run the other way).
+        ((r"telebot\.services\.\w+\.(stream|sender|receiver|audio)",), True),
         # A service side uses base.py, wire formats and lower layers: never another side.
         ((r"telebot\.services\.\w+\.(robot|user)",), False),
-        ((r"telebot\.services\.robot", r"telebot\.services\.client"), True),
+        # The registry names every side as a "module:attribute" string, loaded when a host
+        # starts: it imports only base.py, and the hosts take their defaults from it.
         ((r"telebot\.services\.registry",), True),
+        ((r"telebot\.services\.robot", r"telebot\.services\.client"), True),
     ],
     "robot adapters": [
         ((r"telebot\.rosmsg(\..+)?",), True),
@@ -338,6 +345,7 @@ def test_the_sublayer_patterns_name_the_target_layout() -> None:
         for name in (
             "telebot.services.base",
             "telebot.services.chat.wire",
+            "telebot.services.video.sender",
             "telebot.services.chat.robot",
             "telebot.services.people.user",
             "telebot.services.robot",
@@ -347,7 +355,7 @@ def test_the_sublayer_patterns_name_the_target_layout() -> None:
             "telebot.services.codecs",
         )
     }
-    assert list(ranks.values()) == [0, 1, 2, 2, 3, 3, 4, None, None]
+    assert list(ranks.values()) == [0, 1, 2, 3, 3, 5, 5, 4, None, None]
     assert [sublayer_of(robots, name) for name in ("telebot.rosmsg", "telebot.rosmsg.cdr")] == [
         0,
         0,

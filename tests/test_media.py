@@ -46,7 +46,7 @@ from telebot.services.media.stream import AudioBlock
 from telebot.services.media.user import TestPattern
 from telebot.services.media.wire import CODEC_H264, CODEC_JPEG, CODEC_VP8, SAMPLE_RATE
 from telebot.services.robot import RobotServer
-from telebot.services.video.user import VideoFrame
+from telebot.services.video.receiver import VideoFrame
 from telebot.services.video.wire import CompleteFrame, VideoSettings
 
 FAST = SimSettings(map="small", camera_width=320, camera_height=240, control_hz=50)

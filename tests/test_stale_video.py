@@ -20,7 +20,7 @@ from telebot.reasons import Reason
 from telebot.robot.nav import Velocity
 from telebot.services.chat.wire import ChatReply
 from telebot.services.client import RobotClient
-from telebot.services.video.user import VideoFeedService
+from telebot.services.video.receiver import VideoFeedService
 from telebot.services.video.wire import CompleteFrame, VideoSettings
 
 #: The product's stale-video lockout (rigs default to a generous one).

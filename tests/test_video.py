@@ -43,9 +43,9 @@ from telebot.robot.nav import CameraFrame, CameraInfo
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.media.wire import CODEC_H264, CODEC_JPEG
 from telebot.services.shm import FrameRingReader, FrameRingWriter, RingFrame
-from telebot.services.video.robot import VideoSender, _shared_camera
+from telebot.services.video.receiver import VideoFrame, VideoReceiver, frames
+from telebot.services.video.sender import VideoSender, _shared_camera
 from telebot.services.video.stream import video_channel
-from telebot.services.video.user import VideoFrame, VideoReceiver, frames
 from telebot.services.video.wire import VIDEO, VideoSettings, encode_jpeg, fragment
 from telebot.testing.net import free_port
 

@@ -30,8 +30,8 @@ from telebot.config import AppConfig
 from telebot.services.client import connect
 from telebot.services.media.wire import CODEC_H264, CODEC_JPEG, CODEC_VP8
 from telebot.services.shm import FrameRingReader, FrameRingWriter, validate_ring_name
+from telebot.services.video.receiver import VideoFrame, VideoReceiver
 from telebot.services.video.stream import video_channel
-from telebot.services.video.user import VideoFrame, VideoReceiver
 
 __all__ = ["MAX_FILL", "Recorder", "video", "video_log"]
 

@@ -101,8 +101,8 @@ from telebot.services.status.wire import (
     decode_pose,
     decode_telemetry,
 )
+from telebot.services.video.receiver import VideoFeed, VideoFeedService, VideoReceiver
 from telebot.services.video.stream import video_channel
-from telebot.services.video.user import VideoFeed, VideoFeedService, VideoReceiver
 
 if TYPE_CHECKING:
     from telebot.services.mapxfer.user import MapDownload

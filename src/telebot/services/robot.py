@@ -69,7 +69,7 @@ from telebot.services.status.wire import (
     Telemetry,
     decode_goal_command,
 )
-from telebot.services.video.robot import VideoSender
+from telebot.services.video.sender import VideoSender
 from telebot.services.video.wire import VideoSettings
 
 __all__ = [

@@ -55,7 +55,7 @@ page sends is typed in :mod:`telebot.apps.web.messages` (``stop``, ``arm``, ``ta
                     binary: the user's camera / microphone, as above
       client → page {"type": "media", "send", "codec", "note"} | {"type": "keyframe_request"}
 
-Video comes from the client's video feed (:class:`~telebot.services.video.robot.VideoFeed`,
+Video comes from the client's video feed (:class:`~telebot.services.video.receiver.VideoFeed`,
 subscribed while a page is open), so after a reconnection the map, pose and video resume
 on the page without a reload; a motion that was running at the drop is reported failed,
 and the robot stays stopped until re-armed.

@@ -1,5 +1,5 @@
 """Two-way media of a call: the robot's microphone to users, the user's camera and
-microphone to the robot, spoken replies (the robot's video is :mod:`telebot.services.video.robot`).
+microphone to the robot, spoken replies (the robot's video is :mod:`telebot.services.video.sender`).
 
 Wire format: :mod:`telebot.services.media.wire` (``docs/protocol.md`` §25). Codecs: PyAV
 (:mod:`telebot.services.codecs`); sound in and out: :mod:`telebot.services.media.audio`.
@@ -73,8 +73,8 @@ from telebot.services.media.wire import (
     AudioPacket,
     codec_id,
 )
+from telebot.services.video.receiver import VideoFeed, VideoFeedService
 from telebot.services.video.stream import DECODED_CODECS
-from telebot.services.video.user import VideoFeed, VideoFeedService
 from telebot.services.video.wire import CompleteFrame
 
 if TYPE_CHECKING:

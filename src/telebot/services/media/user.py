@@ -1,5 +1,5 @@
 """Two-way media of a call: the robot's microphone to users, the user's camera and
-microphone to the robot, spoken replies (the robot's video is :mod:`telebot.services.video.robot`).
+microphone to the robot, spoken replies (the robot's video is :mod:`telebot.services.video.sender`).
 
 Wire format: :mod:`telebot.services.media.wire` (``docs/protocol.md`` §25). Codecs: PyAV
 (:mod:`telebot.services.codecs`); sound in and out: :mod:`telebot.services.media.audio`.
@@ -72,7 +72,7 @@ from telebot.services.media.wire import (
     USER_VIDEO,
     AudioPacket,
 )
-from telebot.services.video.robot import VideoSender
+from telebot.services.video.sender import VideoSender
 from telebot.services.video.wire import VideoSettings
 
 if TYPE_CHECKING:
