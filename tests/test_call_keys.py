@@ -126,7 +126,7 @@ async def test_a_client_of_protocol_version_1_is_refused_with_the_reason(
         user.transport.subscribe(old_inbox, lambda b: answers.extend(s.payload for s in b))
         hello, handshake = _old_hello(homes, instance)
         publisher = user.transport.publisher(f"telebot/robot/{ROBOT}/in", Lane.CONTROL)
-        with caplog.at_level(logging.WARNING, logger="telebot.call"):
+        with caplog.at_level(logging.WARNING, logger="telebot.channels.call"):
             for _ in range(3):  # an old client repeats its HELLO
                 publisher.put(hello.encode())
             await wait_until(lambda: len(answers) == 3)

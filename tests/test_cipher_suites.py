@@ -303,7 +303,7 @@ async def test_a_hello_from_an_older_telebot_is_dropped_with_a_warning(
         # Protocol 1 before suites: type 1, no suite fields (a valid one would follow).
         old = b"\x01\x01" + bytes(8) + b"\x05alice" + bytes(8) + bytes(96)
         publisher = old_transport.publisher(f"telebot/robot/{ROBOT}/in", Lane.CONTROL)
-        with caplog.at_level(logging.WARNING, logger="telebot.call"):
+        with caplog.at_level(logging.WARNING, logger="telebot.channels.call"):
             for _ in range(3):
                 publisher.put(old)
             await wait_until(lambda: robot.stats.rejected["IncompatiblePeer"] == 3)

@@ -404,7 +404,7 @@ async def test_a_foxglove_user_arms_cancels_and_stops_through_services(tmp_path:
 async def test_a_megabyte_of_garbage_on_goal_pose_is_refused_in_a_short_line(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="telebot.foxglove")
+    caplog.set_level(logging.WARNING, logger="telebot.apps.foxglove_bridge")
     huge_number = json.dumps({"pose": {"position": {"x": "9" * 2**20 + "x", "y": 0}}})
     huge_key = json.dumps({"pose": {"X" * 2**20: 1}})
     garbage = os.urandom(2**20)

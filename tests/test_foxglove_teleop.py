@@ -140,7 +140,7 @@ async def test_twist_stamped_turns_and_a_zero_twist_releases_at_once(tmp_path: P
 async def test_bad_teleop_messages_are_counted_logged_short_and_stop_the_driving(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="telebot.foxglove")
+    caplog.set_level(logging.WARNING, logger="telebot.apps.foxglove_bridge")
     bad: list[tuple[int, bytes]] = [
         (9, b"not json"),
         (9, os.urandom(2**20)),
@@ -215,7 +215,7 @@ async def test_another_teleop_topic_and_an_observer(tmp_path: Path) -> None:
 async def test_a_panel_publishing_slower_than_the_hold_is_told_to_speed_up(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="telebot.foxglove")
+    caplog.set_level(logging.WARNING, logger="telebot.apps.foxglove_bridge")
     async with teleop_rig(tmp_path) as (_nav, _, _, bridge, fox):
         await fox.advertise(9, TELEOP_TOPIC, "json", PANEL_SCHEMA)
         holding = asyncio.ensure_future(hold(fox, 9, twist(0.3), 3))  # 3 Hz, hold 0.15 s

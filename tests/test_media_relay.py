@@ -102,7 +102,7 @@ async def test_the_screen_is_served_and_a_taken_port_is_only_a_warning(
             async with http.get(screen.url + "static/media.js") as response:
                 assert response.status == 200
         # A second robot on the same port: no screen, a warning, no exception.
-        with caplog.at_level(logging.WARNING, logger="telebot.screen"):
+        with caplog.at_level(logging.WARNING, logger="telebot.apps.web.screen"):
             async with robot_screen(ScreenSettings(port=screen.port), None) as other:
                 assert other is None
         assert "robot screen not served" in caplog.text

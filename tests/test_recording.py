@@ -252,7 +252,7 @@ async def test_an_unwritable_directory_logs_one_line_and_the_call_goes_on(
     blocker.write_text("a file where the folder should be")
     recorder = Recorder(blocker / "rec")
     recorder.start()
-    with caplog.at_level(logging.ERROR, logger="telebot.recording"):
+    with caplog.at_level(logging.ERROR, logger="telebot.services.recording"):
         async with recorded_robot(tmp_path, recorder) as (_, client, _):
             await wait_until(lambda: not recorder.enabled)
             assert (await client.arm()).ok
@@ -260,7 +260,7 @@ async def test_an_unwritable_directory_logs_one_line_and_the_call_goes_on(
             assert replies
             assert (await client.stop(how="key")).ok
     await asyncio.to_thread(recorder.close)
-    lines = [r for r in caplog.records if r.name == "telebot.recording"]
+    lines = [r for r in caplog.records if r.name == "telebot.services.recording"]
     assert len(lines) == 1, [r.getMessage() for r in lines]
     assert "recording off" in lines[0].getMessage() and "not-a-dir" in lines[0].getMessage()
 

@@ -373,7 +373,7 @@ async def test_close_is_bounded_even_if_zenoh_hangs(caplog: pytest.LogCaptureFix
     transport._session = cast(Any, HangingSession())
     started = time.monotonic()
     try:
-        with caplog.at_level(logging.WARNING, logger="telebot.transport.zenoh"):
+        with caplog.at_level(logging.WARNING, logger="telebot.channels.transports.zenoh"):
             await transport.close()
         elapsed = time.monotonic() - started
     finally:
@@ -542,7 +542,7 @@ async def test_callback_error_is_logged_and_delivery_goes_on(
     listener.subscribe(key, explosive)
     publisher = connector.publisher(key)
     await warm_up(publisher.put, inbox)
-    with caplog.at_level(logging.ERROR, logger="telebot.transport.zenoh"):
+    with caplog.at_level(logging.ERROR, logger="telebot.channels.transports.zenoh"):
         publisher.put(b"boom")
         assert (await inbox.next_sample()).payload == b"boom"
         publisher.put(b"after")

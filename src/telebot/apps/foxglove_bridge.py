@@ -140,7 +140,7 @@ __all__ = [
     "velocity_from_twist",
 ]
 
-log = logging.getLogger("telebot.foxglove")
+log = logging.getLogger(__name__)
 
 #: The topic Foxglove's 3D panel publishes goals on (as RViz's "2D Goal Pose").
 GOAL_TOPIC = "/goal_pose"

@@ -31,7 +31,7 @@ from telebot.services.video.wire import VideoSettings
 
 __all__ = ["SHUTDOWN_REASON", "deadman_time", "serve_robot"]
 
-log = logging.getLogger("telebot.daemon")
+log = logging.getLogger(__name__)
 
 SHUTDOWN_REASON = "robot shutting down"
 

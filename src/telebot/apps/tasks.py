@@ -22,7 +22,7 @@ from telebot.errors import CallEnded
 
 __all__ = ["EXPECTED_ENDINGS", "BackgroundTasks"]
 
-log = logging.getLogger("telebot.apps")
+log = logging.getLogger(__name__)
 
 #: How a background task may end without it being an error: its call ended, it timed
 #: out, or the page it was sending to went away (its close is handled elsewhere).

@@ -100,7 +100,7 @@ __all__ = [
     "UserEndpoint",
 ]
 
-log = logging.getLogger("telebot.call")
+log = logging.getLogger(__name__)
 
 DEFAULT_NAMESPACE = "telebot"
 #: How often a caller repeats its HELLO while waiting (a lossy link may eat it).

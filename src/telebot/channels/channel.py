@@ -15,7 +15,7 @@ from telebot.errors import CallEnded, DatagramTooLarge
 
 __all__ = ["Channel", "ChannelStats", "DatagramTap", "ReceivedDatagram"]
 
-log = logging.getLogger("telebot.channel")
+log = logging.getLogger(__name__)
 
 
 @dataclass(slots=True)

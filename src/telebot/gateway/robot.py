@@ -29,7 +29,7 @@ from telebot.identity import ContactBook
 
 __all__ = ["GATEWAY_DIR", "THREAD_NAME", "GatewayThread", "robot_gateway", "robot_tls_files"]
 
-log = logging.getLogger("telebot.gateway")
+log = logging.getLogger(__name__)
 
 #: Under the robot's home: the self-signed certificate made when none is configured.
 GATEWAY_DIR = "gateway"

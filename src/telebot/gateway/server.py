@@ -69,7 +69,7 @@ from telebot.gateway.core import (
 
 __all__ = ["STATIC", "Gateway", "GatewayStats"]
 
-log = logging.getLogger("telebot.gateway")
+log = logging.getLogger(__name__)
 
 #: The web app's files (``telebot.apps.web``'s, found by path: the gateway sits below the apps).
 STATIC = Path(__file__).resolve().parent.parent / "apps" / "web" / "static"

@@ -20,7 +20,7 @@ from telebot.gateway.server import Gateway
 
 __all__ = ["THREAD_NAME", "GatewayThread"]
 
-log = logging.getLogger("telebot.gateway")
+log = logging.getLogger(__name__)
 
 #: The gateway thread's name, also given to the OS (``/proc/PID/task/TID/comm``, at most
 #: 15 bytes) so that its CPU can be told apart from the robot's or the router's (bench/browser.py).

@@ -24,7 +24,7 @@ from telebot.errors import ConfigError
 
 __all__ = ["local_hosts", "self_signed", "server_context"]
 
-log = logging.getLogger("telebot.gateway")
+log = logging.getLogger(__name__)
 
 
 def server_context(cert: Path, key: Path) -> ssl.SSLContext:

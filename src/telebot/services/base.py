@@ -65,7 +65,7 @@ __all__ = [
     "ServiceSpec",
 ]
 
-log = logging.getLogger("telebot.services")
+log = logging.getLogger(__name__)
 
 #: How often (s) the user's side ticks the services of its call.
 CLIENT_TICK = 0.05

@@ -121,7 +121,7 @@ __all__ = [
     "connect",
 ]
 
-log = logging.getLogger("telebot.client")
+log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 

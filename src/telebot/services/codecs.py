@@ -47,7 +47,7 @@ __all__ = [
     "stamp_number",
 ]
 
-log = logging.getLogger("telebot.services.codecs")
+log = logging.getLogger(__name__)
 
 #: A keyframe should fit in about this many bytes (two datagrams): the VBV buffer size.
 KEYFRAME_CAP: Final = 2 * MAX_DATAGRAM - 2 * 64

@@ -64,7 +64,7 @@ __all__ = [
     "RecordingService",
 ]
 
-log = logging.getLogger("telebot.recording")
+log = logging.getLogger(__name__)
 
 #: Messages waiting for the writer thread beyond which new ones are dropped (and counted).
 MAX_PENDING = 20000

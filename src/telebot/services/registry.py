@@ -28,7 +28,7 @@ from telebot.services.base import ServiceRegistry, ServiceSpec
 
 __all__ = ["ENTRY_POINT_GROUP", "SERVICES", "robot_services", "spec", "user_services"]
 
-log = logging.getLogger("telebot.services")
+log = logging.getLogger(__name__)
 
 #: The entry-point group plug-in services are found in.
 ENTRY_POINT_GROUP = "telebot.services"

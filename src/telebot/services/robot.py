@@ -81,7 +81,7 @@ __all__ = [
     "may_drive",
 ]
 
-log = logging.getLogger("telebot.robot")
+log = logging.getLogger(__name__)
 
 _Request = TypeVar("_Request")
 

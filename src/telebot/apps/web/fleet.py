@@ -65,7 +65,7 @@ from telebot.services.client import ConnectionEvent, RobotClient
 
 __all__ = ["LIST_EVERY", "MAX_CALLS", "STOP_ALL_TIMEOUT", "FleetRobot", "FleetUI", "serve_fleet"]
 
-log = logging.getLogger("telebot.fleet")
+log = logging.getLogger(__name__)
 
 #: A robot that has not acknowledged ``stop all`` within this long (s) is reported.
 STOP_ALL_TIMEOUT = 2.0

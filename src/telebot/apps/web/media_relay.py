@@ -70,7 +70,7 @@ MAX_PAGE_MESSAGE: Final = MAX_VIDEO_FRAME + 4 + MAX_HEADER
 #: Video codecs a page decodes when it says nothing (the web UI's first format).
 JPEG_ONLY: Final = ("jpeg",)
 
-log = logging.getLogger("telebot.web.media")
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, slots=True)

@@ -44,7 +44,7 @@ if TYPE_CHECKING:
 
 __all__ = ["RobotScreen", "bind_screen", "parse_screen_option", "robot_screen"]
 
-log = logging.getLogger("telebot.screen")
+log = logging.getLogger(__name__)
 
 #: Media messages a page may have in flight before audio is dropped (video: one at a time).
 MAX_AUDIO_IN_FLIGHT = 8

@@ -125,7 +125,7 @@ from telebot.services.video.wire import CompleteFrame
 
 __all__ = ["WebUI", "serve_ui"]
 
-log = logging.getLogger("telebot.web")
+log = logging.getLogger(__name__)
 
 #: Seconds between websocket pings; a page silent for twice this is taken as gone.
 WS_HEARTBEAT = 1.0

@@ -91,7 +91,7 @@ __all__ = [
     "tls_options",
 ]
 
-logger = logging.getLogger("telebot.transport.zenoh")
+logger = logging.getLogger(__name__)
 
 _T = TypeVar("_T")
 _PUT = zenoh.SampleKind.PUT

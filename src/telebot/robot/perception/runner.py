@@ -41,7 +41,7 @@ from telebot.robot.perception.tracks import PersonTrack
 
 __all__ = ["STATIC_CLEARANCE", "NumberedAlert", "PeoplePerception", "StaticMap"]
 
-log = logging.getLogger("telebot.people")
+log = logging.getLogger(__name__)
 
 #: Leg candidates this close (m) to a wall or unknown space of the map are the map's own.
 STATIC_CLEARANCE = 0.1

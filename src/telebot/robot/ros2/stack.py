@@ -101,7 +101,7 @@ from telebot.rosmsg.types import ActionType, MessageType, TypeLibrary, ros_type_
 
 __all__ = ["BATTERY_LOW_PERCENT", "Ros2Goal", "Ros2NavStack"]
 
-log = logging.getLogger("telebot.ros2")
+log = logging.getLogger(__name__)
 
 #: Charge (percent) below which the battery reports low.
 BATTERY_LOW_PERCENT = 20.0

@@ -36,7 +36,7 @@ if TYPE_CHECKING:
 
 __all__ = ["ROSTER_EVERY", "ConferenceRoom", "RobotConference"]
 
-log = logging.getLogger("telebot.conference")
+log = logging.getLogger(__name__)
 
 #: The roster is pushed to every call this often (s), besides on each change.
 ROSTER_EVERY = 1.0

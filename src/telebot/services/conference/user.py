@@ -42,7 +42,7 @@ if TYPE_CHECKING:
 
 __all__ = ["ConferenceReceiver", "ConferenceState"]
 
-log = logging.getLogger("telebot.conference")
+log = logging.getLogger(__name__)
 
 
 class ConferenceState(HostService[ClientHost]):

@@ -62,7 +62,7 @@ __all__ = [
     "TrackSource",
 ]
 
-log = logging.getLogger("telebot.follow")
+log = logging.getLogger(__name__)
 
 
 class TrackSource(Protocol):

@@ -75,7 +75,7 @@ if TYPE_CHECKING:
 
 __all__ = ["DRIVE_WHAT", "STATE_EVERY", "CallDrive", "DriveService"]
 
-log = logging.getLogger("telebot.drive")
+log = logging.getLogger(__name__)
 
 #: While a call drives, its state is repeated this often (s): 5 Hz.
 STATE_EVERY = 0.2

@@ -39,7 +39,7 @@ if TYPE_CHECKING:
 
 __all__ = ["DEFAULT_BURST", "MapService", "map_channel"]
 
-log = logging.getLogger("telebot.services.map")
+log = logging.getLogger(__name__)
 
 #: Chunks the robot sends per turn of the event loop (8 × 32 KB = 256 KB): enough to fill
 #: a loopback link, few enough that heartbeats and a stop are never held up behind a map.

@@ -49,7 +49,7 @@ if TYPE_CHECKING:
 
 __all__ = ["MapDownload", "fetch_map"]
 
-log = logging.getLogger("telebot.services.map")
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, slots=True)

@@ -99,7 +99,7 @@ __all__ = [
     "media_video_settings",
 ]
 
-log = logging.getLogger("telebot.services.media")
+log = logging.getLogger(__name__)
 
 #: The user's camera counts as off when no picture of it came for this long (s): the
 #: user turned it off, or its video stalled (the screen must not show a frozen face).

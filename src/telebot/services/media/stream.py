@@ -27,7 +27,7 @@ if TYPE_CHECKING:
 
 __all__ = ["BLOCK", "IDLE_AFTER", "AudioBlock", "Unsubscribe"]
 
-log = logging.getLogger("telebot.services.media")
+log = logging.getLogger(__name__)
 
 
 #: Seconds of one audio block / packet.

@@ -91,7 +91,7 @@ __all__ = [
     "open_user_media",
 ]
 
-log = logging.getLogger("telebot.services.media")
+log = logging.getLogger(__name__)
 
 
 # --------------------------------------------------------------------------- user

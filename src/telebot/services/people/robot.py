@@ -38,7 +38,7 @@ if TYPE_CHECKING:
 
 __all__ = ["ALERT_REPEATS", "PeopleService"]
 
-log = logging.getLogger("telebot.people")
+log = logging.getLogger(__name__)
 
 #: Times each alert is sent (on consecutive stream ticks).
 ALERT_REPEATS = 3

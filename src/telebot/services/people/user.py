@@ -34,7 +34,7 @@ if TYPE_CHECKING:
 
 __all__ = ["PeopleReceiver"]
 
-log = logging.getLogger("telebot.people")
+log = logging.getLogger(__name__)
 
 
 class PeopleReceiver:

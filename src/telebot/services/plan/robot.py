@@ -40,7 +40,7 @@ if TYPE_CHECKING:
 
 __all__ = ["PLACES_EVERY", "PLAN_EVERY", "PlanService", "PlanSource"]
 
-log = logging.getLogger("telebot.plan")
+log = logging.getLogger(__name__)
 
 #: An unchanged plan is sent again this often (s): a lost one heals within it.
 PLAN_EVERY = 1.0

@@ -36,7 +36,7 @@ if TYPE_CHECKING:
 
 __all__ = ["PlanReceiver"]
 
-log = logging.getLogger("telebot.plan")
+log = logging.getLogger(__name__)
 
 
 class PlanReceiver:

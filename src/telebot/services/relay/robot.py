@@ -73,7 +73,7 @@ if TYPE_CHECKING:
 
 __all__ = ["MAX_BACKLOG", "QUEUE", "RelayService", "near_topics"]
 
-log = logging.getLogger("telebot.relay")
+log = logging.getLogger(__name__)
 
 #: Messages a relay holds while they are not due yet (without *latest only*).
 QUEUE = 16

@@ -66,7 +66,7 @@ if TYPE_CHECKING:
 
 __all__ = ["RelayReceiver", "TopicStream"]
 
-log = logging.getLogger("telebot.relay")
+log = logging.getLogger(__name__)
 
 
 # --------------------------------------------------------------------------- the user's side

@@ -43,7 +43,7 @@ from telebot.services.video.wire import Report
 
 __all__ = ["WATCHDOG_PERIOD", "CallGate", "SafetyDriver"]
 
-log = logging.getLogger("telebot.safety")
+log = logging.getLogger(__name__)
 
 #: How often the watchdog thread looks at the drive holder's link (s).
 WATCHDOG_PERIOD = 0.01

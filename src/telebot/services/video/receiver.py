@@ -96,7 +96,7 @@ __all__ = [
     "frames",
 ]
 
-log = logging.getLogger("telebot.services.video")
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, slots=True, eq=False)

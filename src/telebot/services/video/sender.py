@@ -93,7 +93,7 @@ if TYPE_CHECKING:
 
 __all__ = ["VideoSender", "VideoSenderStats", "video_channel"]
 
-log = logging.getLogger("telebot.services.video")
+log = logging.getLogger(__name__)
 
 
 # --------------------------------------------------------------------------- robot side

@@ -23,7 +23,7 @@ if TYPE_CHECKING:
 
 __all__ = ["DECODED_CODECS", "REPORT_INTERVAL", "video_channel"]
 
-log = logging.getLogger("telebot.services.video")
+log = logging.getLogger(__name__)
 
 
 #: Seconds between receiver reports (they are also the sender's sign that someone watches).
