@@ -1,7 +1,8 @@
 """telebot-sim: the simulator as a ROS 2 / Nav2 robot in its own process, over rmw_zenoh.
 
-Each test starts ``python -m telebot.apps.sim_cli`` (its own zenoh router on a free port, the
-small map, a fast robot) and talks to it as a ROS 2 node would, with :class:`Ros2Node`.
+Each test that moves the robot starts ``python -m telebot.apps.sim_cli`` (its own zenoh router
+on a free port, the small map, a fast robot); the tests that never move it share one. They
+talk to it as a ROS 2 node would, with :class:`Ros2Node`.
 """
 
 from __future__ import annotations
