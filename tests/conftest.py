@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import re
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass
@@ -50,11 +51,17 @@ async def wait_until(condition: Callable[[], bool], timeout: float = 5.0 + SLACK
         await asyncio.sleep(0.01)
 
 
+#: Source text of a test module whose tests share a module-scoped rig: one defined there,
+#: or test_web_ui's chromium imported (tests/test_web_phone.py, test_web_drive.py, ...).
+SHARED_RIG = re.compile(r'scope="module"|^\s*(from test_web_ui import )?_chromium\b', re.MULTILINE)
+
+
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     """``--dist loadgroup`` (``make test``): a module that defines a module-scoped fixture
-    (a daemon, a router, a browser) runs whole on one worker, which starts it once rather
-    than once on each; every other test is scheduled on its own, filling the workers in
-    between. xdist hands out the biggest groups first.
+    (a daemon, a router, a browser) or imports one (test_web_ui's chromium, ``_chromium``)
+    runs whole on one worker, which starts it once rather than once on each; every other
+    test is scheduled on its own, filling the workers in between. xdist hands out the
+    biggest groups first.
 
     (xdist's own loadgroup reads ``xdist_group`` marks into node ids, which pytest 9 no
     longer lets it change; the modules are found by their source instead.)
@@ -71,7 +78,8 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
             path = nodeid.split("::", 1)[0]
             if path not in shared:
                 with contextlib.suppress(OSError):
-                    shared[path] = 'scope="module"' in (root / path).read_text("utf-8")
+                    source = (root / path).read_text("utf-8")
+                    shared[path] = SHARED_RIG.search(source) is not None
             return path if shared.get(path) else nodeid
 
     return SharedModuleScheduling(config, log)
