@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import re
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass
@@ -49,11 +50,24 @@ async def wait_until(condition: Callable[[], bool], timeout: float = 5.0 + SLACK
         await asyncio.sleep(0.01)
 
 
+#: Source text of a test module whose tests share a module-scoped rig: one defined there,
+#: or test_web_ui's chromium imported (tests/test_web_phone.py, test_web_drive.py, ...).
+SHARED_RIG = re.compile(r'scope="module"|^\s*(from test_web_ui import )?_chromium\b', re.MULTILINE)
+#: Source text of a test module whose tests start processes, daemons or browsers: each of
+#: its tests likely takes seconds where a unit test takes milliseconds.
+HEAVY = re.compile(r"\b(Process|Daemon|subprocess|chromium|browser_page|phone_page)\b")
+#: How many unit tests one test of such a module is worth, for the order work is handed out.
+HEAVY_WEIGHT = 20
+
+
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     """``--dist loadgroup`` (``make test``): a module that defines a module-scoped fixture
-    (a daemon, a router, a browser) runs whole on one worker, which starts it once rather
-    than once on each; every other test is scheduled on its own, filling the workers in
-    between. xdist hands out the biggest groups first.
+    (a daemon, a router, a browser) or imports one (test_web_ui's chromium, ``_chromium``)
+    runs whole on one worker, which starts it once rather than once on each; every other
+    test is scheduled on its own, filling the workers in between. Work is handed out
+    biggest first (its tests counted, those of modules that start processes or browsers
+    as :data:`HEAVY_WEIGHT` each), so that the run ends with quick unit tests that even
+    out the two workers rather than with one worker's long browser test.
 
     (xdist's own loadgroup reads ``xdist_group`` marks into node ids, which pytest 9 no
     longer lets it change; the modules are found by their source instead.)
@@ -64,14 +78,36 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
 
     root = config.rootpath
     shared: dict[str, bool] = {}
+    heavy: dict[str, bool] = {}
+
+    def read(path: str) -> None:
+        if path not in shared:
+            source = ""
+            with contextlib.suppress(OSError):
+                source = (root / path).read_text("utf-8")
+            shared[path] = SHARED_RIG.search(source) is not None
+            heavy[path] = HEAVY.search(source) is not None
+
+    def weight(unit: tuple[str, dict[str, bool]]) -> int:
+        path = unit[0].split("::", 1)[0]
+        read(path)
+        return len(unit[1]) * (HEAVY_WEIGHT if heavy[path] else 1)
 
     class SharedModuleScheduling(LoadScopeScheduling):
+        ordered = False
+
         def _split_scope(self, nodeid: str) -> str:
             path = nodeid.split("::", 1)[0]
-            if path not in shared:
-                with contextlib.suppress(OSError):
-                    shared[path] = 'scope="module"' in (root / path).read_text("utf-8")
-            return path if shared.get(path) else nodeid
+            read(path)
+            return path if shared[path] else nodeid
+
+        def _assign_work_unit(self, node: Any) -> None:
+            if not self.ordered:  # the first time: the queue is built, none handed out yet
+                self.ordered = True
+                units = sorted(self.workqueue.items(), key=weight, reverse=True)
+                self.workqueue.clear()
+                self.workqueue.update(units)
+            super()._assign_work_unit(node)
 
     return SharedModuleScheduling(config, log)
 

@@ -8,6 +8,7 @@ command, each in separate processes over zenoh on loopback.
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import math
 import signal
 import subprocess
@@ -217,28 +218,32 @@ async def test_garbage_on_every_channel_is_dropped_and_the_daemon_keeps_serving(
 
 
 def test_send_exit_codes(daemon: Daemon, tmp_path: Path) -> None:
-    ok = daemon.user_cli("send", "--arm", ROBOT, "turn", "10")
-    assert ok.returncode == 0, ok.stderr
-    assert ok.stdout.splitlines() == ["Turn command received", "finished moving"]
-    # Its call ended, so the robot latched stopped: without --arm a motion is refused.
-    latched = daemon.user_cli("send", ROBOT, "turn", "10")
-    assert latched.returncode == 1
-    assert latched.stdout.startswith("! refused:") and "arm" in latched.stdout
-    failed = daemon.user_cli("send", "--arm", ROBOT, "goto", "999", "999")
-    assert failed.returncode == 1
-    assert "no path to" in failed.stdout
-    offline = daemon.user_cli("send", "nobody", "where?", timeout=30)
-    assert offline.returncode == 2
-    assert offline.stderr.count("\n") == 1 and "nobody" in offline.stderr
     stranger = tmp_path / "stranger"
     Identity.generate("mallory").save(stranger)
     known = KnownRobots.load(stranger)
     known.add(ROBOT, Identity.load(daemon.robot_home).public_key)
     known.save()
-    refused = daemon.user_cli("send", ROBOT, "where?", home=stranger)
+    # The commands that leave the robot as it is run beside the ones that drive it, each a
+    # process of its own: a process started one after another cost seconds each.
+    with concurrent.futures.ThreadPoolExecutor() as pool:
+        offline_run = pool.submit(daemon.user_cli, "send", "nobody", "where?", timeout=30)
+        refused_run = pool.submit(daemon.user_cli, "send", ROBOT, "where?", home=stranger)
+        usage_run = pool.submit(daemon.user_cli, "send", ROBOT)
+        ok = daemon.user_cli("send", "--arm", ROBOT, "turn", "10")
+        assert ok.returncode == 0, ok.stderr
+        assert ok.stdout.splitlines() == ["Turn command received", "finished moving"]
+        # Its call ended, so the robot latched stopped: without --arm a motion is refused.
+        latched = daemon.user_cli("send", ROBOT, "turn", "10")
+        assert latched.returncode == 1
+        assert latched.stdout.startswith("! refused:") and "arm" in latched.stdout
+        failed = daemon.user_cli("send", "--arm", ROBOT, "goto", "999", "999")
+        assert failed.returncode == 1
+        assert "no path to" in failed.stdout
+        offline, refused, usage = offline_run.result(), refused_run.result(), usage_run.result()
+    assert offline.returncode == 2
+    assert offline.stderr.count("\n") == 1 and "nobody" in offline.stderr
     assert refused.returncode == 2
     assert "not in the contact list" in refused.stderr
-    usage = daemon.user_cli("send", ROBOT)
     assert usage.returncode == 2
 
 
@@ -274,14 +279,16 @@ def test_piped_chat_runs_each_command_to_its_end(daemon: Daemon, tmp_path: Path)
 
 def test_getmap_and_where_commands(daemon: Daemon, tmp_path: Path) -> None:
     out = tmp_path / "maps" / "small.png"
-    result = daemon.user_cli("getmap", ROBOT, "-o", str(out))
+    with concurrent.futures.ThreadPoolExecutor() as pool:  # two processes side by side
+        where_run = pool.submit(daemon.user_cli, "where", ROBOT)
+        result = daemon.user_cli("getmap", ROBOT, "-o", str(out))
+        where = where_run.result()
     assert result.returncode == 0, result.stderr
     reloaded = load_map(out.with_suffix(".yaml"))
     grid = load_map(resolve_map("small"))
     bounds = grid.known_bounds()
     assert bounds is not None
     assert np.array_equal(reloaded.data, grid.crop(*bounds).data)
-    where = daemon.user_cli("where", ROBOT)
     assert where.returncode == 0, where.stderr
     assert where.stdout.startswith("x ") and "heading" in where.stdout
 

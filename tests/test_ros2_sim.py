@@ -1,11 +1,13 @@
 """telebot-sim: the simulator as a ROS 2 / Nav2 robot in its own process, over rmw_zenoh.
 
-Each test starts ``python -m telebot.apps.sim_cli`` (its own zenoh router on a free port, the
-small map, a fast robot) and talks to it as a ROS 2 node would, with :class:`Ros2Node`.
+Each test that moves the robot starts ``python -m telebot.apps.sim_cli`` (its own zenoh router
+on a free port, the small map, a fast robot); the tests that never move it share one. They
+talk to it as a ROS 2 node would, with :class:`Ros2Node`.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 import signal
 import subprocess
@@ -41,10 +43,11 @@ class Sim:
         self.endpoint = endpoint
 
 
-@pytest.fixture
-def sim(tmp_path: Path) -> Iterator[Sim]:
+@contextlib.contextmanager
+def sim_process(folder: Path) -> Iterator[Sim]:
+    """A telebot-sim serving the small map with a fast robot, stopped on exit."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    config = write_config(tmp_path / "robot.toml", sim=FAST_SIM)
+    config = write_config(folder / "robot.toml", sim=FAST_SIM)
     process = Process(
         ["telebot.apps.sim_cli", "--config", str(config), "--listen", endpoint, "--map", "small"]
     )
@@ -57,12 +60,38 @@ def sim(tmp_path: Path) -> Iterator[Sim]:
 
 
 @pytest.fixture
-def node(sim: Sim) -> Iterator[Ros2Node]:
+def sim(tmp_path: Path) -> Iterator[Sim]:
+    """A sim of the test's own: for a test that moves the robot (or kills a client)."""
+    with sim_process(tmp_path) as value:
+        yield value
+
+
+@pytest.fixture(scope="module")
+def still_sim(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Sim]:
+    """One sim for the tests that never move its robot (it stays at the start place):
+    a sim process started per test cost a few seconds each."""
+    with sim_process(tmp_path_factory.mktemp("still_sim")) as value:
+        yield value
+
+
+def ros2_node(sim: Sim) -> Iterator[Ros2Node]:
     client = Ros2Node(name="sim_test", connect=[sim.endpoint])
     try:
         yield client
     finally:
         client.close()
+
+
+@pytest.fixture
+def node(sim: Sim) -> Iterator[Ros2Node]:
+    """A ROS 2 node of this test's on its own sim."""
+    yield from ros2_node(sim)
+
+
+@pytest.fixture
+def still_node(still_sim: Sim) -> Iterator[Ros2Node]:
+    """A ROS 2 node of this test's on the shared sim whose robot never moves."""
+    yield from ros2_node(still_sim)
 
 
 def small_map() -> SimNavStack:
@@ -144,7 +173,8 @@ def send(
     return record
 
 
-async def test_map_reaches_a_late_joiner_with_the_grids_ros_values(node: Ros2Node) -> None:
+async def test_map_reaches_a_late_joiner_with_the_grids_ros_values(still_node: Ros2Node) -> None:
+    node = still_node
     # The sim published its map before this subscription existed: transient local.
     latest = subscribe(node, "map", "nav_msgs/msg/OccupancyGrid", QoS.transient_local(depth=1))
     await wait_until(lambda: latest.msg is not None, timeout=10 + SLACK)
@@ -211,7 +241,8 @@ async def test_nav2s_speed_limit_topic_caps_a_navigation_goal(node: Ros2Node) ->
     assert max(speeds) > 0.5
 
 
-async def test_a_goal_without_a_path_is_aborted_with_nav2s_reason(node: Ros2Node) -> None:
+async def test_a_goal_without_a_path_is_aborted_with_nav2s_reason(still_node: Ros2Node) -> None:
+    node = still_node
     record = send(node, nav_goal(node, 500.0, 500.0))  # far outside the map
     await wait_until(lambda: record.status is not None, timeout=10 + SLACK)
     assert record.status == ABORTED
@@ -341,7 +372,8 @@ async def test_drive_on_heading_and_spin_behaviours(node: Ros2Node) -> None:
     assert bad.result.error_code == 724 and "opposite signs" in bad.result.error_msg
 
 
-async def test_cameras_tf_battery_and_scan(node: Ros2Node) -> None:
+async def test_cameras_tf_battery_and_scan(still_node: Ros2Node) -> None:
+    node = still_node
     camera = subscribe(node, "navcam/image/compressed", "sensor_msgs/msg/CompressedImage")
     tf = subscribe(node, "/tf", "tf2_msgs/msg/TFMessage")
     battery = subscribe(node, "battery_state", "sensor_msgs/msg/BatteryState")
@@ -429,7 +461,8 @@ def test_bad_input_is_one_line_and_exit_2(args: list[str], words: str, tmp_path:
     assert words in lines[0]
 
 
-def test_a_taken_port_is_a_clear_error(sim: Sim) -> None:
+def test_a_taken_port_is_a_clear_error(still_sim: Sim) -> None:
+    sim = still_sim
     done = run_sim("--map", "small", "--listen", sim.endpoint)
     assert done.returncode == 2, done.stderr
     assert f"cannot listen on {sim.endpoint}" in done.stderr
