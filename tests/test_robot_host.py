@@ -12,7 +12,10 @@ from conftest import wait_until
 from rig import robot_drive
 from telebot.config import DriveSettings, FollowSettings, PeopleSettings, RelaySettings
 from telebot.identity import Role
+from telebot.robot.nav import GoalStatus
+from telebot.robot.perception.tracks import PersonTrack
 from telebot.services.base import MotionService, ServiceConfig
+from telebot.services.drive.follow import FollowGoal
 from telebot.services.people.robot import RobotPeople
 from telebot.services.robot import RobotServer
 from telebot.services.safety.robot import SafetyDriver
@@ -78,3 +81,24 @@ async def test_a_failing_drive_tick_stops_the_robot_and_latches(
         runner.cancel()
         await asyncio.gather(runner, return_exceptions=True)
         safety.close()
+
+
+async def test_an_emergency_stop_ends_a_follow_first_even_without_a_supervisor() -> None:
+    nav = room()  # the robot at (3, 5) facing east
+    server = RobotServer(nav)  # no supervisor: nothing latches, the drive service must halt
+    try:
+        follow = robot_drive(server).follow
+
+        class People:
+            def tracks(self) -> list[PersonTrack]:
+                return [PersonTrack(1, 4.5, 5.0, 0.0, 0.0, 1.0, 0.0, 0.0, frozenset({"laser"}))]
+
+        follow.people = People()
+        started = follow.start("c1", None, server.now())
+        assert isinstance(started, FollowGoal) and follow.goal is started
+        server.emergency_stop("simulated fault")
+        assert follow.goal is None and started.status is GoalStatus.CANCELLED
+        follow.tick(server.now())  # nothing left to drive
+        assert nav.velocity().linear == 0.0
+    finally:
+        server.hosted.close()
