@@ -19,6 +19,7 @@ from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.config import CallSettings, ServiceSettings, SimSettings
 from telebot.identity import ContactBook, Identity, KnownRobots, Role
 from telebot.robot.sim.stack import SimNavStack
+from telebot.services.base import ServiceConfig
 from telebot.services.robot import RobotServer
 from telebot.services.safety.robot import SafetyDriver
 from telebot.services.video.wire import VideoSettings
@@ -88,7 +89,9 @@ async def running_robot(base: Path, name: str, hub: MemoryHub) -> AsyncIterator[
         control_hz=settings.control_hz,
         map_name="small",
         safety=safety,
-        video=VideoSettings(width=160, height=120, max_fps=5, quality=50, min_quality=30),
+        config=ServiceConfig(
+            video=VideoSettings(width=160, height=120, max_fps=5, quality=50, min_quality=30)
+        ),
     )
     await server.prepare()
     home = base / "robots" / name

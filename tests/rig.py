@@ -65,8 +65,9 @@ from telebot.config import (
 from telebot.identity import ContactBook, Identity, KnownRobots, Role, create_paired_homes
 from telebot.robot.mapfile import places_path_for
 from telebot.robot.sim.stack import SimNavStack, resolve_map
-from telebot.services.base import ServiceRegistry
+from telebot.services.base import ServiceConfig, ServiceRegistry
 from telebot.services.client import RobotClient, connect
+from telebot.services.drive.robot import RobotDrive
 from telebot.services.robot import RobotServer
 from telebot.services.safety.robot import SafetyDriver
 from telebot.services.video.wire import VideoSettings
@@ -417,6 +418,13 @@ def start_telebot_sim(
     return sim, router
 
 
+def robot_drive(server: RobotServer) -> RobotDrive:
+    """The robot's ``drive`` service: its follow-me (``.follow``) and driving (``.drive``)."""
+    drive = server.service("drive")
+    assert isinstance(drive, RobotDrive), drive
+    return drive
+
+
 @contextlib.asynccontextmanager
 async def robot_on_hub(
     base: Path,
@@ -461,8 +469,8 @@ async def robot_on_hub(
         nav,
         services if services is not None else ServiceSettings(),
         safety=safety,
-        video=video,
         services=robot_services,
+        config=ServiceConfig(video=video),
     )
     await server.prepare()
     with safety:

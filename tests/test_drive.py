@@ -126,7 +126,7 @@ class Rig:
         call = FakeCall(call_id, f"user-{call_id}", role, last_heard=self.clock)
         if self.safety is not None:
             self.safety.join(call)  # type: ignore[arg-type]
-        service = CallDrive(self, call)  # type: ignore[arg-type]
+        service = CallDrive(self.drive, call, self.now)  # type: ignore[arg-type]
         self.calls[call_id] = (call, service)
         return service
 
@@ -539,16 +539,9 @@ class LaserBase:
 def test_with_a_laser_it_brakes_before_what_it_sees(ahead: float, code: str) -> None:
     nav = LaserBase(ahead)
 
-    class Server:
-        def __init__(self) -> None:
-            self.drive = DriveService(nav)  # type: ignore[arg-type]
-
-        def now(self) -> float:
-            return 0.0
-
-    server = Server()
+    drive = DriveService(nav)  # type: ignore[arg-type]
     call = FakeCall("c1", "alice", Role.DRIVER)
-    CallDrive(server, call)  # type: ignore[arg-type]
+    CallDrive(drive, call, lambda: 0.0)  # type: ignore[arg-type]
     call.channels["drive"].receive(DriveCommand(1, 0.4, 0.5).encode())
     sent, turn = nav.commands[-1]
     if ahead > 1:
@@ -564,7 +557,7 @@ def test_with_a_laser_it_brakes_before_what_it_sees(ahead: float, code: str) -> 
     call.channels["drive"].receive(DriveCommand(2, -0.2, 0.0).encode())
     assert nav.commands[-1][0] == pytest.approx(-0.2)
     blind = LaserBase(5.0, rear_view=False)
-    server.drive.nav = blind  # type: ignore[assignment]
+    drive.nav = blind  # type: ignore[assignment]
     call.channels["drive"].receive(DriveCommand(3, -0.2, 0.0).encode())
     assert blind.commands[-1][0] == 0.0
     assert decode_drive_state(call.channels["drive"].sent[-1]).code == Reason.OBSTACLE

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from conftest import ROBOT, USER
 from follow_walk import TruthTracks
-from rig import FAST_SIM, GENEROUS_TIMEOUT, SLACK, robot_on_hub, user_on_hub
+from rig import FAST_SIM, GENEROUS_TIMEOUT, SLACK, robot_drive, robot_on_hub, user_on_hub
 from telebot.channels.transports.memory import MemoryHub
 from telebot.reasons import Reason
 from telebot.robot.nav import Velocity
@@ -25,7 +25,7 @@ async def test_the_page_follows_a_clicked_person_and_any_key_ends_it(tmp_path: P
     async with robot_rig(tmp_path) as rig, browser_page(rig.ui.url) as page:
         await page_ready(page)
         assert rig.server is not None
-        follow = rig.server.follow
+        follow = robot_drive(rig.server).follow
         follow.people = TruthTracks(rig.nav)  # a perfect tracker of the simulated people
         # Nobody tracked yet: the button's request is refused with the reason, beside it.
         await arm(rig)
@@ -77,7 +77,8 @@ async def test_a_dropped_call_ends_the_follow_and_stops_the_robot(tmp_path: Path
         ),
         user_on_hub(tmp_path, hub) as user,
     ):
-        server.follow.people = TruthTracks(nav)
+        follow = robot_drive(server).follow
+        follow.people = TruthTracks(nav)
         pose = nav.true_pose  # the start place: the corridor's west end, facing east
         nav.add_person(Walker.along([(pose.x + 1.3, pose.y), (pose.x + 8.5, pose.y)], speed=0.4))
         client = RobotClient(await user.call(ROBOT))
@@ -86,11 +87,11 @@ async def test_a_dropped_call_ends_the_follow_and_stops_the_robot(tmp_path: Path
         first = await anext(replies)
         assert (first.text, first.code) == ("following person 1", Reason.ACCEPTED)
         await wait_for(lambda: nav.velocity().linear > 0.2, what="the robot following")
-        goal = server.follow.goal
+        goal = follow.goal
         assert goal is not None
         hub.cut("robot", "user")  # the driver's link is gone: no hang-up, no stop
         await wait_for(
-            lambda: server.follow.goal is None,
+            lambda: follow.goal is None,
             timeout=GENEROUS_TIMEOUT + 2.0 + SLACK,
             what="the follow ended",
         )

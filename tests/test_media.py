@@ -22,6 +22,7 @@ from telebot.channels.transports.memory import MemoryHub
 from telebot.config import ServiceSettings, SimSettings
 from telebot.errors import ProtocolError
 from telebot.robot.sim.stack import SimNavStack
+from telebot.services.base import ServiceConfig
 from telebot.services.client import RobotClient
 from telebot.services.codecs import (
     OpusDecoder,
@@ -177,7 +178,9 @@ async def media_call(homes: Homes, *, voice: str = "off") -> AsyncIterator[Rig]:
     video = VideoSettings(
         width=320, height=240, codecs=(CODEC_H264, CODEC_JPEG), stamp=True, max_fps=20
     )
-    server = RobotServer(nav, ServiceSettings(), control_hz=50, map_name="small", video=video)
+    server = RobotServer(
+        nav, ServiceSettings(), control_hz=50, map_name="small", config=ServiceConfig(video=video)
+    )
     speaker = MemorySink()
     media = RobotMedia(
         MediaSettings(voice=voice, voice_command=FAKE_ESPEAK), mic=ToneSource(440), speaker=speaker

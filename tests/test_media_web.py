@@ -36,6 +36,7 @@ from telebot.channels.transports.memory import MemoryHub
 from telebot.config import ServiceSettings, SimSettings
 from telebot.identity import Identity, create_paired_homes
 from telebot.robot.sim.stack import SimNavStack
+from telebot.services.base import ServiceConfig
 from telebot.services.client import RobotClient
 from telebot.services.codecs import read_number
 from telebot.services.media.audio import MemorySink, ToneSource, dominant_frequency
@@ -104,7 +105,9 @@ async def media_rig(
         max_fps=fps,
         keyframe_interval=KEYFRAME_INTERVAL,
     )
-    server = RobotServer(nav, ServiceSettings(), control_hz=50, map_name="small", video=video)
+    server = RobotServer(
+        nav, ServiceSettings(), control_hz=50, map_name="small", config=ServiceConfig(video=video)
+    )
     speaker = MemorySink()
     media = RobotMedia(MediaSettings(voice="off"), mic=ToneSource(440), speaker=speaker)
     media.attach(server)

@@ -32,6 +32,7 @@ from telebot.robot.perception.tracks import PeopleSource, PersonTrack
 from telebot.robot.sim.people import Walker
 from telebot.robot.sim.stack import SimNavStack
 from telebot.robot.sim.world import Obstacle
+from telebot.services.base import ServiceConfig
 from telebot.services.client import RobotClient
 from telebot.services.people.wire import (
     PeopleAlertMessage,
@@ -371,7 +372,7 @@ async def served(homes: Homes, nav: SimNavStack) -> AsyncIterator[RobotClient]:
         nav,
         ServiceSettings(),
         control_hz=20,
-        people_settings=PeopleSettings(camera_hz=0.0, alert_distance=2.5),
+        config=ServiceConfig(people=PeopleSettings(camera_hz=0.0, alert_distance=2.5)),
     )
     await server.prepare()
     async with memory_endpoints(homes, MemoryHub(seed=3)) as (robot_endpoint, user_endpoint):
@@ -385,7 +386,6 @@ async def served(homes: Homes, nav: SimNavStack) -> AsyncIterator[RobotClient]:
         finally:
             runner.cancel()
             await asyncio.gather(runner, return_exceptions=True)
-            server.perception.close()
 
 
 async def test_a_user_gets_the_people_stream_and_an_approaching_alert(homes: Homes) -> None:

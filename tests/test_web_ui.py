@@ -33,6 +33,7 @@ from telebot.config import CallSettings, ServiceSettings, SimSettings
 from telebot.identity import ContactBook, Identity, KnownRobots, Role, create_paired_homes
 from telebot.robot.grid import OccupancyGrid
 from telebot.robot.sim.stack import SimNavStack
+from telebot.services.base import ServiceConfig
 from telebot.services.client import RobotClient
 from telebot.services.robot import RobotServer
 from telebot.services.safety.robot import SafetyDriver
@@ -68,7 +69,7 @@ class Rig:
     audit: Path
     #: Wall-clock times (s) at which the base's velocity became zero by a stop.
     zeroed: list[float] = field(default_factory=list)
-    #: The robot's server (its follow-me service: ``server.follow``).
+    #: The robot's server (its follow-me: ``rig.robot_drive(server).follow``).
     server: RobotServer | None = None
 
     def stops(self) -> list[tuple[str, str]]:
@@ -125,7 +126,9 @@ async def robot_rig(
         control_hz=settings.control_hz,
         map_name="small",
         safety=safety,
-        video=VideoSettings(width=320, height=240, max_fps=15, quality=70, min_quality=30),
+        config=ServiceConfig(
+            video=VideoSettings(width=320, height=240, max_fps=15, quality=70, min_quality=30)
+        ),
     )
     await server.prepare()
     hub = MemoryHub(seed=7)

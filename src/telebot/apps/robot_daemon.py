@@ -22,6 +22,7 @@ from telebot.errors import RobotError
 from telebot.gateway.robot import robot_gateway
 from telebot.identity import ContactBook, Identity
 from telebot.robot import create_robot
+from telebot.services.base import ServiceConfig
 from telebot.services.media.robot import install_robot_media, media_settings, media_video_settings
 from telebot.services.recording import Recorder
 from telebot.services.registry import robot_services
@@ -135,20 +136,22 @@ async def serve_robot(
                 map_name=map_label,
                 emit=emit,
                 safety=safety,
-                video=VideoSettings(
-                    width=config.video.width,
-                    height=config.video.height,
-                    max_fps=config.video.max_fps,
-                    quality=config.video.quality,
-                    min_quality=min(30, config.video.quality),
-                    adaptive=config.video.adaptive,
-                    **media_video_settings(config.media, simulated=simulated),
-                ),
                 services=services,
-                relay=config.relay,
-                follow=config.follow,
-                drive=config.drive,
-                people_settings=config.people,
+                config=ServiceConfig(
+                    video=VideoSettings(
+                        width=config.video.width,
+                        height=config.video.height,
+                        max_fps=config.video.max_fps,
+                        quality=config.video.quality,
+                        min_quality=min(30, config.video.quality),
+                        adaptive=config.video.adaptive,
+                        **media_video_settings(config.media, simulated=simulated),
+                    ),
+                    relay=config.relay,
+                    people=config.people,
+                    follow=config.follow,
+                    drive=config.drive,
+                ),
             )
             media = install_robot_media(server, media_settings(config.media, simulated=simulated))
             await server.prepare()

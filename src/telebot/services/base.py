@@ -26,6 +26,12 @@ registration line; in code, one :meth:`ServiceRegistry.register` call::
     services.register("echo", Echo)
     server = RobotServer(nav, services=services)
 
+A service's settings are its section of the robot's config (``[drive]``, ``[relay]``…): the
+robot holds one :class:`ServiceConfig` and each service reads its own section from it
+(``host.config.get("drive", DriveSettings)``), so the robot takes no argument per service.
+A service that moves the robot (driving by hand, follow-me) is a :class:`MotionService`
+too: the robot halts it before an emergency stop and tells it every safety change.
+
 On the user's side a call may be replaced: when the link drops, the client calls the
 robot again (see :mod:`telebot.services.client`) and opens every registered service on
 the new call after closing the old call's. So what a user subscribes to (``async for``
@@ -46,7 +52,7 @@ import importlib
 import logging
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Generic, Literal, Protocol, TypeVar, cast
+from typing import TYPE_CHECKING, Any, Generic, Literal, Protocol, TypeVar, cast, runtime_checkable
 
 if TYPE_CHECKING:
     from telebot.channels.call import Call
@@ -58,8 +64,10 @@ __all__ = [
     "ClientHost",
     "HostService",
     "HostedServices",
+    "MotionService",
     "OpenServices",
     "RobotHost",
+    "ServiceConfig",
     "ServiceFactory",
     "ServiceRegistry",
     "ServiceSpec",
@@ -75,6 +83,35 @@ H = TypeVar("H")
 T = TypeVar("T")
 
 
+class ServiceConfig:
+    """The services' settings by config section (``[video]``, ``[relay]``, ``[drive]``…).
+
+    A service reads its own section with :meth:`get`; a section not given is the settings
+    class's defaults. ``ServiceConfig(drive=DriveSettings(stale_after=0.5))``.
+    """
+
+    def __init__(self, **sections: object) -> None:
+        self._sections = dict(sections)
+
+    def get(self, section: str, kind: type[T]) -> T:
+        """Section ``section`` (a ``kind``; ``kind()`` when not given).
+
+        A section of another type is a TypeError naming it (a wiring mistake, not input).
+        """
+        value = self._sections.get(section)
+        if value is None:
+            return kind()
+        if not isinstance(value, kind):
+            raise TypeError(
+                f"[{section}] is a {type(value).__name__}, the service wants a {kind.__name__}"
+            )
+        return value
+
+    def sections(self) -> list[str]:
+        """The sections given."""
+        return list(self._sections)
+
+
 class RobotHost(Protocol):
     """What a robot-side service may use of the robot (:class:`~telebot.services.robot.RobotServer`
     is one): never more, so a service runs on any host that gives these."""
@@ -88,9 +125,19 @@ class RobotHost(Protocol):
     #: The safety supervisor's driver (:class:`~telebot.services.safety.robot.SafetyDriver`),
     #: None on a robot run without one.
     safety: Any
+    #: The services' settings, a section each (see :class:`ServiceConfig`).
+    config: ServiceConfig
 
     def now(self) -> float:
         """The robot's clock (the event loop's)."""
+        ...
+
+    def service(self, name: str) -> HostService[Any] | None:
+        """The robot's host service ``name``, if registered (one service's use of another)."""
+        ...
+
+    def emergency_stop(self, reason: str) -> None:
+        """Stop the robot now and latch the stop (every :class:`MotionService` halted first)."""
         ...
 
     def safety_status(self) -> Any:
@@ -156,6 +203,25 @@ class HostService(Generic[H]):
 
     def close(self) -> None:
         """The host is closing."""
+
+
+@runtime_checkable
+class MotionService(Protocol):
+    """A robot's host service that moves the robot (driving by hand and follow-me).
+
+    Fail-safe hooks the robot calls, each guarded: :meth:`halt` before it stops the robot
+    (an emergency, or a stop with no supervisor to latch it), so the service cannot drive
+    again after the stop; :meth:`safety_changed` on every change of the supervisor's state,
+    before anyone hears of it.
+    """
+
+    def halt(self, text: str) -> None:
+        """End every motion this service commands (``text``: why, as users read it)."""
+        ...
+
+    def safety_changed(self, state: Any) -> None:
+        """The supervisor's state changed (a :class:`~telebot.safety.SafetyState`)."""
+        ...
 
 
 class _PerCall(HostService[H]):
@@ -259,13 +325,23 @@ class OpenServices:
 
 
 class HostedServices(Generic[H]):
-    """The services of one host (made by :meth:`ServiceRegistry.start`), by name."""
+    """The services of one host (made by :meth:`ServiceRegistry.start`), by name.
 
-    def __init__(self, registry: ServiceRegistry[H], host: H) -> None:
+    ``start=False`` makes none yet: the host keeps this first and then calls :meth:`start`,
+    so that a service starting may find the ones started before it (``host.service(name)``).
+    """
+
+    def __init__(self, registry: ServiceRegistry[H], host: H, *, start: bool = True) -> None:
         self._registry = registry
         self._host = host
         self._services: dict[str, HostService[H]] = {}
         self.closed = False
+        if start:
+            self.start()
+
+    def start(self) -> None:
+        """Make and start every registered service (a failing one is raised, the others
+        closed)."""
         try:
             self.catch_up()
         except BaseException:
@@ -283,6 +359,9 @@ class HostedServices(Generic[H]):
     def get(self, name: str) -> HostService[H] | None:
         """The host service ``name``, if registered."""
         return self._services.get(name)
+
+    def __iter__(self) -> Iterator[HostService[H]]:
+        return iter(list(self._services.values()))
 
     def names(self) -> list[str]:
         """The names, in registration order."""

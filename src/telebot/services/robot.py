@@ -6,8 +6,11 @@ simulation's clock; a robot that runs by itself is not stepped). Each call gets 
 service of the server's :class:`~telebot.services.base.ServiceRegistry`
 (:func:`~telebot.services.registry.robot_services`: ``core``, the :class:`CallServices` of chat, map, pose,
 goals, telemetry and safety; ``video``; ``plan``, the planned path and named places;
-``people``, tracked people and alerts),
-ticked on every cycle and closed when the call ends. The map is encoded once per
+``people``, tracked people and alerts; ``drive``, driving by hand and follow-me …),
+ticked on every cycle and closed when the call ends. Each service reads its settings from
+its section of the server's :class:`~telebot.services.base.ServiceConfig`; the server
+itself takes only the robot, its own ``[services]`` settings, its loop's rate, its map's
+name, where events go and the safety supervisor. The map is encoded once per
 :meth:`~telebot.robot.nav.NavStack.map_version` (:meth:`RobotServer.encoded_map`): a map
 that changes (SLAM) is served fresh, and each call's telemetry carries the version so users
 know to fetch it again. Every handler is guarded: garbage from one peer is dropped and
@@ -28,25 +31,33 @@ from typing import TYPE_CHECKING, Any, TypeVar, cast
 from telebot.channels.call import Call, RobotEndpoint
 from telebot.channels.channel import Channel, ReceivedDatagram
 from telebot.channels.transports.base import Lane
-from telebot.config import (
-    DriveSettings,
-    FollowSettings,
-    PeopleSettings,
-    RelaySettings,
-    ServiceSettings,
-)
+from telebot.config import RelaySettings, ServiceSettings
 from telebot.errors import ProtocolError, TelebotError
 from telebot.identity import Role
 from telebot.reasons import Reason, Refusal
 from telebot.rights import Right, may
-from telebot.robot.nav import GoalHandle, GoalStatus, NavStack, PoseNotifier, SteppedNavStack
-from telebot.robot.perception.runner import PeoplePerception
+from telebot.robot.nav import (
+    GoalHandle,
+    GoalStatus,
+    NavStack,
+    NavStatus,
+    PoseNotifier,
+    SteppedNavStack,
+)
 from telebot.safety import SafetyState
-from telebot.services.base import HostedServices, OpenServices, RobotHost, ServiceRegistry
+from telebot.services.base import (
+    HostedServices,
+    HostService,
+    MotionService,
+    OpenServices,
+    RobotHost,
+    ServiceConfig,
+    ServiceRegistry,
+)
 from telebot.services.chat.robot import NO_SUPERVISOR, ChatSession, error_reason, goal_reason
 from telebot.services.chat.wire import CHAT, ChatReply, decode_request
-from telebot.services.drive.follow import CallFollow, FollowService, TrackSource
-from telebot.services.drive.robot import DriveService
+from telebot.services.drive.follow import CallFollow
+from telebot.services.drive.robot import RobotDrive
 from telebot.services.mapxfer import MAP
 from telebot.services.mapxfer.robot import MapService
 from telebot.services.mapxfer.wire import MAX_MAP_VERSION, EncodedMap, encode_map
@@ -119,6 +130,9 @@ class CallServices:
         self._telemetry_channel = call.channel(TELEMETRY, lane=Lane.DATA, latest_only=True)
         self._safety_channel = call.channel(SAFETY, lane=Lane.CONTROL)
         self.gate = server.safety.gate(call.id) if server.safety is not None else None
+        drive = server.hosted.get("drive")
+        #: The robot's follow-me (None on a robot without the ``drive`` service).
+        self.follow = drive.follow if isinstance(drive, RobotDrive) else None
         self.chat = ChatSession(
             nav,
             role=call.role,
@@ -126,8 +140,8 @@ class CallServices:
             user=call.peer,
             gate=self.gate,
             map_offer=server.encoded_map,
-            relay=server.relay_settings,
-            follow=CallFollow(server.follow, call.id, server.now),
+            relay=server.config.get("relay", RelaySettings),
+            follow=CallFollow(self.follow, call.id, server.now) if self.follow else None,
         )
         self.map = MapService(call.channel(MAP, lane=Lane.BULK), server.encoded_map)
         # The first tick publishes both at once (a new user sees the robot straight away).
@@ -191,10 +205,7 @@ class CallServices:
         if self.gate is not None:
             self.gate.stop(how=how or "unspecified")
         else:
-            with contextlib.suppress(Exception):
-                self.server.follow.unfollow()  # no supervisor to end a follow-me …
-            with contextlib.suppress(Exception):  # … or driving by hand
-                self.server.drive.end(Reason.STOPPED, "stopped", self.server.now())
+            self.server.halt_motion("stopped")  # no supervisor to end a follow-me or driving
             self.server.nav.stop()
 
     def send_safety_state(self, state: SafetyStatus) -> None:
@@ -358,6 +369,9 @@ class CallServices:
                     self._goals[goal_id] = self._goal_update(goal_id)
                     self._send_goal_status(goal_id, force=True)
 
+    def _status(self, status: NavStatus) -> NavStatus:
+        return self.follow.status(status) if self.follow is not None else status
+
     def publish_pose(self) -> None:
         """Send the pose estimate, velocity and state (latest only)."""
         nav = self.server.nav
@@ -365,7 +379,7 @@ class CallServices:
         velocity = nav.velocity()
         # While following, the robot is moving even as it waits for the person: a key in
         # the terminal chat must stop it then too.
-        status = self.server.follow.status(nav.status())
+        status = self._status(nav.status())
         goal = nav.current_goal()
         cov = estimate.covariance
         update = PoseUpdate(
@@ -386,7 +400,7 @@ class CallServices:
         """Send battery, state, goal, camera, link quality and diagnostics."""
         nav = self.server.nav
         battery = nav.battery()
-        status = self.server.follow.status(nav.status())
+        status = self._status(nav.status())
         goal = nav.current_goal()
         rtt = self.call.stats.rtt
         safety = self.server.safety_status()
@@ -453,7 +467,8 @@ class RobotVideo:
     """The ``video`` service of one call: a :class:`VideoSender` of the active camera."""
 
     def __init__(self, server: RobotServer, call: Call) -> None:
-        self.sender = VideoSender.for_call(call, server.nav, server.video_settings)
+        settings = server.config.get("video", VideoSettings)
+        self.sender = VideoSender.for_call(call, server.nav, settings)
         safety = server.safety
         if safety is not None:  # no driving blind: the supervisor follows the pictures
             self.sender.on_report = lambda report: safety.video_report(call, report)
@@ -491,22 +506,17 @@ class RobotServer:
         map_name: str = "map",
         emit: EventSink | None = None,
         safety: SafetyDriver | None = None,
-        video: VideoSettings | None = None,
         services: ServiceRegistry[Any] | None = None,
-        relay: RelaySettings | None = None,
-        follow: FollowSettings | None = None,
-        people: TrackSource | None = None,
-        people_settings: PeopleSettings | None = None,
-        drive: DriveSettings | None = None,
+        config: ServiceConfig | None = None,
     ) -> None:
+        """``settings``: ``[services]`` (pose and telemetry rates); ``services``: what every
+        call gets; ``config``: each service's section (``[video]``, ``[relay]``,
+        ``[people]``, ``[follow]``, ``[drive]``…; defaults where not given)."""
         self.nav = nav
         #: The robot's name (its identity's, from :meth:`attach` on).
         self.name = "robot"
-        #: Person detection and tracking (``[people]``), stepped with the robot; the
-        #: ``people`` service streams its tracks and alerts.
-        self.perception = PeoplePerception(nav, people_settings)
-        #: Who may relay which topics, and the relay's limits (``[relay]`` of the config).
-        self.relay_settings = relay if relay is not None else RelaySettings()
+        #: The services' settings, a section each.
+        self.config = config if config is not None else ServiceConfig()
         #: What every call gets (:func:`~telebot.services.registry.robot_services` unless
         #: given); one registered later opens from the next call on.
         self.registry: ServiceRegistry[Any] = services if services is not None else robot_services()
@@ -514,23 +524,9 @@ class RobotServer:
         self.chat_listeners: list[Callable[[Call, ChatReply], None]] = []
         # Decided once: a robot that runs by itself has no step() and is not stepped.
         self._step = nav.step if isinstance(nav, SteppedNavStack) else None
-        self.video_settings = video if video is not None else VideoSettings()
         #: The safety supervisor's driver; None runs the robot without one (tests of the
         #: services alone): then nothing latches and roles alone decide who may drive.
         self.safety = safety
-        #: Follow-me (the ``follow`` command) on the people tracker's tracks (``people``
-        #: replaces them: a test's perfect tracker).
-        self.follow = FollowService(
-            nav,
-            follow,
-            people=people if people is not None else self.perception,
-            safety_state=safety.state if safety is not None else None,
-            watchdog_stops=(lambda: safety.watchdog_stops) if safety is not None else None,
-        )
-        #: Driving by hand (the ``drive`` channel), ticked after the follow.
-        self.drive = DriveService(nav, drive, safety=safety, follow=self.follow)
-        if safety is not None:
-            safety.on_state = self._broadcast_safety
         self.settings = settings if settings is not None else ServiceSettings()
         self.control_hz = control_hz
         self.map_name = map_name
@@ -555,7 +551,10 @@ class RobotServer:
             # not at the next control cycle (up to 1/control_hz late), pose_hz still the cap.
             nav.add_pose_listener(self._pose_arrived)
         #: The services of this robot (each registered service once: see HostService).
-        self.hosted: HostedServices[Any] = self.registry.start(self)
+        self.hosted: HostedServices[Any] = HostedServices(self.registry, self, start=False)
+        self.hosted.start()  # kept first: a service may find those started before it
+        if safety is not None:
+            safety.on_state = self._broadcast_safety
 
     def _pose_arrived(self) -> None:
         """From any thread: wake the loop once to send the new pose (coalesced)."""
@@ -574,6 +573,17 @@ class RobotServer:
     def now(self) -> float:
         """The robot's clock (the event loop's)."""
         return self._loop.time()
+
+    def service(self, name: str) -> HostService[Any] | None:
+        """The robot's host service ``name``, if registered."""
+        return self.hosted.get(name)
+
+    def halt_motion(self, text: str) -> None:
+        """Halt every :class:`~telebot.services.base.MotionService` (each guarded)."""
+        for service in self.hosted:
+            if isinstance(service, MotionService):
+                with contextlib.suppress(Exception):
+                    service.halt(text)
 
     def map_version(self) -> int:
         """The robot's map version as it travels (JSON-safe: wrapped into 0..2**53 − 1)."""
@@ -675,7 +685,6 @@ class RobotServer:
                 self._guarded(self.safety.leave, call)
             self._calls.pop(call.id, None)
             self._replaced.pop(call.id, None)
-            self._guarded(self.follow.call_ended, call.id)
             self.services.pop(call.id, None)
             opened = self.open.pop(call.id, None)
             if opened is not None:  # None: setting the services up failed
@@ -718,11 +727,10 @@ class RobotServer:
         log.info("call %s from %s (%s)", call.id, call.peer, call.role)
         return services
 
-    def _emergency(self, reason: str) -> None:
-        with contextlib.suppress(Exception):
-            self.follow.unfollow()  # first: a follow must not drive again after the stop
-        with contextlib.suppress(Exception):
-            self.drive.end(Reason.STOPPED, f"stopped: {reason}", self.now())
+    def emergency_stop(self, reason: str) -> None:
+        """Stop the robot now and latch the stop (every motion service halted first)."""
+        # First: a follow must not drive again after the stop.
+        self.halt_motion(f"stopped: {reason}")
         with contextlib.suppress(Exception):
             self.nav.stop()
         if self.safety is not None:
@@ -736,9 +744,10 @@ class RobotServer:
         return _status(self.safety.state())
 
     def _broadcast_safety(self, state: SafetyState) -> None:
-        # A stop or a hand-over ends a follow before anyone hears of it.
-        self._guarded(self.follow.safety_changed, state)
-        self._guarded(self.drive.safety_changed, state, self.now())
+        # A stop or a hand-over ends a follow (driving) before anyone hears of it.
+        for service in self.hosted:
+            if isinstance(service, MotionService):
+                self._guarded(service.safety_changed, state)
         status = _status(state)
         for services in list(self.services.values()):
             self._guarded(services.send_safety_state, status)
@@ -757,28 +766,19 @@ class RobotServer:
                     # Fail safe: a broken step must not leave the base driving, and the stop
                     # latches like any other (a new motion needs a re-arm).
                     log.exception("robot step failed: stopping the robot")
-                    self._emergency("robot step failed")
+                    self.emergency_stop("robot step failed")
                 if self.safety is not None:
                     try:
                         self.safety.tick()
                     except Exception:
                         log.exception("safety tick failed: stopping the robot")
-                        self._emergency("safety tick failed")
+                        self.emergency_stop("safety tick failed")
                 self._guarded(self._reencode_changed_map)
-                self._guarded(self.perception.step, now)
-                try:
-                    # After the supervisor's tick (a stop latched there ends the follow first)
-                    # and the people tracker's step (the freshest tracks).
-                    self.follow.tick(now)
-                except Exception:
-                    log.exception("follow-me failed: stopping the robot")
-                    self._emergency("follow-me failed")
-                try:
-                    self.drive.tick(now)  # after the follow's: a follow just started wins
-                except Exception:
-                    log.exception("driving by hand failed: stopping the robot")
-                    self._emergency("driving by hand failed")
-                self.hosted.tick(now)  # each service guarded
+                # After the supervisor's tick (a stop latched there ends a follow first), in
+                # registration order: the people tracker's step before the drive's follow
+                # and driving (the freshest tracks). Each guarded; the drive's own failures
+                # stop the robot (emergency_stop).
+                self.hosted.tick(now)
                 for opened in list(self.open.values()):
                     opened.tick(now)  # each service guarded
                 next_step += period
@@ -788,8 +788,7 @@ class RobotServer:
                     delay = 0.0
                 await asyncio.sleep(max(delay, 0.0))
         finally:
-            self.hosted.close()
-            self.perception.close()  # its detector thread
+            self.hosted.close()  # the people tracker's detector thread too
 
     @staticmethod
     def _guarded(action: Callable[..., None], *args: Any) -> None:
@@ -800,14 +799,8 @@ class RobotServer:
 
 
 if TYPE_CHECKING:  # the server is a host every robot-side service may run on
-    from telebot.services.drive.robot import DriveHost
     from telebot.services.media.robot import MediaHost
-    from telebot.services.people.robot import PeopleHost
-    from telebot.services.relay.robot import RelayHost
 
     _SERVER = cast(RobotServer, None)
     _HOST: RobotHost = _SERVER
-    _DRIVE_HOST: DriveHost = _SERVER
     _MEDIA_HOST: MediaHost = _SERVER
-    _PEOPLE_HOST: PeopleHost = _SERVER
-    _RELAY_HOST: RelayHost = _SERVER

@@ -7,5 +7,5 @@ from telebot.services.base import ServiceSpec
 
 #: Its sides, loaded when a host starts (see :mod:`telebot.services.registry`).
 SERVICE = ServiceSpec(
-    robot="telebot.services.drive.robot:CallDrive", user="telebot.services.client:ClientDrive"
+    robot="telebot.services.drive.robot:RobotDrive", user="telebot.services.client:ClientDrive"
 )

@@ -27,7 +27,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Sequence
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -65,6 +65,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 
+@runtime_checkable
 class TrackSource(Protocol):
     """Where the tracks come from (the people tracker's ``PeopleSource``)."""
 

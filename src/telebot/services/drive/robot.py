@@ -1,7 +1,12 @@
 """Driving by hand on the robot: the ``drive`` channel (``docs/protocol.md`` §27).
 
-One :class:`DriveService` per robot (one call drives at a time) and one :class:`CallDrive`
-per call (its channel, its newest ``seq``, what it was last told). The user's client sends
+:class:`RobotDrive` is the service on a robot (a :class:`~telebot.services.base.HostService`,
+registered as ``drive``): it holds the robot's follow-me and direct driving, reads their
+``[follow]`` and ``[drive]`` sections of the config, ticks them on every control cycle
+(follow first, then driving; a failing tick stops the robot and latches the stop) and
+opens one :class:`CallDrive` per call. One :class:`DriveService` per robot (one call drives
+at a time) and one :class:`CallDrive` per call (its channel, its newest ``seq``, what it
+was last told). The user's client sends
 velocity commands at 20 Hz while a key, stick or button is held; the robot obeys only while
 fresh ones arrive.
 
@@ -33,12 +38,13 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-from typing import TYPE_CHECKING, Protocol
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 from telebot.channels.transports.base import Lane
-from telebot.config import DriveSettings
+from telebot.config import DriveSettings, FollowSettings
 from telebot.errors import TelebotError
 from telebot.identity import Role
 from telebot.reasons import Reason, Refusal
@@ -57,8 +63,8 @@ from telebot.robot.nav import (
     NavState,
 )
 from telebot.safety import SafetyState
-from telebot.services.base import RobotHost
-from telebot.services.drive.follow import FollowService
+from telebot.services.base import HostService, RobotHost
+from telebot.services.drive.follow import FollowService, TrackSource
 from telebot.services.drive.wire import (
     DRIVE,
     DriveCommand,
@@ -73,7 +79,7 @@ if TYPE_CHECKING:
     from telebot.channels.call import Call
     from telebot.channels.channel import ReceivedDatagram
 
-__all__ = ["DRIVE_WHAT", "STATE_EVERY", "CallDrive", "DriveService"]
+__all__ = ["DRIVE_WHAT", "STATE_EVERY", "CallDrive", "DriveService", "RobotDrive"]
 
 log = logging.getLogger(__name__)
 
@@ -118,21 +124,82 @@ class DriveSafety(Protocol):
         ...
 
 
-class DriveHost(RobotHost, Protocol):
-    """What a call's drive uses of the robot: the robot's :class:`DriveService` too."""
+class RobotDrive(HostService[RobotHost]):
+    """The ``drive`` service on a robot: its follow-me and its driving by hand.
 
-    drive: DriveService
+    A :class:`~telebot.services.base.MotionService`: the robot halts it before an emergency
+    stop and tells it each safety change. Follow-me follows the tracks of the robot's
+    ``people`` service (None without one: ``follow`` is then refused).
+    """
+
+    def __init__(self, host: RobotHost) -> None:
+        super().__init__(host)
+        safety = host.safety
+        #: Follow-me (the ``follow`` command, ``[follow]``).
+        self.follow = FollowService(
+            host.nav,
+            host.config.get("follow", FollowSettings),
+            safety_state=safety.state if safety is not None else None,
+            watchdog_stops=(lambda: safety.watchdog_stops) if safety is not None else None,
+        )
+        #: Driving by hand (the ``drive`` channel, ``[drive]``), ticked after the follow.
+        self.drive = DriveService(
+            host.nav, host.config.get("drive", DriveSettings), safety=safety, follow=self.follow
+        )
+
+    def start(self) -> None:
+        """Follow the people the robot's ``people`` service tracks (if it has one)."""
+        people = self.host.service("people")
+        if isinstance(people, TrackSource):
+            self.follow.people = people
+
+    def tick(self, now: float) -> None:
+        """One control cycle, after the supervisor's tick and the people tracker's step:
+        the follow first, then driving (a follow just started wins); a failure stops the
+        robot and latches the stop."""
+        try:
+            self.follow.tick(now)
+        except Exception:
+            log.exception("follow-me failed: stopping the robot")
+            self.host.emergency_stop("follow-me failed")
+        try:
+            self.drive.tick(now)
+        except Exception:
+            log.exception("driving by hand failed: stopping the robot")
+            self.host.emergency_stop("driving by hand failed")
+
+    def open(self, call: Call) -> CallDrive:
+        """The ``drive`` channel of ``call``."""
+        return CallDrive(self.drive, call, self.host.now)
+
+    def halt(self, text: str) -> None:
+        """End a follow (first: it must not drive again after the stop), then driving."""
+        with contextlib.suppress(Exception):
+            self.follow.unfollow()
+        with contextlib.suppress(Exception):
+            self.drive.end(Reason.STOPPED, text, self.host.now())
+
+    def safety_changed(self, state: Any) -> None:
+        """A stop or a hand-over ends a follow and driving before anyone hears of it."""
+        try:
+            self.follow.safety_changed(state)
+        except Exception:
+            log.exception("follow-me: safety change failed")
+        try:
+            self.drive.safety_changed(state, self.host.now())
+        except Exception:
+            log.exception("driving by hand: safety change failed")
 
 
 class CallDrive:
     """The ``drive`` service of one call: decodes its commands, sends its drive states."""
 
-    def __init__(self, server: DriveHost, call: Call) -> None:
-        self.service = server.drive
+    def __init__(self, service: DriveService, call: Call, clock: Callable[[], float]) -> None:
+        self.service = service
         self.call = call
         self.call_id = call.id
         self.role = call.role
-        self._clock = server.now
+        self._clock = clock
         self.channel = call.channel(DRIVE, lane=Lane.CONTROL)
         #: The newest ``seq`` taken from this call (None before the first command).
         self.seq: int | None = None
@@ -188,8 +255,14 @@ class CallDrive:
             self._send(self.service.state_of(self))
 
     def close(self) -> None:
-        """The call ended: its driving ends (the robot stops)."""
+        """The call ended: its follow and its driving end (the robot stops)."""
         self.channel.set_callback(None)
+        follow = self.service.follow
+        if follow is not None:
+            try:
+                follow.call_ended(self.call_id)
+            except Exception:
+                log.exception("follow-me: ending the call's follow failed")
         self.service.detach(self, self._clock())
 
     def _send(self, state: DriveState) -> None:

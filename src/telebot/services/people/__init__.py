@@ -7,5 +7,5 @@ from telebot.services.base import ServiceSpec
 
 #: Its sides, loaded when a host starts (see :mod:`telebot.services.registry`).
 SERVICE = ServiceSpec(
-    robot="telebot.services.people.robot:PeopleService", user="telebot.services.client:open_people"
+    robot="telebot.services.people.robot:RobotPeople", user="telebot.services.client:open_people"
 )

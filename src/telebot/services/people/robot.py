@@ -1,11 +1,12 @@
 """The ``people`` service: tracked people and alerts about them, robot → user at 5 Hz.
 
-On the robot, :class:`PeopleService` (registered as ``people`` by
-:func:`~telebot.services.registry.robot_services`) sends each call a ``people`` message
-``stream_hz`` times a second (``[people]`` of the config) with the confirmed tracks of the
-robot's :class:`~telebot.robot.perception.runner.PeoplePerception`, and each new alert a few
-times (:data:`ALERT_REPEATS`, same ``seq``: the channel is lossy). The perception itself runs
-once per robot, from the server's control loop, not per call.
+On the robot, :class:`RobotPeople` (registered as ``people`` by
+:func:`~telebot.services.registry.robot_services`) runs the robot's
+:class:`~telebot.robot.perception.runner.PeoplePerception` (``[people]`` of the config) once
+per robot, stepped on every control cycle (before follow-me reads its tracks), and opens a
+:class:`PeopleService` on each call: it sends a ``people`` message ``stream_hz`` times a
+second with the confirmed tracks, and each new alert a few times (:data:`ALERT_REPEATS`,
+same ``seq``: the channel is lossy).
 
 On the user's side, :class:`PeopleReceiver` hands updates and each alert once to the client
 (:meth:`RobotClient.people <telebot.services.client.RobotClient.people>`,
@@ -17,13 +18,16 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING
 
 from telebot.channels.channel import ReceivedDatagram
 from telebot.channels.transports.base import Lane
+from telebot.config import PeopleSettings
 from telebot.errors import TelebotError
 from telebot.robot.nav import normalize_angle
-from telebot.services.base import RobotHost
+from telebot.robot.perception.runner import PeoplePerception
+from telebot.robot.perception.tracks import PersonTrack
+from telebot.services.base import HostService, RobotHost
 from telebot.services.people.wire import (
     MAX_SEQ,
     PEOPLE,
@@ -34,9 +38,8 @@ from telebot.services.people.wire import (
 
 if TYPE_CHECKING:
     from telebot.channels.call import Call
-    from telebot.robot.perception.runner import PeoplePerception
 
-__all__ = ["ALERT_REPEATS", "PeopleService"]
+__all__ = ["ALERT_REPEATS", "PeopleService", "RobotPeople"]
 
 log = logging.getLogger(__name__)
 
@@ -44,17 +47,36 @@ log = logging.getLogger(__name__)
 ALERT_REPEATS = 3
 
 
-class PeopleHost(RobotHost, Protocol):
-    """What the people service uses of the robot: its people tracker too."""
+class RobotPeople(HostService[RobotHost]):
+    """The ``people`` service on a robot: its people tracker, and each call's stream."""
 
-    perception: PeoplePerception
+    def __init__(self, host: RobotHost) -> None:
+        super().__init__(host)
+        #: Person detection and tracking (``[people]``), stepped with the robot.
+        self.perception = PeoplePerception(host.nav, host.config.get("people", PeopleSettings))
+
+    def tracks(self) -> list[PersonTrack]:
+        """The people tracked now (what follow-me follows)."""
+        return self.perception.tracks()
+
+    def tick(self, now: float) -> None:
+        """Look at the sensors' new data."""
+        self.perception.step(now)
+
+    def open(self, call: Call) -> PeopleService:
+        """The ``people`` stream of ``call``."""
+        return PeopleService(self.perception, self.host, call)
+
+    def close(self) -> None:
+        """Stop the detector thread."""
+        self.perception.close()
 
 
 class PeopleService:
     """The robot's ``people`` service on one call (see the module docstring)."""
 
-    def __init__(self, server: PeopleHost, call: Call) -> None:
-        self.perception = server.perception
+    def __init__(self, perception: PeoplePerception, server: RobotHost, call: Call) -> None:
+        self.perception = perception
         self.call = call
         self.channel = call.channel(PEOPLE, lane=Lane.DATA)
         self.channel.set_callback(self._on_datagram)

@@ -40,7 +40,7 @@ import threading
 import time
 from collections import OrderedDict, deque
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING
 
 from telebot.channels.channel import ReceivedDatagram
 from telebot.channels.transports.base import Lane
@@ -156,19 +156,13 @@ class _Relay:
             return bool(self._queue)
 
 
-class RelayHost(RobotHost, Protocol):
-    """What the relay uses of the robot: its ``[relay]`` settings too."""
-
-    relay_settings: RelaySettings
-
-
 class RelayService:
     """The robot's ``relay`` service on one call (see the module docstring)."""
 
-    def __init__(self, server: RelayHost, call: Call) -> None:
+    def __init__(self, server: RobotHost, call: Call) -> None:
         self.call = call
         self.server = server
-        self.settings: RelaySettings = server.relay_settings
+        self.settings = server.config.get("relay", RelaySettings)
         nav = server.nav
         self.source: TopicSource | None = nav if isinstance(nav, TopicSource) else None
         self.control = call.channel(RELAY, lane=Lane.DATA)
