@@ -18,7 +18,6 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import cv2
@@ -887,9 +886,8 @@ async def test_driving_by_hand_publishes_cmd_vel_within_the_cap_and_the_laser_s_
 ) -> None:
     """The ``drive`` service on a ROS 2 robot: cmd_vel, capped, braking before what the
     laser sees (no scan: no driving ahead), and a release streams zeros."""
-    server = SimpleNamespace(drive=DriveService(stack), now=lambda: 0.0)
     call = FakeCall("c1", "alice", Role.DRIVER)
-    CallDrive(server, call)  # type: ignore[arg-type]
+    CallDrive(DriveService(stack), call, lambda: 0.0)  # type: ignore[arg-type]
     channel = call.channels["drive"]
 
     def linear() -> list[float]:
