@@ -351,6 +351,11 @@ class Ros2NavStack(NavStackBase):
         self._goal: Ros2Goal | None = None
         self._last_goal: Ros2Goal | None = None
         self._stops = 0
+        # A stop's cancel-alls not answered yet, and the goal sent after it, held until they
+        # are: ROS 2 keeps no order between the cancel_goal and send_goal services, so a
+        # goal sent at once could reach Nav2 first and be cancelled by the stop before it.
+        self._cancels_unanswered = 0
+        self._held: Callable[[], None] | None = None
         self._cameras: dict[str, _Camera] = {
             name.lower(): _Camera(name.lower(), topic) for name, topic in settings.cameras.items()
         }
@@ -1171,11 +1176,26 @@ class Ros2NavStack(NavStackBase):
             if goal is not None:
                 goal._finish(GoalStatus.CANCELLED, why, code)
                 self._retire(goal)
+            self._held = None  # a goal held behind an earlier stop ended with this one
         for kind, client in self._clients.items():
+            with self._lock:
+                self._cancels_unanswered += 1
             try:
-                client.cancel_all()
+                client.cancel_all(on_done=self._cancel_answered)
             except Exception as exc:  # one action's trouble must not keep the others running
+                self._cancel_answered(-1, [], str(exc))
                 log.warning("cancelling all %s goals failed: %s", self._actions[kind][0], exc)
+
+    def _cancel_answered(self, code: int, canceling: list[bytes], why: str) -> None:
+        """A stop's cancel-all was answered (or timed out): send a goal held behind it."""
+        del code, canceling, why
+        with self._lock:
+            self._cancels_unanswered = max(0, self._cancels_unanswered - 1)
+            held = self._held if self._cancels_unanswered == 0 else None
+            if held is not None:
+                self._held = None
+        if held is not None:
+            held()
 
     def _publish_zero(self) -> None:
         if self._settings.twist_stamped:
@@ -1235,18 +1255,32 @@ class Ros2NavStack(NavStackBase):
         # of another action must be cancelled, or two servers would drive at once.
         if previous is not None and previous.kind != goal.kind and previous.ros_id is not None:
             self._cancel_remote(previous)
-        try:
-            ros_id = client.send_goal(
-                message,
-                on_accepted=lambda gid, ok: self._on_accepted(goal, gid, ok),
-                on_feedback=lambda fb: self._on_feedback(goal, fb),
-                on_result=lambda status, result, text: self._on_result(goal, status, result, text),
-            )
-        except Exception as exc:
-            self._end(goal, GoalStatus.FAILED, f"{goal.description} not sent: {exc}", Reason.FAILED)
-            return goal
+
+        def transmit() -> None:
+            if goal.status.done:  # stopped or replaced while it was held
+                return
+            try:
+                ros_id = client.send_goal(
+                    message,
+                    on_accepted=lambda gid, ok: self._on_accepted(goal, gid, ok),
+                    on_feedback=lambda fb: self._on_feedback(goal, fb),
+                    on_result=lambda status, result, text: self._on_result(
+                        goal, status, result, text
+                    ),
+                )
+            except Exception as exc:
+                reason = f"{goal.description} not sent: {exc}"
+                self._end(goal, GoalStatus.FAILED, reason, Reason.FAILED)
+                return
+            with self._lock:
+                goal.ros_id = bytes(ros_id)
+
         with self._lock:
-            goal.ros_id = bytes(ros_id)
+            hold = self._cancels_unanswered > 0
+            if hold:
+                self._held = transmit
+        if not hold:
+            transmit()
         return goal
 
     def _end(self, goal: Ros2Goal, status: GoalStatus, reason: str, code: Reason) -> None:
