@@ -121,6 +121,7 @@ async def _warm_up(publisher: Publisher, recorder: Recorder, contract: Contract)
     async with asyncio.timeout(contract.timeout):
         while not recorder.batches:
             publisher.put(_WARM_UP)
+            recorder._changed.clear()
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(0.05):
                     await recorder._changed.wait()
@@ -358,6 +359,10 @@ async def check_close_semantics(pair: PairFactory, contract: Contract) -> None:
         async with asyncio.timeout(contract.timeout):
             while b"witness" not in witness.payloads:
                 publisher.put(b"witness")
+                # Cleared each turn: a frame that is not the witness ("later", which a
+                # fresh subscription may see) must not leave the wait below returning at
+                # once, a loop that never yields and so never hears the witness.
+                witness._changed.clear()
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(0.05):
                         await witness._changed.wait()
