@@ -1,24 +1,5 @@
-"""Map transfer over a call's "map" channel: the robot's :class:`MapService`, the user's
-:func:`fetch_map`.
-
-The protocol itself (PNG encoding, offer, chunks, resends, hash) is sans-IO in
-:mod:`telebot.services.mapxfer.wire`; this module only moves its datagrams and keeps time
-with the event loop. Neither side starts a task: the robot is driven by the channel's
-callback and loop timers, the user by the awaiting coroutine, so nothing is left running
-behind a call.
-
-Robot::
-
-    service = MapService.attach(call, lambda: encoded)   # cache-friendly provider
-
-User::
-
-    download = await fetch_map(map_channel(call), progress=bar.update)
-    download.save(Path("map.png"))                        # map.png + map.yaml
-
-A map that changes (SLAM) is followed: every transfer sends the map as it is at the
-request, ``download.version`` says which version that was, and the robot's telemetry
-carries the current ``map_version``; when the two differ, fetch again.
+"""The user's side of map transfer: :func:`fetch_map` and :class:`MapDownload` (see the
+service's overview in :mod:`telebot.services.mapxfer`).
 """
 
 from __future__ import annotations
