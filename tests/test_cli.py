@@ -220,6 +220,7 @@ def test_contacts_add_and_remove_hold_the_lock_an_invite_redemption_holds(
         ("[transport]\nkind = 'smoke'\n", ["unknown transport 'smoke'", "memory", "zenoh"]),
         ("[transport.zenoh.options]\n'bogus/key' = 1\n", ["bogus/key"]),
         ("[robot]\nkidn = 'sim'\n", ["robot.kidn: unknown key"]),
+        ("[ros2]\nlease = 0\n", ["ros2.lease", "greater than or equal to 0.1"]),
     ],
 )
 def test_bad_config_gives_one_line_and_exit_2(

@@ -33,7 +33,9 @@ def ros2_robot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ros2NavStac
     try:
         line = sim.next_line(timeout=30)
         assert "serving map 'small' as ROS 2 robot on" in line, line
-        settings = {"router": [endpoint], "connect_timeout": 10.0 + SLACK}
+        # A long lease: a loaded machine can starve the link's keep-alives past the default
+        # 0.5 s, and the dropped link fails the running goal (test_ros2_e2e keeps 0.5 s).
+        settings = {"router": [endpoint], "connect_timeout": 10.0 + SLACK, "lease": 5.0}
         robot = Ros2NavStack.from_config(
             RobotConfig.model_validate({"robot": {"kind": "ros2"}, "ros2": settings})
         )

@@ -201,6 +201,9 @@ def config_for(endpoint: str, tmp_path: Path, **ros2: Any) -> RobotConfig:
         "cameras": {"front": "camera/front/compressed"},
         "places_file": "places.toml",
         "max_map_cells": 50_000,
+        # A loaded machine can starve the link's keep-alives past the default 0.5 s, and a
+        # dropped link fails the running goal (test_ros2_e2e checks the default lease).
+        "lease": 5.0,
     }
     settings.update(ros2)
     return RobotConfig.model_validate({"robot": {"kind": "ros2"}, "ros2": settings})

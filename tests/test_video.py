@@ -502,7 +502,26 @@ def test_video_log_records_a_shared_ring(tmp_path: Path, monkeypatch: pytest.Mon
 # --------------------------------------------------------------------------- zenoh flood
 
 FLOOD_PINGS = 20
+#: How long a stop's echo is awaited before the stop is sent again (s), and how many of a
+#: run's stops may need that (one lost datagram; a starved stop lane loses many).
+FLOOD_ECHO_WAIT = 3.0
+FLOOD_RESENDS = 1
 STOP = "stop"
+
+
+async def next_echo(
+    echoes: asyncio.Queue[ReceivedDatagram], payload: str, timeout: float
+) -> ReceivedDatagram | None:
+    """The echo of ``payload`` within ``timeout`` (earlier stops' late echoes skipped)."""
+    deadline = time.perf_counter() + timeout
+    while (left := deadline - time.perf_counter()) > 0:
+        try:
+            echo = await asyncio.wait_for(echoes.get(), left)
+        except TimeoutError:
+            return None
+        if echo.payload == payload:
+            return echo
+    return None
 
 
 class NoiseNav:
@@ -592,6 +611,7 @@ async def test_a_video_flood_does_not_hold_up_stop_commands(homes: Homes) -> Non
             await wait_until(lambda: fragments >= 200, 10.0)  # the flood is on
             before = fragments
             rtts: list[float] = []
+            resent = 0
             # At least FLOOD_PINGS stops, and on until 100 fragments came meanwhile: a
             # count, not a rate (a loaded machine encodes slower). Bounded all the same.
             while len(rtts) < FLOOD_PINGS or fragments - before < 100:
@@ -599,9 +619,16 @@ async def test_a_video_flood_does_not_hold_up_stop_commands(homes: Homes) -> Non
                 i = len(rtts)
                 sent = time.perf_counter()
                 stop.send(f"stop {i}")
-                echo = await asyncio.wait_for(echoes.get(), 5.0)
+                echo = await next_echo(echoes, f"stop {i}", FLOOD_ECHO_WAIT)
+                if echo is None:
+                    # The lane is lossy (its zenoh publisher drops rather than blocks
+                    # when the link is congested): one stop, or its echo, may be lost;
+                    # telebot's stops repeat for that. Sent again, it must come back.
+                    resent += 1
+                    stop.send(f"stop {i}")
+                    echo = await next_echo(echoes, f"stop {i}", FLOOD_ECHO_WAIT)
+                    assert echo is not None, f"stop {i} came back neither time"
                 rtts.append(time.perf_counter() - sent)
-                assert echo.payload == f"stop {i}"
                 await asyncio.sleep(0.02)
             during = fragments - before
             await call.hangup()
@@ -613,11 +640,12 @@ async def test_a_video_flood_does_not_hold_up_stop_commands(homes: Homes) -> Non
             child.kill()
             child.wait()
         child.stdout.close()
-    # Every stop came back while the video kept flowing.
+    # Every stop came back while the video kept flowing, at most one of them sent twice.
     assert during >= 100 and len(rtts) >= FLOOD_PINGS
+    assert resent <= FLOOD_RESENDS, f"{resent} of {len(rtts)} stops had to be sent again"
     print(
         f"stop round trip under a video flood: p50 {statistics.median(rtts) * 1000:.2f} ms, "
-        f"max {max(rtts) * 1000:.2f} ms; {during} video fragments meanwhile"
+        f"max {max(rtts) * 1000:.2f} ms; {during} video fragments meanwhile; {resent} resent"
     )
 
 

@@ -297,6 +297,10 @@ class Ros2Settings(StrictModel):
     node_name: str = Field(default="telebot", pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")
     #: How long start-up waits for the router and for Nav2's action servers (s).
     connect_timeout: float = Field(default=5.0, gt=0, le=120)
+    #: The zenoh link lease telebot's node announces to the router (s): a daemon that
+    #: freezes is dropped within it, and the base stops. Longer on a machine whose load
+    #: can starve the link's keep-alives for that long (a dropped link fails the goal).
+    lease: float = Field(default=0.5, ge=0.1, le=60)
     #: The map frame, and the robot's base frame (for tf when ``pose_topic`` is empty).
     map_frame: str = "map"
     base_frame: str = "base_link"

@@ -79,6 +79,8 @@ __all__ = [
 GOAL_TOLERANCE = 0.3
 #: How far a robot that must stay put may seem to move (m): localisation noise.
 STILL_TOLERANCE = 0.1
+#: How long a robot at rest must hold its pose before a motion check starts (s).
+SETTLE = 0.25
 #: Distance (m) of the goal :func:`nearby_free_point` looks for.
 GOAL_DISTANCE = 1.0
 #: How long a stop may take to end the running goal (s): a stop acts within a control
@@ -137,9 +139,20 @@ class Subject:
             waited += self.period
 
     async def at_rest(self) -> None:
-        """Stop the robot and wait until it stands (the start of each motion check)."""
+        """Stop the robot and wait until it stands (the start of each motion check): no
+        velocity, and a pose that holds still for :data:`SETTLE` seconds (a robot whose
+        pose arrives on its own topic may report rest before its last pose came)."""
         self.nav.stop()
         await self.wait_for(lambda: self.nav.velocity() == Velocity(), "the base comes to rest")
+        waited = 0.0
+        while True:
+            before = self.nav.pose().pose
+            await self.advance(SETTLE)
+            if self.nav.pose().pose.distance_to(before) < STILL_TOLERANCE / 4:
+                return
+            waited += SETTLE
+            if waited > self.timeout:
+                raise AssertionError(f"the pose settles: not within {self.timeout:g} s")
 
     def target(self) -> Pose2D:
         """Where a reachable goal goes now (see the class docstring)."""

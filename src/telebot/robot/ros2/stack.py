@@ -114,14 +114,13 @@ TIME_ALLOWANCE_MARGIN = 10.0
 RECOVERY_HOLD = 5.0
 #: Odometry speeds below these count as standing still (m/s, rad/s).
 STILL_LINEAR, STILL_ANGULAR = 0.01, 0.02
-#: The link lease telebot's node announces to the router (ms), and keep-alives per lease: the
-#: router drops a daemon that froze (SIGSTOP, a hung machine) within it, and with it the
-#: liveliness of its goals, so the base stops by itself (rmw_zenoh's default is 60 s). A
-#: daemon that died has its TCP link closed by the kernel and is dropped at once anyway.
-CLIENT_LEASE_MS = 500
+#: Keep-alives per link lease (``[ros2] lease``, 0.5 s by default): the router drops a daemon
+#: that froze (SIGSTOP, a hung machine) within the lease, and with it the liveliness of its
+#: goals, so the base stops by itself (rmw_zenoh's default lease is 60 s). A daemon that
+#: died has its TCP link closed by the kernel and is dropped at once anyway.
+CLIENT_KEEP_ALIVE = 4
 #: The lowest speed limit sent to Nav2 (m/s): its 0 means "no limit".
 NAV2_SLOWEST_LIMIT = 0.01
-CLIENT_KEEP_ALIVE = 4
 #: A laser scan older than this (s) is no scan: people detection and follow-me's clearance
 #: see nothing rather than a frozen picture (a laser publishes at 10–40 Hz).
 SCAN_STALE = 1.0
@@ -466,7 +465,7 @@ class Ros2NavStack(NavStackBase):
                 library=TypeLibrary(settings.distro),
                 connect_timeout=settings.connect_timeout,
                 zenoh_options={
-                    "transport/link/tx/lease": CLIENT_LEASE_MS,
+                    "transport/link/tx/lease": round(settings.lease * 1000),
                     "transport/link/tx/keep_alive": CLIENT_KEEP_ALIVE,
                 },
             )
