@@ -54,14 +54,19 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Generic, Literal, Protocol, TypeVar, cast, runtime_checkable
 
+from telebot.channels.transports.base import Lane
+from telebot.errors import ProtocolError
+
 if TYPE_CHECKING:
     from telebot.channels.call import Call
+    from telebot.channels.channel import ReceivedDatagram
     from telebot.robot.nav import NavStack
 
 __all__ = [
     "CLIENT_TICK",
     "CallService",
     "ClientHost",
+    "DatagramReceiver",
     "HostService",
     "HostedServices",
     "MotionService",
@@ -71,6 +76,7 @@ __all__ = [
     "ServiceFactory",
     "ServiceRegistry",
     "ServiceSpec",
+    "is_newer",
 ]
 
 log = logging.getLogger(__name__)
@@ -233,6 +239,58 @@ class _PerCall(HostService[H]):
 
     def open(self, call: Call) -> CallService:
         return self.factory(self.host, call)
+
+
+Message = TypeVar("Message")
+
+
+class DatagramReceiver(Generic[Message]):
+    """A user-side per-call service that only listens: each datagram of its one channel is
+    decoded and handed to :meth:`deliver`; one that does not decode is counted in
+    :attr:`rejected` (and the channel's stats) and dropped. Subclasses write ``deliver``."""
+
+    def __init__(
+        self,
+        call: Call,
+        channel: str,
+        decode: Callable[[str | bytes], Message],
+        *,
+        lane: Lane = Lane.DATA,
+    ) -> None:
+        self.channel = call.channel(channel, lane=lane)
+        self.channel.set_callback(self._on_datagram)
+        self._decode = decode
+        self._name = channel
+        #: Datagrams that did not decode (dropped).
+        self.rejected = 0
+
+    def deliver(self, message: Message) -> None:
+        """Hand on one decoded message (the subclass's part)."""
+        raise NotImplementedError
+
+    def tick(self, now: float) -> None:
+        """Nothing periodic: the robot streams and repeats."""
+
+    def close(self) -> None:
+        """Deliver nothing more from this call."""
+        self.channel.set_callback(None)
+
+    def _on_datagram(self, datagram: ReceivedDatagram) -> None:
+        try:
+            message = self._decode(datagram.payload)
+        except ProtocolError as exc:
+            self.rejected += 1
+            self.channel.stats.rejected += 1
+            log.debug("%s datagram dropped: %s", self._name, exc)
+            return
+        self.deliver(message)
+
+
+def is_newer(newest: int | None, seq: int) -> bool:
+    """Whether ``seq`` is newer than ``newest`` (None: nothing seen yet) on a lossy,
+    reordering channel: a repeat or one overtaken is not, and a seq that wrapped round to
+    a small number is (it cannot be 2**31 behind)."""
+    return newest is None or not (newest >= seq and newest - seq < 2**31)
 
 
 @dataclass(frozen=True, slots=True)
