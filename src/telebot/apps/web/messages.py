@@ -195,10 +195,9 @@ class Drive(_Message):
 
 
 @dataclass(frozen=True, slots=True)
-class Chat(_Message):
-    """A chat command (§14; `say TEXT` goes to the conference, §20)."""
+class _TextRequest(_Message):
+    """A line of text the page wants answered under its request ``id``."""
 
-    TYPE: ClassVar[str] = "chat"
     id: RequestId
     text: str
 
@@ -208,16 +207,17 @@ class Chat(_Message):
 
 
 @dataclass(frozen=True, slots=True)
-class Say(_Message):
+class Chat(_TextRequest):
+    """A chat command (§14; `say TEXT` goes to the conference, §20)."""
+
+    TYPE: ClassVar[str] = "chat"
+
+
+@dataclass(frozen=True, slots=True)
+class Say(_TextRequest):
     """A line to everyone in the robot's calls (§20)."""
 
     TYPE: ClassVar[str] = "say"
-    id: RequestId
-    text: str
-
-    @classmethod
-    def parse(cls, obj: Mapping[str, Any]) -> Self:
-        return cls(_request_id(obj, cls.TYPE), str(obj.get("text", "")))
 
 
 @dataclass(frozen=True, slots=True)
@@ -285,10 +285,9 @@ def _robot(obj: Mapping[str, Any], kind: str) -> str:
 
 
 @dataclass(frozen=True, slots=True)
-class OpenRobot(_Message):
-    """Open a robot's page (at `robot/NAME/`)."""
+class _RobotRequest(_Message):
+    """Something the fleet page asks of one robot, by name."""
 
-    TYPE: ClassVar[str] = "open"
     robot: str
 
     @classmethod
@@ -297,15 +296,17 @@ class OpenRobot(_Message):
 
 
 @dataclass(frozen=True, slots=True)
-class CloseRobot(_Message):
+class OpenRobot(_RobotRequest):
+    """Open a robot's page (at `robot/NAME/`)."""
+
+    TYPE: ClassVar[str] = "open"
+
+
+@dataclass(frozen=True, slots=True)
+class CloseRobot(_RobotRequest):
     """Close a robot's page (its call stays)."""
 
     TYPE: ClassVar[str] = "close"
-    robot: str
-
-    @classmethod
-    def parse(cls, obj: Mapping[str, Any]) -> Self:
-        return cls(_robot(obj, cls.TYPE))
 
 
 @dataclass(frozen=True, slots=True)
