@@ -82,13 +82,14 @@ from telebot.channels.call import Call, RobotEndpoint, UserEndpoint
 from telebot.channels.channel import Channel, ReceivedDatagram
 from telebot.channels.transports.base import Lane
 from telebot.channels.transports.zenoh import ZenohTransport
-from telebot.config import CallSettings, RobotConfig, SimSettings, ZenohSettings
+from telebot.config import CallSettings, MediaConfig, RobotConfig, SimSettings, ZenohSettings
 from telebot.errors import TelebotError
 from telebot.identity import ContactBook, Identity, KnownRobots, Role, create_paired_homes
 from telebot.reasons import Reason
 from telebot.robot.nav import Velocity
 from telebot.robot.sim.stack import SimNavStack
 from telebot.safety import Action, Stop
+from telebot.services.base import ServiceConfig
 from telebot.services.chat.wire import ChatReply
 from telebot.services.client import RobotClient
 from telebot.services.robot import RobotServer
@@ -256,7 +257,14 @@ async def robot_child(port: int, home: Path) -> None:
     nav.report = emit
     # The daemon's deadman: one heartbeat before the call timeout (robot_daemon.deadman_time).
     safety = TimedDriver(nav, timeout=deadman_time(RobotConfig()), max_speed=FAST.max_linear_speed)
-    server = RobotServer(nav, control_hz=FAST.control_hz, map_name="small", safety=safety)
+    server = RobotServer(
+        nav,
+        control_hz=FAST.control_hz,
+        map_name="small",
+        safety=safety,
+        # Replies unspoken: an espeak-ng run per chat command would load the measured robot.
+        config=ServiceConfig(media=MediaConfig(voice="off")),
+    )
     await server.prepare()
     flood = Flood()
     calls: list[Call] = []

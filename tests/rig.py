@@ -58,6 +58,7 @@ from telebot.config import (
     AppConfig,
     CallSettings,
     CipherChoice,
+    MediaConfig,
     ServiceSettings,
     SimSettings,
     ZenohSettings,
@@ -470,7 +471,8 @@ async def robot_on_hub(
         services if services is not None else ServiceSettings(),
         safety=safety,
         services=robot_services,
-        config=ServiceConfig(video=video),
+        # Replies unspoken: an espeak-ng run per chat reply would only load the machine.
+        config=ServiceConfig(video=video, media=MediaConfig(voice="off")),
     )
     await server.prepare()
     with safety:

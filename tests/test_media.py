@@ -19,7 +19,7 @@ import pytest
 from conftest import ROBOT, Homes, memory_endpoints, wait_until
 from telebot.channels.call import Call
 from telebot.channels.transports.memory import MemoryHub
-from telebot.config import ServiceSettings, SimSettings
+from telebot.config import MediaConfig, ServiceSettings, SimSettings
 from telebot.errors import ProtocolError
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.base import ServiceConfig
@@ -42,7 +42,7 @@ from telebot.services.media.audio import (
     open_sink,
     open_source,
 )
-from telebot.services.media.robot import CallState, MediaSettings, RobotMedia, Voice
+from telebot.services.media.robot import CallState, RobotMedia, Voice
 from telebot.services.media.stream import AudioBlock
 from telebot.services.media.user import TestPattern
 from telebot.services.media.wire import CODEC_H264, CODEC_JPEG, CODEC_VP8, SAMPLE_RATE
@@ -178,14 +178,18 @@ async def media_call(homes: Homes, *, voice: str = "off") -> AsyncIterator[Rig]:
     video = VideoSettings(
         width=320, height=240, codecs=(CODEC_H264, CODEC_JPEG), stamp=True, max_fps=20
     )
+    # The robot's media is its registered service, set up by its [media] section.
+    settings = MediaConfig(
+        mic="tone:440", speaker="memory", voice=voice, voice_command=list(FAKE_ESPEAK)
+    )
     server = RobotServer(
-        nav, ServiceSettings(), control_hz=50, map_name="small", config=ServiceConfig(video=video)
+        nav,
+        ServiceSettings(),
+        control_hz=50,
+        map_name="small",
+        config=ServiceConfig(video=video, media=settings),
     )
-    speaker = MemorySink()
-    media = RobotMedia(
-        MediaSettings(voice=voice, voice_command=FAKE_ESPEAK), mic=ToneSource(440), speaker=speaker
-    )
-    media.attach(server)
+    media, speaker = robot_media(server)
     await server.prepare()
     hub = MemoryHub(seed=7)
     async with memory_endpoints(homes, hub) as (robot_endpoint, user_endpoint):
@@ -201,9 +205,15 @@ async def media_call(homes: Homes, *, voice: str = "off") -> AsyncIterator[Rig]:
                 await client.call.hangup()
             await client.aclose()
             runner.cancel()
-            await asyncio.gather(runner, return_exceptions=True)
-            media.close()
+            await asyncio.gather(runner, return_exceptions=True)  # closes the media
     await asyncio.sleep(0.05)
+
+
+def robot_media(server: RobotServer) -> tuple[RobotMedia, MemorySink]:
+    """The robot's media service and its speaker (``[media] speaker = "memory"``)."""
+    media = server.service("media")
+    assert isinstance(media, RobotMedia) and isinstance(media.speaker, MemorySink)
+    return media, media.speaker
 
 
 async def collect_audio(client: RobotClient, seconds: float) -> list[AudioBlock]:
@@ -361,9 +371,15 @@ async def test_the_robot_asks_for_the_users_media_only_once_it_came(homes: Homes
 
     loop = asyncio.get_running_loop()
     nav = SimNavStack.from_settings(FAST, now=loop.time())
-    server = RobotServer(nav, ServiceSettings(), control_hz=50, map_name="small")
-    media = RobotMedia(MediaSettings(voice="off"), mic=ToneSource(440), speaker=MemorySink())
-    media.attach(server)
+    settings = MediaConfig(voice="off", speaker="memory")
+    server = RobotServer(
+        nav,
+        ServiceSettings(),
+        control_hz=50,
+        map_name="small",
+        config=ServiceConfig(media=settings),
+    )
+    media, _ = robot_media(server)
     await server.prepare()
     reports: dict[str, list[bytes]] = {USER_VIDEO: [], USER_AUDIO: []}
     async with memory_endpoints(homes, MemoryHub(seed=3)) as (robot_endpoint, user_endpoint):
@@ -397,7 +413,6 @@ async def test_the_robot_asks_for_the_users_media_only_once_it_came(homes: Homes
         finally:
             runner.cancel()
             await asyncio.gather(runner, return_exceptions=True)
-            media.close()
 
 
 async def test_the_users_media_stops_unasked_after_the_probe(homes: Homes) -> None:

@@ -33,14 +33,14 @@ from telebot.apps.web.screen import RobotScreen, bind_screen
 from telebot.apps.web.server import WebUI
 from telebot.channels.channel import Channel
 from telebot.channels.transports.memory import MemoryHub
-from telebot.config import ServiceSettings, SimSettings
+from telebot.config import MediaConfig, ServiceSettings, SimSettings
 from telebot.identity import Identity, create_paired_homes
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.base import ServiceConfig
 from telebot.services.client import RobotClient
 from telebot.services.codecs import read_number
-from telebot.services.media.audio import MemorySink, ToneSource, dominant_frequency
-from telebot.services.media.robot import MediaSettings, RobotMedia
+from telebot.services.media.audio import MemorySink, dominant_frequency
+from telebot.services.media.robot import RobotMedia
 from telebot.services.media.wire import CODEC_H264, CODEC_JPEG, CODEC_VP8
 from telebot.services.robot import RobotServer
 from telebot.services.video.stream import video_channel
@@ -106,11 +106,17 @@ async def media_rig(
         keyframe_interval=KEYFRAME_INTERVAL,
     )
     server = RobotServer(
-        nav, ServiceSettings(), control_hz=50, map_name="small", config=ServiceConfig(video=video)
+        nav,
+        ServiceSettings(),
+        control_hz=50,
+        map_name="small",
+        config=ServiceConfig(
+            video=video, media=MediaConfig(mic="tone:440", speaker="memory", voice="off")
+        ),
     )
-    speaker = MemorySink()
-    media = RobotMedia(MediaSettings(voice="off"), mic=ToneSource(440), speaker=speaker)
-    media.attach(server)
+    media = server.service("media")  # the robot's registered media service
+    assert isinstance(media, RobotMedia) and isinstance(media.speaker, MemorySink)
+    speaker = media.speaker
     robot_saw: list[int] = []
 
     def saw(image: Any, frame: Any) -> None:
@@ -166,8 +172,7 @@ async def media_rig(
                 await client.call.hangup()
             await client.aclose()
             runner.cancel()
-            await asyncio.gather(runner, return_exceptions=True)
-            media.close()
+            await asyncio.gather(runner, return_exceptions=True)  # closes the media
 
 
 @pytest_asyncio.fixture(scope="module", loop_scope="module")

@@ -29,8 +29,6 @@ from telebot.channels.transports import Lane
 from telebot.channels.transports.memory import MemoryHub
 from telebot.reasons import Reason
 from telebot.services.client import RobotClient
-from telebot.services.media.audio import MemorySink, ToneSource
-from telebot.services.media.robot import MediaSettings, RobotMedia
 from telebot.services.messages import is_finite_number
 from telebot.services.plan.wire import PLAN
 from telebot.services.status.wire import GOALS, POSE, TELEMETRY, GoalCommand
@@ -142,25 +140,19 @@ async def test_section_13_lists_every_channel_a_call_gets(tmp_path: Path) -> Non
         server,
         endpoint,
     ):
-        # The daemon's services: the default registry plus media (robot_daemon.serve_robot).
-        media = RobotMedia(MediaSettings(voice="off"), mic=ToneSource(440), speaker=MemorySink())
-        media.attach(server)
-        try:
-            async with (
-                user_on_hub(tmp_path, hub) as user,
-            ):
-                user_call = await user.call(ROBOT)
-                await wait_until(lambda: user_call.id in server.open)
-                (robot_call,) = [c for c in endpoint.calls if c.id == user_call.id]
-                opened: dict[str, set[str]] = {
-                    name: {
-                        str(channel.lane.name) + (", latest only" if channel.latest_only else "")
-                    }
-                    for name, channel in robot_call.channels.items()
-                }
-                await user_call.hangup()
-        finally:
-            media.close()
+        # The daemon's services: the default registry (media is one of them).
+        assert "media" in server.hosted.names()
+        async with (
+            user_on_hub(tmp_path, hub) as user,
+        ):
+            user_call = await user.call(ROBOT)
+            await wait_until(lambda: user_call.id in server.open)
+            (robot_call,) = [c for c in endpoint.calls if c.id == user_call.id]
+            opened: dict[str, set[str]] = {
+                name: {str(channel.lane.name) + (", latest only" if channel.latest_only else "")}
+                for name, channel in robot_call.channels.items()
+            }
+            await user_call.hangup()
     documented = documented_channels()
     assert "people" in opened  # §23's channel, once missing from the table
     assert documented == opened

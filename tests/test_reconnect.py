@@ -380,6 +380,7 @@ async def test_a_registered_service_opens_ticks_closes_and_reopens_with_the_call
             "relay",
             "conference",
             "people",
+            "media",
             "drive",
             "toy",
         ]

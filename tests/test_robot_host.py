@@ -4,20 +4,33 @@ config, and the drive service (follow-me and driving by hand) keeps the robot fa
 from __future__ import annotations
 
 import asyncio
+import wave
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from conftest import wait_until
 from rig import robot_drive
-from telebot.config import DriveSettings, FollowSettings, PeopleSettings, RelaySettings
+from telebot.config import (
+    DriveSettings,
+    FollowSettings,
+    MediaConfig,
+    PeopleSettings,
+    RelaySettings,
+    VideoConfig,
+)
 from telebot.identity import Role
 from telebot.robot.nav import GoalStatus
 from telebot.robot.perception.tracks import PersonTrack
 from telebot.services.base import MotionService, ServiceConfig
 from telebot.services.drive.follow import FollowGoal
+from telebot.services.media.audio import ToneSource, WavSink
+from telebot.services.media.robot import RobotMedia
+from telebot.services.media.wire import CODEC_H264, CODEC_JPEG, CODEC_VP8
 from telebot.services.people.robot import RobotPeople
-from telebot.services.robot import RobotServer
+from telebot.services.registry import robot_services
+from telebot.services.robot import RobotServer, robot_video_settings
 from telebot.services.safety.robot import SafetyDriver
 from test_supervision import FakeCall, room
 
@@ -50,6 +63,51 @@ async def test_each_service_reads_its_own_section_of_the_robots_config() -> None
         assert drive.follow.people is people  # follow-me follows the people service's tracks
     finally:
         server.hosted.close()
+
+
+async def test_media_is_a_robot_service_its_section_sets_up_and_the_robot_closes(
+    tmp_path: Path,
+) -> None:
+    assert robot_services().names().index("media") < robot_services().names().index("drive")
+    heard = tmp_path / "heard.wav"
+    server = RobotServer(
+        room(),
+        config=ServiceConfig(
+            media=MediaConfig(mic="tone:1000", speaker=f"wav:{heard}", voice="off")
+        ),
+    )
+    media = server.service("media")  # registered like the others: no install step
+    assert isinstance(media, RobotMedia)
+    assert isinstance(media.mic.base, ToneSource) and media.mic.base.frequency == 1000
+    assert isinstance(media.speaker, WavSink) and media.voice is None
+    assert media._on_chat_reply in server.chat_listeners  # started: it hears chat replies
+    media.speaker.write(np.zeros(960, dtype=np.int16))
+    runner = asyncio.create_task(server.run(), name="robot-loop")
+    await asyncio.sleep(0)  # the loop's first cycle: its end closes the services
+    runner.cancel()
+    await asyncio.gather(runner, return_exceptions=True)
+    with wave.open(str(heard), "rb") as wav:  # closed with the robot: the WAV is finished
+        assert wav.getnframes() == 960
+
+
+def test_the_robots_video_takes_its_codec_settings_from_the_media_section() -> None:
+    video = robot_video_settings(
+        VideoConfig(width=320, quality=40),
+        MediaConfig(codec="vp8", min_bitrate=100_000, max_bitrate=900_000),
+        simulated=True,
+    )
+    assert (video.width, video.quality, video.min_quality) == (320, 40, 30)
+    assert video.codecs == (CODEC_VP8, CODEC_H264, CODEC_JPEG)  # JPEG always last
+    assert (video.min_bitrate, video.max_bitrate, video.keyframe_interval) == (
+        100_000,
+        900_000,
+        3.0,
+    )
+    assert video.stamp  # a simulated robot stamps its frames unless [media] says
+    assert not robot_video_settings(VideoConfig(), MediaConfig(), simulated=False).stamp
+    assert not robot_video_settings(VideoConfig(), MediaConfig(stamp=False), simulated=True).stamp
+    jpeg = robot_video_settings(VideoConfig(), MediaConfig(codec="jpeg"), simulated=False)
+    assert jpeg.codecs == (CODEC_JPEG, CODEC_H264, CODEC_VP8)
 
 
 @pytest.mark.parametrize("part", ["follow", "drive"])

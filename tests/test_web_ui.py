@@ -29,7 +29,7 @@ from rig import GENEROUS_STALE_VIDEO, GENEROUS_TIMEOUT, SLACK
 from telebot.apps.web.server import WebUI
 from telebot.channels.call import RobotEndpoint, UserEndpoint
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
-from telebot.config import CallSettings, ServiceSettings, SimSettings
+from telebot.config import CallSettings, MediaConfig, ServiceSettings, SimSettings
 from telebot.identity import ContactBook, Identity, KnownRobots, Role, create_paired_homes
 from telebot.robot.grid import OccupancyGrid
 from telebot.robot.sim.stack import SimNavStack
@@ -127,7 +127,8 @@ async def robot_rig(
         map_name="small",
         safety=safety,
         config=ServiceConfig(
-            video=VideoSettings(width=320, height=240, max_fps=15, quality=70, min_quality=30)
+            video=VideoSettings(width=320, height=240, max_fps=15, quality=70, min_quality=30),
+            media=MediaConfig(voice="off"),  # no espeak-ng run per chat reply
         ),
     )
     await server.prepare()

@@ -23,12 +23,11 @@ from telebot.gateway.robot import robot_gateway
 from telebot.identity import ContactBook, Identity
 from telebot.robot import create_robot
 from telebot.services.base import ServiceConfig
-from telebot.services.media.robot import install_robot_media, media_settings, media_video_settings
+from telebot.services.media.robot import RobotMedia
 from telebot.services.recording import Recorder
 from telebot.services.registry import robot_services
-from telebot.services.robot import EventSink, RobotServer
+from telebot.services.robot import EventSink, RobotServer, robot_video_settings
 from telebot.services.safety.robot import SafetyDriver
-from telebot.services.video.wire import VideoSettings
 
 __all__ = ["SHUTDOWN_REASON", "deadman_time", "serve_robot"]
 
@@ -138,26 +137,20 @@ async def serve_robot(
                 safety=safety,
                 services=services,
                 config=ServiceConfig(
-                    video=VideoSettings(
-                        width=config.video.width,
-                        height=config.video.height,
-                        max_fps=config.video.max_fps,
-                        quality=config.video.quality,
-                        min_quality=min(30, config.video.quality),
-                        adaptive=config.video.adaptive,
-                        **media_video_settings(config.media, simulated=simulated),
-                    ),
+                    video=robot_video_settings(config.video, config.media, simulated=simulated),
+                    media=config.media,
                     relay=config.relay,
                     people=config.people,
                     follow=config.follow,
                     drive=config.drive,
                 ),
             )
-            media = install_robot_media(server, media_settings(config.media, simulated=simulated))
+            # The robot's screen shows the user the media service hears and sees.
+            media = server.service("media")
             await server.prepare()
             with stop_on_signals(stop):
                 async with (
-                    robot_screen(config.screen, media),
+                    robot_screen(config.screen, media if isinstance(media, RobotMedia) else None),
                     create_transport(config.transport) as transport,
                     RobotEndpoint(
                         transport,
@@ -211,8 +204,8 @@ async def serve_robot(
                         stopped.cancel()
                         emit({"event": "stopping", "calls": len(endpoint.calls)})
                         await endpoint.close(SHUTDOWN_REASON)
+                        # The loop's end closed the robot's services (the media's devices).
                         await asyncio.gather(runner, stopped, return_exceptions=True)
-                        media.close()
     finally:
         if recorder is not None:  # after the calls ended: their ends are in the file
             await asyncio.to_thread(recorder.close)

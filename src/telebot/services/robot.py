@@ -6,7 +6,8 @@ simulation's clock; a robot that runs by itself is not stepped). Each call gets 
 service of the server's :class:`~telebot.services.base.ServiceRegistry`
 (:func:`~telebot.services.registry.robot_services`: ``core``, the :class:`CallServices` of chat, map, pose,
 goals, telemetry and safety; ``video``; ``plan``, the planned path and named places;
-``people``, tracked people and alerts; ``drive``, driving by hand and follow-me …),
+``people``, tracked people and alerts; ``media``, two-way audio and the user's camera;
+``drive``, driving by hand and follow-me …),
 ticked on every cycle and closed when the call ends. Each service reads its settings from
 its section of the server's :class:`~telebot.services.base.ServiceConfig`; the server
 itself takes only the robot, its own ``[services]`` settings, its loop's rate, its map's
@@ -31,7 +32,7 @@ from typing import TYPE_CHECKING, Any, TypeVar, cast
 from telebot.channels.call import Call, RobotEndpoint
 from telebot.channels.channel import Channel, ReceivedDatagram
 from telebot.channels.transports.base import Lane
-from telebot.config import RelaySettings, ServiceSettings
+from telebot.config import MediaConfig, RelaySettings, ServiceSettings, VideoConfig
 from telebot.errors import ProtocolError, TelebotError
 from telebot.identity import Role
 from telebot.reasons import Reason, Refusal
@@ -61,6 +62,7 @@ from telebot.services.drive.robot import RobotDrive
 from telebot.services.mapxfer import MAP
 from telebot.services.mapxfer.robot import MapService
 from telebot.services.mapxfer.wire import MAX_MAP_VERSION, EncodedMap, encode_map
+from telebot.services.media.wire import CODEC_H264, CODEC_JPEG, CODEC_VP8, codec_id
 from telebot.services.registry import robot_services
 from telebot.services.safety.robot import SafetyDriver
 from telebot.services.safety.wire import (
@@ -90,6 +92,7 @@ __all__ = [
     "RobotVideo",
     "SteppedNavStack",
     "may_drive",
+    "robot_video_settings",
 ]
 
 log = logging.getLogger(__name__)
@@ -482,6 +485,30 @@ class RobotVideo:
         self.sender.stop()
 
 
+def robot_video_settings(
+    video: VideoConfig, media: MediaConfig, *, simulated: bool
+) -> VideoSettings:
+    """The robot's ``[video]`` settings (:class:`RobotVideo`'s section) from the config's
+    ``[video]`` and the codec settings of ``[media]``: the codecs (the configured one first,
+    JPEG always last), bit rates, keyframe interval and stamping (``simulated``: a
+    simulated robot's frames are stamped unless ``[media] stamp`` says)."""
+    preferred = codec_id(media.codec)
+    codecs = (preferred, *(c for c in (CODEC_H264, CODEC_VP8, CODEC_JPEG) if c != preferred))
+    return VideoSettings(
+        width=video.width,
+        height=video.height,
+        max_fps=video.max_fps,
+        quality=video.quality,
+        min_quality=min(30, video.quality),
+        adaptive=video.adaptive,
+        codecs=codecs,
+        min_bitrate=media.min_bitrate,
+        max_bitrate=media.max_bitrate,
+        keyframe_interval=media.keyframe_interval,
+        stamp=simulated if media.stamp is None else media.stamp,
+    )
+
+
 def _status(state: SafetyState) -> SafetyStatus:
     """The supervisor's state as the ``safety`` channel tells it."""
     return SafetyStatus(state.armed, state.text, state.holder, state.cap, state.blocked, state.code)
@@ -510,8 +537,8 @@ class RobotServer:
         config: ServiceConfig | None = None,
     ) -> None:
         """``settings``: ``[services]`` (pose and telemetry rates); ``services``: what every
-        call gets; ``config``: each service's section (``[video]``, ``[relay]``,
-        ``[people]``, ``[follow]``, ``[drive]``…; defaults where not given)."""
+        call gets; ``config``: each service's section (``[video]``, ``[media]``,
+        ``[relay]``, ``[people]``, ``[follow]``, ``[drive]``…; defaults where not given)."""
         self.nav = nav
         #: The robot's name (its identity's, from :meth:`attach` on).
         self.name = "robot"

@@ -4,8 +4,10 @@ microphone to the robot, spoken replies (the robot's video is :mod:`telebot.serv
 Wire format: :mod:`telebot.services.media.wire` (``docs/protocol.md`` §25). Codecs: PyAV
 (:mod:`telebot.services.codecs`); sound in and out: :mod:`telebot.services.media.audio`.
 
-**Robot.** One :class:`RobotMedia` per robot (created with the daemon's ``[media]``
-settings, :func:`install_robot_media` registers its per-call service ``media``):
+**Robot.** :class:`RobotMedia` is the robot's per-robot ``media`` service (registered
+like the others, started and closed with the robot; its settings are the ``[media]``
+section of the robot's :class:`~telebot.services.base.ServiceConfig`, a
+:class:`~telebot.config.MediaConfig`). With a :class:`RobotMediaService` on each call it:
 
 * streams its microphone (Opus, one packet per 20 ms of the event loop's clock, encoded
   once for all calls) on ``audio`` to every user whose reports ask for it;
@@ -19,7 +21,8 @@ settings, :func:`install_robot_media` registers its per-call service ``media``):
 * speaks its chat replies (espeak-ng) into the user's audio and/or its own speaker.
 
 **The robot's screen** (the page media-web serves) codes against this API of
-:class:`RobotMedia`, all on the event loop, never blocking::
+:class:`RobotMedia` (the robot's ``server.service("media")``), all on the event loop,
+never blocking::
 
     unsubscribe = media.subscribe(
         on_video=lambda frame: ...,   # CompleteFrame of the user's camera, still encoded
@@ -46,8 +49,8 @@ source and a picture source to the robot while it asks for them).
 
 The ``media`` service: two-way audio and the user's camera (PyAV, loaded when used).
 
-Its robot side is installed with its settings by
-:func:`~telebot.services.media.robot.install_robot_media`.
+``[media]``'s video settings (codec, bit rates, keyframe interval, stamping) are the
+robot's video's: :func:`~telebot.services.robot.robot_video_settings` reads them.
 
 ``wire.py``: the wire format; ``robot.py``: the robot side; ``user.py``: the user side.
 """
@@ -55,4 +58,7 @@ Its robot side is installed with its settings by
 from telebot.services.base import ServiceSpec
 
 #: Its sides, loaded when a host starts (see :mod:`telebot.services.registry`).
-SERVICE = ServiceSpec(robot=None, user="telebot.services.media.user:open_user_media")
+SERVICE = ServiceSpec(
+    robot="telebot.services.media.robot:RobotMedia",
+    user="telebot.services.media.user:open_user_media",
+)

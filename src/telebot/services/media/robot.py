@@ -1,4 +1,4 @@
-"""The robot's side of media: :class:`RobotMedia` and :func:`install_robot_media` (see the
+"""The robot's side of media: :class:`RobotMedia`, the per-robot ``media`` service (see the
 service's overview in :mod:`telebot.services.media`).
 """
 
@@ -16,20 +16,12 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
 from telebot.channels.transports.base import Lane
+from telebot.config import MediaConfig
 from telebot.errors import ProtocolError, TelebotError
-from telebot.services.base import RobotHost
+from telebot.services.base import HostService, RobotHost
 from telebot.services.codecs import OpusDecoder, OpusEncoder, VideoDecoder
 from telebot.services.media.stream import AudioBlock, Unsubscribe, _AudioIn, _AudioOut, _pace
-from telebot.services.media.wire import (
-    AUDIO,
-    CODEC_H264,
-    CODEC_JPEG,
-    CODEC_VP8,
-    USER_AUDIO,
-    USER_VIDEO,
-    AudioPacket,
-    codec_id,
-)
+from telebot.services.media.wire import AUDIO, USER_AUDIO, USER_VIDEO, AudioPacket
 from telebot.services.video.receiver import VideoFeed, VideoFeedService
 from telebot.services.video.stream import DECODED_CODECS
 from telebot.services.video.wire import CompleteFrame
@@ -39,21 +31,15 @@ if TYPE_CHECKING:
     import numpy.typing as npt
 
     from telebot.channels.call import Call
-    from telebot.config import MediaConfig
-    from telebot.services.base import ServiceRegistry
     from telebot.services.chat.wire import ChatReply
-    from telebot.services.media.audio import AudioSink, AudioSource
 
 __all__ = [
     "AudioBlock",
     "CallState",
-    "MediaSettings",
+    "MediaHost",
     "RobotMedia",
     "RobotMediaService",
     "Voice",
-    "install_robot_media",
-    "media_settings",
-    "media_video_settings",
 ]
 
 log = logging.getLogger(__name__)
@@ -66,33 +52,10 @@ MAX_DECODE_QUEUE = 8
 
 
 class MediaHost(RobotHost, Protocol):
-    """What the robot's media uses of the robot: chat replies to speak, and the registry
-    it registers its per-call service in."""
+    """What the robot's media uses of the robot besides :class:`RobotHost`: the chat
+    replies, to speak them."""
 
     chat_listeners: list[Callable[[Call, ChatReply], None]]
-    registry: ServiceRegistry[Any]
-
-
-@dataclass(frozen=True, slots=True)
-class MediaSettings:
-    """The robot's ``[media]`` settings (see :class:`telebot.config.MediaConfig`)."""
-
-    #: The robot's video codec (``h264`` | ``vp8`` | ``jpeg``); JPEG stays the fallback.
-    codec: str = "h264"
-    min_bitrate: int = 150_000
-    max_bitrate: int = 1_500_000
-    keyframe_interval: float = 3.0
-    #: Microphone and speaker specs (:func:`~telebot.services.media.audio.open_source` / sink).
-    mic: str = "tone:440"
-    speaker: str = "none"
-    #: Speak chat replies: ``off``, ``user`` (into the user's audio), ``speaker``, ``both``.
-    voice: str = "user"
-    #: Command of the speech synthesiser (espeak-ng writes a WAV to stdout).
-    voice_command: tuple[str, ...] = ("espeak-ng", "--stdout")
-    #: Stamp frame numbers into the robot's video (the simulator's test pattern).
-    stamp: bool = False
-    #: Shared-memory ring for the user's decoded pictures ("" for none).
-    user_video_ring: str = ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,9 +72,6 @@ class CallState:
     #: (False: the camera is off, or its video stalled); whether the user was heard.
     video: bool = False
     audio: bool = False
-
-
-# --------------------------------------------------------------------------- streams
 
 
 # --------------------------------------------------------------------------- voice
@@ -168,24 +128,24 @@ def _wav_bytes(data: bytes) -> npt.NDArray[np.int16]:
 # --------------------------------------------------------------------------- robot
 
 
-class RobotMedia:
-    """The robot's media across calls (see the module docstring for the screen's API)."""
+class RobotMedia(HostService[MediaHost]):
+    """The robot's media across calls, the robot's ``media`` service: once per robot, with
+    its ``[media]`` section (:class:`~telebot.config.MediaConfig`) of the host's config.
 
-    def __init__(
-        self,
-        settings: MediaSettings | None = None,
-        *,
-        mic: AudioSource | None = None,
-        speaker: AudioSink | None = None,
-        clock: Callable[[], float] = time.time,
-    ) -> None:
+    Its microphone and speaker open when the robot starts it (``[media] mic`` and
+    ``speaker``, ``memory`` for a sink tests read back) and close with the robot. See the
+    service's overview in :mod:`telebot.services.media` for the screen's API.
+    """
+
+    def __init__(self, host: MediaHost) -> None:
         from telebot.services.media.audio import MixSource, open_sink, open_source
 
-        self.settings = settings if settings is not None else MediaSettings()
+        super().__init__(host)
+        #: The ``[media]`` section.
+        self.settings = host.config.get("media", MediaConfig)
         #: The microphone, with spoken replies mixed in.
-        self.mic = MixSource(mic if mic is not None else open_source(self.settings.mic))
-        self.speaker = speaker if speaker is not None else open_sink(self.settings.speaker)
-        self._clock = clock
+        self.mic = MixSource(open_source(self.settings.mic))
+        self.speaker = open_sink(self.settings.speaker)
         self._opus: OpusEncoder | None = None
         self._calls: dict[str, RobotMediaService] = {}
         self._pump: asyncio.Task[None] | None = None
@@ -205,14 +165,15 @@ class RobotMedia:
         self.user_frames_decoded = 0
         self.user_frames_corrupt = 0
         self._ring: Any = None
+        # The ring's name; "" once it could not be opened (said once, not retried).
+        self._ring_name = self.settings.user_video_ring
         self.voice: Voice | None = None
         if self.settings.voice != "off":
-            self.voice = Voice(self.settings.voice_command)
+            self.voice = Voice(tuple(self.settings.voice_command))
             if self.voice.error is not None:
                 log.warning("%s", self.voice.error)
         self.spoken = 0
         self._state = CallState("no call")
-        self._server: MediaHost | None = None
 
     # -- the screen's API
 
@@ -272,16 +233,18 @@ class RobotMedia:
         future = loop.run_in_executor(None, voice.synthesise, text)
         future.add_done_callback(self._spoken)
 
-    # -- wiring
+    # -- the host's
 
-    def attach(self, server: MediaHost) -> None:
-        """Register the per-call service on ``server`` and hear its chat replies."""
-        self._server = server
-        server.registry.register("media", self._open_call)
-        server.chat_listeners.append(self._on_chat_reply)
+    def start(self) -> None:
+        """Hear the robot's chat replies (to speak them)."""
+        self.host.chat_listeners.append(self._on_chat_reply)
+
+    def open(self, call: Call) -> RobotMediaService:
+        """The ``media`` service of ``call``."""
+        return RobotMediaService(self, call)
 
     def close(self) -> None:
-        """Stop the microphone pump, close devices and the ring."""
+        """The robot is closing: stop the microphone pump, close devices and the ring."""
         if self._pump is not None:
             self._pump.cancel()
             self._pump = None
@@ -295,9 +258,6 @@ class RobotMedia:
             self._ring = None
 
     # -- internals
-
-    def _open_call(self, server: MediaHost, call: Call) -> RobotMediaService:
-        return RobotMediaService(self, server, call)
 
     def _spoken(self, future: asyncio.Future[npt.NDArray[np.int16]]) -> None:
         try:
@@ -337,7 +297,7 @@ class RobotMedia:
         if self._opus is None:
             self._opus = OpusEncoder()
         packet = self._opus.encode(block)
-        capture = self._clock()
+        capture = time.time()
         for sender in senders:
             with contextlib.suppress(TelebotError):  # the call is ending; its service closes
                 sender.send(packet, capture)
@@ -383,7 +343,7 @@ class RobotMedia:
                 log.exception("user picture subscriber failed")
 
     def _to_ring(self, image: npt.NDArray[np.uint8], complete: CompleteFrame) -> None:
-        name = self.settings.user_video_ring
+        name = self._ring_name
         if not name:
             return
         if self._ring is None:
@@ -393,7 +353,7 @@ class RobotMedia:
                 self._ring = FrameRingWriter(name, 1280, 720)
             except (OSError, ValueError) as exc:
                 log.warning("user video ring %r not opened: %s", name, exc)
-                self.settings = _replace_ring(self.settings)
+                self._ring_name = ""
                 return
         self._ring.write(
             image,
@@ -413,9 +373,8 @@ class RobotMedia:
         """Recompute the call state and tell the subscribers if it changed."""
         state = CallState("no call")
         holder = None
-        server = self._server
-        if server is not None and server.safety is not None:
-            holder = server.safety.state().holder_call
+        if self.host.safety is not None:
+            holder = self.host.safety.state().holder_call
         calls = list(self._calls.values())
         # The screen shows the driver's call, else the newest.
         chosen = next((s for s in calls if s.call.id == holder), calls[-1] if calls else None)
@@ -437,16 +396,10 @@ class RobotMedia:
                     log.exception("call state subscriber failed")
 
 
-def _replace_ring(settings: MediaSettings) -> MediaSettings:
-    from dataclasses import replace
-
-    return replace(settings, user_video_ring="")
-
-
 class RobotMediaService:
     """The ``media`` service of one call on the robot (see :class:`RobotMedia`)."""
 
-    def __init__(self, media: RobotMedia, server: MediaHost, call: Call) -> None:
+    def __init__(self, media: RobotMedia, call: Call) -> None:
         self.media = media
         self.call = call
         loop = self._loop = asyncio.get_running_loop()
@@ -497,40 +450,3 @@ class RobotMediaService:
             self.media.speaker.write(samples)
             if packet is not None:
                 self.media._on_user_audio(packet)
-
-
-def media_settings(config: MediaConfig, *, simulated: bool) -> MediaSettings:
-    """The :class:`MediaSettings` of a ``[media]`` config section."""
-    return MediaSettings(
-        codec=config.codec,
-        min_bitrate=config.min_bitrate,
-        max_bitrate=config.max_bitrate,
-        keyframe_interval=config.keyframe_interval,
-        mic=config.mic,
-        speaker=config.speaker,
-        voice=config.voice,
-        voice_command=tuple(config.voice_command),
-        stamp=simulated if config.stamp is None else config.stamp,
-        user_video_ring=config.user_video_ring,
-    )
-
-
-def media_video_settings(config: MediaConfig, *, simulated: bool) -> dict[str, Any]:
-    """The :class:`VideoSettings` fields ``[media]`` sets: codecs (the configured one first,
-    JPEG always last), bit rates, keyframe interval, stamping."""
-    preferred = codec_id(config.codec)
-    codecs = (preferred, *(c for c in (CODEC_H264, CODEC_VP8, CODEC_JPEG) if c != preferred))
-    return {
-        "codecs": codecs,
-        "min_bitrate": config.min_bitrate,
-        "max_bitrate": config.max_bitrate,
-        "keyframe_interval": config.keyframe_interval,
-        "stamp": simulated if config.stamp is None else config.stamp,
-    }
-
-
-def install_robot_media(server: MediaHost, settings: MediaSettings | None = None) -> RobotMedia:
-    """A :class:`RobotMedia` on ``server``: its ``media`` service opens on every call."""
-    media = RobotMedia(settings)
-    media.attach(server)
-    return media
