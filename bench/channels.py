@@ -166,6 +166,11 @@ def percentile(values: Sequence[float], q: float) -> float:
     return ordered[min(len(ordered) - 1, int(q / 100 * len(ordered)))]
 
 
+def divided(value: float, base: float) -> float:
+    """``value / base``, nan where ``base`` is 0 (a starved receiver counted nothing yet)."""
+    return value / base if base else float("nan")
+
+
 def ping_payload(seq: int) -> bytes:
     return _SEQ.pack(seq) + PAYLOADS[PING_SIZE][_SEQ.size :]
 
@@ -782,13 +787,13 @@ def raw_aead_report(res: Results) -> tuple[list[str], float]:
             raise RuntimeError(f"{aead.counts['forged']} sealed samples failed to open")
         lines.append(
             f"{size_label(size):>6} | {aead.sent:>10,} {aead.arrived:>10,} {aead.rate:>10,.0f} "
-            f"{aead.rate / raw.rate:>6.3f} | {tb.rate / aead.rate:>12.3f}"
+            f"{divided(aead.rate, raw.rate):>6.3f} | {divided(tb.rate, aead.rate):>12.3f}"
         )
     lines.append(
         "  the physical limit of an encrypted channel on this CPU: one AEAD operation "
         "per message on each side, nothing else"
     )
-    return lines, res.telebot[32768].rate / res.raw_aead[32768].rate
+    return lines, divided(res.telebot[32768].rate, res.raw_aead[32768].rate)
 
 
 # -- report -----------------------------------------------------------------------------
@@ -825,7 +830,7 @@ def report(res: Results, survival: Survival, elapsed: float) -> list[str]:
     ratios: dict[int, float] = {}
     for size in SIZES:
         raw, tb = res.raw[size], res.telebot[size]
-        ratios[size] = ratio = tb.rate / raw.rate
+        ratios[size] = ratio = divided(tb.rate, raw.rate)
         target = THROUGHPUT_TARGETS[size]
         lines.append(
             f"{size_label(size):>6} | {raw.sent:>10,} {raw.arrived:>10,} {raw.rate:>10,.0f} | "
@@ -844,7 +849,7 @@ def report(res: Results, survival: Survival, elapsed: float) -> list[str]:
         raw, tr, tb = res.raw[size], res.transport[size], res.telebot[size]
         batch = tr.arrived / max(1, tr.counts["batches"])
         lines.append(
-            f"{size_label(size):>6} | {raw.late:>8,} | {tr.rate:>14,.0f} {tr.rate / raw.rate:>6.3f} "
+            f"{size_label(size):>6} | {raw.late:>8,} | {tr.rate:>14,.0f} {divided(tr.rate, raw.rate):>6.3f} "
             f"{batch:>5.1f} {tr.counts['queue_dropped']:>7,} {tr.late:>6,} | "
             f"{tb.counts['zenoh_received'] / tb.elapsed:>15,.0f}/s "
             f"{tb.counts['queue_dropped']:>7,} {tb.late:>6,}"
