@@ -12,6 +12,7 @@ benchmarks' helpers, run by them. ``make bench-quick`` runs the same list by han
 
 from __future__ import annotations
 
+import asyncio
 import re
 import subprocess
 import sys
@@ -94,3 +95,17 @@ def test_the_result_check_refuses_what_is_not_a_result() -> None:
         with pytest.raises(AssertionError):
             result_fields(bad)
     assert not is_figure("5.0x") and not is_figure("")
+
+
+async def test_the_video_benchmarks_robot_keeps_the_loops_clock() -> None:
+    # bench/video.py steps its simulated robot to loop.time() (CLOCK_MONOTONIC: the
+    # machine's uptime). A robot whose clock started at 0 integrated the whole uptime in its
+    # first step: a minute of blocked loop on a machine up for a day, and the call timed out.
+    sys.path.insert(0, str(BENCH))  # video.py imports bench/_child.py
+    try:
+        import video
+    finally:
+        sys.path.remove(str(BENCH))
+    loop = asyncio.get_running_loop()
+    nav = video.sim_robot()
+    assert nav.now == pytest.approx(loop.time(), abs=5.0)
