@@ -22,17 +22,13 @@ E. Reconnect. alice's client (zenoh client mode, reconnecting) reaches the daemo
    ``CUT_SECONDS`` and started again; reported is the time from the heal to the first pose
    on the new call (p50/p99, target p99 <= 1 s).
 
-Children: ``_survival.py --child flood PORT HOME SECONDS`` and
-``--child stranger PORT CALL_ID SECONDS in|call``; each prints ``ready`` once flooding, then one
-JSON line of counters when done.
+The flooders of D1, D2 and D3 are child processes: ``bench/_flooders.py``.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
-import os
 import sys
 import tempfile
 import time
@@ -42,7 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from _child import Child
-from telebot.config import AppConfig, ZenohSettings
+from _flooders import peer_config
 from telebot.errors import TelebotError
 from telebot.services.client import RobotClient, connect
 
@@ -56,8 +52,6 @@ USER = "alice"
 FLOODER = "flo"
 FLOOD_SECONDS = 10.0
 STOP_EVERY = 0.05  # alice's stops: one round trip, then this pause
-DATAGRAM = 32_768
-BURST = 16  # datagrams the flooder sends between two yields to its loop
 CUTS = 10
 CUT_SECONDS = 2.0
 TARGETS = {
@@ -86,11 +80,6 @@ class Daemon(rig.Daemon):
             if line.startswith("VmRSS:"):
                 return int(line.split()[1]) / 1024
         raise RuntimeError("no VmRSS")
-
-
-def peer_config(endpoint: str) -> AppConfig:
-    zenoh = ZenohSettings(connect=[endpoint], multicast_scouting=False)
-    return AppConfig.model_validate({"transport": {"zenoh": zenoh}})
 
 
 @dataclass
@@ -207,11 +196,10 @@ class Survival:
     reconnects_ms: list[float]
 
 
-SCRIPT = str(Path(__file__).resolve())
+FLOODERS = str(Path(__file__).with_name("_flooders.py").resolve())
 
 
 async def measure_survival_async(port: int) -> Survival:
-    script = SCRIPT
     with daemon_rig() as daemon:
         user_home, flooder_home = daemon.user_home, daemon.observer_home
         await asyncio.to_thread(daemon.start, port=port)
@@ -225,22 +213,38 @@ async def measure_survival_async(port: int) -> Survival:
                 call_flood = await measure_flood(
                     alice,
                     daemon,
-                    script,
-                    ["flood", str(daemon.port), str(flooder_home), str(FLOOD_SECONDS)],
+                    FLOODERS,
+                    ["flood", str(daemon.port), ROBOT, str(flooder_home), str(FLOOD_SECONDS)],
                 )
                 print("D2. a stranger floods the robot's handshake key ...", flush=True)
                 stranger = await measure_flood(
                     alice,
                     daemon,
-                    script,
-                    ["stranger", str(daemon.port), alice.call.id, str(FLOOD_SECONDS), "in"],
+                    FLOODERS,
+                    [
+                        "stranger",
+                        str(daemon.port),
+                        ROBOT,
+                        USER,
+                        alice.call.id,
+                        str(FLOOD_SECONDS),
+                        "in",
+                    ],
                 )
                 print("D3. a stranger floods alice's call keys too ...", flush=True)
                 sniffer = await measure_flood(
                     alice,
                     daemon,
-                    script,
-                    ["stranger", str(daemon.port), alice.call.id, str(FLOOD_SECONDS), "call"],
+                    FLOODERS,
+                    [
+                        "stranger",
+                        str(daemon.port),
+                        ROBOT,
+                        USER,
+                        alice.call.id,
+                        str(FLOOD_SECONDS),
+                        "call",
+                    ],
                 )
             print(f"E. {CUTS} cuts of {CUT_SECONDS:g} s through a loopback proxy ...", flush=True)
             reconnects = await measure_reconnects(daemon, user_home)
@@ -311,102 +315,3 @@ def survival_report(res: Survival) -> tuple[list[str], dict[str, str]]:
         "reconnect_p99_ms": f"{r99:.0f}",
     }
     return lines, fields
-
-
-# -- children --------------------------------------------------------------------------------
-
-
-async def flood_child(port: int, home: Path, seconds: float) -> None:
-    """A user in a call of its own who floods 32 KB datagrams."""
-    config = peer_config(f"tcp/127.0.0.1:{port}")
-    async with connect(ROBOT, home=home, config=config, timeout=20) as client:
-        first = client.call.id
-        payload = os.urandom(DATAGRAM)
-        loop = asyncio.get_running_loop()
-        sent = 0
-        print("ready", flush=True)
-        end = loop.time() + seconds
-        while loop.time() < end:
-            channel = client.call.channel("flood")
-            for _ in range(BURST):
-                with contextlib.suppress(TelebotError):
-                    channel.send(payload)
-                    sent += 1
-            await asyncio.sleep(0)
-        await client.telemetry()
-        telemetry = await client.telemetry()
-        counters = {
-            "sent": sent,
-            "rx_dropped": telemetry.rx_dropped,
-            "reconnects": client.reconnects,
-            "active": client.call.active and client.call.id == first,
-        }
-    await wait_for_stdin_close()
-    print(json.dumps(counters), flush=True)
-
-
-def stranger_child(port: int, call_id: str, seconds: float, where: str) -> None:
-    """A raw zenoh peer in no call that floods the robot's handshake key (``where`` "in")
-    or that and ``call_id``'s keys ("call") with junk."""
-    import zenoh
-
-    from telebot.channels.transports.zenoh import build_zenoh_config
-
-    settings = ZenohSettings(connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
-    session = zenoh.open(build_zenoh_config(settings))
-    base = f"telebot/robot/{ROBOT}"
-    keys = [f"{base}/in/mallory"]
-    if where == "call":
-        keys += [f"{base}/call/{USER}/{call_id}/ctl", f"{base}/call/{USER}/{call_id}/data"]
-    publishers = [session.declare_publisher(key) for key in keys]
-    header = b"\x02\x03" + bytes.fromhex(call_id)
-    junk = [
-        os.urandom(200),  # garbage
-        b"\x02\x03" + os.urandom(6),  # a truncated DATA frame
-        header + os.urandom(8 + 100),  # alice's call id, no valid seal
-        header + os.urandom(8 + 16_000),
-    ]
-    huge = os.urandom(1 << 20)
-    sent = 0
-    sent_bytes = 0
-    print("ready", flush=True)
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        for publisher in publishers:
-            for payload in junk:
-                publisher.put(payload)
-                sent += 1
-                sent_bytes += len(payload)
-        if sent % 400 < len(publishers) * len(junk):  # now and then, a megabyte
-            for publisher in publishers:
-                publisher.put(huge)
-                sent += 1
-                sent_bytes += len(huge)
-    session.close()
-    sys.stdin.read()
-    print(json.dumps({"sent": sent, "mb": sent_bytes / 1e6}), flush=True)
-
-
-async def wait_for_stdin_close() -> None:
-    await asyncio.to_thread(sys.stdin.read)
-
-
-def run_child(args: Sequence[str]) -> None:
-    kind = args[0]
-    if kind == "flood":
-        asyncio.run(flood_child(int(args[1]), Path(args[2]), float(args[3])))
-    elif kind == "stranger":
-        stranger_child(int(args[1]), args[2], float(args[3]), args[4])
-    else:
-        raise SystemExit(f"unknown child {kind!r}")
-
-
-def _main() -> None:
-    if len(sys.argv) > 2 and sys.argv[1] == "--child":
-        run_child(sys.argv[2:])
-        return
-    raise SystemExit("run bench/channels.py (this module holds its sections D and E)")
-
-
-if __name__ == "__main__":
-    _main()

@@ -55,6 +55,8 @@ from telebot.services.mapxfer.wire import EncodedMap, encode_map
 from telebot.testing.net import free_port
 
 ROBOT = "mapbot"
+#: A call's set-up is not measured: generous, for a loaded machine (a test run beside others).
+CALL_TIMEOUT = 30.0
 USER = "mapuser"
 #: A second map channel, bench only: the speckled map, served beside the real one.
 NOISY_CHANNEL = "map-noisy"
@@ -152,7 +154,7 @@ async def zenoh_fetches(
         ZenohTransport(settings) as transport,
         UserEndpoint(transport, Identity.load(user_home), KnownRobots.load(user_home)) as user,
     ):
-        call = await user.call(ROBOT, timeout=10.0)
+        call = await user.call(ROBOT, timeout=CALL_TIMEOUT)
         try:
             plain = [await fetch_checked(call, "map", default) for _ in range(ZENOH_RUNS)]
             speck = [await fetch_checked(call, NOISY_CHANNEL, noisy) for _ in range(ZENOH_RUNS)]
@@ -193,7 +195,7 @@ async def lossy_fetches(
         hub.set_link("robot", "user", loss=LOSS)
         for results, name, expected in ((plain, "map", default), (speck, NOISY_CHANNEL, noisy)):
             for _ in range(LOSSY_RUNS):
-                call = await user.call(ROBOT, timeout=10.0)
+                call = await user.call(ROBOT, timeout=CALL_TIMEOUT)
                 try:
                     results.append(await fetch_checked(call, name, expected))
                 finally:

@@ -1,8 +1,8 @@
 """Media: H.264 against JPEG, and a stop while media streams both ways; browser parts by hook.
 
 Run ``.venv/bin/python bench/media.py`` (about 30 s; ``--quick``: a check that it runs, 30
-frames in A, 2 s in B, B and C at 320 × 240, 3 s a part in C). Loopback,
-one process. What it measures:
+frames in A, 0.5 s in B, A, B and C at 320 × 240, 1 s of glass and audio in C and its loss
+until one lost keyframe was repaired). Loopback, one process. What it measures:
 
 A. Bytes per frame and PSNR, H.264 (libx264 Constrained Baseline, ultrafast/zerolatency,
    keyframe every 3 s, as :class:`telebot.services.codecs.VideoEncoder` sends it) against
@@ -77,10 +77,11 @@ def psnr(a: Image, b: Image) -> float:
     return 99.0 if mse == 0 else 10 * math.log10(255.0**2 / mse)
 
 
-def sim_frames(n: int) -> list[Image]:
-    """The simulator's navcam, the robot turning in place at 0.4 rad/s, 30 fps."""
+def sim_frames(n: int, size: tuple[int, int]) -> list[Image]:
+    """The simulator's navcam (``size``), the robot turning in place at 0.4 rad/s, 30 fps."""
+    width, height = size
     nav = SimNavStack.from_settings(
-        SimSettings(map="small", camera_width=640, camera_height=480), now=0.0
+        SimSettings(map="small", camera_width=width, camera_height=height), now=0.0
     )
     frames = []
     for i in range(n):
@@ -90,13 +91,15 @@ def sim_frames(n: int) -> list[Image]:
     return frames
 
 
-def textured_frames(n: int) -> list[Image]:
-    """A textured scene (blocks of noise, soft edges) panning 2 px per frame."""
+def textured_frames(n: int, size: tuple[int, int]) -> list[Image]:
+    """A textured scene (blocks of noise, soft edges) panning 2 px per frame, ``size``
+    (640 × 480: blocks of about 21 px)."""
+    width, height = size
     rng = np.random.default_rng(15)
     blocks = rng.integers(0, 255, (30, 60, 3), dtype=np.uint8)
-    wide = cv2.resize(blocks, (1280 + 2 * n, 480), interpolation=cv2.INTER_CUBIC)
+    wide = cv2.resize(blocks, (2 * width + 2 * n, height), interpolation=cv2.INTER_CUBIC)
     wide = cv2.GaussianBlur(wide, (3, 3), 0.8)
-    return [np.ascontiguousarray(wide[:, 2 * i : 2 * i + 640]) for i in range(n)]
+    return [np.ascontiguousarray(wide[:, 2 * i : 2 * i + width]) for i in range(n)]
 
 
 def measure_jpeg(frames: list[Image]) -> tuple[float, float]:
@@ -213,12 +216,12 @@ def pct(values: list[float], q: float) -> float:
 
 
 async def main(quick: bool) -> None:
-    n = 30 if quick else 120
-    print(f"A. H.264 against JPEG q80, 640 x 480, {n} frames at {FPS} fps")
-    sim_ratio = compare("A1 simulator camera", sim_frames(n))
-    tex_ratio = compare("A2 textured scene", textured_frames(n))
+    n, size = (30, (320, 240)) if quick else (120, (640, 480))
+    print(f"A. H.264 against JPEG q80, {size[0]} x {size[1]}, {n} frames at {FPS} fps")
+    sim_ratio = compare("A1 simulator camera", sim_frames(n, size))
+    tex_ratio = compare("A2 textured scene", textured_frames(n, size))
     print("B. stop round trip while media streams both ways (robot daemon, zenoh loopback)")
-    times = await stop_while_streaming(2.0 if quick else 10.0, (320, 240) if quick else (640, 480))
+    times = await stop_while_streaming(0.5 if quick else 10.0, size)
     stop_p50, stop_p99 = pct(times, 0.5) * 1000, pct(times, 0.99) * 1000
     print(f"  {len(times)} stops: p50 {stop_p50:.2f} ms, p99 {stop_p99:.2f} ms")
     print("C. browser (bench/_media_browser.py)")

@@ -14,8 +14,8 @@ B. with a :class:`~telebot.apps.foxglove_bridge.FoxgloveBridge` writing an MCAP 
 
 The phases alternate (A B A B) so that drift in the machine's load falls on both. The
 recording's cost is B − A in % of one core; target ≤ 10 %. The last line is
-``RESULT record_cpu_pct=… fps=… mcap_mb_per_min=…``. ``--quick``: one round of a second
-each (a check that it runs).
+``RESULT record_cpu_pct=… fps=… mcap_mb_per_min=…``. ``--quick``: one round of half a
+second each (a check that it runs).
 """
 
 from __future__ import annotations
@@ -110,7 +110,7 @@ async def main() -> None:
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="one round of a second (seconds)")
+    parser.add_argument("--quick", action="store_true", help="one round of half a second")
     if parser.parse_args().quick:
-        WARMUP, DURATION, ROUNDS = 0.5, 1.0, 1
+        WARMUP, DURATION, ROUNDS = 0.3, 0.5, 1
     asyncio.run(main())

@@ -22,7 +22,7 @@ Percentiles are nearest-rank; targets: added relay latency p99 <= 20 ms, stop p9
 - **Recording**: ``bench/record.py`` runs after the rest (its own robot, 30 fps video): the
   CPU, in percent of one core, that recording the session as MCAP adds (target <= 10 %).
 
-The last line (``RESULT ...``) is for scripts. ``--quick``: 5 raw samples, 2 stops, no
+The last line (``RESULT ...``) is for scripts. ``--quick``: 5 raw samples, 1 stop, no
 recording (``bench/record.py --quick`` checks that one) (a check that it runs).
 """
 
@@ -207,10 +207,10 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--samples", type=int, default=100, help="raw zenoh samples")
     parser.add_argument("--stops", type=int, default=20, help="stops measured")
-    parser.add_argument("--quick", action="store_true", help="--samples 5 --stops 2, no recording")
+    parser.add_argument("--quick", action="store_true", help="--samples 5 --stops 1, no recording")
     args = parser.parse_args()
     if args.quick:
-        args.samples, args.stops = 5, 2
+        args.samples, args.stops = 5, 1
     return asyncio.run(main_async(args))
 
 

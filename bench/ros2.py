@@ -31,7 +31,8 @@ D. **Map**: the probe publishes a new 4000 × 4000 ``/map`` (transient local, as
 
 Percentiles are nearest-rank; each target line prints target ÷ measured (above 1 = within the
 target); PASS/MISS is informational. The last line (``RESULT ...``) is for scripts.
-``--quick``: ``--samples 5 --stops 3 --maps 1`` (a check that it runs).
+``--quick``: ``--samples 5 --stops 1 --maps 1`` and a 1000 × 1000 map (a check that it
+runs).
 """
 
 from __future__ import annotations
@@ -398,10 +399,13 @@ def main() -> int:
     parser.add_argument("--samples", type=int, default=100, help="goals and raw samples")
     parser.add_argument("--stops", type=int, default=30, help="stops measured")
     parser.add_argument("--maps", type=int, default=5, help="maps published")
-    parser.add_argument("--quick", action="store_true", help="--samples 5 --stops 3 --maps 1")
+    parser.add_argument(
+        "--quick", action="store_true", help="--samples 5 --stops 1 --maps 1, a 1000 x 1000 map"
+    )
     args = parser.parse_args()
     if args.quick:
-        args.samples, args.stops, args.maps = 5, 3, 1
+        global MAP_SIZE
+        args.samples, args.stops, args.maps, MAP_SIZE = 5, 1, 1, 1000
     return asyncio.run(main_async(args))
 
 

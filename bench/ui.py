@@ -58,10 +58,11 @@ async def bench(presses: int) -> tuple[list[float], list[float]]:
                 await wait_for(lambda: abs(rig.nav.velocity().linear) > 0.2, what=f"moving ({i})")
                 stops = len(rig.zeroed)
                 await page.keyboard.press("x")  # not a drive key (WASD, arrows drive)
-                await wait_for(lambda n=stops: len(rig.zeroed) > n, timeout=2.0, what="stopped")
+                # The latency is the timestamps'; these waits only need to end on a loaded machine.
+                await wait_for(lambda n=stops: len(rig.zeroed) > n, what="stopped")
                 pressed = (await page.evaluate("() => window.telebotUI.stats.keyTimes"))[-1]
                 key_stop.append(rig.zeroed[-1] * 1000 - pressed)
-                await asyncio.wait_for(goal, 5.0)  # the goal ends as cancelled
+                await asyncio.wait_for(goal, 30.0)  # the goal ends as cancelled
             pose_draw = await page.evaluate("() => window.telebotUI.stats.poseDraw")
     return key_stop, [float(v) for v in pose_draw]
 

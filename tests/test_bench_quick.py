@@ -4,13 +4,15 @@ subprocess, exits 0 and ends with a well-formed ``RESULT key=value ...`` line.
 The figures are not checked (a quick run's are noise, and bench/ measures speed): this only
 keeps a refactor from breaking a benchmark unseen (one did: ``bench/ui.py`` called a method
 the web UI no longer had). Each benchmark is its own test; ``make test`` runs this module
-after the rest of the suite, one benchmark at a time (each starts several processes, and
-beside the browser tests they starved Chromium's video). ``bench/_*.py`` are the
+after the rest of the suite (each benchmark starts several processes, and beside the
+browser tests they starved Chromium's video), two benchmarks at a time (``-n 2``: beside
+each other only their figures suffer, and those are not checked). ``bench/_*.py`` are the
 benchmarks' helpers, run by them. ``make bench-quick`` runs the same list by hand.
 """
 
 from __future__ import annotations
 
+import asyncio
 import re
 import subprocess
 import sys
@@ -93,3 +95,17 @@ def test_the_result_check_refuses_what_is_not_a_result() -> None:
         with pytest.raises(AssertionError):
             result_fields(bad)
     assert not is_figure("5.0x") and not is_figure("")
+
+
+async def test_the_video_benchmarks_robot_keeps_the_loops_clock() -> None:
+    # bench/video.py steps its simulated robot to loop.time() (CLOCK_MONOTONIC: the
+    # machine's uptime). A robot whose clock started at 0 integrated the whole uptime in its
+    # first step: a minute of blocked loop on a machine up for a day, and the call timed out.
+    sys.path.insert(0, str(BENCH))  # video.py imports bench/_child.py
+    try:
+        import video
+    finally:
+        sys.path.remove(str(BENCH))
+    loop = asyncio.get_running_loop()
+    nav = video.sim_robot()
+    assert nav.now == pytest.approx(loop.time(), abs=5.0)
