@@ -24,13 +24,12 @@ lint: install
 
 # --dist loadgroup: a module's tests that share a module-scoped daemon, router or browser run
 # on one worker, which starts it once (tests/conftest.py schedules them); the rest load-balance.
-# The quick benchmarks (tests/test_bench_quick.py) run after the rest, two at a time: each
-# starts several processes, and beside the browser tests they starved Chromium's video;
-# beside each other only their figures suffer, which the test does not check.
+# The quick benchmarks (tests/test_bench_quick.py) run after the rest, one at a time: each
+# starts several processes, and beside the browser tests they starved Chromium's video.
 test: lint install-debian node_modules/.installed
 	npm test
 	$(BIN)/pytest -n 2 --dist loadgroup --ignore=tests/test_bench_quick.py
-	$(BIN)/pytest -q -n 2 tests/test_bench_quick.py
+	$(BIN)/pytest -q tests/test_bench_quick.py
 
 # The browser client's packages (package-lock.json): again only when the lockfile changed.
 node_modules/.installed: package-lock.json | install-debian
