@@ -42,7 +42,7 @@ import playwright.async_api as playwright_api
 import pytest
 import pytest_asyncio
 
-from rig import FAST_SIM, SLACK, Daemon
+from rig import FAST_SIM, GENEROUS_TIMEOUT, SLACK, Daemon
 from telebot.services.client import RobotClient
 from telebot.testing.net import free_port
 from test_web_phone import PORTRAIT, box
@@ -80,6 +80,33 @@ NETWORK_SWITCH = """
   };
 })();
 """
+
+
+#: In every page, before its scripts: the in-browser client's calls drop after
+#: GENEROUS_TIMEOUT of silence, as the robot's and every rig user's do, not the product's
+#: 0.5 s (a loaded machine stalls Chromium for longer: its call dropped and came back again
+#: and again, and each call that replaced one latched the robot, refused the arm or failed
+#: the goal). The page's Endpoint has no option for it: its ``call`` sets it.
+GENEROUS_CALLS = (
+    """
+((timeout) => {
+  let telebot;
+  Object.defineProperty(window, "telebot", {
+    configurable: true,
+    get: () => telebot,
+    set: (value) => {
+      telebot = value;
+      const call = value.Endpoint.prototype.call;
+      value.Endpoint.prototype.call = function (...args) {
+        this.timeout = timeout;
+        return call.apply(this, args);
+      };
+    },
+  });
+})("""
+    + repr(GENEROUS_TIMEOUT)
+    + ");"
+)
 
 
 @dataclass
@@ -158,6 +185,7 @@ async def join(e2e: E2E, name: str, role: str) -> User:
         ignore_https_errors=True,  # the robot's self-signed certificate; still https
     )
     await context.add_init_script(NETWORK_SWITCH)
+    await context.add_init_script(GENEROUS_CALLS)
     page = await context.new_page()
     page.on("pageerror", lambda error: e2e.page_errors.append(f"{name}: {error}"))
     user = User(name, context, page)

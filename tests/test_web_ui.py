@@ -95,7 +95,7 @@ def _watch_stops(nav: SimNavStack, zeroed: list[float]) -> None:
 
 @contextlib.asynccontextmanager
 async def robot_rig(
-    base: Path, *, role: Role = Role.DRIVER, pose_hz: float = 20.0
+    base: Path, *, role: Role = Role.DRIVER, pose_hz: float = 20.0, max_linear_speed: float = 1.5
 ) -> AsyncIterator[Rig]:
     """A fast simulated robot on the small map, a user in a call with it, the UI served."""
     create_paired_homes(base, ROBOT, USER, role=role)
@@ -103,7 +103,7 @@ async def robot_rig(
     loop = asyncio.get_running_loop()
     settings = SimSettings(
         map="small",
-        max_linear_speed=1.5,
+        max_linear_speed=max_linear_speed,
         linear_accel=3.0,
         max_angular_speed=3.0,
         angular_accel=8.0,
@@ -258,8 +258,15 @@ async def arm(rig: Rig) -> None:
     assert ack.ok, ack.text
 
 
+#: A top speed at which :func:`drive_forward`'s move lasts 20 s, for a test whose stop
+#: comes from a page going away: on a loaded machine that took over the 6 s of the fast
+#: robot's move, which had ended (nothing left to stop) when the page went.
+LASTING_SPEED = 0.4
+
+
 async def drive_forward(rig: Rig) -> None:
-    """Start a long straight move and wait until the base is moving."""
+    """Start a long straight move (8 m: 6 s at the rig's usual speed) and wait until the
+    base is moving."""
     await arm(rig)
     pose = rig.nav.pose().pose
     rig.ui._tasks.spawn(rig.client.goto(pose.x + 8.0, pose.y))  # along the bottom corridor
@@ -510,33 +517,39 @@ async def test_video_frames_arrive_and_the_camera_switches(rig: Rig) -> None:
 
 
 @in_module_loop
-async def test_closing_the_page_while_driving_stops_the_robot(rig: Rig) -> None:
-    async with browser_page(rig.ui.url) as page:
+async def test_closing_the_page_while_driving_stops_the_robot(tmp_path: Path) -> None:
+    async with (
+        robot_rig(tmp_path, max_linear_speed=LASTING_SPEED) as rig,
+        browser_page(rig.ui.url) as page,
+    ):
         await page_ready(page)
         await drive_forward(rig)
         await page.close()
-    await wait_for(lambda: rig.zeroed, timeout=3.0 + SLACK, what="the base stopped")
-    assert rig.nav.velocity().linear == 0.0
-    await wait_for(lambda: rig.stops(), timeout=3.0 + SLACK, what="the stop in the audit log")
-    # The page stops the robot itself as it goes (pagehide): the first stop is the page's.
-    assert rig.stops()[0] == (USER, "page_hidden")
+        await wait_for(lambda: rig.zeroed, timeout=3.0 + SLACK, what="the base stopped")
+        assert rig.nav.velocity().linear == 0.0
+        await wait_for(lambda: rig.stops(), timeout=3.0 + SLACK, what="the stop in the audit log")
+        # The page stops the robot itself as it goes (pagehide): the first stop is the page's.
+        assert rig.stops()[0] == (USER, "page_hidden")
 
 
 @in_module_loop
-async def test_a_page_that_dies_while_driving_is_stopped_by_the_client(rig: Rig) -> None:
-    async with browser_page(rig.ui.url) as page:
+async def test_a_page_that_dies_while_driving_is_stopped_by_the_client(tmp_path: Path) -> None:
+    async with (
+        robot_rig(tmp_path, max_linear_speed=LASTING_SPEED) as rig,
+        browser_page(rig.ui.url) as page,
+    ):
         await page_ready(page)
+        cdp = await page.context.new_cdp_session(page)
         await drive_forward(rig)
         # The renderer crashes: no pagehide, no last message; only its websocket goes.
-        cdp = await page.context.new_cdp_session(page)
         # (Page.crash never answers: its page is gone.)
         with contextlib.suppress(Exception):
             await asyncio.wait_for(cdp.send("Page.crash"), timeout=1.0)
         await wait_for(lambda: rig.zeroed, timeout=3.0 + SLACK, what="the base stopped")
-    assert rig.ui.close_stops == 1
-    assert rig.nav.velocity().linear == 0.0
-    await wait_for(lambda: rig.stops(), timeout=3.0 + SLACK, what="the stop in the audit log")
-    assert rig.stops() == [(USER, "tab_closed")]
+        assert rig.ui.close_stops == 1
+        assert rig.nav.velocity().linear == 0.0
+        await wait_for(lambda: rig.stops(), timeout=3.0 + SLACK, what="the stop in the audit log")
+        assert rig.stops() == [(USER, "tab_closed")]
 
 
 @in_module_loop
