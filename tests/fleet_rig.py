@@ -13,10 +13,10 @@ from collections.abc import AsyncIterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from rig import GENEROUS_STALE_VIDEO, GENEROUS_TIMEOUT
+from rig import GENEROUS_STALE_VIDEO, GENEROUS_TIMEOUT, services_without_media
 from telebot.channels.call import RobotEndpoint, UserEndpoint
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
-from telebot.config import CallSettings, MediaConfig, ServiceSettings, SimSettings
+from telebot.config import CallSettings, ServiceSettings, SimSettings
 from telebot.identity import ContactBook, Identity, KnownRobots, Role
 from telebot.robot.sim.stack import SimNavStack
 from telebot.services.base import ServiceConfig
@@ -86,12 +86,12 @@ async def running_robot(base: Path, name: str, hub: MemoryHub) -> AsyncIterator[
     server = RobotServer(
         nav,
         ServiceSettings(pose_hz=10.0),
+        services=services_without_media(),
         control_hz=settings.control_hz,
         map_name="small",
         safety=safety,
         config=ServiceConfig(
             video=VideoSettings(width=160, height=120, max_fps=5, quality=50, min_quality=30),
-            media=MediaConfig(voice="off"),  # no espeak-ng run per chat reply
         ),
     )
     await server.prepare()

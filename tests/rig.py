@@ -58,7 +58,6 @@ from telebot.config import (
     AppConfig,
     CallSettings,
     CipherChoice,
-    MediaConfig,
     ServiceSettings,
     SimSettings,
     ZenohSettings,
@@ -66,6 +65,7 @@ from telebot.config import (
 from telebot.identity import ContactBook, Identity, KnownRobots, Role, create_paired_homes
 from telebot.robot.mapfile import places_path_for
 from telebot.robot.sim.stack import SimNavStack, resolve_map
+from telebot.services import registry as service_registry
 from telebot.services.base import ServiceConfig, ServiceRegistry
 from telebot.services.client import RobotClient, connect
 from telebot.services.drive.robot import RobotDrive
@@ -426,6 +426,16 @@ def robot_drive(server: RobotServer) -> RobotDrive:
     return drive
 
 
+def services_without_media() -> ServiceRegistry[RobotServer]:
+    """The robot's registered services but ``media``, for in-process robots in tests that
+    are not about sound or the user's camera: its microphone pump, voice (an espeak-ng run
+    per chat reply) and camera decoding would only load the machine (tests/test_media*.py
+    and the daemons have it)."""
+    services = service_registry.robot_services()
+    services.unregister("media")
+    return services
+
+
 @contextlib.asynccontextmanager
 async def robot_on_hub(
     base: Path,
@@ -470,9 +480,8 @@ async def robot_on_hub(
         nav,
         services if services is not None else ServiceSettings(),
         safety=safety,
-        services=robot_services,
-        # Replies unspoken: an espeak-ng run per chat reply would only load the machine.
-        config=ServiceConfig(video=video, media=MediaConfig(voice="off")),
+        services=robot_services if robot_services is not None else services_without_media(),
+        config=ServiceConfig(video=video),
     )
     await server.prepare()
     with safety:

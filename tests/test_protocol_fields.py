@@ -31,6 +31,7 @@ from telebot.reasons import Reason
 from telebot.services.client import RobotClient
 from telebot.services.messages import is_finite_number
 from telebot.services.plan.wire import PLAN
+from telebot.services.registry import robot_services
 from telebot.services.status.wire import GOALS, POSE, TELEMETRY, GoalCommand
 
 PROTOCOL = Path(__file__).resolve().parents[1] / "docs" / "protocol.md"
@@ -134,13 +135,16 @@ def documented_channels() -> dict[str, set[str]]:
 
 async def test_section_13_lists_every_channel_a_call_gets(tmp_path: Path) -> None:
     hub = MemoryHub(seed=13)
-    async with robot_on_hub(tmp_path, hub, timeout=GENEROUS_TIMEOUT, sim=FAST_SIM) as (
+    # The daemon's services: the default registry (media is one of them).
+    services = robot_services()
+    async with robot_on_hub(
+        tmp_path, hub, timeout=GENEROUS_TIMEOUT, sim=FAST_SIM, robot_services=services
+    ) as (
         _,
         _,
         server,
         endpoint,
     ):
-        # The daemon's services: the default registry (media is one of them).
         assert "media" in server.hosted.names()
         async with (
             user_on_hub(tmp_path, hub) as user,

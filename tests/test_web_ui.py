@@ -13,6 +13,7 @@ import contextlib
 import json
 import math
 import os
+import re
 import shutil
 import time
 from collections.abc import AsyncIterator
@@ -25,11 +26,11 @@ import pytest
 import pytest_asyncio
 
 from conftest import ROBOT, USER
-from rig import GENEROUS_STALE_VIDEO, GENEROUS_TIMEOUT, SLACK
+from rig import GENEROUS_STALE_VIDEO, GENEROUS_TIMEOUT, SLACK, services_without_media
 from telebot.apps.web.server import WebUI
 from telebot.channels.call import RobotEndpoint, UserEndpoint
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
-from telebot.config import CallSettings, MediaConfig, ServiceSettings, SimSettings
+from telebot.config import CallSettings, ServiceSettings, SimSettings
 from telebot.identity import ContactBook, Identity, KnownRobots, Role, create_paired_homes
 from telebot.robot.grid import OccupancyGrid
 from telebot.robot.sim.stack import SimNavStack
@@ -123,12 +124,12 @@ async def robot_rig(
     server = RobotServer(
         nav,
         ServiceSettings(pose_hz=pose_hz),
+        services=services_without_media(),
         control_hz=settings.control_hz,
         map_name="small",
         safety=safety,
         config=ServiceConfig(
             video=VideoSettings(width=320, height=240, max_fps=15, quality=70, min_quality=30),
-            media=MediaConfig(voice="off"),  # no espeak-ng run per chat reply
         ),
     )
     await server.prepare()
@@ -370,7 +371,9 @@ async def test_a_click_moves_the_robot_there(rig: Rig) -> None:
             arg=[real.x, real.y],
             timeout=5000,
         )
-        assert f"{real.x:.2f}"[:-1] in await page.inner_text("#pose-text")
+        # The text shows the page's pose (within 0.1 m of the robot's by now) to 2 decimals.
+        shown = re.match(r"x (-?[0-9.]+) m", await page.inner_text("#pose-text"))
+        assert shown is not None and abs(float(shown.group(1)) - real.x) < 0.1
 
 
 @in_module_loop
@@ -500,11 +503,12 @@ async def test_video_frames_arrive_and_the_camera_switches(rig: Rig) -> None:
         await page_ready(page)
         await page.wait_for_function("() => window.telebotUI.state.frames >= 5", timeout=10000)
         # Each frame replaces the image's source: its size is 0 until that one decodes.
-        await page.wait_for_function("() => document.getElementById('video').naturalWidth > 0")
-        size = await page.evaluate(
-            "() => [document.getElementById('video').naturalWidth,"
-            " document.getElementById('video').naturalHeight]"
+        # Read in the same turn as the check: the next frame's source resets the size to 0.
+        decoded = await page.wait_for_function(
+            "() => { const v = document.getElementById('video');"
+            " return v.naturalWidth > 0 && [v.naturalWidth, v.naturalHeight]; }"
         )
+        size = await decoded.json_value()
         # The camera's 320 × 240, or scaled down by the rate control on a loaded machine.
         assert 0 < size[0] <= 320 and size[0] * 3 == size[1] * 4, size
         first = await page.evaluate("() => window.telebotUI.state.camera")
