@@ -134,11 +134,11 @@ async def test_a_frame_needing_more_than_one_datagram_is_rebuilt(
     assert sender.stats.fragments >= 3 * sender.stats.frames > 0
     assert diff(got[-1].image, nav.get_frame("navcam").image) < 4.0
     # Nothing is lost on this hub, but a loaded machine may starve the receiver past a
-    # partial frame's deadline, which then drops it whole (counted, never shown half):
-    # every frame sent is accounted for as shown, given up, or still on its way.
+    # partial frame's deadline, which then drops it whole (counted as incomplete, never
+    # shown half; its late fragments may open and give it up once more): no frame is shown
+    # that was not sent whole.
     stats = receiver.reassembler.stats
-    assert stats.frames + stats.incomplete <= sender.stats.frames
-    assert stats.frames >= len(got)
+    assert len(got) <= stats.frames <= sender.stats.frames
 
 
 async def test_camera_switch_changes_the_picture(homes: Homes, nav: SimNavStack) -> None:
