@@ -217,35 +217,18 @@ async def measure_survival_async(port: int) -> Survival:
                     ["flood", str(daemon.port), ROBOT, str(flooder_home), str(FLOOD_SECONDS)],
                 )
                 print("D2. a stranger floods the robot's handshake key ...", flush=True)
-                stranger = await measure_flood(
-                    alice,
-                    daemon,
-                    FLOODERS,
-                    [
-                        "stranger",
-                        str(daemon.port),
-                        ROBOT,
-                        USER,
-                        alice.call.id,
-                        str(FLOOD_SECONDS),
-                        "in",
-                    ],
-                )
+                # A stranger's flood: "in" on the robot's handshake key, "call" on the call's.
+                stranger_args = [
+                    "stranger",
+                    str(daemon.port),
+                    ROBOT,
+                    USER,
+                    alice.call.id,
+                    str(FLOOD_SECONDS),
+                ]
+                stranger = await measure_flood(alice, daemon, FLOODERS, [*stranger_args, "in"])
                 print("D3. a stranger floods alice's call keys too ...", flush=True)
-                sniffer = await measure_flood(
-                    alice,
-                    daemon,
-                    FLOODERS,
-                    [
-                        "stranger",
-                        str(daemon.port),
-                        ROBOT,
-                        USER,
-                        alice.call.id,
-                        str(FLOOD_SECONDS),
-                        "call",
-                    ],
-                )
+                sniffer = await measure_flood(alice, daemon, FLOODERS, [*stranger_args, "call"])
             print(f"E. {CUTS} cuts of {CUT_SECONDS:g} s through a loopback proxy ...", flush=True)
             reconnects = await measure_reconnects(daemon, user_home)
         finally:
