@@ -80,7 +80,7 @@ def test_the_result_line_holds_the_worst_row_but_the_baselines(wan: ModuleType) 
 
 
 def test_rows_and_the_lossy_profile(wan: ModuleType) -> None:
-    assert wan.parse_row("4g/quic") == ("4g", "quic") and wan.parse_row("wifi") == ("wifi", "tcp")
+    assert wan.parse_row("4g/quic") == ("4g", "quic") and wan.parse_row("wifi") == ("wifi", "quic")
     with pytest.raises(ValueError, match="unknown profile 'moon'"):
         wan.parse_row("moon/tcp")
     with pytest.raises(ValueError, match="unknown link 'sctp'"):

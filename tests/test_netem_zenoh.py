@@ -3,7 +3,8 @@
 The robot answers on a zenoh session of its own that listens on TCP; the user's session
 (client mode) reaches it only through a :class:`~telebot.netem.NetemProxy` playing the
 ``wifi`` profile on zenoh's TCP link, and the test forces the profile's roaming gap
-(300 ms) while the robot drives.
+(300 ms) while the robot drives. Over zenoh's ``udp/`` link, an outage long enough to drop
+the call: the first call back hears the robot.
 """
 
 from __future__ import annotations
@@ -78,3 +79,55 @@ async def test_a_call_over_wifi_survives_a_roaming_gap_and_a_stop_sent_into_it_a
                 pass
             assert client.call is first and client.reconnects == 0
             assert (await client.telemetry()).stop_reason
+
+
+@pytest.mark.zenoh
+async def test_the_first_call_back_after_an_outage_hears_the_robot(tmp_path: Path) -> None:
+    # zenoh's udp/ link never repeats a lost declaration: a call set up during the outage
+    # would subscribe into the void, and nothing of it would ever come back. The client
+    # redials on keys it subscribed to while the link was good (``_listen_ahead``), so the
+    # first new call hears the robot.
+    listen = f"udp/127.0.0.1:{free_port('udp')}"
+    robot_transport = ZenohTransport(ZenohSettings(listen=[listen], multicast_scouting=False))
+    timeout = 1.0  # both sides: the outage drops the call, a loaded machine does not
+    async with (
+        robot_on_hub(
+            tmp_path,
+            MemoryHub(),
+            transport=robot_transport,
+            timeout=timeout,
+            services=ServiceSettings(pose_hz=20.0),
+        ),
+        NetemProxy("lan", "udp/127.0.0.1:0", listen, seed=1) as proxy,
+    ):
+        config = AppConfig.model_validate(
+            {
+                "transport": {
+                    "zenoh": {
+                        "mode": "client",
+                        "connect": [proxy.endpoint],
+                        "multicast_scouting": False,
+                    }
+                },
+                "call": {"timeout": timeout},
+                "reconnect": {"base": 0.05, "cap": 0.5},
+            }
+        )
+        async with connect(ROBOT, home=tmp_path / "user", config=config, timeout=20) as client:
+            await client.pose(timeout=10)
+            poses: list[int] = []  # the client's reconnection count at each pose
+
+            async def follow() -> None:
+                async for _ in client.poses():
+                    poses.append(client.reconnects)
+
+            follower = asyncio.create_task(follow())
+            try:
+                proxy.outage(3 * timeout)
+                await wait_until(lambda: client.reconnects >= 1, timeout=20)
+                await wait_until(lambda: any(n >= 1 for n in poses), timeout=20)
+            finally:
+                follower.cancel()
+                await asyncio.gather(follower, return_exceptions=True)
+            first_back = next(n for n in poses if n >= 1)
+            assert first_back == 1, f"the robot was heard again only on call {first_back}"

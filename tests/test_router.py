@@ -325,8 +325,12 @@ def test_the_printed_config_is_the_one_the_router_runs(fleet: Fleet) -> None:
     assert {"id": "robot-rover", "cert_common_names": ["robot:rover"]} in subjects
     assert printed["transport"]["link"]["tls"]["enable_mtls"] is True
     assert printed["scouting"]["multicast"]["enabled"] is False
-    # By default the router offers TLS and QUIC (the link across the internet) on 7447.
-    assert printed["listen"]["endpoints"] == ["tls/0.0.0.0:7447", "quic/0.0.0.0:7447"]
+    # By default the router offers TLS and QUIC (the link across the internet) on 7447,
+    # QUIC with datagrams for best-effort frames (zenoh's mixed reliability).
+    assert printed["listen"]["endpoints"] == [
+        "tls/0.0.0.0:7447",
+        "quic/0.0.0.0:7447?mixed_rel=auto",
+    ]
     zenoh.Config.from_json5(done.stdout)  # zenoh (and so zenohd -c) takes it as it is
 
 

@@ -864,13 +864,38 @@ class UserEndpoint(_Endpoint):
         self._pending_robot: dict[bytes, str] = {}
         # The HELLO each pending call repeats (another one after a RETRY).
         self._pending_hello: dict[bytes, bytes] = {}
+        # Per robot called, the keys of the next call to it, listened on ahead of time
+        # (:meth:`_listen_ahead`).
+        self._next_inbox: dict[str, _CallInbox] = {}
 
     async def close(self, reason: str = "shutting down") -> None:
         """:meth:`_Endpoint.close`; a call still being set up fails with CallError."""
         for _, future in self._pending.values():
             if not future.done():
                 future.set_exception(CallError("the user endpoint closed while calling"))
-        await super().close(reason)
+        try:
+            await super().close(reason)
+        finally:
+            for inbox in self._next_inbox.values():
+                inbox.close()
+            self._next_inbox.clear()
+
+    def _listen_ahead(self, robot: str) -> None:
+        """Listen now on the keys of the next call to ``robot`` (a new random call id).
+
+        A call that drops with the link (Wi-Fi roaming, a tunnel, a 4G dead spot) is
+        redialled on keys whose subscription reached the robot's side while the link was
+        good, so the new call is answered as soon as the link is back. A subscription
+        made during the outage reaches the other side only with the link's own
+        retransmission, after TCP's or QUIC's backoff (seconds), or never on zenoh's
+        ``udp/`` link; until then nothing of the new call comes back.
+        """
+        if self._closed or robot in self._next_inbox:
+            return
+        try:
+            self._next_inbox[robot] = _CallInbox(self, os.urandom(8), robot)
+        except TelebotError as exc:  # the next call subscribes then; this one is up
+            log.info("listening ahead for the next call to %s failed: %s", robot, exc)
 
     async def call(self, robot: str, *, timeout: float | None = None) -> Call:
         """Call ``robot``; returns the call once the robot accepted it.
@@ -889,7 +914,9 @@ class UserEndpoint(_Endpoint):
                 f"'telebot-user known add {robot} KEY'"
             )
         timeout = self.settings.connect_timeout if timeout is None else timeout
-        call_id = os.urandom(8)
+        # Keys listened on since the last call to this robot came up, if there are.
+        inbox = self._next_inbox.pop(robot, None)
+        call_id = inbox.call_id if inbox is not None else os.urandom(8)
         hello, handshake = start_call(
             self.identity.private_key,
             robot_key,
@@ -903,11 +930,12 @@ class UserEndpoint(_Endpoint):
         self._pending[call_id] = (handshake, future)
         self._pending_robot[call_id] = robot
         self._pending_hello[call_id] = hello.encode()
-        inbox: _CallInbox | None = None
         publisher: Publisher | None = None
         watch: Subscription | None = None
         try:
-            self._pending_inbox[call_id] = inbox = _CallInbox(self, call_id, robot)
+            if inbox is None:
+                inbox = _CallInbox(self, call_id, robot)
+            self._pending_inbox[call_id] = inbox
             publisher = self.transport.publisher(self._hello_key(robot), Lane.CONTROL)
             # A robot online under this name with another key cannot read the HELLO and
             # never answers: its presence token (which carries its key) tells at once.
@@ -921,7 +949,9 @@ class UserEndpoint(_Endpoint):
                 while True:
                     publisher.put(self._pending_hello[call_id])
                     with contextlib.suppress(TimeoutError):
-                        return await asyncio.wait_for(asyncio.shield(future), HELLO_RETRY_INTERVAL)
+                        call = await asyncio.wait_for(asyncio.shield(future), HELLO_RETRY_INTERVAL)
+                        self._listen_ahead(robot)  # while the link is good
+                        return call
                     _check_robot_key(robot, robot_key, tokens)
         except BaseException as exc:
             # No WELCOME may complete this call any more (the await below would let one).

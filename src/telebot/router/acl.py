@@ -51,6 +51,7 @@ from dataclasses import dataclass
 from typing import Any, Final
 
 from telebot.channels.proto.frames import validate_name
+from telebot.channels.transports.endpoints import with_quic_datagrams
 
 __all__ = [
     "DEFAULT_PORT",
@@ -213,7 +214,14 @@ def router_config(plan: RouterPlan) -> dict[str, Any]:
     """The whole zenoh config of the router (``zenohd -c`` reads it as it is)."""
     config: dict[str, Any] = {
         "mode": "router",
-        "listen": {"endpoints": [*plan.listen_tls, *plan.listen_quic, *plan.listen_tcp]},
+        # QUIC carries best-effort frames as datagrams (with_quic_datagrams says why).
+        "listen": {
+            "endpoints": [
+                *plan.listen_tls,
+                *(with_quic_datagrams(e) for e in plan.listen_quic),
+                *plan.listen_tcp,
+            ]
+        },
         # Linked routers (§22.5): retried in the background for as long as the router
         # runs, so either side may start first or restart.
         "connect": {"endpoints": list(plan.peers), "exit_on_failure": False},

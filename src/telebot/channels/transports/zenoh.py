@@ -73,6 +73,7 @@ from telebot.channels.transports.base import (
     Transport,
     gate_passes,
 )
+from telebot.channels.transports.endpoints import with_quic_datagrams
 from telebot.channels.transports.inbox import Inbox
 from telebot.config import TransportSettings, ZenohSettings
 from telebot.errors import TransportError
@@ -116,19 +117,32 @@ _allocator_tuned: bool | None = None  # None: not tried yet in this process
 #: Every lane drops under congestion (a stale pose or video frame is worth nothing, and a
 #: blocked publisher would block the event loop); CONTROL is sent first and at once
 #: (express: not held back for batching), BULK last, so video can never delay a stop.
+#: CONTROL and DATA are best effort: a call's channels are lossy datagrams by contract, and
+#: what must arrive is repeated by telebot itself (stops every 50 ms until acknowledged,
+#: heartbeats, resent requests). On a TCP link that changes nothing; on a QUIC link with
+#: zenoh's mixed reliability (:func:`.endpoints.with_quic_datagrams`) they go as QUIC
+#: datagrams, so a lost packet no longer holds a stop or a heartbeat up until it is
+#: retransmitted, and QUIC puts datagrams in a packet before any stream data. BULK (video,
+#: sound, maps) stays on QUIC's reliable streams: QUIC queues datagrams first in first
+#: out, up to a megabyte, without pushing back, so a video faster than a long or lossy
+#: path (``bench/wan.py``'s intercontinental row) queued every heartbeat behind it (a
+#: round trip of 0.6 s on a 0.32 s path, and the supervisor refused to drive).
 LANE_QOS: Final[dict[Lane, dict[str, Any]]] = {
     Lane.CONTROL: {
         "priority": zenoh.Priority.REAL_TIME,
         "express": True,
         "congestion_control": zenoh.CongestionControl.DROP,
+        "reliability": zenoh.Reliability.BEST_EFFORT,
     },
     Lane.DATA: {
         "priority": zenoh.Priority.DATA,
         "congestion_control": zenoh.CongestionControl.DROP,
+        "reliability": zenoh.Reliability.BEST_EFFORT,
     },
     Lane.BULK: {
         "priority": zenoh.Priority.DATA_LOW,
         "congestion_control": zenoh.CongestionControl.DROP,
+        "reliability": zenoh.Reliability.RELIABLE,
     },
 }
 
@@ -205,10 +219,13 @@ def build_zenoh_config(settings: ZenohSettings) -> zenoh.Config:
     else:
         config = zenoh.Config()
     _insert(config, "mode", settings.mode, "mode")
+    # QUIC endpoints carry the lanes' best-effort frames as QUIC datagrams.
     if settings.listen:
-        _insert_endpoints(config, "listen/endpoints", settings.listen, "listen")
+        listen = [with_quic_datagrams(e) for e in settings.listen]
+        _insert_endpoints(config, "listen/endpoints", listen, "listen")
     if settings.connect:
-        _insert_endpoints(config, "connect/endpoints", settings.connect, "connect")
+        connect = [with_quic_datagrams(e) for e in settings.connect]
+        _insert_endpoints(config, "connect/endpoints", connect, "connect")
     _insert(config, "scouting/multicast/enabled", settings.multicast_scouting, "multicast_scouting")
     if settings.config_file is None and "connect/retry" not in settings.options:
         # After a blip, come back within half a second (zenoh's own default retries every
