@@ -244,3 +244,30 @@ async def test_calling_a_robot_of_protocol_version_1_times_out_naming_the_versio
         with pytest.raises(CallTimeout, match="does it run telebot protocol version 2"):
             await user.call(ROBOT, timeout=1.0)
         assert heard == []  # the HELLO went to .../in/alice, where version 1 never listens
+
+
+async def test_the_next_call_is_listened_for_ahead_and_made_on_those_keys(homes: Homes) -> None:
+    """Once a call is up, the client already subscribes to its next call's keys (a new
+    call id); the next call to that robot is made on them, and closing ends them."""
+    async with memory_endpoints(homes, MemoryHub(seed=1)) as (robot, user):
+        transport = user.transport
+        assert isinstance(transport, MemoryTransport)
+
+        def call_ids() -> set[str]:
+            return {
+                sub.pattern.split("/")[-2]
+                for sub in transport._subs
+                if f"/call/{ROBOT}/" in sub.pattern
+            }
+
+        first = await user.call(ROBOT)
+        ids = call_ids()
+        assert first.id in ids and len(ids) == 2, ids
+        (ahead,) = ids - {first.id}
+        await first.hangup()
+        await wait_until(lambda: not robot.calls)
+        second = await user.call(ROBOT)
+        assert second.id == ahead
+        assert len(call_ids() - {ahead}) == 1  # the one after that, listened for already
+        await user.close()
+        assert call_ids() == set()
