@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -25,6 +26,15 @@ from telebot.services.client import connect
 from telebot.testing.net import free_port
 
 ROAM = profile("wifi").outages.duration  # type: ignore[union-attr]
+
+
+def through(proxy: NetemProxy, timeout: float, **sections: Any) -> AppConfig:
+    """A user's config that reaches the robot only through ``proxy`` (client mode: a client
+    connects only where it is told, never around the proxy), with call ``timeout``."""
+    zenoh = {"mode": "client", "connect": [proxy.endpoint], "multicast_scouting": False}
+    return AppConfig.model_validate(
+        {"transport": {"zenoh": zenoh}, "call": {"timeout": timeout}, **sections}
+    )
 
 
 @pytest.mark.zenoh
@@ -45,19 +55,7 @@ async def test_a_call_over_wifi_survives_a_roaming_gap_and_a_stop_sent_into_it_a
         ) as (nav, safety, _server, _endpoint),
         NetemProxy("wifi", "tcp/127.0.0.1:0", listen, seed=1) as proxy,
     ):
-        # Client mode: a client connects only where it is told, never around the proxy.
-        config = AppConfig.model_validate(
-            {
-                "transport": {
-                    "zenoh": {
-                        "mode": "client",
-                        "connect": [proxy.endpoint],
-                        "multicast_scouting": False,
-                    }
-                },
-                "call": {"timeout": GENEROUS_TIMEOUT},
-            }
-        )
+        config = through(proxy, GENEROUS_TIMEOUT)
         async with connect(ROBOT, home=tmp_path / "user", config=config, timeout=20) as client:
             assert (await client.arm()).ok
             first = client.call
@@ -100,19 +98,7 @@ async def test_the_first_call_back_after_an_outage_hears_the_robot(tmp_path: Pat
         ),
         NetemProxy("lan", "udp/127.0.0.1:0", listen, seed=1) as proxy,
     ):
-        config = AppConfig.model_validate(
-            {
-                "transport": {
-                    "zenoh": {
-                        "mode": "client",
-                        "connect": [proxy.endpoint],
-                        "multicast_scouting": False,
-                    }
-                },
-                "call": {"timeout": timeout},
-                "reconnect": {"base": 0.05, "cap": 0.5},
-            }
-        )
+        config = through(proxy, timeout, reconnect={"base": 0.05, "cap": 0.5})
         async with connect(ROBOT, home=tmp_path / "user", config=config, timeout=20) as client:
             await client.pose(timeout=10)
             poses: list[int] = []  # the client's reconnection count at each pose
