@@ -18,7 +18,6 @@ from pathlib import Path
 import pytest
 
 from telebot.channels.transports.base import Lane, Sample
-from telebot.channels.transports.endpoints import with_quic_datagrams
 from telebot.channels.transports.zenoh import LANE_QOS, ZenohTransport, build_zenoh_config
 from telebot.config import ZenohSettings
 from telebot.netem import NetemProxy
@@ -43,7 +42,7 @@ from telebot.testing.net import free_port
 def test_quic_endpoints_get_mixed_reliability_unless_they_choose(
     endpoint: str, expected: str
 ) -> None:
-    assert with_quic_datagrams(endpoint) == expected
+    assert acl.with_quic_datagrams(endpoint) == expected
 
 
 def test_sessions_and_the_router_listen_and_connect_with_quic_datagrams(tmp_path: Path) -> None:

@@ -51,16 +51,17 @@ from dataclasses import dataclass
 from typing import Any, Final
 
 from telebot.channels.proto.frames import validate_name
-from telebot.channels.transports.endpoints import with_quic_datagrams
 
 __all__ = [
     "DEFAULT_PORT",
+    "MIXED_RELIABILITY",
     "ROUTER_CN",
     "Member",
     "RouterPlan",
     "acl_config",
     "client_tls_options",
     "router_config",
+    "with_quic_datagrams",
 ]
 
 DEFAULT_PORT: Final = 7447
@@ -208,6 +209,31 @@ def acl_config(members: Iterable[Member], namespace: str = "telebot") -> dict[st
         "subjects": subjects,
         "policies": policies,
     }
+
+
+#: The QUIC endpoint metadata key of zenoh's mixed-reliability links.
+MIXED_RELIABILITY: Final = "mixed_rel"
+
+
+def with_quic_datagrams(endpoint: str) -> str:
+    """``endpoint``, with ``mixed_rel=auto`` added if it is a ``quic/`` endpoint that does
+    not choose for itself.
+
+    On a mixed-reliability QUIC link zenoh sends best-effort frames (telebot's CONTROL
+    and DATA lanes: see ``LANE_QOS``) as QUIC datagrams, so a lost packet costs only its
+    own frame: no retransmission holds a stop or a heartbeat up. ``auto`` uses it
+    when both ends offer it and falls back to QUIC streams with a zenoh that does not.
+    Other endpoints are returned as they are.
+    """
+    if not endpoint.startswith("quic/"):
+        return endpoint
+    head, hash_, config = endpoint.partition("#")
+    address, question, metadata = head.partition("?")
+    params = [p for p in metadata.split(";") if p] if question else []
+    if any(p.split("=", 1)[0] == MIXED_RELIABILITY for p in params):
+        return endpoint
+    params.append(f"{MIXED_RELIABILITY}=auto")
+    return f"{address}?{';'.join(params)}{hash_}{config}"
 
 
 def router_config(plan: RouterPlan) -> dict[str, Any]:

@@ -73,10 +73,10 @@ from telebot.channels.transports.base import (
     Transport,
     gate_passes,
 )
-from telebot.channels.transports.endpoints import with_quic_datagrams
 from telebot.channels.transports.inbox import Inbox
 from telebot.config import TransportSettings, ZenohSettings
 from telebot.errors import TransportError
+from telebot.router.acl import with_quic_datagrams
 
 __all__ = [
     "CONNECT_RETRY",
@@ -120,8 +120,8 @@ _allocator_tuned: bool | None = None  # None: not tried yet in this process
 #: CONTROL and DATA are best effort: a call's channels are lossy datagrams by contract, and
 #: what must arrive is repeated by telebot itself (stops every 50 ms until acknowledged,
 #: heartbeats, resent requests). On a TCP link that changes nothing; on a QUIC link with
-#: zenoh's mixed reliability (:func:`.endpoints.with_quic_datagrams`) they go as QUIC
-#: datagrams, so a lost packet no longer holds a stop or a heartbeat up until it is
+#: zenoh's mixed reliability (:func:`telebot.router.acl.with_quic_datagrams`) they go as
+#: QUIC datagrams, so a lost packet no longer holds a stop or a heartbeat up until it is
 #: retransmitted, and QUIC puts datagrams in a packet before any stream data. BULK (video,
 #: sound, maps) stays on QUIC's reliable streams: QUIC queues datagrams first in first
 #: out, up to a megabyte, without pushing back, so a video faster than a long or lossy
