@@ -73,8 +73,9 @@ def _add_router_options(parser: argparse.ArgumentParser) -> None:
         default=[],
         metavar="ENDPOINT",
         help="also listen on this QUIC endpoint (UDP; the same certificates and access "
-        "control as TLS), e.g. quic/0.0.0.0:7447: the link to use across the internet "
-        "(README 'Networks'; repeatable)",
+        "control as TLS), e.g. quic/0.0.0.0:7447: the link to use across the internet, "
+        "stops and heartbeats as QUIC datagrams (mixed_rel=auto is added unless the "
+        "endpoint sets mixed_rel; README 'Networks'; repeatable)",
     )
     parser.add_argument(
         "--tcp",
