@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 import uuid
 from collections.abc import Sequence
 from pathlib import Path
@@ -131,14 +132,19 @@ async def test_frames_published_into_a_cut_quic_link_are_lost_not_late(tmp_path:
             robot.subscribe(key, arrivals)
             publisher = user.publisher(key, Lane.CONTROL)
             await published_until_seen(publisher.put, arrivals, b"before-")
-            proxy.outage(CUT)
-            await asyncio.sleep(CUT / 5)  # well inside the cut
-            for n in range(IN_CUT):
-                publisher.put(b"cut-" + str(n).encode())
+            proxy.outage(CUT)  # returns once the cut is on
+            cut_at = time.monotonic()
+            await asyncio.sleep(CUT / 5)
+            published = 0
+            # Only well inside the cut (a loaded machine may oversleep).
+            while published < IN_CUT and time.monotonic() - cut_at < CUT * 0.7:
+                publisher.put(b"cut-" + str(published).encode())
+                published += 1
                 await asyncio.sleep(EVERY)
             await asyncio.sleep(CUT)  # healed
             await published_until_seen(publisher.put, arrivals, b"after-")
             await asyncio.sleep(0.5)  # a retransmission would have come by now
     in_cut = [p for p in arrivals.payloads if p.startswith(b"cut-")]
     # On a stream every one of them arrives once the link heals; as datagrams, none does.
-    assert len(in_cut) < IN_CUT // 2, in_cut
+    assert published >= 3
+    assert len(in_cut) < (published + 1) // 2, (published, in_cut)
