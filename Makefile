@@ -29,7 +29,7 @@ lint: install
 # A step whose failures are few (at most RERUN_AT_MOST) runs those tests once more, one at a
 # time, and fails if any fails again: on a busy 2-core machine a browser or multi-process
 # test may miss a wait now and then. Both runs' failures are printed.
-RERUN_AT_MOST := 5
+RERUN_AT_MOST := 10
 RERUN_FAILED = { n=$$($(BIN)/python -c 'import json, pathlib; p = pathlib.Path(".pytest_cache/v/cache/lastfailed"); print(len(json.loads(p.read_text())) if p.exists() else 0)'); \
 	echo "make test: $$n failed; at most $(RERUN_AT_MOST) are run again, one at a time"; \
 	test "$$n" -ge 1 -a "$$n" -le $(RERUN_AT_MOST) && $(BIN)/pytest -q -rA --lf --lfnf=none; }
