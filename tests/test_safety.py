@@ -923,7 +923,10 @@ class SupervisorModel(RuleBasedStateMachine):
     @rule(blocked=st.booleans())
     def obstacle(self, blocked: bool) -> None:
         actions = self.sup.obstacle(blocked, self.now)
-        assert not stops(actions)
+        # An obstacle only caps the speed. The one stop that may come with it is the rule
+        # every evaluation applies, no driving blind (Hypothesis found: driving, the picture
+        # goes stale, the stop, a re-arm before the NavStack reports rest, then an obstacle).
+        assert not stops(actions) or (self.moving and self.blind())
         self.check(actions)
 
     @rule(who=st.sampled_from(["holder", *CALLS]), grew=st.booleans(), bye=st.booleans())
