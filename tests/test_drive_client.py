@@ -12,6 +12,7 @@ import json
 import math
 from collections.abc import AsyncIterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -21,7 +22,14 @@ from telebot.channels.transports.memory import MemoryHub
 from telebot.reasons import Reason
 from telebot.robot.nav import Velocity
 from telebot.robot.sim.stack import SimNavStack
-from telebot.services.client import RELEASE_REPEATS, ClientDrive, RobotClient
+from telebot.services.client import (
+    DRIVE_EVERY,
+    QUICK_REPEATS,
+    RELEASE_REPEATS,
+    STOP_REPEAT,
+    ClientDrive,
+    RobotClient,
+)
 from telebot.services.safety.robot import SafetyDriver
 
 
@@ -117,7 +125,7 @@ async def test_a_client_that_stops_calling_drive_stops_the_robot_by_itself(
         assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
 
 
-async def test_release_is_sent_three_times_and_stop_ends_the_repeating(tmp_path: Path) -> None:
+async def test_release_is_sent_four_times_and_stop_ends_the_repeating(tmp_path: Path) -> None:
     async with driving(tmp_path) as (nav, safety, client):
         sent = sent_commands(client)
         client.drive(0.3, 0.2, hold=0.3)
@@ -148,3 +156,45 @@ async def test_drive_refuses_numbers_that_are_not_finite(tmp_path: Path) -> None
                 client.drive(0.0, bad)
         with pytest.raises(ValueError, match="hold"):
             client.drive(0.1, 0.0, hold=-1)
+
+
+async def test_the_first_repeats_of_a_release_and_of_a_stop_come_sooner(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The schedules the client asks its event loop for (not wall-clock timings): a lost
+    # first copy costs 20 ms, then the usual period.
+    async with driving(tmp_path) as (nav, safety, client):
+        loop = asyncio.get_running_loop()
+        delays: list[float] = []
+        call_later = loop.call_later
+
+        def recording(delay: float, callback: Any, *args: Any) -> asyncio.TimerHandle:
+            if getattr(callback, "__name__", "") == "_send_drive":
+                delays.append(delay)
+            return call_later(delay, callback, *args)
+
+        monkeypatch.setattr(loop, "call_later", recording)
+        client.drive(0.0, 0.0)
+        await asyncio.sleep(0.3)
+        assert delays == [*QUICK_REPEATS, DRIVE_EVERY][: RELEASE_REPEATS - 1]
+        monkeypatch.undo()
+
+        # Every ack of the stop is lost until its fourth copy: the waits between copies.
+        waits: list[float] = []
+        next_ack = client._next
+        copies = 0
+
+        async def lossy_acks(queue: asyncio.Queue[Any], wait: float, call: Any) -> Any:
+            nonlocal copies
+            copies += 1
+            if copies <= 3:
+                waits.append(wait)
+                await asyncio.sleep(wait)
+                raise TimeoutError
+            return await next_ack(queue, wait, call)
+
+        monkeypatch.setattr(client, "_next", lossy_acks)
+        assert (await client.stop(how="key")).ok
+        assert waits == [*QUICK_REPEATS, STOP_REPEAT]
+        assert not safety.state().armed
+        await wait_until(lambda: nav.velocity() == Velocity())

@@ -43,7 +43,7 @@ import { RequestFailed } from "./services/util.js";
 export { packMedia };
 export { RelayRefused, TopicStream } from "./services/relay.js";
 
-/** Seconds between the services' ticks (the stop repeats every 50 ms). */
+/** Seconds between the services' ticks (the stop repeats after 20 ms, 20 ms, then every 50 ms). */
 export const TICK = 0.02;
 /** Seconds between `link` messages. */
 export const LINK_EVERY = 0.5;
@@ -523,8 +523,8 @@ export class RobotSession {
   }
 
   /**
-   * Stop the robot now (anyone may, never refused): repeated every 50 ms until the robot
-   * acknowledges. Resolves with the ack as the page gets it ({type: "ack", what: "stop",
+   * Stop the robot now (anyone may, never refused): repeated until the robot acknowledges
+   * (after 20 ms, 20 ms, then every 50 ms). Resolves with the ack as the page gets it ({type: "ack", what: "stop",
    * ok, text, code}), which is also emitted.
    * @param {string} [how] "button" | "key" | "tab_closed" | "exit" | "api"
    */
@@ -608,7 +608,7 @@ export class RobotSession {
   /**
    * Drive by hand (§27), as the Python client's `drive(linear, angular, hold=0.25)`: sent
    * at once and repeated at 20 Hz for `hold` s (a page holding a key calls it at 20 Hz);
-   * (0, 0) releases (sent 3 times). While no call is up (reconnecting) nothing is sent
+   * (0, 0) releases (sent 4 times). While no call is up (reconnecting) nothing is sent
    * and nothing waits: a motion is never replayed on the next call (§18). Throws a
    * RangeError on a number that is not finite.
    * @param {number} linear m/s @param {number} angular rad/s

@@ -1,6 +1,6 @@
 // Driving by hand (§27) on the user's side, over the fake call with seeded loss: a command
 // is sent at once and repeated at 20 Hz for its hold, then no more (the robot stops
-// itself); a release is sent 3 times; seq grows by one per datagram; drive_state is
+// itself); a release is sent 4 times (0, 20, 40, 90 ms); seq grows by one per datagram; drive_state is
 // decoded strictly; the session takes the page's `drive` and ends repeating on a stop.
 import { test } from "node:test";
 import assert from "node:assert/strict";
@@ -60,17 +60,24 @@ test("calling again with the same velocity keeps the 20 Hz cadence; a new one go
   assert.equal(call.sent("drive").at(-1).angular, 1.0);
 });
 
-test("a release is sent 3 times at 20 Hz and ends the repeating", async () => {
+test("a release is sent 4 times, the first repeats 20 ms apart, and ends the repeating", async () => {
   const clock = new ManualClock();
   const call = new FakeCall();
+  const got = robotLog(call, clock);
   const drive = serviceOn(call, clock);
   drive.drive(0.5, 0, { now: clock.now(), hold: 10 });
   await clock.advance(0.12);
   const before = call.sent("drive").length;
-  drive.drive(0, -0, { now: clock.now() });
+  const t0 = clock.now();
+  drive.drive(0, -0, { now: t0 });
   await clock.advance(1.0);
   const after = call.sent("drive").slice(before);
-  assert.deepEqual(after.map((m) => [m.linear, m.angular]), [[0, 0], [0, 0], [0, 0]]);
+  assert.deepEqual(after.map((m) => [m.linear, m.angular]), [[0, 0], [0, 0], [0, 0], [0, 0]]);
+  const at = got.slice(before).map((m) => m.at);
+  const gaps = at.slice(1).map((t, i) => Math.round((t - at[i]) * 1000));
+  // The first two repeats come within one 20 ms tick (a lost copy costs ≤ 20 ms), then 20 Hz.
+  assert.ok(gaps[0] <= 20 && gaps[1] <= 20 && gaps[2] >= 50, `gaps ${gaps} ms`);
+  assert.ok(at[0] - t0 <= 0.01 + 1e-9, "the first copy at once");
   assert.ok(after.every((m, i) => i === 0 || m.seq === after[i - 1].seq + 1));
   assert.equal(drive.driving, false);
 });
@@ -177,7 +184,7 @@ test("a bad page drive is a one-line error and releases; observers may not drive
     s.send(bad);
     await clock.advance(0.3);
     const after = call().sent("drive").slice(sent);
-    assert.deepEqual(after.map((m) => [m.linear, m.angular]), [[0, 0], [0, 0], [0, 0]], "released, no repeat");
+    assert.deepEqual(after.map((m) => [m.linear, m.angular]), [[0, 0], [0, 0], [0, 0], [0, 0]], "released, no repeat");
     const error = out.filter((m) => m.type === "error").at(-1);
     assert.equal(out.filter((m) => m.type === "error").length, ++errors);
     assert.ok(error && !error.text.includes("\n") && error.text.includes("linear"), error?.text);

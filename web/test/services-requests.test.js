@@ -68,15 +68,18 @@ test("a query with no answer times out; ids are fresh per request", async () => 
   assert.ok(call.sent("chat").length >= 6, "each request was repeated every 0.3 s");
 });
 
-test("a stop is repeated every 50 ms until acked, and no stop is lost when acks are", async () => {
+test("a stop is repeated after 20, 20, then every 50 ms until acked, and no stop is lost when acks are", async () => {
   const clock = new ManualClock();
   // Every ack of the first 5 is lost: the user must keep sending.
   const call = new FakeCall({ seed: 11 });
   const stops = [];
+  const at = [];
   let acksSent = 0;
+  const t0 = clock.now();
   call.onUser("safety", (payload) => {
     const req = JSON.parse(payload);
     stops.push(req);
+    at.push(Math.round((clock.now() - t0) * 1000));
     acksSent += 1;
     if (acksSent <= 5) return; // lost on the way back
     call.toUser("safety", JSON.stringify({ type: "ack", id: req.id, ok: true, reason: "", code: "ok" }));
@@ -88,6 +91,9 @@ test("a stop is repeated every 50 ms until acked, and no stop is lost when acks 
   assert.ok(await clock.until(() => ack !== null, 5));
   assert.equal(ack.ok, true);
   assert.equal(stops.length, 6, "sent until the 6th copy's ack came back");
+  const gaps = at.slice(1).map((t, i) => t - at[i]);
+  // Quick first repeats (within one 20 ms tick), then every 50 ms (on the tick: 60).
+  assert.ok(gaps[0] <= 20 && gaps[1] <= 20 && gaps.slice(2).every((g) => g >= 50), `gaps ${gaps} ms`);
   assert.ok(stops.every((s) => s.type === "stop" && s.how === "key" && s.id === stops[0].id));
   const sentAt = safety.sent.stop;
   await clock.advance(1);

@@ -130,15 +130,21 @@ RESEND_AFTER = 0.3
 #: How often a motion refused because the robot has not measured the call's round trip
 #: yet (just after set-up; code ``rtt_unmeasured``) is asked again (every 0.1 s).
 UNMEASURED_RETRIES = 20
-#: A stop is repeated this often (s) until the robot acknowledges it.
+#: A stop is repeated this often (s) until the robot acknowledges it …
 STOP_REPEAT = 0.05
+#: … after its first repeats, and a release's, which come sooner (s after the one before):
+#: a lossy link mostly loses one datagram at a time, and a lost stop or release then
+#: costs 20 ms, not a whole period (20 ms apart, so QUIC never packs two copies in one
+#: packet, and the browser's 20 ms tick keeps the same schedule).
+QUICK_REPEATS = (0.02, 0.02)
 #: While waiting for the end of a long-running request, ask again this often (s), so a
 #: lost final answer is recovered.
 REFRESH_AFTER = 2.0
 #: Driving by hand: a held command is sent this often (s), 20 Hz …
 DRIVE_EVERY = 0.05
-#: … and a release (a zero command) this many times.
-RELEASE_REPEATS = 3
+#: … and a release (a zero command) this many times: at once, then after
+#: :data:`QUICK_REPEATS`, then every :data:`DRIVE_EVERY` (0, 20, 40 and 90 ms).
+RELEASE_REPEATS = 4
 
 
 @dataclass(slots=True)
@@ -671,15 +677,16 @@ class RobotClient:
     async def stop(self, *, how: str = "api", timeout: float = 5.0) -> SafetyAck:
         """Stop the robot now (any participant may); repeated until the robot acknowledges.
 
-        The stop goes on the ``safety`` channel (CONTROL lane) and is sent again every
-        :data:`STOP_REPEAT` seconds until acknowledged, so loss cannot eat it. The robot
+        The stop goes on the ``safety`` channel (CONTROL lane) and is sent again after
+        :data:`QUICK_REPEATS` (20 ms, 20 ms), then every :data:`STOP_REPEAT` seconds until
+        acknowledged, so loss cannot eat it. The robot
         stays stopped (disarmed) until the drive holder re-arms it (:meth:`arm`). ``how``
         tells the robot's audit log how the user stopped (``"button"``, ``"key"``,
         ``"tab_closed"``, ``"exit"``, ``"api"``: see ``STOP_HOWS``). It also ends the
         repeating of :meth:`drive`.
         """
         self._end_driving()
-        return await self._safety_request("stop", timeout, STOP_REPEAT, how)
+        return await self._safety_request("stop", timeout, STOP_REPEAT, how, QUICK_REPEATS)
 
     async def arm(self, *, timeout: float = 5.0) -> SafetyAck:
         """Re-arm the robot after a stop (the drive holder only); ``ok`` False says why not."""
@@ -694,8 +701,14 @@ class RobotClient:
         return await self._safety_request("release", timeout, RESEND_AFTER)
 
     async def _safety_request(
-        self, kind: RequestType, timeout: float, repeat: float, how: str = ""
+        self,
+        kind: RequestType,
+        timeout: float,
+        repeat: float,
+        how: str = "",
+        first_repeats: tuple[float, ...] = (),
     ) -> SafetyAck:
+        waits = itertools.chain(first_repeats, itertools.repeat(repeat))
         request_id = next(self._safety_ids) % 2**32
         acks: asyncio.Queue[SafetyAck] = asyncio.Queue()
         self._safety_waiters[request_id] = acks
@@ -715,7 +728,7 @@ class RobotClient:
                         noted = True
                         self._note("safety", {"request": kind, "how": how})
                     try:
-                        ack = await self._next(acks, repeat, core.call)
+                        ack = await self._next(acks, next(waits), core.call)
                     except TimeoutError:
                         continue  # lost one way or the other: say it again
                     self._note(
@@ -736,7 +749,7 @@ class RobotClient:
         by itself ``[drive] stale_after`` (0.3 s) later unless ``drive()`` is called again.
         Keep driving by calling it at 5 Hz or more while the user holds the key (a stuck
         caller stops the robot). ``drive(0, 0)`` releases: the robot stops at once (the
-        zero command is sent 3 times at 20 Hz). :meth:`stop` also ends the repeating.
+        zero command is sent 4 times, 0, 20, 40 and 90 ms after the call). :meth:`stop` also ends the repeating.
         What the robot makes of it arrives in :attr:`drive_state`. Raises ValueError on a
         number that is not finite (or a negative ``hold``). Safe to call from another
         thread (the sending runs on the client's event loop).
@@ -796,7 +809,11 @@ class RobotClient:
                 drive.channel.send(DriveCommand(self._drive_seq, linear, angular).encode())
             except TelebotError as exc:  # no call right now: the robot stops by itself
                 log.debug("drive command not sent: %s", exc)
-        if self._drive_zeros > 0 or now + DRIVE_EVERY < self._drive_until:
+        if self._drive_zeros > 0:
+            sent = RELEASE_REPEATS - self._drive_zeros  # copies of the release so far
+            wait = QUICK_REPEATS[sent - 1] if sent <= len(QUICK_REPEATS) else DRIVE_EVERY
+            self._drive_timer = self._loop.call_later(wait, self._send_drive)
+        elif now + DRIVE_EVERY < self._drive_until:
             self._drive_timer = self._loop.call_later(DRIVE_EVERY, self._send_drive)
 
     def _end_driving(self) -> None:

@@ -6,7 +6,7 @@
  *   loss) for at most `hold` seconds, then stops sending, so the robot stops by itself
  *   (`drive.stale_after`, 0.3 s) unless drive() is called again: a caller keeps driving
  *   by calling it at ≥ 5 Hz while the user holds the key (a stuck caller stops the robot).
- * - `drive(0, 0)` is a release: the zero command is sent 3 times at 20 Hz.
+ * - `drive(0, 0)` is a release: the zero command is sent 4 times, at 0, 20, 40 and 90 ms.
  * - every datagram carries the next `seq` (a fresh counter per call, from a random start),
  *   so the robot takes each repeat as newer and a reordered old one never undoes a newer.
  * - the robot's `drive_state` is decoded strictly (a bad one is dropped and counted, as by
@@ -18,6 +18,7 @@
 import {
   DecodeError,
   DropCounter,
+  QUICK_REPEATS,
   callSafely,
   decodeCode,
   decodeObject,
@@ -35,8 +36,8 @@ export const DRIVE = "drive";
 export const DRIVE_REPEAT = 0.05;
 /** Seconds a command is repeated for when the caller says nothing else. */
 export const DRIVE_HOLD = 0.25;
-/** Copies of the release (zero) command. */
-export const RELEASE_COPIES = 3;
+/** Copies of the release (zero) command: at once, after QUICK_REPEATS, then at 20 Hz. */
+export const RELEASE_COPIES = 4;
 /** Longest `reason` taken from the robot (characters). */
 export const MAX_REASON = 2000;
 
@@ -95,7 +96,7 @@ export class DriveService {
    * Command this velocity now (m/s, rad/s; the robot clamps it): sent at once, repeated
    * at 20 Hz for `hold` s. The same velocity again while it repeats only extends the hold
    * (the 20 Hz cadence stays: a page calling at 20 Hz does not double the rate); a new
-   * one is sent at once. (0, 0) releases: sent 3 times at 20 Hz.
+   * one is sent at once. (0, 0) releases: sent 4 times (0, 20, 40, 90 ms).
    * @param {number} linear @param {number} angular
    * @param {{hold?: number, now?: number}} [options]
    */
@@ -107,7 +108,8 @@ export class DriveService {
     linear = linear || 0; // -0 is 0 on the wire
     angular = angular || 0;
     if (linear === 0 && angular === 0) {
-      this.command = { linear: 0, angular: 0, until: Infinity, due: now + DRIVE_REPEAT, copies: RELEASE_COPIES - 1 };
+      const quick = [...QUICK_REPEATS];
+      this.command = { linear: 0, angular: 0, until: Infinity, due: now + quick.shift(), copies: RELEASE_COPIES - 1, quick };
       this.send(0, 0);
       return;
     }
@@ -156,7 +158,8 @@ export class DriveService {
     }
     // From the schedule, not from now: the session ticks every 20 ms, so `now + 0.05`
     // would make 60 ms. A caller far behind (a throttled tab) starts a fresh schedule.
-    c.due = now - c.due > DRIVE_REPEAT ? now + DRIVE_REPEAT : c.due + DRIVE_REPEAT;
+    const every = c.quick?.length > 0 ? c.quick.shift() : DRIVE_REPEAT;
+    c.due = now - c.due > every ? now + every : c.due + every;
     this.send(c.linear, c.angular);
     if (c.copies !== null && --c.copies <= 0) this.command = null;
   }

@@ -15,6 +15,7 @@ import {
   CALL_ENDED,
   DecodeError,
   DropCounter,
+  QUICK_REPEATS,
   RESEND_AFTER,
   RequestFailed,
   callSafely as call,
@@ -48,7 +49,7 @@ import {
   parseAudio,
 } from "./video.js";
 
-export { CALL_ENDED, RESEND_AFTER, RequestFailed };
+export { CALL_ENDED, QUICK_REPEATS, RESEND_AFTER, RequestFailed };
 export const REFRESH_AFTER = 2.0;
 export const STOP_REPEAT = 0.05;
 /** Motion refused as `rtt_unmeasured` just after set-up: asked again this often, this many times. */
@@ -153,7 +154,9 @@ export class SafetyService {
       const id = this.nextId();
       const payload = encodeSafetyRequest(type, id, how);
       const repeat = type === "stop" ? STOP_REPEAT : RESEND_AFTER;
-      this.pending.set(id, { type, payload, repeat, resolve, reject, due: now + repeat, deadline: now + timeout });
+      const quick = type === "stop" ? [...QUICK_REPEATS] : [];
+      const first = quick.length > 0 ? quick.shift() : repeat;
+      this.pending.set(id, { type, payload, repeat, quick, resolve, reject, due: now + first, deadline: now + timeout });
       this.send(type, payload); // first, before anything else: the stop leaves now
     });
   }
@@ -189,7 +192,7 @@ export class SafetyService {
         this.pending.delete(id);
         p.reject(new RequestFailed("no answer", "timeout"));
       } else if (now >= p.due) {
-        p.due = now + p.repeat;
+        p.due = now + (p.quick.length > 0 ? p.quick.shift() : p.repeat);
         this.send(p.type, p.payload);
       }
     }

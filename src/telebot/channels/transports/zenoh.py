@@ -118,7 +118,7 @@ _allocator_tuned: bool | None = None  # None: not tried yet in this process
 #: blocked publisher would block the event loop); CONTROL is sent first and at once
 #: (express: not held back for batching), BULK last, so video can never delay a stop.
 #: CONTROL and DATA are best effort: a call's channels are lossy datagrams by contract, and
-#: what must arrive is repeated by telebot itself (stops every 50 ms until acknowledged,
+#: what must arrive is repeated by telebot itself (stops until acknowledged,
 #: heartbeats, resent requests). On a TCP link that changes nothing; on a QUIC link with
 #: zenoh's mixed reliability (:func:`telebot.router.acl.with_quic_datagrams`) they go as
 #: QUIC datagrams, so a lost packet no longer holds a stop or a heartbeat up until it is
