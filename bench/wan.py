@@ -55,8 +55,9 @@ line and tried again (up to as many failures as samples); a call that cannot be 
 tried three times; a phase that fails altogether makes its figures ``nan`` and is reported
 in one line (``FAILED``); the run goes on. The last line is ``RESULT stop_p99_ms=… glass_p99_ms=…
 late_frames_pct=… reconnect_p99_ms=… false_trips_wifi_h=… false_trips_4g_h=…
-release_p99_ms=…``: each the worst row but the baseline (``false_trips_4g_h``: the worst of
-the three 4G links); the table above it has them all.
+release_p99_ms=…``: each the worst profile on the default link (the baseline aside; the
+``4g`` rows on ``tcp/`` and ``udp/`` compare links and are in the table, not in RESULT); the
+table above it has them all.
 
 ``--quick``: one sample of each phase, half a second of each window (the trip figures then
 come from seconds of driving: noise), a 1 s outage, and only the row ``4g`` (a check that it
@@ -266,9 +267,17 @@ class Row:
         }
 
 
+def result_rows(rows: list[Row]) -> list[Row]:
+    """The rows the RESULT and the targets take: the profiles on the default link (the
+    other links' rows compare links, to choose the default), the baseline aside. Without
+    such rows (``--row 4g/tcp``): the rows measured, the baseline aside if others are."""
+    profiles = [r for r in rows if r.profile != BASELINE and r.link == DEFAULT_LINK]
+    return profiles or [r for r in rows if r.profile != BASELINE] or rows
+
+
 def result_fields(rows: list[Row], drive: bool) -> dict[str, float]:
-    """The RESULT figures: each the worst row but the baseline's."""
-    others = [r for r in rows if r.profile != BASELINE] or rows
+    """The RESULT figures: each the worst profile's (:func:`result_rows`)."""
+    others = result_rows(rows)
     figures = [r.figures() for r in others]
 
     def trips(profile: str) -> float:
@@ -750,7 +759,8 @@ def report(rows: list[Row], drive: bool, amounts: Amounts, seconds: float) -> li
     if not drive:
         lines.append("release: n/a (needs drive): this client has no RobotClient.drive yet")
     fields = result_fields(rows, drive)
-    lines += [""]
+    taken = result_rows(rows)
+    lines += ["", "Targets and RESULT: the worst of " + ", ".join(r.name for r in taken)]
     for key, (target, what) in TARGETS.items():
         value = fields[key]
         if key == "release_p99_ms" and not drive:
@@ -758,7 +768,7 @@ def report(rows: list[Row], drive: bool, amounts: Amounts, seconds: float) -> li
             continue
         ok = not math.isnan(value) and value <= target
         verdict = "PASS" if ok else ("nan" if math.isnan(value) else "MISS")
-        lines.append(f"target {what} <= {target:g}: worst row {fmt(value)} {verdict}")
+        lines.append(f"target {what} <= {target:g}: worst profile {fmt(value)} {verdict}")
     mode = "quick" if amounts == QUICK else "full"
     lines.append(f"({mode} run, took {seconds:.0f} s)")
     lines.append(result_line(fields, drive))

@@ -63,16 +63,21 @@ def test_a_row_takes_the_one_way_delay_off_its_latencies(wan: ModuleType) -> Non
     assert math.isnan(figures["release_p99_ms"]) and math.isnan(figures["reconnect_p99_ms"])
 
 
-def test_the_result_line_holds_the_worst_row_but_the_baselines(wan: ModuleType) -> None:
-    lan = wan.Row("lan", "tcp", stop=[500.0], trips=9, drive_seconds=60.0)
-    wifi = wan.Row("wifi", "tcp", delay_ms=5.0, stop=[15.0], trips=0, drive_seconds=60.0)
-    g_tcp = wan.Row("4g", "tcp", delay_ms=40.0, stop=[140.0], trips=1, drive_seconds=3600.0)
+def test_the_result_line_holds_the_worst_profile_on_the_default_link(wan: ModuleType) -> None:
+    lan = wan.Row("lan", "quic", stop=[500.0], trips=9, drive_seconds=60.0)
+    wifi = wan.Row("wifi", "quic", delay_ms=5.0, stop=[15.0], trips=0, drive_seconds=60.0)
+    g_tcp = wan.Row("4g", "tcp", delay_ms=40.0, stop=[140.0], trips=9, drive_seconds=3600.0)
     g_quic = wan.Row("4g", "quic", delay_ms=40.0, stop=[50.0], trips=3, drive_seconds=3600.0)
-    fields = wan.result_fields([lan, wifi, g_tcp, g_quic], drive=False)
-    assert fields["stop_p99_ms"] == 100.0  # 4g/tcp; the baseline's 500 is not a profile's
+    rows = [lan, wifi, g_quic, g_tcp]
+    assert wan.DEFAULT_LINK == "quic" and wan.result_rows(rows) == [wifi, g_quic]
+    fields = wan.result_fields(rows, drive=False)
+    # 4g/quic's; neither the baseline's 500 nor 4g/tcp's 100 (a link compared, not chosen).
+    assert fields["stop_p99_ms"] == 10.0
     assert fields["false_trips_wifi_h"] == 0.0 and fields["false_trips_4g_h"] == 3.0
+    # Only other links measured (--row 4g/tcp): their worst.
+    assert wan.result_fields([lan, g_tcp], drive=False)["stop_p99_ms"] == 100.0
     line = wan.result_line(fields, drive=False)
-    assert line.startswith("RESULT stop_p99_ms=100.0 glass_p99_ms=nan late_frames_pct=nan ")
+    assert line.startswith("RESULT stop_p99_ms=10.0 glass_p99_ms=nan late_frames_pct=nan ")
     assert line.endswith("false_trips_wifi_h=0.0 false_trips_4g_h=3.0 release_p99_ms=n/a")
     keys = [part.split("=")[0] for part in line.split()[1:]]
     assert keys == list(wan.TARGETS)
