@@ -582,3 +582,35 @@ def test_the_probe_runs_from_the_first_frame_sent_not_from_creation() -> None:
     rc.frame_sent(6.0)  # later frames do not move the start
     assert rc.watching(6.9)
     assert not rc.watching(7.1)  # no report within the probe: the robot does not want it
+
+
+def test_a_backlog_of_unreported_frames_holds_new_frames_but_lets_a_probe_through() -> None:
+    c = controller()
+    c.on_link(loss=0.0, rtt=0.1, now=0.0)
+    c.frame_sent(0.0, 2)
+    assert not c.held_up(5.0)  # before any report: nothing to judge by
+    c.on_report(Report(0, 2, 0, 0, 0, 0, 0), 0.0)
+    c.on_report(Report(200, 2, 0, 0, 0, 0, 0), 0.2)  # reports every 0.2 s
+    # limit = least round trip 0.1 + gap between reports 0.2 + BACKLOG_SLACK 0.1 = 0.4 s.
+    sent = [(0.2 + 0.05 * i, 3 * i + 5) for i in range(10)]  # 20 fps, 3 fragments each
+    for at, last_seq in sent:
+        c.frame_sent(at, last_seq)
+    c.on_report(Report(400, sent[0][1], 0, 0, 0, 0, 0), 0.4)  # the first one arrived
+    oldest = sent[1][0]  # 0.25: not reported yet
+    assert not c.held_up(oldest + 0.39) and c.held_up(oldest + 0.41)
+    # While held, one frame per limit still goes (a probe), so frames lost for good or a
+    # receiver that took none cannot stop the video for ever.
+    newest = sent[-1][0]  # 0.65
+    assert c.held_up(newest + 0.39) and not c.held_up(newest + 0.41)
+    c.frame_sent(newest + 0.41, 40)
+    assert c.held_up(newest + 0.5)
+    # The receiver catches up: everything covered, frames flow again.
+    c.on_report(Report(600, 40, 0, 0, 0, 0, 0), 1.2)
+    assert not c.held_up(1.2)
+    # The round trip that counts is the least seen, not one a queue inflated.
+    c.on_link(loss=0.0, rtt=2.0, now=1.3)
+    c.frame_sent(1.3, 43)
+    c.frame_sent(1.5, 46)
+    assert c.held_up(1.3 + 0.4 + 0.2 + 0.01) is False  # gap between reports is now 0.8
+    c.on_report(Report(800, 40, 0, 0, 0, 0, 0), 1.4)  # reports every 0.2 s again
+    assert c.held_up(1.3 + 0.41)

@@ -119,6 +119,8 @@ class VideoSenderStats:
     #: the sender has.
     keyframes: int = 0
     no_codec: int = 0
+    #: Frame times skipped because the link held a backlog of earlier frames.
+    held: int = 0
 
 
 class VideoSender:
@@ -326,7 +328,9 @@ class VideoSender:
                 continue
             try:
                 codec = self.codec
-                if codec is None:
+                if controller.held_up(now):
+                    self.stats.held += 1
+                elif codec is None:
                     self.stats.no_codec += 1
                 elif codec == CODEC_JPEG:
                     self._send_frame(now)
@@ -378,7 +382,7 @@ class VideoSender:
             self.stats.fragments += 1
             self.stats.bytes += len(datagram)
         self.stats.frames += 1
-        self.controller.frame_sent(now)
+        self.controller.frame_sent(now, (self._seq - 1) % 2**32)
         self._meter.tick(now)
 
     async def _send_coded(self, now: float, codec: int) -> None:
@@ -424,7 +428,7 @@ class VideoSender:
             self.stats.bytes += len(datagram)
         self.stats.frames += 1
         self.stats.keyframes += frame.keyframe
-        controller.frame_sent(now)
+        controller.frame_sent(now, (self._seq - 1) % 2**32)
         self._meter.tick(now)
 
     @property

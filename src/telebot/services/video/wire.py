@@ -34,6 +34,7 @@ quality and picture scale. Nothing here reads a clock or does I/O (``now`` is pa
 
 from __future__ import annotations
 
+import collections
 import math
 import struct
 from collections import OrderedDict, deque
@@ -805,6 +806,9 @@ GROW_BELOW: Final = 0.6
 REPORT_STALE: Final = 1.5
 #: Weight of the past in the fragment-weighted loss average (per report).
 LOSS_DECAY: Final = 0.9
+#: A frame not yet reported received this long (s) after the path's round trip and the
+#: gap between reports means the link holds a backlog: send no new frame until it drains.
+BACKLOG_SLACK: Final = 0.1
 
 
 #: JPEG quality points that about double a frame's size (between quality 50 and 90).
@@ -873,6 +877,10 @@ class VideoRateController:
         self._bye = False
         self.reports = 0
         self.decreases = 0
+        #: (last fragment's seq, time sent) of the frames no report has covered yet.
+        self._unacked: collections.deque[tuple[int, float]] = collections.deque(maxlen=256)
+        self._min_rtt: float | None = None
+        self._report_gap = 0.0
 
     # -- outputs
 
@@ -933,6 +941,7 @@ class VideoRateController:
             self.link.heartbeat_loss = min(max(loss, 0.0), 1.0)
         if rtt is not None and math.isfinite(rtt) and rtt >= 0:
             self.link.rtt = rtt
+            self._min_rtt = rtt if self._min_rtt is None else min(self._min_rtt, rtt)
         if self._last_report_at is not None and now - self._last_report_at > REPORT_STALE:
             # Stale reports: start the loss average afresh from the heartbeats' view.
             self._last_report = None
@@ -943,6 +952,11 @@ class VideoRateController:
         previous = self._last_report
         if previous is not None and serial_diff(report.receiver_ms, previous.receiver_ms) <= 0:
             return  # a duplicate or an older report, reordered
+        if self._last_report_at is not None:
+            self._report_gap = now - self._last_report_at
+        unacked = self._unacked
+        while unacked and serial_diff(unacked[0][0], report.highest_seq) <= 0:
+            unacked.popleft()  # arrived, or lost for good: no longer on the way
         self._last_report, self._last_report_at = report, now
         self._bye = report.bye
         self.reports += 1
@@ -963,10 +977,26 @@ class VideoRateController:
         if self.settings.adaptive:
             self._adapt_rate(elapsed, now)
 
-    def frame_sent(self, now: float) -> None:
-        """A frame went out: the first one starts the ``probe`` time."""
+    def frame_sent(self, now: float, last_seq: int | None = None) -> None:
+        """A frame went out (``last_seq``: its last fragment's seq): the first one starts
+        the ``probe`` time."""
         if self._probe_from is None:
             self._probe_from = now
+        if last_seq is not None:
+            self._unacked.append((last_seq, now))
+
+    def held_up(self, now: float) -> bool:
+        """Whether the link holds a backlog of this sender's frames: the oldest frame no
+        report covers was sent longer ago than the path's least round trip, the gap between
+        reports and :data:`BACKLOG_SLACK`. Send no frame then: every frame added would only
+        be shown later (a sender faster than the link's congestion control lets through,
+        on a reliable stream, queues there). Still one frame per such time goes (a probe:
+        frames lost for good, or a receiver that took none, must not stop the video for
+        ever). False before the first report."""
+        if self._last_report_at is None or not self._unacked:
+            return False
+        limit = (self._min_rtt or 0.0) + self._report_gap + BACKLOG_SLACK
+        return now - self._unacked[0][1] > limit and now - self._unacked[-1][1] < limit
 
     def on_encoded(self, size: int, now: float) -> bool:
         """Adapt to the size of the frame just encoded; True if it is worth encoding again.
