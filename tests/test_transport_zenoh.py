@@ -28,7 +28,7 @@ import zenoh
 from conftest import SLACK, wait_until
 from telebot.channels.transports import create_transport
 from telebot.channels.transports.base import Lane, ReceiveLimits, Sample
-from telebot.channels.transports.zenoh import ZenohTransport, build_zenoh_config
+from telebot.channels.transports.zenoh import LINK_LEASE_MS, ZenohTransport, build_zenoh_config
 from telebot.config import TransportSettings, ZenohSettings
 from telebot.errors import TransportError
 from telebot.testing.net import free_port
@@ -411,6 +411,26 @@ def test_connect_retries_default_to_a_quick_comeback_and_an_option_wins() -> Non
     mine = {"period_init_ms": 500, "period_max_ms": 5000, "period_increase_factor": 3}
     chosen = build_zenoh_config(ZenohSettings(options={"connect/retry": mine}))
     assert json.loads(chosen.get_json("connect/retry"))["period_init_ms"] == 500
+
+
+def test_a_dialling_session_announces_a_one_second_lease_and_an_option_or_a_file_wins(
+    tmp_path: Path,
+) -> None:
+    def lease(settings: ZenohSettings) -> int:
+        return int(json.loads(build_zenoh_config(settings).get_json("transport/link/tx/lease")))
+
+    # The dialling end: a client, or a peer that connects and does not listen.
+    assert lease(ZenohSettings(mode="client")) == LINK_LEASE_MS == 1000
+    assert lease(ZenohSettings(connect=["quic/127.0.0.1:7447"])) == 1000
+    # The listening end keeps zenoh's 10 s, so after an outage it has dropped the link and
+    # the dialler's first packet is answered with a reset (a new link at once).
+    assert lease(ZenohSettings()) == 10_000
+    assert lease(ZenohSettings(listen=["quic/0.0.0.0:7447"])) == 10_000
+    assert lease(ZenohSettings(listen=["tcp/0.0.0.0:1"], connect=["tcp/127.0.0.1:2"])) == 10_000
+    assert lease(ZenohSettings(mode="client", options={"transport/link/tx/lease": 7000})) == 7000
+    file = tmp_path / "zenoh.json5"
+    file.write_text('{"transport": {"link": {"tx": {"lease": 5000}}}}')
+    assert lease(ZenohSettings(mode="client", config_file=file)) == 5000
 
 
 # --- publish / subscribe in one process ------------------------------------------------
