@@ -29,7 +29,7 @@ from conftest import SLACK, wait_until
 from telebot.channels.transports import create_transport
 from telebot.channels.transports.base import Lane, ReceiveLimits, Sample
 from telebot.channels.transports.zenoh import LINK_LEASE_MS, ZenohTransport, build_zenoh_config
-from telebot.config import TransportSettings, ZenohSettings
+from telebot.config import AppConfig, TransportSettings, ZenohSettings
 from telebot.errors import TransportError
 from telebot.testing.net import free_port
 
@@ -431,6 +431,13 @@ def test_a_dialling_session_announces_a_one_second_lease_and_an_option_or_a_file
     file = tmp_path / "zenoh.json5"
     file.write_text('{"transport": {"link": {"tx": {"lease": 5000}}}}')
     assert lease(ZenohSettings(mode="client", config_file=file)) == 5000
+    # The key sets it for any session; a dialler's default outlives a long call timeout.
+    assert lease(ZenohSettings(listen=["quic/0.0.0.0:7447"], lease=2.5)) == 2500
+    assert lease(AppConfig().transport.zenoh) == 10_000  # a peer listening on zenoh's default
+    dialler = {"transport": {"zenoh": {"mode": "client"}}}
+    assert lease(AppConfig.model_validate(dialler).transport.zenoh) == 1000
+    slow = AppConfig.model_validate({**dialler, "call": {"timeout": 3.0}})
+    assert lease(slow.transport.zenoh) == 6000
 
 
 # --- publish / subscribe in one process ------------------------------------------------

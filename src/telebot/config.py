@@ -11,13 +11,14 @@ import math
 import os
 import tomllib
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Any, Literal, Self, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from telebot.errors import ConfigError
 
 __all__ = [
+    "DIAL_LEASE",
     "HARD_MAX_ANGULAR_SPEED",
     "HARD_MAX_LINEAR_SPEED",
     "SAFE_OBSERVER_TOPICS",
@@ -78,6 +79,11 @@ class ZenohTlsSettings(StrictModel):
         return any(p is not None for p in (self.ca, self.cert, self.key))
 
 
+#: The link lease (s) a zenoh session that dials announces by default (``[transport.zenoh]
+#: lease``; at least twice ``[call] timeout``).
+DIAL_LEASE = 1.0
+
+
 class ZenohSettings(StrictModel):
     """How the zenoh transport connects. The defaults need no router and no config file."""
 
@@ -102,6 +108,18 @@ class ZenohSettings(StrictModel):
     queue_bytes: int = Field(default=8 << 20, ge=64 << 10, le=1 << 30)
     #: Client certificate, key and CA for ``tls/`` endpoints (telebot-router).
     tls: ZenohTlsSettings = Field(default_factory=ZenohTlsSettings)
+    #: The link lease this session announces (s): the other end drops the link after this
+    #: long without a word from it. Unset: :data:`DIAL_LEASE` (1 s; at least twice ``[call]
+    #: timeout``) for a session that dials (:attr:`dials`), zenoh's own (10 s) for one that
+    #: listens, so that after an outage the listener has dropped the link and the dialler,
+    #: answered with a reset, dials afresh at once (a zenoh config file or a
+    #: ``transport/link/tx/lease`` option rules instead).
+    lease: float | None = Field(default=None, ge=0.1, le=3600)
+
+    @property
+    def dials(self) -> bool:
+        """Whether this session dials: client mode, or ``connect`` endpoints and no ``listen``."""
+        return self.mode == "client" or (bool(self.connect) and not self.listen)
 
 
 class MemorySettings(StrictModel):
@@ -399,6 +417,20 @@ class AppConfig(StrictModel):
     reconnect: ReconnectSettings = Field(default_factory=ReconnectSettings)
     #: The user's side: the fleet page (the robot ignores it).
     fleet: FleetSettings = Field(default_factory=FleetSettings)
+
+    @model_validator(mode="after")
+    def _fit_lease(self) -> Self:
+        self.fit_lease()
+        return self
+
+    def fit_lease(self) -> None:
+        """A dialling session's lease, unset, outlives the call's timeout (twice it): the
+        link must not drop while the call still waits. Run on validation, and again by
+        whoever changes the transport's endpoints afterwards (the command line)."""
+        zenoh = self.transport.zenoh
+        long_call = 2 * self.call.timeout > DIAL_LEASE
+        if zenoh.lease is None and zenoh.dials and zenoh.config_file is None and long_call:
+            zenoh.lease = 2 * self.call.timeout
 
 
 class ServiceSettings(StrictModel):

@@ -1194,6 +1194,7 @@ async def connect(
     known = KnownRobots.load(home)
     async with contextlib.AsyncExitStack() as stack:
         if transport is None:
+            config.fit_lease()  # endpoints set after validation may make it a dialler
             transport = await stack.enter_async_context(create_transport(config.transport))
         endpoint = await stack.enter_async_context(
             UserEndpoint(

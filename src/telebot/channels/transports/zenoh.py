@@ -74,7 +74,7 @@ from telebot.channels.transports.base import (
     gate_passes,
 )
 from telebot.channels.transports.inbox import Inbox
-from telebot.config import TransportSettings, ZenohSettings
+from telebot.config import DIAL_LEASE, TransportSettings, ZenohSettings
 from telebot.errors import TransportError
 from telebot.router.acl import with_quic_datagrams
 
@@ -156,15 +156,15 @@ CONNECT_RETRY: Final[dict[str, Any]] = {
 }
 
 #: The link lease a session that dials (client mode, or ``connect`` endpoints and no
-#: ``listen`` ones) announces when no config file or option says (ms; zenoh's default,
-#: which the listening end keeps, is 10 s). The listening end (a robot, a router) drops the
+#: ``listen`` ones) announces when neither ``lease``, a config file nor an option says (ms;
+#: zenoh's default, which the listening end keeps, is 10 s). The listening end (a robot, a router) drops the
 #: link after this long without a word from the dialer (whose keep-alives go every quarter
 #: of it); after an outage the dialer's first packet then meets a reset and it dials afresh
 #: at once, instead of waiting out QUIC's or TCP's retransmission back-off, which after a
 #: 3 s outage is seconds (bench/wan.py: reconnection on 4G over QUIC 3.6-5.4 s -> 0.7 s).
 #: Both ends at 1 s is slower (1.5 s): the dialer drops the link too and its own attempts
 #: made during the outage back off. A call drops after 0.5 s of silence anyway.
-LINK_LEASE_MS: Final = 1000
+LINK_LEASE_MS: Final = round(DIAL_LEASE * 1000)
 
 # zenoh's messages end with the Rust source location and may wrap a JSON5 parser
 # error; users need the reason only, on one line.
@@ -218,8 +218,8 @@ def build_zenoh_config(settings: ZenohSettings) -> zenoh.Config:
     The config file (if any) is loaded first; ``mode``, ``listen``, ``connect`` and
     ``multicast_scouting`` override it, and ``options`` (path -> value) are inserted last.
     Without a config file, ``connect/retry`` defaults to :data:`CONNECT_RETRY` and, for a
-    session that dials, ``transport/link/tx/lease`` to :data:`LINK_LEASE_MS`, unless an
-    option sets them.
+    session that dials, ``transport/link/tx/lease`` to :data:`LINK_LEASE_MS` (``lease``
+    sets it for any session), unless an option sets them.
     Empty ``listen``/``connect`` lists keep zenoh's (or the file's) defaults.
     """
     if settings.config_file is not None:
@@ -244,8 +244,10 @@ def build_zenoh_config(settings: ZenohSettings) -> zenoh.Config:
         # After a blip, come back within half a second (zenoh's own default retries every
         # 1 s, then 2 s, 4 s): a call that reconnects is only as quick as its session.
         _insert(config, "connect/retry", CONNECT_RETRY, "connect/retry")
-    dials = settings.mode == "client" or (bool(settings.connect) and not settings.listen)
-    if dials and settings.config_file is None and "transport/link/tx/lease" not in settings.options:
+    if settings.lease is not None:
+        lease_ms = round(settings.lease * 1000)
+        _insert(config, "transport/link/tx/lease", lease_ms, "lease")
+    elif settings.dials and settings.config_file is None:
         _insert(config, "transport/link/tx/lease", LINK_LEASE_MS, "transport/link/tx/lease")
     if settings.tls.enabled:
         for path, value in tls_options(settings).items():
