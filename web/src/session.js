@@ -524,8 +524,8 @@ export class RobotSession {
 
   /**
    * Stop the robot now (anyone may, never refused): repeated until the robot acknowledges
-   * (after 20 ms, 20 ms, then every 50 ms). Resolves with the ack as the page gets it ({type: "ack", what: "stop",
-   * ok, text, code}), which is also emitted.
+   * (after 20 ms, 20 ms, then every 50 ms). Resolves with the ack as the page gets it
+   * ({type: "ack", what: "stop", ok, text, code}), which is also emitted.
    * @param {string} [how] "button" | "key" | "tab_closed" | "exit" | "api"
    */
   stop(how = "button") {

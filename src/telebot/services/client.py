@@ -679,8 +679,8 @@ class RobotClient:
 
         The stop goes on the ``safety`` channel (CONTROL lane) and is sent again after
         :data:`QUICK_REPEATS` (20 ms, 20 ms), then every :data:`STOP_REPEAT` seconds until
-        acknowledged, so loss cannot eat it. The robot
-        stays stopped (disarmed) until the drive holder re-arms it (:meth:`arm`). ``how``
+        acknowledged, so loss cannot eat it. The robot stays stopped (disarmed) until the
+        drive holder re-arms it (:meth:`arm`). ``how``
         tells the robot's audit log how the user stopped (``"button"``, ``"key"``,
         ``"tab_closed"``, ``"exit"``, ``"api"``: see ``STOP_HOWS``). It also ends the
         repeating of :meth:`drive`.
@@ -749,7 +749,8 @@ class RobotClient:
         by itself ``[drive] stale_after`` (0.3 s) later unless ``drive()`` is called again.
         Keep driving by calling it at 5 Hz or more while the user holds the key (a stuck
         caller stops the robot). ``drive(0, 0)`` releases: the robot stops at once (the
-        zero command is sent 4 times, 0, 20, 40 and 90 ms after the call). :meth:`stop` also ends the repeating.
+        zero command is sent 4 times, 0, 20, 40 and 90 ms after the call). :meth:`stop`
+        also ends the repeating.
         What the robot makes of it arrives in :attr:`drive_state`. Raises ValueError on a
         number that is not finite (or a negative ``hold``). Safe to call from another
         thread (the sending runs on the client's event loop).

@@ -34,7 +34,6 @@ quality and picture scale. Nothing here reads a clock or does I/O (``now`` is pa
 
 from __future__ import annotations
 
-import collections
 import math
 import struct
 from collections import OrderedDict, deque
@@ -878,7 +877,7 @@ class VideoRateController:
         self.reports = 0
         self.decreases = 0
         #: (last fragment's seq, time sent) of the frames no report has covered yet.
-        self._unacked: collections.deque[tuple[int, float]] = collections.deque(maxlen=256)
+        self._unacked: deque[tuple[int, float]] = deque(maxlen=256)
         self._min_rtt: float | None = None
         self._report_gap = 0.0
 
