@@ -438,6 +438,12 @@ def test_a_dialling_session_announces_a_one_second_lease_and_an_option_or_a_file
     assert lease(AppConfig.model_validate(dialler).transport.zenoh) == 1000
     slow = AppConfig.model_validate({**dialler, "call": {"timeout": 3.0}})
     assert lease(slow.transport.zenoh) == 6000
+    # Endpoints changed after validation (--connect, --listen) count, not those at load time.
+    later = AppConfig.model_validate({"call": {"timeout": 1.0}})
+    later.transport.zenoh.connect = ["quic/127.0.0.1:7447"]
+    assert lease(later.transport.zenoh) == 2000
+    later.transport.zenoh.listen = ["quic/0.0.0.0:7448"]
+    assert lease(later.transport.zenoh) == 10_000
 
 
 # --- publish / subscribe in one process ------------------------------------------------

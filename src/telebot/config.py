@@ -13,7 +13,7 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal, Self, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, model_validator
 
 from telebot.errors import ConfigError
 
@@ -115,11 +115,19 @@ class ZenohSettings(StrictModel):
     #: answered with a reset, dials afresh at once (a zenoh config file or a
     #: ``transport/link/tx/lease`` option rules instead).
     lease: float | None = Field(default=None, ge=0.1, le=3600)
+    # The call timeout of the AppConfig this belongs to (AppConfig.fit_lease), 0 if none.
+    _call_timeout: float = PrivateAttr(default=0.0)
 
     @property
     def dials(self) -> bool:
         """Whether this session dials: client mode, or ``connect`` endpoints and no ``listen``."""
         return self.mode == "client" or (bool(self.connect) and not self.listen)
+
+    @property
+    def dial_lease(self) -> float:
+        """The lease (s) a dialling session announces when ``lease`` is unset:
+        :data:`DIAL_LEASE`, at least twice its config's ``[call] timeout``."""
+        return max(DIAL_LEASE, 2 * self._call_timeout)
 
 
 class MemorySettings(StrictModel):
@@ -424,13 +432,11 @@ class AppConfig(StrictModel):
         return self
 
     def fit_lease(self) -> None:
-        """A dialling session's lease, unset, outlives the call's timeout (twice it): the
-        link must not drop while the call still waits. Run on validation, and again by
-        whoever changes the transport's endpoints afterwards (the command line)."""
-        zenoh = self.transport.zenoh
-        long_call = 2 * self.call.timeout > DIAL_LEASE
-        if zenoh.lease is None and zenoh.dials and zenoh.config_file is None and long_call:
-            zenoh.lease = 2 * self.call.timeout
+        """Tell the zenoh settings the call's timeout: a dialling session's default lease
+        outlives it (twice it), so the link does not drop while the call still waits
+        (:attr:`ZenohSettings.dial_lease`). Run on validation, and again by whoever changes
+        ``[call] timeout`` afterwards."""
+        self.transport.zenoh._call_timeout = self.call.timeout
 
 
 class ServiceSettings(StrictModel):

@@ -151,7 +151,6 @@ def load_app_config(args: argparse.Namespace, model: type[Config]) -> Config:
             value = getattr(args, option.flag.lstrip("-").replace("-", "_"), None)
             if value:  # not given: the config file's value stands
                 apply_cli_option(config.transport, name, option, value)
-        config.fit_lease()  # --connect may have made a session that dials
     except ValidationError as exc:
         raise ConfigError(format_validation_error(exc, "command line")) from exc
     return config

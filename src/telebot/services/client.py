@@ -1195,7 +1195,7 @@ async def connect(
     known = KnownRobots.load(home)
     async with contextlib.AsyncExitStack() as stack:
         if transport is None:
-            config.fit_lease()  # endpoints set after validation may make it a dialler
+            config.fit_lease()  # the call timeout may have changed since validation
             transport = await stack.enter_async_context(create_transport(config.transport))
         endpoint = await stack.enter_async_context(
             UserEndpoint(

@@ -248,7 +248,8 @@ def build_zenoh_config(settings: ZenohSettings) -> zenoh.Config:
         lease_ms = round(settings.lease * 1000)
         _insert(config, "transport/link/tx/lease", lease_ms, "lease")
     elif settings.dials and settings.config_file is None:
-        _insert(config, "transport/link/tx/lease", LINK_LEASE_MS, "transport/link/tx/lease")
+        lease_ms = round(settings.dial_lease * 1000)  # LINK_LEASE_MS, or twice a long call timeout
+        _insert(config, "transport/link/tx/lease", lease_ms, "transport/link/tx/lease")
     if settings.tls.enabled:
         for path, value in tls_options(settings).items():
             _insert(config, path, value, f"{path} =")

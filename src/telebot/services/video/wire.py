@@ -991,8 +991,8 @@ class VideoRateController:
         be shown later (a sender faster than the link's congestion control lets through,
         on a reliable stream, queues there). Still one frame per such time goes (a probe:
         frames lost for good, or a receiver that took none, must not stop the video for
-        ever). False before the first report."""
-        if self._last_report_at is None or not self._unacked:
+        ever). False before the second report (the gap between reports is not known yet)."""
+        if self._report_gap <= 0.0 or not self._unacked:
             return False
         limit = (self._min_rtt or 0.0) + self._report_gap + BACKLOG_SLACK
         return now - self._unacked[0][1] > limit and now - self._unacked[-1][1] < limit
