@@ -598,12 +598,13 @@ def test_a_backlog_of_unreported_frames_holds_new_frames_but_lets_a_probe_throug
     c.on_report(Report(400, sent[0][1], 0, 0, 0, 0, 0), 0.4)  # the first one arrived
     oldest = sent[1][0]  # 0.25: not reported yet
     assert not c.held_up(oldest + 0.39) and c.held_up(oldest + 0.41)
-    # While held, one frame per limit still goes (a probe), so frames lost for good or a
-    # receiver that took none cannot stop the video for ever.
+    # While held, one frame per limit, at most BACKLOG_PROBE (0.25 s), still goes (a
+    # probe), so frames lost for good or a receiver that took none cannot stop the video
+    # for ever, nor freeze it for the stale-video rule.
     newest = sent[-1][0]  # 0.65
-    assert c.held_up(newest + 0.39) and not c.held_up(newest + 0.41)
-    c.frame_sent(newest + 0.41, 40)
-    assert c.held_up(newest + 0.5)
+    assert c.held_up(newest + 0.24) and not c.held_up(newest + 0.26)
+    c.frame_sent(newest + 0.26, 40)
+    assert c.held_up(newest + 0.3)
     # The receiver catches up: everything covered, frames flow again.
     c.on_report(Report(600, 40, 0, 0, 0, 0, 0), 1.2)
     assert not c.held_up(1.2)
@@ -613,4 +614,4 @@ def test_a_backlog_of_unreported_frames_holds_new_frames_but_lets_a_probe_throug
     c.frame_sent(1.5, 46)
     assert c.held_up(1.3 + 0.4 + 0.2 + 0.01) is False  # gap between reports is now 0.8
     c.on_report(Report(800, 40, 0, 0, 0, 0, 0), 1.4)  # reports every 0.2 s again
-    assert c.held_up(1.3 + 0.41)
+    assert c.held_up(1.3 + 0.41) and not c.held_up(1.5 + 0.26)

@@ -808,6 +808,9 @@ LOSS_DECAY: Final = 0.9
 #: A frame not yet reported received this long (s) after the path's round trip and the
 #: gap between reports means the link holds a backlog: send no new frame until it drains.
 BACKLOG_SLACK: Final = 0.1
+#: While held, one frame still goes this often at least (s): the picture never freezes for
+#: the safety supervisor's stale-video rule (1 s) because of the hold itself.
+BACKLOG_PROBE: Final = 0.25
 
 
 #: JPEG quality points that about double a frame's size (between quality 50 and 90).
@@ -989,13 +992,15 @@ class VideoRateController:
         report covers was sent longer ago than the path's least round trip, the gap between
         reports and :data:`BACKLOG_SLACK`. Send no frame then: every frame added would only
         be shown later (a sender faster than the link's congestion control lets through,
-        on a reliable stream, queues there). Still one frame per such time goes (a probe:
-        frames lost for good, or a receiver that took none, must not stop the video for
-        ever). False before the second report (the gap between reports is not known yet)."""
+        on a reliable stream, queues there). Still one frame per such time, at most
+        :data:`BACKLOG_PROBE`, goes (a probe: frames lost for good, or a receiver that took
+        none, must not stop the video for ever). False before the second report (the gap
+        between reports is not known yet)."""
         if self._report_gap <= 0.0 or not self._unacked:
             return False
         limit = (self._min_rtt or 0.0) + self._report_gap + BACKLOG_SLACK
-        return now - self._unacked[0][1] > limit and now - self._unacked[-1][1] < limit
+        probe = min(limit, BACKLOG_PROBE)
+        return now - self._unacked[0][1] > limit and now - self._unacked[-1][1] < probe
 
     def on_encoded(self, size: int, now: float) -> bool:
         """Adapt to the size of the frame just encoded; True if it is worth encoding again.
