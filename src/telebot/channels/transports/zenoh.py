@@ -156,9 +156,9 @@ CONNECT_RETRY: Final[dict[str, Any]] = {
 }
 
 #: The link lease a session that dials (client mode, or ``connect`` endpoints and no
-#: ``listen`` ones) announces when neither ``lease``, a config file nor an option says (ms;
-#: zenoh's default, which the listening end keeps, is 10 s). The listening end (a robot, a router) drops the
-#: link after this long without a word from the dialer (whose keep-alives go every quarter
+#: ``listen`` ones) announces when neither ``lease``, a config file nor an option says
+#: (ms; zenoh's default, which the listening end keeps, is 10 s). The listening end (a
+#: robot, a router) drops the link after this long without a word from the dialer (whose keep-alives go every quarter
 #: of it); after an outage the dialer's first packet then meets a reset and it dials afresh
 #: at once, instead of waiting out QUIC's or TCP's retransmission back-off, which after a
 #: 3 s outage is seconds (bench/wan.py: reconnection on 4G over QUIC 3.6-5.4 s -> 0.7 s).
@@ -244,12 +244,11 @@ def build_zenoh_config(settings: ZenohSettings) -> zenoh.Config:
         # After a blip, come back within half a second (zenoh's own default retries every
         # 1 s, then 2 s, 4 s): a call that reconnects is only as quick as its session.
         _insert(config, "connect/retry", CONNECT_RETRY, "connect/retry")
-    if settings.lease is not None:
-        lease_ms = round(settings.lease * 1000)
-        _insert(config, "transport/link/tx/lease", lease_ms, "lease")
-    elif settings.dials and settings.config_file is None:
-        lease_ms = round(settings.dial_lease * 1000)  # LINK_LEASE_MS, or twice a long call timeout
-        _insert(config, "transport/link/tx/lease", lease_ms, "transport/link/tx/lease")
+    lease = settings.lease
+    if lease is None and settings.dials and settings.config_file is None:
+        lease = settings.dial_lease  # LINK_LEASE_MS, or twice a long call timeout
+    if lease is not None:
+        _insert(config, "transport/link/tx/lease", round(lease * 1000), "lease")
     if settings.tls.enabled:
         for path, value in tls_options(settings).items():
             _insert(config, path, value, f"{path} =")
