@@ -158,6 +158,40 @@ async def test_drive_refuses_numbers_that_are_not_finite(tmp_path: Path) -> None
             client.drive(0.1, 0.0, hold=-1)
 
 
+async def test_an_arm_waits_for_the_clients_own_stop_so_its_repeats_cannot_undo_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The stop's first three acks are lost, so its copies go at 0, 20, 40 and 90 ms, and
+    # the arm is asked for at once: sent before the stop's ack, the arm would be undone by
+    # the copies that follow it (each stops and disarms the robot again).
+    async with driving(tmp_path) as (_nav, safety, client):
+        next_ack = client._next
+        stop_acks = 0
+        stop_queue: asyncio.Queue[Any] | None = None
+
+        async def lossy_stop_acks(queue: asyncio.Queue[Any], wait: float, call: Any) -> Any:
+            nonlocal stop_acks, stop_queue
+            stop_queue = queue if stop_queue is None else stop_queue  # the stop waits first
+            if queue is stop_queue:
+                stop_acks += 1
+                if stop_acks <= 3:
+                    await asyncio.sleep(wait)
+                    raise TimeoutError
+            return await next_ack(queue, wait, call)
+
+        monkeypatch.setattr(client, "_next", lossy_stop_acks)
+        stop = asyncio.create_task(client.stop(how="key"))
+        await asyncio.sleep(0)  # the stop's first copy is sent
+        arm = await client.arm()
+        stop_ended_first = stop.done()
+        assert (await stop).ok
+        assert arm.ok, arm.text
+        await asyncio.sleep(4 * STOP_REPEAT)  # nothing of the stop is still on its way
+        assert safety.state().armed, "a copy of the stop undid the arm"
+        assert stop_ended_first
+        assert stop_acks == 4
+
+
 async def test_the_first_repeats_of_a_release_and_of_a_stop_come_sooner(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -100,6 +100,35 @@ test("a stop is repeated after 20, 20, then every 50 ms until acked, and no stop
   assert.equal(safety.sent.stop, sentAt, "no more copies after the ack");
 });
 
+test("an arm waits for the client's own stop, so the stop's repeats cannot undo it", async () => {
+  const clock = new ManualClock();
+  const call = new FakeCall();
+  // The robot: a stop disarms it (every copy), an arm arms it; the first 3 stop acks are lost.
+  let armed = true;
+  let stopAcks = 0;
+  const order = [];
+  call.onUser("safety", (payload) => {
+    const req = JSON.parse(payload);
+    order.push(req.type);
+    armed = req.type === "arm" ? true : req.type === "stop" ? false : armed;
+    if (req.type === "stop" && ++stopAcks <= 3) return;
+    call.toUser("safety", JSON.stringify({ type: "ack", id: req.id, ok: true, reason: "", code: "ok" }));
+  });
+  const safety = new SafetyService(call, { random: seeded(9) });
+  clock.every(0.02, () => safety.tick(clock.now()));
+  let stopAck = null;
+  let armAck = null;
+  safety.request("stop", { how: "key", now: clock.now() }).then((a) => { stopAck = a; });
+  safety.request("arm", { now: clock.now() }).then((a) => { armAck = a; });
+  assert.ok(await clock.until(() => armAck !== null, 5));
+  assert.equal(stopAck?.ok, true);
+  assert.equal(armAck.ok, true);
+  await clock.advance(0.5);
+  assert.deepEqual(order, ["stop", "stop", "stop", "stop", "arm"]);
+  assert.equal(armed, true, "a copy of the stop undid the arm");
+  assert.equal(safety.stopsInFlight.size, 0);
+});
+
 test("a stop reaches the robot over 50 % loss both ways", async () => {
   const clock = new ManualClock();
   const call = new FakeCall({ seed: 23, upLoss: 0.5, downLoss: 0.5 });

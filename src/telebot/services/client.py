@@ -330,6 +330,8 @@ class RobotClient:
         self._goal_ids = itertools.count(start)
         self._safety_ids = itertools.count(start)
         self._safety_waiters: dict[int, asyncio.Queue[SafetyAck]] = {}
+        # This client's stops still being repeated (each done when acknowledged or given up).
+        self._stops_in_flight: set[asyncio.Future[None]] = set()
         #: The robot's safety state (armed, why stopped and its ``code``, who holds the
         #: drive); ``stopped_itself`` says a re-arm (:meth:`arm`) is all it takes to go on.
         self.latest_safety: _Latest[SafetyStatus] = _Latest()
@@ -689,11 +691,16 @@ class RobotClient:
         return await self._safety_request("stop", timeout, STOP_REPEAT, how, QUICK_REPEATS)
 
     async def arm(self, *, timeout: float = 5.0) -> SafetyAck:
-        """Re-arm the robot after a stop (the drive holder only); ``ok`` False says why not."""
+        """Re-arm the robot after a stop (the drive holder only); ``ok`` False says why not.
+
+        Sent once this client's own stops are acknowledged (or given up): a copy of a
+        stop still being repeated would reach the robot after the arm and stop it again.
+        """
         return await self._safety_request("arm", timeout, RESEND_AFTER)
 
     async def take_drive(self, *, timeout: float = 5.0) -> SafetyAck:
-        """Take the drive (when free; an admin takes it over)."""
+        """Take the drive (when free; an admin takes it over); after this client's own
+        stops, like :meth:`arm`."""
         return await self._safety_request("take", timeout, RESEND_AFTER)
 
     async def release_drive(self, *, timeout: float = 5.0) -> SafetyAck:
@@ -714,8 +721,13 @@ class RobotClient:
         self._safety_waiters[request_id] = acks
         payload = SafetyRequest(kind, request_id, how).encode()
         noted = False
+        done: asyncio.Future[None] = self._loop.create_future()
+        if kind == "stop":
+            self._stops_in_flight.add(done)
         try:
             async with asyncio.timeout(timeout):
+                if kind in ("arm", "take") and self._stops_in_flight:
+                    await asyncio.wait(set(self._stops_in_flight))
                 core = await self._core()
                 while True:
                     try:
@@ -738,6 +750,8 @@ class RobotClient:
                     return ack
         finally:
             self._safety_waiters.pop(request_id, None)
+            self._stops_in_flight.discard(done)
+            done.set_result(None)
 
     # -- driving by hand -------------------------------------------------------------
 

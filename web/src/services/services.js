@@ -137,6 +137,8 @@ export class SafetyService {
     this.channel.onmessage = (payload) => this.onMessage(payload);
     this.nextId = idCounter(random);
     this.pending = new Map();
+    /** This client's stops still being repeated (promises, settled when acked or given up). */
+    this.stopsInFlight = new Set();
     this.onState = onState;
     this.onError = onError;
     this.drops = new DropCounter();
@@ -147,10 +149,18 @@ export class SafetyService {
 
   /**
    * Send `type` ("stop" | "arm" | "take" | "release") now and again until the robot
-   * acknowledges: resolves with the ack {id, ok, reason, code}.
+   * acknowledges: resolves with the ack {id, ok, reason, code}. An arm or a take is sent
+   * once this client's own stops are acknowledged (or given up): a copy of a stop still
+   * being repeated would reach the robot after the arm and stop it again.
    */
   request(type, { how = "", timeout = 5, now = this.now } = {}) {
-    return new Promise((resolve, reject) => {
+    if ((type === "arm" || type === "take") && this.stopsInFlight.size > 0) {
+      const deadline = now + timeout;
+      return Promise.allSettled([...this.stopsInFlight]).then(() =>
+        this.request(type, { how, timeout: Math.max(0, deadline - this.now) }),
+      );
+    }
+    const request = new Promise((resolve, reject) => {
       const id = this.nextId();
       const payload = encodeSafetyRequest(type, id, how);
       const repeat = type === "stop" ? STOP_REPEAT : RESEND_AFTER;
@@ -159,6 +169,12 @@ export class SafetyService {
       this.pending.set(id, { type, payload, repeat, quick, resolve, reject, due: now + first, deadline: now + timeout });
       this.send(type, payload); // first, before anything else: the stop leaves now
     });
+    if (type === "stop") {
+      this.stopsInFlight.add(request);
+      const ended = () => this.stopsInFlight.delete(request);
+      request.then(ended, ended);
+    }
+    return request;
   }
 
   send(type, payload) {
