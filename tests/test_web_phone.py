@@ -23,6 +23,7 @@ from rig import SLACK
 # _chromium: one chromium for the module; _no_leaked_tasks: the leak check in its loop.
 from test_web_ui import (
     ARTIFACTS,
+    LASTING_SPEED,
     Rig,
     _chromium,  # noqa: F401
     _no_leaked_tasks,  # noqa: F401
@@ -160,7 +161,10 @@ async def stopped_by(rig: Rig, how: str) -> None:
 
 @in_module_loop
 async def test_touching_the_video_or_stop_while_moving_stops_the_robot(tmp_path: Path) -> None:
-    async with robot_rig(tmp_path) as rig, phone_page(rig.ui.url) as page:
+    async with (
+        robot_rig(tmp_path, max_linear_speed=LASTING_SPEED) as rig,
+        phone_page(rig.ui.url) as page,
+    ):
         await page_ready(page)
         await page.wait_for_function("() => window.telebotUI.state.frames >= 1", timeout=15000)
         # At rest, a touch on the video is just a touch.
@@ -191,7 +195,10 @@ SHOW = """() => {
 
 @in_module_loop
 async def test_a_page_hidden_or_frozen_while_driving_stops_the_robot(tmp_path: Path) -> None:
-    async with robot_rig(tmp_path) as rig, phone_page(rig.ui.url) as page:
+    async with (
+        robot_rig(tmp_path, max_linear_speed=LASTING_SPEED) as rig,
+        phone_page(rig.ui.url) as page,
+    ):
         await page_ready(page)
         await page.wait_for_function("() => window.telebotUI.state.safety")
         # Disarmed and at rest: hiding the page stops nothing (the robot cannot move).

@@ -260,8 +260,9 @@ async def arm(rig: Rig) -> None:
 
 
 #: A top speed at which :func:`drive_forward`'s move lasts 20 s, for a test whose stop
-#: comes from a page going away: on a loaded machine that took over the 6 s of the fast
-#: robot's move, which had ended (nothing left to stop) when the page went.
+#: comes from the page (a key, the page going away): on a loaded machine the page's steps
+#: took over the 6 s of the fast robot's move, which had ended (nothing left to stop) when
+#: the stop came.
 LASTING_SPEED = 0.4
 
 
@@ -444,8 +445,11 @@ async def test_a_click_to_goal_draws_the_planned_path_and_places_are_labelled(ri
 
 
 @in_module_loop
-async def test_a_key_press_stops_the_robot(rig: Rig) -> None:
-    async with browser_page(rig.ui.url) as page:
+async def test_a_key_press_stops_the_robot(tmp_path: Path) -> None:
+    async with (
+        robot_rig(tmp_path, max_linear_speed=LASTING_SPEED) as rig,
+        browser_page(rig.ui.url) as page,
+    ):
         await page_ready(page)
         await drive_forward(rig)
         await page.locator("#map").focus()
@@ -469,8 +473,11 @@ async def test_a_key_press_stops_the_robot(rig: Rig) -> None:
 
 
 @in_module_loop
-async def test_escape_in_the_chat_input_stops_but_typing_does_not(rig: Rig) -> None:
-    async with browser_page(rig.ui.url) as page:
+async def test_escape_in_the_chat_input_stops_but_typing_does_not(tmp_path: Path) -> None:
+    async with (
+        robot_rig(tmp_path, max_linear_speed=LASTING_SPEED) as rig,
+        browser_page(rig.ui.url) as page,
+    ):
         await page_ready(page)
         await drive_forward(rig)
         await page.fill("#chat-input", "")
