@@ -129,6 +129,23 @@ test("an arm waits for the client's own stop, so the stop's repeats cannot undo 
   assert.equal(safety.stopsInFlight.size, 0);
 });
 
+test("an arm waiting for a stop ends with the call, not never", async () => {
+  const clock = new ManualClock();
+  const call = new FakeCall(); // a robot that answers nothing
+  const safety = new SafetyService(call);
+  clock.every(0.02, () => safety.tick(clock.now()));
+  let stopError = null;
+  let armError = null;
+  safety.request("stop", { now: clock.now() }).catch((e) => { stopError = e; });
+  safety.request("arm", { now: clock.now() }).catch((e) => { armError = e; });
+  await clock.advance(0.1);
+  safety.close();
+  assert.ok(await clock.until(() => armError !== null, 1));
+  assert.equal(stopError?.code, "call_ended");
+  assert.equal(armError.code, "call_ended");
+  assert.equal(safety.sent.arm, 0, "the arm never went");
+});
+
 test("a stop reaches the robot over 50 % loss both ways", async () => {
   const clock = new ManualClock();
   const call = new FakeCall({ seed: 23, upLoss: 0.5, downLoss: 0.5 });

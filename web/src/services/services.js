@@ -139,6 +139,7 @@ export class SafetyService {
     this.pending = new Map();
     /** This client's stops still being repeated (promises, settled when acked or given up). */
     this.stopsInFlight = new Set();
+    this.closed = false;
     this.onState = onState;
     this.onError = onError;
     this.drops = new DropCounter();
@@ -156,9 +157,10 @@ export class SafetyService {
   request(type, { how = "", timeout = 5, now = this.now } = {}) {
     if ((type === "arm" || type === "take") && this.stopsInFlight.size > 0) {
       const deadline = now + timeout;
-      return Promise.allSettled([...this.stopsInFlight]).then(() =>
-        this.request(type, { how, timeout: Math.max(0, deadline - this.now) }),
-      );
+      return Promise.allSettled([...this.stopsInFlight]).then(() => {
+        if (this.closed) throw new RequestFailed(CALL_ENDED, "call_ended");
+        return this.request(type, { how, timeout: Math.max(0, deadline - this.now) });
+      });
     }
     const request = new Promise((resolve, reject) => {
       const id = this.nextId();
@@ -216,6 +218,7 @@ export class SafetyService {
   }
 
   close() {
+    this.closed = true;
     this.channel.onmessage = null;
     for (const p of this.pending.values()) p.reject(new RequestFailed(CALL_ENDED, "call_ended"));
     this.pending.clear();
