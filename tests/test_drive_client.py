@@ -191,6 +191,20 @@ async def test_an_arm_waits_for_the_clients_own_stop_so_its_repeats_cannot_undo_
         assert stop_ended_first
         assert stop_acks == 4
 
+        # A stop asked for while the arm waits (the user saw something) is not undone by
+        # the arm: the arm is not sent at all.
+        stop_queue, stop_acks = None, 0
+        first = asyncio.create_task(client.stop(how="key"))
+        await asyncio.sleep(0)
+        waiting_arm = asyncio.create_task(client.arm())
+        await asyncio.sleep(0.005)
+        assert (await client.stop(how="button")).ok  # acknowledged before the first one
+        assert (await first).ok
+        refused = await waiting_arm
+        assert not refused.ok and refused.code == "stopped", refused
+        await asyncio.sleep(4 * STOP_REPEAT)
+        assert not safety.state().armed, "the arm undid a later stop"
+
 
 async def test_the_first_repeats_of_a_release_and_of_a_stop_come_sooner(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch

@@ -129,6 +129,50 @@ test("an arm waits for the client's own stop, so the stop's repeats cannot undo 
   assert.equal(safety.stopsInFlight.size, 0);
 });
 
+test("a stop asked for while an arm waits wins: the arm is not sent", async () => {
+  const clock = new ManualClock();
+  const call = new FakeCall();
+  let armed = true;
+  let firstStopAcks = 0;
+  let firstId = null;
+  const order = [];
+  call.onUser("safety", (payload) => {
+    const req = JSON.parse(payload);
+    order.push(req.type);
+    armed = req.type === "arm" ? true : req.type === "stop" ? false : armed;
+    firstId ??= req.id;
+    if (req.id === firstId && ++firstStopAcks <= 3) return; // the first stop's acks are lost
+    call.toUser("safety", JSON.stringify({ type: "ack", id: req.id, ok: true, reason: "", code: "ok" }));
+  });
+  const safety = new SafetyService(call, { random: seeded(4) });
+  clock.every(0.02, () => safety.tick(clock.now()));
+  let arm = null;
+  safety.request("stop", { how: "key", now: clock.now() });
+  safety.request("arm", { now: clock.now() }).then((a) => { arm = a; });
+  await clock.advance(0.03);
+  safety.request("stop", { how: "button", now: clock.now() });
+  assert.ok(await clock.until(() => arm !== null, 5));
+  assert.equal(arm.ok, false);
+  assert.equal(arm.code, "stopped");
+  await clock.advance(0.5);
+  assert.equal(safety.sent.arm, 0);
+  assert.ok(!order.includes("arm"));
+  assert.equal(armed, false, "the arm undid a later stop");
+});
+
+test("an arm whose time ran out waiting for a stop is not sent", async () => {
+  const clock = new ManualClock();
+  const call = new FakeCall(); // a robot that answers nothing
+  const safety = new SafetyService(call);
+  clock.every(0.02, () => safety.tick(clock.now()));
+  let armError = null;
+  safety.request("stop", { now: clock.now() }).catch(() => {});
+  safety.request("arm", { now: clock.now() }).catch((e) => { armError = e; });
+  assert.ok(await clock.until(() => armError !== null, 7));
+  assert.equal(armError.code, "timeout");
+  assert.equal(safety.sent.arm, 0, "the arm never went");
+});
+
 test("an arm waiting for a stop ends with the call, not never", async () => {
   const clock = new ManualClock();
   const call = new FakeCall(); // a robot that answers nothing

@@ -330,8 +330,10 @@ class RobotClient:
         self._goal_ids = itertools.count(start)
         self._safety_ids = itertools.count(start)
         self._safety_waiters: dict[int, asyncio.Queue[SafetyAck]] = {}
-        # This client's stops still being repeated (each done when acknowledged or given up).
+        # This client's stops still being repeated (each done when acknowledged or given up),
+        # and how many stops it was asked for (an arm must not follow a later stop).
         self._stops_in_flight: set[asyncio.Future[None]] = set()
+        self._stops_asked = 0
         #: The robot's safety state (armed, why stopped and its ``code``, who holds the
         #: drive); ``stopped_itself`` says a re-arm (:meth:`arm`) is all it takes to go on.
         self.latest_safety: _Latest[SafetyStatus] = _Latest()
@@ -695,6 +697,8 @@ class RobotClient:
 
         Sent once this client's own stops are acknowledged (or given up): a copy of a
         stop still being repeated would reach the robot after the arm and stop it again.
+        ``timeout`` covers that wait. A stop asked for while the arm waited wins: the arm is
+        not sent, and ``ok`` is False (code ``stopped``).
         """
         return await self._safety_request("arm", timeout, RESEND_AFTER)
 
@@ -721,14 +725,22 @@ class RobotClient:
         self._safety_waiters[request_id] = acks
         payload = SafetyRequest(kind, request_id, how).encode()
         noted = False
-        done: asyncio.Future[None] = self._loop.create_future()
+        stop_done: asyncio.Future[None] | None = None
         if kind == "stop":
-            self._stops_in_flight.add(done)
+            self._stops_asked += 1
+            stop_done = self._loop.create_future()
+            self._stops_in_flight.add(stop_done)
+        stops_before = self._stops_asked
         try:
             async with asyncio.timeout(timeout):
-                if kind in ("arm", "take") and self._stops_in_flight:
+                after_stops = kind in ("arm", "take")
+                if after_stops and self._stops_in_flight:
                     await asyncio.wait(set(self._stops_in_flight))
                 core = await self._core()
+                if after_stops and self._stops_asked != stops_before:
+                    # A stop asked for while this waited comes first and is not undone.
+                    text = f"{kind} not sent: a stop was asked for after it"
+                    return SafetyAck(request_id, False, text, Reason.STOPPED)
                 while True:
                     try:
                         self._send(core.safety, payload)
@@ -750,8 +762,9 @@ class RobotClient:
                     return ack
         finally:
             self._safety_waiters.pop(request_id, None)
-            self._stops_in_flight.discard(done)
-            done.set_result(None)
+            if stop_done is not None:
+                self._stops_in_flight.discard(stop_done)
+                stop_done.set_result(None)
 
     # -- driving by hand -------------------------------------------------------------
 

@@ -139,6 +139,8 @@ export class SafetyService {
     this.pending = new Map();
     /** This client's stops still being repeated (promises, settled when acked or given up). */
     this.stopsInFlight = new Set();
+    /** How many stops this client was asked for (an arm must not follow a later stop). */
+    this.stopsAsked = 0;
     this.closed = false;
     this.onState = onState;
     this.onError = onError;
@@ -152,14 +154,23 @@ export class SafetyService {
    * Send `type` ("stop" | "arm" | "take" | "release") now and again until the robot
    * acknowledges: resolves with the ack {id, ok, reason, code}. An arm or a take is sent
    * once this client's own stops are acknowledged (or given up): a copy of a stop still
-   * being repeated would reach the robot after the arm and stop it again.
+   * being repeated would reach the robot after the arm and stop it again. `timeout`
+   * covers that wait; a stop asked for meanwhile wins (the arm is not sent and resolves
+   * not ok, code "stopped").
    */
   request(type, { how = "", timeout = 5, now = this.now } = {}) {
+    if (type === "stop") this.stopsAsked += 1;
     if ((type === "arm" || type === "take") && this.stopsInFlight.size > 0) {
       const deadline = now + timeout;
+      const stopsBefore = this.stopsAsked;
       return Promise.allSettled([...this.stopsInFlight]).then(() => {
         if (this.closed) throw new RequestFailed(CALL_ENDED, "call_ended");
-        return this.request(type, { how, timeout: Math.max(0, deadline - this.now) });
+        if (this.stopsAsked !== stopsBefore) {
+          const reason = `${type} not sent: a stop was asked for after it`;
+          return { type: "ack", id: null, ok: false, reason, code: "stopped" };
+        }
+        if (deadline - this.now <= 0) throw new RequestFailed("no answer", "timeout");
+        return this.request(type, { how, timeout: deadline - this.now });
       });
     }
     const request = new Promise((resolve, reject) => {
