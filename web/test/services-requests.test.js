@@ -160,11 +160,16 @@ test("a stop asked for while an arm waits wins: the arm is not sent", async () =
   assert.equal(armed, false, "the arm undid a later stop");
 });
 
-test("an arm whose time ran out waiting for a stop is not sent", async () => {
+/** A safety service on its 20 ms tick, towards a robot that answers nothing. */
+function towardsASilentRobot() {
   const clock = new ManualClock();
-  const call = new FakeCall(); // a robot that answers nothing
-  const safety = new SafetyService(call);
+  const safety = new SafetyService(new FakeCall());
   clock.every(0.02, () => safety.tick(clock.now()));
+  return { clock, safety };
+}
+
+test("an arm whose time ran out waiting for a stop is not sent", async () => {
+  const { clock, safety } = towardsASilentRobot();
   let armError = null;
   safety.request("stop", { now: clock.now() }).catch(() => {});
   safety.request("arm", { now: clock.now() }).catch((e) => { armError = e; });
@@ -174,10 +179,7 @@ test("an arm whose time ran out waiting for a stop is not sent", async () => {
 });
 
 test("an arm waiting for a stop ends with the call, not never", async () => {
-  const clock = new ManualClock();
-  const call = new FakeCall(); // a robot that answers nothing
-  const safety = new SafetyService(call);
-  clock.every(0.02, () => safety.tick(clock.now()));
+  const { clock, safety } = towardsASilentRobot();
   let stopError = null;
   let armError = null;
   safety.request("stop", { now: clock.now() }).catch((e) => { stopError = e; });
