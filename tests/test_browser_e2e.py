@@ -249,6 +249,8 @@ async def e2e_rig(base: Path) -> AsyncIterator[E2E]:
                 await browser.close()
     finally:
         await asyncio.to_thread(daemon.stop)
+        # Kept beside its audit log in pytest's tmp dir: what the daemon said, for a miss.
+        (base / "daemon.stderr").write_text(daemon.process.stderr(), encoding="utf-8")
 
 
 @pytest_asyncio.fixture(scope="module", loop_scope="module")
