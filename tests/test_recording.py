@@ -290,7 +290,9 @@ async def test_the_daemon_records_beside_the_audit_log_readable_after_each_call(
         topics = {topic for topic, _ in messages()}
         assert {"/calls", f"/{USER}/chat/in", f"/{USER}/chat", f"/{USER}/pose"} <= topics
         asked = [m["text"] for t, m in messages() if t == f"/{USER}/chat/in"]
-        assert asked == ["where", "status"]
+        # Each copy received is recorded: a request left unanswered for 0.3 s on a busy
+        # machine is sent again, so "where" may be there twice, but in its place.
+        assert list(dict.fromkeys(asked)) == ["where", "status"]
     finally:
         daemon.stop(graceful=True)
     assert (daemon.robot_home / "audit.jsonl").exists()
