@@ -160,8 +160,9 @@ CONNECT_RETRY: Final[dict[str, Any]] = {
 #: (ms; zenoh's default, which the listening end keeps, is 10 s). The listening end (a
 #: robot, a router) drops the link after this long without a word from the dialer (whose
 #: keep-alives go every quarter of it); after an outage the dialer's first packet then
-#: meets a reset and it dials afresh at once, instead of waiting out QUIC's or TCP's retransmission back-off, which after a
-#: 3 s outage is seconds (bench/wan.py: reconnection on 4G over QUIC 3.6-5.4 s -> 0.7 s).
+#: meets a reset and it dials afresh at once, instead of waiting out QUIC's or TCP's
+#: retransmission back-off, which after a 3 s outage is seconds (bench/wan.py:
+#: reconnection on 4G over QUIC 3.6-5.4 s -> 0.7 s).
 #: Both ends at 1 s is slower (1.5 s): the dialer drops the link too and its own attempts
 #: made during the outage back off. A call drops after 0.5 s of silence anyway.
 LINK_LEASE_MS: Final = round(DIAL_LEASE * 1000)
