@@ -41,6 +41,11 @@ telebot and the link's losses add to the speed of light):
   no real fault (the link only jitters, loses or roams: nothing is cut), scaled to an hour
   of that window; targets 0 on ``wifi``, ≤ 1 on ``4g``. Calls dropped in that window are
   counted too.
+- **silence max** (the issue's heartbeat gaps): the longest time in that window in which
+  the user heard nothing authentic from the robot (no heartbeat, pose or frame: the call's
+  ``last_heard``, read every 10 ms, across reconnections). Past the call timeout (0.5 s)
+  the call drops; on QUIC a loss burst that takes a whole flight stalls every lane until
+  QUIC's probe timeout, which doubles each time.
 - **late frames at 10 % loss**: the row's profile losing 10 % of its packets at random
   (its bursts off) for a new call through a second proxy, the video watched for a while: the share of the frames
   shown (decoded here) more than 150 ms after capture plus the one-way delay; target ≤ 1 %.
@@ -72,6 +77,7 @@ import asyncio
 import collections
 import contextlib
 import dataclasses
+import itertools
 import json
 import logging
 import math
@@ -150,7 +156,7 @@ class Amounts:
 
 
 FULL = Amounts(
-    stops=20, releases=12, watch_s=10.0, trip_watch_s=40.0, late_s=8.0, outages=3, outage_s=3.0
+    stops=20, releases=12, watch_s=30.0, trip_watch_s=40.0, late_s=8.0, outages=5, outage_s=3.0
 )
 #: One of each, shortest: the outage still outlasts the call timeout, so the call drops.
 QUICK = Amounts(
@@ -184,6 +190,18 @@ def never_shown(frame_ids: list[int]) -> tuple[int, int]:
         return 0, 0
     sent = max(frame_ids) - min(frame_ids) + 1
     return sent, sent - len(set(frame_ids))
+
+
+def longest_silence(heard: list[float], start: float, end: float) -> float:
+    """The longest time (s) from ``start`` to ``end`` in which nothing was heard, from the
+    moments something was (``heard``, any order; repeats and moments outside the window are
+    ignored): the gaps between them, and the silence still running at ``end``. nan for an
+    empty window."""
+    if end <= start:
+        return NAN
+    moments = sorted({t for t in heard if start <= t <= end})
+    edges = [start, *moments, end]
+    return max(b - a for a, b in itertools.pairwise(edges))
 
 
 def per_hour(count: int, seconds: float) -> float:
@@ -241,6 +259,7 @@ class Row:
     reconnect: list[float] = field(default_factory=list)
     trips: int = 0
     drive_seconds: float = 0.0
+    silence: list[float] = field(default_factory=list)  # longest of each watch window
     drops: int = 0
     failed: dict[str, str] = field(default_factory=dict)
     seconds: float = 0.0
@@ -263,6 +282,7 @@ class Row:
             "never_shown_pct": never * 100,
             "reconnect_p99_ms": pct(self.reconnect, 99),
             "false_trips_h": per_hour(self.trips, self.drive_seconds),
+            "silence_max_ms": worst(self.silence) * 1000 if self.silence else NAN,
             "release_p99_ms": pct(self.release, 99) - self.delay_ms,
         }
 
@@ -557,8 +577,23 @@ async def measure_watch(
     first = len(audit.records)
     drops = client.reconnects
     start = time.monotonic()
-    await keep_driving(client, start + seconds)
+    heard: list[float] = []
+
+    async def listen() -> None:
+        # The call's last_heard (the loop's clock, time.monotonic) every 10 ms: the moments
+        # anything authentic came from the robot, to 10 ms, across reconnections.
+        while True:
+            heard.append(client.call.last_heard)
+            await asyncio.sleep(0.01)
+
+    listener = asyncio.create_task(listen())
+    try:
+        await keep_driving(client, start + seconds)
+    finally:
+        listener.cancel()
+        await asyncio.gather(listener, return_exceptions=True)
     end = time.monotonic()
+    row.silence.append(longest_silence(heard, start, end))
     audit.read()
     window = audit.records[first:]
     row.glass += [ms for ms, _, _ in watcher.between(start, end)]
@@ -712,6 +747,7 @@ def report(rows: list[Row], drive: bool, amounts: Amounts, seconds: float) -> li
         ("unshown %", "never_shown_pct"),
         ("reconn p99", "reconnect_p99_ms"),
         ("trips/h", "false_trips_h"),
+        ("silence max", "silence_max_ms"),
         ("release p99", "release_p99_ms"),
     )
     head = f"{'row':>22} | {'delay':>5} | " + " | ".join(f"{c:>11}" for c, _ in columns)
@@ -720,7 +756,9 @@ def report(rows: list[Row], drive: bool, amounts: Amounts, seconds: float) -> li
         "Figures in ms minus the profile's mean one-way delay (stop, glass, release); late % "
         f"at {LATE_LOSS:.0%} loss: frames shown > {LATE_MS:g} ms after capture + delay, of those "
         "shown (unshown %: never shown); reconnect: heal -> first pose; trips/h: deadman "
-        "latches with no real fault per hour of driving. (xN): ratio to the lan row.",
+        "latches with no real fault per hour of driving; silence max: the longest time the user "
+        "heard nothing from the robot while it drove (the call timeout is "
+        f"{REAL_TIMEOUT * 1000:.0f} ms). (xN): ratio to the lan row.",
         head,
         "-" * len(head),
     ]
@@ -752,7 +790,7 @@ def report(rows: list[Row], drive: bool, amounts: Amounts, seconds: float) -> li
             f"({row.late_lost} of {row.late_expected} never shown, {row.late_drops} calls "
             "dropped), "
             f"{len(row.reconnect)} outages of {amounts.outage_s:g} s; {trips}{row.drops} calls dropped "
-            "while driving"
+            f"while driving, longest silence {fmt(row.figures()['silence_max_ms'], 0)} ms"
             + "".join(f"; {note}" for note in row.notes)
             + "".join(f"; {name} FAILED: {why}" for name, why in row.failed.items())
         )

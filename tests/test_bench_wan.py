@@ -49,6 +49,20 @@ def test_percentiles_late_frames_and_trips(wan: ModuleType) -> None:
     assert math.isnan(wan.per_hour(0, 0.0))
 
 
+def test_the_longest_silence_spans_gaps_and_the_windows_edges(wan: ModuleType) -> None:
+    # Heard at 1.0 (sampled three times), 1.2 and 2.0: the gap 1.2 -> 2.0 is the longest.
+    assert wan.longest_silence([1.0, 1.0, 1.2, 1.0, 2.0, 2.1], 1.0, 2.1) == pytest.approx(0.8)
+    # Nothing heard after 1.2 in a window to 3.0: the silence still running counts.
+    assert wan.longest_silence([1.0, 1.2], 1.0, 3.0) == pytest.approx(1.8)
+    # Moments outside the window do not count; a window with none is silent throughout.
+    assert wan.longest_silence([0.5, 5.0], 1.0, 2.0) == pytest.approx(1.0)
+    assert math.isnan(wan.longest_silence([1.0], 2.0, 2.0))
+    row = wan.Row("bad", "quic")
+    assert math.isnan(row.figures()["silence_max_ms"])
+    row.silence = [0.3, 1.25]
+    assert row.figures()["silence_max_ms"] == pytest.approx(1250.0)
+
+
 def test_a_row_takes_the_one_way_delay_off_its_latencies(wan: ModuleType) -> None:
     row = wan.Row("4g", "tcp", delay_ms=40.0)
     row.stop = [45.0] * 99 + [90.0]
