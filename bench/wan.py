@@ -1,6 +1,6 @@
 """telebot across the networks people really have: Wi-Fi that roams, 4G, another continent.
 
-Run ``.venv/bin/python bench/wan.py`` (about 13 minutes; ``--quick``: one row of seconds).
+Run ``.venv/bin/python bench/wan.py`` (about 12 minutes; ``--quick``: one row of seconds).
 
 One robot, ``telebot-robot run`` with the simulator (the small map, a fast base: 1.5 m/s,
 3 m/s²; its camera 640 × 480, the default video) in its own process, the product's call
