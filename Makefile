@@ -26,6 +26,8 @@ lint: install
 # on one worker, which starts it once (tests/conftest.py schedules them); the rest load-balance.
 # The quick benchmarks (tests/test_bench_quick.py) run after the rest, one at a time: each
 # starts several processes, and beside the browser tests they starved Chromium's video.
+# The tests marked solo (pyproject.toml) load the whole machine on purpose (CPU burners, a
+# flood); beside them a browser's call went silent for seconds: they run alone, after the rest.
 # A step whose failures are few (at most RERUN_AT_MOST) runs those tests once more, one at a
 # time, and fails if any fails again: on a busy 2-core machine a browser or multi-process
 # test may miss a wait now and then. Both runs' failures are printed.
@@ -35,7 +37,8 @@ RERUN_FAILED = { n=$$($(BIN)/python -c 'import json, pathlib; p = pathlib.Path("
 	test "$$n" -ge 1 -a "$$n" -le $(RERUN_AT_MOST) && $(BIN)/pytest -q -rA --lf --lfnf=none; }
 test: lint install-debian node_modules/.installed
 	npm test
-	$(BIN)/pytest -n 2 --dist loadgroup --ignore=tests/test_bench_quick.py || $(RERUN_FAILED)
+	$(BIN)/pytest -n 2 --dist loadgroup -m "not solo" --ignore=tests/test_bench_quick.py || $(RERUN_FAILED)
+	$(BIN)/pytest -q -m solo --ignore=tests/test_bench_quick.py || $(RERUN_FAILED)
 	$(BIN)/pytest -q tests/test_bench_quick.py || $(RERUN_FAILED)
 
 # The browser client's packages (package-lock.json): again only when the lockfile changed.
