@@ -37,6 +37,7 @@ RERUN_FAILED = { n=$$($(BIN)/python -c 'import json, pathlib; p = pathlib.Path("
 	test "$$n" -ge 1 -a "$$n" -le $(RERUN_AT_MOST) && $(BIN)/pytest -q -rA --lf --lfnf=none; }
 test: lint install-debian node_modules/.installed
 	npm test
+	rm -f .pytest_cache/v/cache/lastfailed  # a failure left by an earlier run is not this run's
 	$(BIN)/pytest -n 2 --dist loadgroup -m "not solo" --ignore=tests/test_bench_quick.py || $(RERUN_FAILED)
 	$(BIN)/pytest -q -m solo --ignore=tests/test_bench_quick.py || $(RERUN_FAILED)
 	$(BIN)/pytest -q tests/test_bench_quick.py || $(RERUN_FAILED)

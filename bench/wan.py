@@ -282,7 +282,7 @@ class Row:
             "never_shown_pct": never * 100,
             "reconnect_p99_ms": pct(self.reconnect, 99),
             "false_trips_h": per_hour(self.trips, self.drive_seconds),
-            "silence_max_ms": worst(self.silence) * 1000 if self.silence else NAN,
+            "silence_max_ms": worst(self.silence) * 1000,
             "release_p99_ms": pct(self.release, 99) - self.delay_ms,
         }
 
