@@ -539,8 +539,12 @@ async def test_closing_the_page_while_driving_stops_the_robot(tmp_path: Path) ->
         await wait_for(lambda: rig.zeroed, timeout=3.0 + SLACK, what="the base stopped")
         assert rig.nav.velocity().linear == 0.0
         await wait_for(lambda: rig.stops(), timeout=3.0 + SLACK, what="the stop in the audit log")
-        # The page stops the robot itself as it goes (pagehide): the first stop is the page's.
-        assert rig.stops()[0] == (USER, "page_hidden")
+        # The page stops the robot itself as it goes (pagehide), and the server stops it when
+        # the page's socket closes: whichever comes first is alice's. (Chromium may tear the
+        # page down before its last message leaves: seen in two full runs of the suite. The
+        # pagehide stop on its own: test_browser_e2e.py and test_web_port.py.)
+        who, how = rig.stops()[0]
+        assert who == USER and how in ("page_hidden", "tab_closed"), rig.stops()
 
 
 @in_module_loop
