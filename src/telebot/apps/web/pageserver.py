@@ -115,8 +115,12 @@ class PageServer:
         request: web.Request, *, heartbeat: float, max_msg_size: int
     ) -> web.WebSocketResponse:
         """Accept a page's websocket: pinged every ``heartbeat`` s (a page silent for twice
-        that is gone), messages up to ``max_msg_size`` bytes."""
-        ws = web.WebSocketResponse(heartbeat=heartbeat, max_msg_size=max_msg_size)
+        that is gone), messages up to ``max_msg_size`` bytes.
+
+        No permessage-deflate (as the gateway's): most of what goes out is video and sound,
+        compressed already, and deflating it took the event loop's time 30 pictures a
+        second for nothing (seen at the top of a busy test worker's stack)."""
+        ws = web.WebSocketResponse(heartbeat=heartbeat, max_msg_size=max_msg_size, compress=False)
         await ws.prepare(request)
         return ws
 
