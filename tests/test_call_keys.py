@@ -3,6 +3,7 @@ call being set up ends up when its first frames hang it up."""
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import json
 import logging
@@ -271,3 +272,39 @@ async def test_the_next_call_is_listened_for_ahead_and_made_on_those_keys(homes:
         assert len(call_ids() - {ahead}) == 1  # the one after that, listened for already
         await user.close()
         assert call_ids() == set()
+
+
+async def test_a_robot_that_comes_online_while_a_user_calls_gets_the_hello_at_once(
+    homes: Homes, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """After its first HELLO a caller says HELLO again as soon as a presence token of the
+    robot appears (the robot started, or the link to it is back after an outage), not only
+    at its next repeat: with the repeats made a minute apart, a robot that starts while the
+    user calls answers within the call's 10 s."""
+    hub = MemoryHub(seed=1)
+    settings = CallSettings(timeout=GENEROUS_TIMEOUT)
+    hellos = 0
+
+    def count(batch: list[object]) -> None:
+        nonlocal hellos
+        hellos += len(batch)
+
+    async with (
+        MemoryTransport(hub, "spy") as spy,
+        MemoryTransport(hub, "user") as user_transport,
+        UserEndpoint(user_transport, homes.user, homes.known, settings=settings) as user,
+    ):
+        spy.subscribe(f"telebot/robot/{ROBOT}/in/{USER}", count)
+        calling = asyncio.create_task(user.call(ROBOT, timeout=10.0))
+        await wait_until(lambda: hellos >= 2)  # repeated every 0.25 s: nobody answers
+        monkeypatch.setattr(call_module, "HELLO_RETRY_INTERVAL", 60.0)
+        await wait_until(lambda: hellos >= 3)  # the next repeat would be a minute away
+        async with (
+            MemoryTransport(hub, "robot") as robot_transport,
+            RobotEndpoint(robot_transport, homes.robot, homes.contacts, settings=settings) as robot,
+        ):
+            call = await calling
+            assert call.active
+            assert [c.id for c in robot.calls] == [call.id]
+            assert hellos == 4  # the one its presence token brought
+            await call.hangup()

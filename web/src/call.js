@@ -151,8 +151,12 @@ export class Endpoint {
     /** @type {Map<string, boolean>} */
     const tokens = new Map();
     const prefix = `${this.ns}/presence/robot/${robot}/`;
+    /** Called when a token of the robot appears (set once the HELLO schedule runs). */
+    let appeared = () => {};
     const watch = link.watch(`${prefix}*`, (/** @type {string} */ key, /** @type {boolean} */ alive) => {
-      if (key.startsWith(prefix)) tokens.set(key.slice(prefix.length), alive);
+      if (!key.startsWith(prefix)) return;
+      tokens.set(key.slice(prefix.length), alive);
+      if (alive) appeared();
     });
     const expected = encodeKey(robotKey);
     /** @type {ReturnType<typeof setTimeout>|undefined} */
@@ -190,6 +194,14 @@ export class Endpoint {
             sent += 1;
           }
           timer = setTimeout(step, Math.max(0, (setup.nextDeadline() - monotonic()) * 1000));
+        };
+        // The robot started, or the link to it is back: its HELLO goes now (§5.7 step 4).
+        appeared = () => {
+          setup.robotAppeared(monotonic());
+          if (!setup.outcome && setup.nextDeadline() <= monotonic()) {
+            clearTimeout(timer);
+            step();
+          }
         };
         step();
       });

@@ -50,6 +50,22 @@ test("HELLO schedule: at once, every 0.25 s, then the connect timeout", () => {
   assert.equal(s.poll(105.5).send, null); // over
 });
 
+test("a robot's token appearing makes the next HELLO due at once, after the first 0.25 s", () => {
+  const s = setup();
+  s.robotAppeared(99); // before any HELLO: nothing changes
+  assert.deepEqual(s.poll(100).send, s.hello);
+  s.robotAppeared(100.1); // the watch's history, during the first 0.25 s: no news
+  assert.equal(s.nextDeadline(), 100 + HELLO_REPEAT);
+  assert.deepEqual(s.poll(100 + HELLO_REPEAT).send, s.hello);
+  s.robotAppeared(100.3); // the link is back: now, not at 100.5
+  assert.equal(s.nextDeadline(), 100.3);
+  assert.deepEqual(s.poll(100.3).send, s.hello);
+  assert.equal(s.nextDeadline(), 100.3 + HELLO_REPEAT);
+  s.fail(new CallError("closing"));
+  s.robotAppeared(101); // over: nothing more is due
+  assert.equal(s.poll(101).send, null);
+});
+
 test("accepted WELCOME: keys match the robot's, p1 carries user and an increasing ts", () => {
   const s = setup();
   const w = welcome(s.hello, { accepted: true, robot: "guiabot", role: "driver" });

@@ -31,16 +31,16 @@ disappears or nothing authentic arrived from it for ``CallSettings.timeout``.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import math
 import os
 import time
+from asyncio import FIRST_COMPLETED
 from collections import Counter
 from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Literal, Self
+from typing import Any, Literal, Self
 
 from telebot.channels.channel import Channel, DatagramTap, ReceivedDatagram
 from telebot.channels.proto.answering import Accept, Answering, Ignore, Reply
@@ -940,16 +940,38 @@ class UserEndpoint(_Endpoint):
             # A robot online under this name with another key cannot read the HELLO and
             # never answers: its presence token (which carries its key) tells at once.
             tokens: dict[str, bool] = {}
+            # A token of the robot's coming alive (the robot started, or the link to it is
+            # back after an outage) sends the next HELLO at once, not up to
+            # HELLO_RETRY_INTERVAL later: a redialled call comes back that much sooner.
+            appeared = asyncio.Event()
             prefix = f"{self.namespace}/presence/robot/{robot}/"
-            watch = self.transport.watch_presence(
-                f"{prefix}*",
-                lambda key, alive: tokens.__setitem__(key.removeprefix(prefix), alive),
-            )
+
+            def on_presence(key: str, alive: bool) -> None:
+                tokens[key.removeprefix(prefix)] = alive
+                if alive:
+                    appeared.set()
+
+            watch = self.transport.watch_presence(f"{prefix}*", on_presence)
+            hellos = 0
             async with asyncio.timeout(timeout):
                 while True:
                     publisher.put(self._pending_hello[call_id])
-                    with contextlib.suppress(TimeoutError):
-                        call = await asyncio.wait_for(asyncio.shield(future), HELLO_RETRY_INTERVAL)
+                    hellos += 1
+                    appeared.clear()
+                    # While the first HELLO waits, the watch reports the tokens already
+                    # there: no news, so only later appearances cut a wait short.
+                    waiters: list[asyncio.Future[Any]] = [future]
+                    if hellos > 1:
+                        waiters.append(asyncio.ensure_future(appeared.wait()))
+                    try:
+                        await asyncio.wait(
+                            waiters, timeout=HELLO_RETRY_INTERVAL, return_when=FIRST_COMPLETED
+                        )
+                    finally:
+                        for waiter in waiters[1:]:
+                            waiter.cancel()
+                    if future.done():
+                        call = future.result()  # or the robot's refusal, raised
                         self._listen_ahead(robot)  # while the link is good
                         return call
                     _check_robot_key(robot, robot_key, tokens)

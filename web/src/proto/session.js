@@ -179,6 +179,8 @@ export class CallSetup {
     this.hello = built.hello;
     this.handshake = built.handshake;
     this.nextSend = o.now;
+    /** When the first HELLO went out (null: not yet). */
+    this.firstSent = null;
   }
 
   /** The suite of the HELLO being repeated. */
@@ -200,9 +202,23 @@ export class CallSetup {
     }
     if (now >= this.nextSend) {
       this.nextSend = now + HELLO_REPEAT;
+      if (this.firstSent === null) this.firstSent = now;
       return { send: this.hello, expired: null };
     }
     return { send: null, expired: null };
+  }
+
+  /**
+   * A presence token of the robot appeared (it started, or the link to it is back after
+   * an outage): the next HELLO is due at once, not at the end of its 0.25 s (§5.7 step 4).
+   * Tokens reported during the first 0.25 s are the watch's history of those already
+   * there: no news.
+   * @param {number} now
+   */
+  robotAppeared(now) {
+    if (!this.outcome && this.firstSent !== null && now >= this.firstSent + HELLO_REPEAT) {
+      this.nextSend = Math.min(this.nextSend, now);
+    }
   }
 
   /** When `poll` next has something to do. */
