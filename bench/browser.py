@@ -239,12 +239,12 @@ async def start_daemon(base: Path) -> tuple[Daemon, int]:
     return daemon, port
 
 
-def invite_link(daemon: Daemon, port: int) -> str:
-    """``telebot-robot invite nurse --role driver``: the link it prints."""
+def invite_link(daemon: Daemon, port: int, name: str = NURSE) -> str:
+    """``telebot-robot invite NAME --role driver``: the link it prints."""
     out = cli(
         "robot_cli",
         "invite",
-        NURSE,
+        name,
         "--role",
         "driver",
         "--url",
@@ -543,31 +543,36 @@ async def setup_error(page: Any) -> None:
         raise RuntimeError(f"the start page says: {error}")
 
 
+async def enrol(
+    page: Any, daemon: Daemon, port: int, name: str = NURSE, timeout: float = 30.0
+) -> None:
+    """A nurse's first visit: ``telebot-robot invite NAME`` for the gateway at
+    ``https://127.0.0.1:PORT/``, the link opened, a key made in the page, the invite
+    accepted (the gateway redeems it) and the robot pinned."""
+    link = await asyncio.to_thread(invite_link, daemon, port, name)
+    await page.goto(link, timeout=timeout * 1000)
+    await page.wait_for_selector("#create-key", state="visible", timeout=timeout * 1000)
+    await page.fill("#new-name", name)
+    await page.click("#create-key")
+    await page.wait_for_function(
+        "() => !document.getElementById('accept-invite').disabled", timeout=timeout * 1000
+    )
+    await page.click("#accept-invite")
+    await page.wait_for_function(
+        "() => window.telebotSetup && (window.telebotSetup.error"
+        " || window.telebotSetup.robots.some((r) => r.name === 'guiabot'"
+        " && window.telebotSetup.invite === null))",
+        timeout=timeout * 1000,
+    )
+    await setup_error(page)
+
+
 async def robot_gateway_way(
     browser: Any, daemon: Daemon, gateway_port: int, n: dict[str, Any], way: Way
 ) -> None:
     """The browser client through the daemon's gateway, the key registered by an invite."""
     async with gateway_page(browser, way) as page:
-
-        async def setup() -> None:
-            link = await asyncio.to_thread(invite_link, daemon, gateway_port)
-            await page.goto(link)
-            await page.wait_for_selector("#create-key", state="visible", timeout=30_000)
-            await page.fill("#new-name", NURSE)
-            await page.click("#create-key")
-            await page.wait_for_function(
-                "() => !document.getElementById('accept-invite').disabled", timeout=30_000
-            )
-            await page.click("#accept-invite")
-            await page.wait_for_function(
-                "() => window.telebotSetup && (window.telebotSetup.error"
-                " || window.telebotSetup.robots.some((r) => r.name === 'guiabot'"
-                " && window.telebotSetup.invite === null))",
-                timeout=30_000,
-            )
-            await setup_error(page)
-
-        if not await way.step("setup", setup):
+        if not await way.step("setup", lambda: enrol(page, daemon, gateway_port)):
             return
         await way.step("handshakes", lambda: handshakes(page, n["calls"], way))
         url = f"https://127.0.0.1:{gateway_port}/call?robot={ROBOT}"

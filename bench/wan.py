@@ -1,6 +1,6 @@
 """telebot across the networks people really have: Wi-Fi that roams, 4G, another continent.
 
-Run ``.venv/bin/python bench/wan.py`` (about 12 minutes; ``--quick``: one row of seconds).
+Run ``.venv/bin/python bench/wan.py`` (about 15 minutes; ``--quick``: one row of seconds).
 
 One robot, ``telebot-robot run`` with the simulator (the small map, a fast base: 1.5 m/s,
 3 m/s²; its camera 640 × 480, the default video) in its own process, the product's call
@@ -18,7 +18,14 @@ outages (seeded: every run loses the same packets). Rows:
   CA; telebot's lanes go as QUIC datagrams, zenoh's mixed reliability);
 - ``4g`` on ``tcp/`` (zenoh's default link on a LAN; the proxy in TCP mode: a lost segment
   is retransmitted after TCP's timeout and holds up everything behind it) and ``udp/``
-  (zenoh's datagram link: a lost datagram is gone; no TLS).
+  (zenoh's datagram link: a lost datagram is gone; no TLS);
+- ``wifi`` and ``4g`` in a **browser** (``PROFILE/browser``): the nurse's or the relative's
+  way, a headless Chromium (bench/browser.py's) on the robot's own gateway (``[gateway]``,
+  HTTPS and its WebSocket: TCP), the proxy in TCP mode in front of the gateway; the page's
+  key made by an invite, as a nurse would. Measured: key press → robot at rest (a key that
+  is not a drive key, pressed while the robot drives to a goal; bench/browser.py's
+  ``stops``) and glass to glass in the page (the robot's capture time to the page's
+  decoding); the other columns are the Python client's and print ``-``.
 
 Figures of each row (times on this machine's ``CLOCK_MONOTONIC``, shared by both processes;
 "minus one-way delay": the profile's mean one-way delay is taken off, so a figure is what
@@ -89,6 +96,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import browser  # bench/browser.py: Chromium, the page's enrolment, its stops
 from safety import MIDDLE_X, arm, start_motion  # bench/safety.py: the stop path's helpers
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
@@ -101,7 +109,12 @@ from telebot.router import certs
 from telebot.services.client import RobotClient, connect
 from telebot.testing.net import free_port
 
-LINKS = ("tcp", "udp", "quic")
+#: The browser's way to the robot: Chromium (the page's own client, web/src) over HTTPS and a
+#: WebSocket to the robot's gateway: TCP underneath (the proxy in TCP mode).
+BROWSER = "browser"
+LINKS = ("tcp", "udp", "quic", BROWSER)
+#: What a browser row measures (its other columns print ``-``).
+BROWSER_FIGURES = ("stop_p99_ms", "glass_p50_ms", "glass_p99_ms")
 #: The link across the internet (``telebot-router``'s): every profile is measured on it.
 DEFAULT_LINK = "quic"
 BASELINE = "lan"
@@ -114,6 +127,8 @@ ROWS: tuple[tuple[str, str], ...] = (
     ("bad", DEFAULT_LINK),
     ("4g", "tcp"),
     ("4g", "udp"),
+    ("wifi", BROWSER),
+    ("4g", BROWSER),
 )
 #: The rows of a quick run: one profile (every phase; the baseline's row would double it).
 QUICK_ROWS: tuple[tuple[str, str], ...] = (("4g", DEFAULT_LINK),)
@@ -345,7 +360,14 @@ class WanDaemon(Daemon):
             stale_video=SafetySettings().stale_video,
         )
         self.link = link
+        #: The link the robot's zenoh listens on (a browser reaches the gateway instead).
+        self.zenoh_link = "tcp" if link == BROWSER else link
         self.ca: Path | None = None
+        self.gateway_port: int | None = None
+        if link == BROWSER:
+            self.gateway_port = free_port()
+            with self.robot_config.open("a") as config:
+                config.write(f'[gateway]\nlisten = "127.0.0.1"\nport = {self.gateway_port}\n')
         if link == "quic":
             # A CA and a certificate for 127.0.0.1, made as ``telebot-router init`` does.
             tls = base / "tls"
@@ -359,12 +381,12 @@ class WanDaemon(Daemon):
                 )
 
     def start(self, ready_timeout: float = 60.0, *, port: int | None = None) -> None:
-        free = free_port() if self.link == "tcp" else free_port("udp")
+        free = free_port() if self.zenoh_link == "tcp" else free_port("udp")
         super().start(ready_timeout, port=port if port is not None else free)
 
     @property
     def endpoint(self) -> str:
-        return f"{self.link}/127.0.0.1:{self.port}"
+        return f"{self.zenoh_link}/127.0.0.1:{self.port}"
 
 
 @contextlib.contextmanager
@@ -675,8 +697,11 @@ async def measure_row(
     daemon: WanDaemon, profile: Profile, row: Row, amounts: Amounts, drive: bool
 ) -> None:
     """Every phase of one row through proxies with ``profile``."""
-    audit = AuditTail(daemon.robot_home / "audit.jsonl")
     watch_s = amounts.trip_watch_s if row.profile in TRIP_PROFILES else amounts.watch_s
+    if row.link == BROWSER:
+        await measure_browser_row(daemon, profile, row, amounts, watch_s)
+        return
+    audit = AuditTail(daemon.robot_home / "audit.jsonl")
     with proxy_to(daemon, profile, SEED) as proxy:
         config = user_config(daemon, proxy)
         await phase(
@@ -715,6 +740,49 @@ async def calling(
             await client.stop()
 
 
+async def measure_browser_row(
+    daemon: WanDaemon, profile: Profile, row: Row, amounts: Amounts, watch_s: float
+) -> None:
+    """The browser's row: a nurse's page (bench/browser.py: a key made in the page by an
+    invite) through a TCP proxy with ``profile`` in front of the robot's gateway; key
+    presses that stop the driving robot (``browser.stops``), then the video watched."""
+    assert daemon.gateway_port is not None
+    target = f"tcp/127.0.0.1:{daemon.gateway_port}"
+    name = "nurse-" + row.profile  # one key per row: each row's page makes its own
+    with (
+        NetemProxy(profile, "tcp/127.0.0.1:0", target, SEED) as proxy,
+        tempfile.TemporaryDirectory(prefix="telebot-bench-wan-page-") as tmp,
+    ):
+        port = int(proxy.endpoint.rpartition(":")[2])
+        way = browser.Way(row.name)  # collects the page's console and failed responses
+        async with (
+            browser.chromium(Path(tmp)) as chromium,
+            browser.gateway_page(chromium, way) as page,
+        ):
+            await phase(row, "setup", browser.enrol(page, daemon, port, name, timeout=60))
+            if row.failed:
+                row.notes += way.console[-3:]
+                return
+            url = f"https://127.0.0.1:{port}/call?robot={daemon.robot}"
+            await phase(row, "call", page.goto(url, timeout=60_000))
+            stops = browser.stops(page, daemon.robot_home, name, amounts.stops, row.stop)
+            await phase(row, "stops", stops)
+            await phase(row, "watch", page_glass(page, watch_s, row))
+
+
+async def page_glass(page: Any, seconds: float, row: Row) -> None:
+    """Glass to glass in the page over ``seconds``: the robot's capture time of each picture
+    to its decoding in the page (``telebotMedia.stats.glassMs``, both this machine's wall
+    clock)."""
+    await page.wait_for_function(
+        "() => window.telebotMedia.stats.videoDecoded >= 10", timeout=60_000
+    )
+    await page.evaluate("() => { window.telebotMedia.stats.glassMs.length = 0; }")
+    await asyncio.sleep(seconds)
+    glass = await page.evaluate("() => window.telebotMedia.stats.glassMs")
+    row.glass += [float(ms) for ms in glass]
+
+
 async def late_frames(daemon: WanDaemon, config: AppConfig, row: Row, seconds: float) -> None:
     """The video on a new call at 10 % loss: frames shown, late, never shown."""
     async with call_robot(daemon, config, row) as client, Watcher(client) as watcher:
@@ -737,6 +805,29 @@ def fmt(value: float, digits: int = 1) -> str:
     return "nan" if math.isnan(value) else f"{value:.{digits}f}"
 
 
+def row_line(row: Row, amounts: Amounts) -> str:
+    """What a row measured, in counts, with its notes and failed phases."""
+    trips = (
+        f"{row.trips} trips in {row.drive_seconds:.0f} s of driving, " if row.drive_seconds else ""
+    )
+    if row.link == BROWSER:
+        counted = f"{len(row.stop)} key presses, {len(row.glass)} frames watched in the page"
+    else:
+        counted = (
+            f"{len(row.stop)} stops, {len(row.release)} releases, "
+            f"{len(row.glass)} frames watched, {len(row.late)} at {LATE_LOSS:.0%} loss "
+            f"({row.late_lost} of {row.late_expected} never shown, {row.late_drops} calls "
+            "dropped), "
+            f"{len(row.reconnect)} outages of {amounts.outage_s:g} s; {trips}{row.drops} calls "
+            f"dropped while driving, longest silence {fmt(row.figures()['silence_max_ms'], 0)} ms"
+        )
+    return (
+        f"{row.name} ({row.seconds:.0f} s): {counted}"
+        + "".join(f"; {note}" for note in row.notes)
+        + "".join(f"; {name} FAILED: {why}" for name, why in row.failed.items())
+    )
+
+
 def report(rows: list[Row], drive: bool, amounts: Amounts, seconds: float) -> list[str]:
     base = next((r.figures() for r in rows if r.profile == BASELINE), None)
     columns = (
@@ -750,7 +841,7 @@ def report(rows: list[Row], drive: bool, amounts: Amounts, seconds: float) -> li
         ("silence max", "silence_max_ms"),
         ("release p99", "release_p99_ms"),
     )
-    head = f"{'row':>22} | {'delay':>5} | " + " | ".join(f"{c:>11}" for c, _ in columns)
+    head = f"{'row':>24} | {'delay':>5} | " + " | ".join(f"{c:>11}" for c, _ in columns)
     lines = [
         "",
         "Figures in ms minus the profile's mean one-way delay (stop, glass, release); late % "
@@ -767,6 +858,9 @@ def report(rows: list[Row], drive: bool, amounts: Amounts, seconds: float) -> li
         cells = []
         for _, key in columns:
             value = figures[key]
+            if row.link == BROWSER and key not in BROWSER_FIGURES:
+                cells.append(f"{'-':>11}")
+                continue
             if key == "release_p99_ms" and not drive:
                 cells.append(f"{'n/a':>11}")
                 continue
@@ -776,24 +870,10 @@ def report(rows: list[Row], drive: bool, amounts: Amounts, seconds: float) -> li
                 r = ratio(value, base[key])
                 text += f" ({r})" if r != "-" else ""
             cells.append(f"{text:>11}")
-        lines.append(f"{row.name:>22} | {row.delay_ms:>5.0f} | " + " | ".join(cells))
+        lines.append(f"{row.name:>24} | {row.delay_ms:>5.0f} | " + " | ".join(cells))
     lines.append("")
     for row in rows:
-        trips = (
-            f"{row.trips} trips in {row.drive_seconds:.0f} s of driving, "
-            if row.drive_seconds
-            else ""
-        )
-        lines.append(
-            f"{row.name} ({row.seconds:.0f} s): {len(row.stop)} stops, {len(row.release)} releases, "
-            f"{len(row.glass)} frames watched, {len(row.late)} at {LATE_LOSS:.0%} loss "
-            f"({row.late_lost} of {row.late_expected} never shown, {row.late_drops} calls "
-            "dropped), "
-            f"{len(row.reconnect)} outages of {amounts.outage_s:g} s; {trips}{row.drops} calls dropped "
-            f"while driving, longest silence {fmt(row.figures()['silence_max_ms'], 0)} ms"
-            + "".join(f"; {note}" for note in row.notes)
-            + "".join(f"; {name} FAILED: {why}" for name, why in row.failed.items())
-        )
+        lines.append(row_line(row, amounts))
     if not drive:
         lines.append("release: n/a (needs drive): this client has no RobotClient.drive yet")
     fields = result_fields(rows, drive)

@@ -100,9 +100,23 @@ def test_the_result_line_holds_the_worst_profile_on_the_default_link(wan: Module
 
 def test_rows_and_the_lossy_profile(wan: ModuleType) -> None:
     assert wan.parse_row("4g/quic") == ("4g", "quic") and wan.parse_row("wifi") == ("wifi", "quic")
+    assert wan.parse_row("4g/browser") == ("4g", "browser")
     with pytest.raises(ValueError, match="unknown profile 'moon'"):
         wan.parse_row("moon/tcp")
     with pytest.raises(ValueError, match="unknown link 'sctp'"):
         wan.parse_row("4g/sctp")
     lossy = wan.with_loss(PROFILES["4g"], 0.10)
     assert lossy.mean_loss == pytest.approx(0.10) and lossy.delay == PROFILES["4g"].delay
+
+
+def test_a_browser_row_shows_what_the_page_measured_and_dashes_elsewhere(wan: ModuleType) -> None:
+    row = wan.Row("4g", "browser", 40.0, stop=[60.0, 250.0], glass=[70.0, 90.0], seconds=1.0)
+    lines = wan.report([row], drive=True, amounts=wan.FULL, seconds=1.0)
+    cells = [
+        c.strip() for c in next(ln for ln in lines if ln.lstrip().startswith("4g/b")).split("|")
+    ]
+    assert cells[:5] == ["4g/browser", "40", "210.0", "30.0", "50.0"]  # stop p99, glass p50/p99
+    assert set(cells[5:]) == {"-"}  # late, unshown, reconnect, trips, silence, release
+    assert "4g/browser (1 s): 2 key presses, 2 frames watched in the page" in lines
+    # A browser row compares ways to the robot: the RESULT stays the default link's.
+    assert wan.result_rows([row, wan.Row("4g", "quic")])[0].link == "quic"

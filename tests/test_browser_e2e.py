@@ -374,6 +374,13 @@ async def test_a_new_phone_makes_a_key_redeems_an_invite_and_calls(e2e: E2E) -> 
         shown,
     )
     assert spread > 40, spread
+    # The call runs on two websockets to the gateway: stops and heartbeats apart from the
+    # pictures (web/src/gateway-link.js SplitLink), so a lost TCP segment of the video holds
+    # no stop up (which lane goes where: web/test/gateway-link.test.js).
+    open_sockets = await page.evaluate(
+        "() => window.testNetwork.sockets.filter((s) => s.readyState === WebSocket.OPEN).length"
+    )
+    assert open_sockets == 2, open_sockets
     ARTIFACTS.mkdir(exist_ok=True)
     await page.screenshot(path=str(ARTIFACTS / "browser_e2e_call.png"))
 

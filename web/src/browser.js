@@ -21,7 +21,7 @@ import { RequestFailed } from "./services/services.js";
 import { STOP_HOWS, sayText } from "./services/messages.js";
 import { decodeMapPng, pngSize } from "./services/map.js";
 import { CODEC_IDS, CODEC_NAMES } from "./services/video.js";
-import { GatewayError, connectGateway } from "./gateway-link.js";
+import { GatewayError, SplitLink, connectGateway, connectSplit } from "./gateway-link.js";
 import { pageApi } from "./page-entry.js";
 
 export const telebot = {
@@ -43,8 +43,12 @@ export const telebot = {
   CODEC_NAMES,
   GatewayError,
   connectGateway,
+  connectSplit,
+  SplitLink,
   // The pages served by a gateway: the start page (gateway.html) and the robot page's
   // port (static/port.js), each through an admitted link to the gateway beside the page.
-  ...pageApi({ Endpoint, RobotSession, openLink: (a) => connectGateway(a.url, a) }),
+  // Each page's link is split: control on one websocket, pictures and sound on another
+  // (gateway-link.js's SplitLink says why).
+  ...pageApi({ Endpoint, RobotSession, openLink: (a) => connectSplit(a.url, a) }),
 };
 /** @type {any} */ (globalThis).telebot = telebot;

@@ -330,3 +330,95 @@ export class GatewayLink {
     this.ws.close(1000);
   }
 }
+
+/**
+ * Two admitted links to one gateway used as one link (the same API as {@link GatewayLink}):
+ * the CONTROL lane (HELLOs, heartbeats, stops; the call's `…/ctl` keys, the inbox, tokens
+ * and watches) on one websocket, DATA and BULK (the call's `…/data` keys: pose, pictures,
+ * sound, the user's camera) on the other. A websocket is one TCP stream, delivered in
+ * order: on a lossy network one lost segment of a picture holds up every byte behind it
+ * for a retransmission timeout (at least 0.2 s), a STOP and the heartbeats included. Split,
+ * a picture's loss holds up only pictures (bench/wan.py's `PROFILE/browser` rows).
+ * Closed as soon as either is (the other is closed then too): `onclose` says why, once.
+ */
+export class SplitLink {
+  /** @param {GatewayLink} control @param {GatewayLink} bulk */
+  constructor(control, bulk) {
+    this.control = control;
+    this.bulk = bulk;
+    this.name = control.name;
+    this.admitted = control.admitted;
+    /** @type {(info: {code: string, text: string, message: string}) => void} */
+    this.onclose = () => {};
+    /** @type {(message: string) => void} non-fatal errors either gateway link reported */
+    this.onerror = () => {};
+    let told = false;
+    for (const [link, other] of [[control, bulk], [bulk, control]]) {
+      link.onclose = (info) => {
+        other.close();
+        if (!told) {
+          told = true;
+          this.onclose(info);
+        }
+      };
+      link.onerror = (message) => this.onerror(message);
+    }
+  }
+
+  /** Whether either websocket is closed (the link is of no use then). */
+  get closed() {
+    return this.control.closed || this.bulk.closed;
+  }
+
+  /** Both links' counters, added up. */
+  get stats() {
+    /** @type {Record<string, number>} */
+    const sum = {};
+    for (const link of [this.control, this.bulk]) {
+      for (const [name, value] of Object.entries(link.stats)) sum[name] = (sum[name] ?? 0) + value;
+    }
+    return sum;
+  }
+
+  /** See {@link GatewayLink#subscribe}: a call's `…/data` keys on the bulk link. */
+  subscribe(/** @type {string} */ keyExpr, /** @type {(key: string, payload: Uint8Array) => void} */ cb) {
+    return (keyExpr.endsWith("/data") ? this.bulk : this.control).subscribe(keyExpr, cb);
+  }
+
+  /** See {@link GatewayLink#publish}: CONTROL on the control link, DATA and BULK on the other. */
+  publish(/** @type {string} */ key, /** @type {Uint8Array} */ payload, /** @type {"control"|"data"|"bulk"} */ lane = "data") {
+    return (lane === "control" ? this.control : this.bulk).publish(key, payload, lane);
+  }
+
+  /** See {@link GatewayLink#declareToken}. */
+  declareToken(/** @type {string} */ key) {
+    return this.control.declareToken(key);
+  }
+
+  /** See {@link GatewayLink#watch}. */
+  watch(/** @type {string} */ keyExpr, /** @type {(key: string, alive: boolean) => void} */ cb) {
+    return this.control.watch(keyExpr, cb);
+  }
+
+  /** Close both websockets. */
+  close() {
+    this.control.close();
+    this.bulk.close();
+  }
+}
+
+/**
+ * {@link connectGateway} twice, as one {@link SplitLink}: the control link first (it
+ * redeems `options.invite`, if given), then the bulk link (admitted with the same key).
+ * @param {string} url @param {Parameters<typeof connectGateway>[1]} options
+ * @returns {Promise<SplitLink>} rejects with the GatewayError of the link that failed
+ */
+export async function connectSplit(url, options) {
+  const control = await connectGateway(url, options);
+  try {
+    return new SplitLink(control, await connectGateway(url, { ...options, invite: undefined }));
+  } catch (error) {
+    control.close();
+    throw error;
+  }
+}

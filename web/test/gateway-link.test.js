@@ -4,7 +4,7 @@
 import { test } from "node:test";
 import assert from "node:assert/strict";
 import { x25519 } from "@noble/curves/ed25519";
-import { admissionProof, connectGateway, decodeKey, encodeKey, GatewayError, GatewayLink } from "../src/gateway-link.js";
+import { admissionProof, connectGateway, decodeKey, encodeKey, GatewayError, GatewayLink, SplitLink } from "../src/gateway-link.js";
 
 const range = (from) => Uint8Array.from({ length: 32 }, (_, i) => from + i);
 
@@ -110,4 +110,44 @@ test("the default bound is 256 KB, and a closed link drops every lane as before"
   link.close();
   assert.equal(link.publish("telebot/robot/r/in/alice", new Uint8Array(1), "control"), false);
   assert.deepEqual([link.stats.sent, link.stats.congested, link.stats.dropped], [1, 1, 1]);
+});
+
+test("a split link: control, the inbox, tokens and watches on one websocket, a call's data keys on the other", () => {
+  const control = { sent: [], close() { this.closed = true; } };
+  const bulk = { sent: [], close() { this.closed = true; } };
+  for (const ws of [control, bulk]) ws.send = (m) => ws.sent.push(m);
+  const links = [new GatewayLink(control, "alice", { op: "admitted" }), new GatewayLink(bulk, "alice", { op: "admitted" })];
+  const link = new SplitLink(...links);
+  const call = "telebot/user/alice/0011223344556677/call/guiabot/0123456789abcdef";
+  link.subscribe(`${call}/ctl`, () => {});
+  link.subscribe(`${call}/data`, () => {});
+  link.subscribe("telebot/user/alice/0011223344556677/in/*", () => {});
+  link.declareToken("telebot/presence/user/alice/0011223344556677");
+  link.watch("telebot/presence/robot/guiabot/*", () => {});
+  const ops = (ws) => ws.sent.filter((m) => typeof m === "string").map((m) => { const j = JSON.parse(m); return `${j.op} ${j.key}`; });
+  assert.deepEqual(ops(control), [
+    `sub ${call}/ctl`,
+    "sub telebot/user/alice/0011223344556677/in/*",
+    "token telebot/presence/user/alice/0011223344556677",
+    "watch telebot/presence/robot/guiabot/*",
+  ]);
+  assert.deepEqual(ops(bulk), [`sub ${call}/data`]);
+  const to = "telebot/robot/guiabot/call/alice/0123456789abcdef";
+  const payload = new Uint8Array(10);
+  assert.equal(link.publish(`${to}/ctl`, payload, "control"), true);
+  assert.equal(link.publish(`${to}/data`, payload, "data"), true);
+  assert.equal(link.publish(`${to}/data`, payload, "bulk"), true);
+  assert.deepEqual(lanesSent(control), [0]);
+  assert.deepEqual(lanesSent(bulk), [1, 2]);
+  assert.equal(link.stats.sent, 3);
+  // Either websocket closing closes the other and the link, and says why once.
+  const told = [];
+  link.onclose = (info) => told.push(info.code);
+  assert.equal(link.closed, false);
+  bulk.onclose({ code: 1006, reason: "" });
+  assert.equal(control.closed, true);
+  control.onclose({ code: 1000, reason: "" });
+  assert.deepEqual(told, ["1006"]);
+  assert.equal(link.closed, true);
+  assert.equal(link.publish(`${to}/ctl`, payload, "control"), false); // dropped, as a closed link does
 });

@@ -295,7 +295,8 @@ class Limits:
     max_connections: int = 32
     max_pending_per_address: int = 4
     #: Admitted websockets per name; beyond it the admission is refused (``too_many``).
-    max_per_name: int = 4
+    #: A page uses two (web/src/gateway-link.js ``SplitLink``): four pages.
+    max_per_name: int = 8
     #: Seconds a client has to complete its TLS handshake (the listener's).
     tls_handshake_timeout: float = 5.0
 
