@@ -759,15 +759,16 @@ async def measure_browser_row(
             browser.chromium(Path(tmp)) as chromium,
             browser.gateway_page(chromium, way) as page,
         ):
-            await phase(row, "setup", browser.enrol(page, daemon, port, name, timeout=60))
-            if row.failed:
-                row.notes += way.console[-3:]
-                return
             url = f"https://127.0.0.1:{port}/call?robot={daemon.robot}"
-            await phase(row, "call", page.goto(url, timeout=60_000))
-            stops = browser.stops(page, daemon.robot_home, name, amounts.stops, row.stop)
-            await phase(row, "stops", stops)
-            await phase(row, "watch", page_glass(page, watch_s, row))
+            await phase(row, "setup", browser.enrol(page, daemon, port, name, timeout=60))
+            if not row.failed:
+                await phase(row, "call", page.goto(url, timeout=60_000))
+            if not row.failed:
+                stops = browser.stops(page, daemon.robot_home, name, amounts.stops, row.stop)
+                await phase(row, "stops", stops)
+                await phase(row, "watch", page_glass(page, watch_s, row))
+            if row.failed:  # what the page said may tell why
+                row.notes += way.console[-3:]
 
 
 async def page_glass(page: Any, seconds: float, row: Row) -> None:

@@ -47,8 +47,8 @@ export const telebot = {
   SplitLink,
   // The pages served by a gateway: the start page (gateway.html) and the robot page's
   // port (static/port.js), each through an admitted link to the gateway beside the page.
-  // Each page's link is split: control on one websocket, pictures and sound on another
-  // (gateway-link.js's SplitLink says why).
-  ...pageApi({ Endpoint, RobotSession, openLink: (a) => connectSplit(a.url, a) }),
+  // A call's link is split: control on one websocket, pictures and sound on another
+  // (gateway-link.js's SplitLink says why); an invite's redemption needs only one.
+  ...pageApi({ Endpoint, RobotSession, openLink: (a) => (a.invite ? connectGateway(a.url, a) : connectSplit(a.url, a)) }),
 };
 /** @type {any} */ (globalThis).telebot = telebot;

@@ -363,6 +363,8 @@ export class SplitLink {
       };
       link.onerror = (message) => this.onerror(message);
     }
+    // One closed before it was handed over (while the other was admitted): no use alone.
+    if (this.closed) this.close();
   }
 
   /** Whether either websocket is closed (the link is of no use then). */
@@ -408,17 +410,28 @@ export class SplitLink {
 }
 
 /**
- * {@link connectGateway} twice, as one {@link SplitLink}: the control link first (it
- * redeems `options.invite`, if given), then the bulk link (admitted with the same key).
+ * {@link connectGateway} twice, as one {@link SplitLink}, both admitted with the same key:
+ * at once, or with `options.invite` the second after the first redeemed it.
  * @param {string} url @param {Parameters<typeof connectGateway>[1]} options
- * @returns {Promise<SplitLink>} rejects with the GatewayError of the link that failed
+ * @returns {Promise<SplitLink>} rejects with the GatewayError of a link that failed (the
+ *   other one is closed)
  */
 export async function connectSplit(url, options) {
-  const control = await connectGateway(url, options);
-  try {
-    return new SplitLink(control, await connectGateway(url, { ...options, invite: undefined }));
-  } catch (error) {
-    control.close();
-    throw error;
+  if (options.invite) {
+    const control = await connectGateway(url, options);
+    try {
+      return new SplitLink(control, await connectGateway(url, { ...options, invite: undefined }));
+    } catch (error) {
+      control.close();
+      throw error;
+    }
   }
+  const both = await Promise.allSettled([connectGateway(url, options), connectGateway(url, options)]);
+  const failed = both.find((r) => r.status === "rejected");
+  if (failed) {
+    for (const r of both) if (r.status === "fulfilled") r.value.close();
+    throw failed.reason;
+  }
+  const [control, bulk] = both.map((r) => /** @type {PromiseFulfilledResult<GatewayLink>} */ (r).value);
+  return new SplitLink(control, bulk);
 }

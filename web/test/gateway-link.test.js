@@ -151,3 +151,12 @@ test("a split link: control, the inbox, tokens and watches on one websocket, a c
   assert.equal(link.closed, true);
   assert.equal(link.publish(`${to}/ctl`, payload, "control"), false); // dropped, as a closed link does
 });
+
+test("a split link made of a websocket that closed meanwhile closes the other at once", () => {
+  const sockets = [0, 1].map(() => ({ sent: [], send(m) { this.sent.push(m); }, close() { this.closed = true; } }));
+  const [control, bulk] = sockets.map((ws) => new GatewayLink(ws, "alice", { op: "admitted" }));
+  sockets[0].onclose({ code: 1006, reason: "" }); // the first died while the second was admitted
+  const link = new SplitLink(control, bulk);
+  assert.equal(link.closed, true);
+  assert.equal(sockets[1].closed, true);
+});
