@@ -17,7 +17,7 @@ from conftest import wait_until
 from telebot.channels.transports.base import Sample
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.errors import ConfigError
-from telebot.netem import PROFILES, Burst, LinkModel, Outages, Profile, profile
+from telebot.netem import PROFILES, Burst, InOrder, LinkModel, Outages, Profile, profile
 
 
 def quiet(name: str, **changes: object) -> Profile:
@@ -146,6 +146,28 @@ def test_a_lost_stream_chunk_arrives_after_a_retransmission_and_holds_up_the_res
     assert arrivals[first] - sent[first] == pytest.approx(0.16 + link.rto)  # type: ignore[operator]
     assert arrivals[first + 1] == arrivals[first]
     assert link.rto == pytest.approx(0.32)
+
+
+def test_streams_on_one_link_share_its_queue_but_each_keeps_its_own_order() -> None:
+    # 1 Mbit/s, 50 ms one way: a 12,500-byte chunk takes 0.1 s to leave.
+    link = Profile("cap", rate_up=1e6, queue=1.0, delay=0.05)
+    model = LinkModel(link, direction="up", ordered=True)
+    picture, keys = InOrder(), InOrder()
+    assert model.transmit(12_500, 0.0, picture) == pytest.approx(0.15)
+    # A key press sent just after waits behind the picture in the queue (one dongle)...
+    assert model.transmit(100, 0.001, keys) == pytest.approx(0.1008 + 0.05)
+    assert keys.last_arrival == pytest.approx(0.1508)
+    assert picture.last_arrival == pytest.approx(0.15)
+    # ...but not behind a retransmission of the picture's stream: each stream its own order.
+    lossy = LinkModel(quiet("intercontinental", jitter=0.0), seed=0, ordered=True)
+    first, second = InOrder(), InOrder()
+    sent = 0.0
+    while (arrival := lossy.transmit(100, sent, first)) == pytest.approx(sent + 0.16):
+        sent += 0.01  # until a chunk of the first stream is lost and resent one RTO later
+    assert arrival == pytest.approx(sent + 0.16 + lossy.profile.rto)
+    assert lossy.transmit(100, sent + 0.001, first) == arrival  # held up behind it
+    # The other stream is not: its chunk sent at the same time arrives one delay later.
+    assert lossy.transmit(100, sent + 0.001, second) == pytest.approx(sent + 0.161)
 
 
 def test_the_outage_schedule_cuts_both_directions_for_its_duration_every_period() -> None:

@@ -230,6 +230,26 @@ async def test_a_tcp_bandwidth_cap_paces_the_stream() -> None:
             writer.close()
 
 
+async def test_tcp_connections_share_the_link_s_bandwidth() -> None:
+    # Two connections through one 4 Mbit/s uplink: 2 x 1.6 Mbit take 0.8 s at least (each
+    # with a cap of its own, both would be through in 0.4 s).
+    capped = Profile("capped", rate_up=4e6, queue=0.05)
+    async with tcp_echo() as port:
+        with NetemProxy(capped, "tcp/127.0.0.1:0", f"tcp/127.0.0.1:{port}") as proxy:
+            pairs = [await asyncio.open_connection("127.0.0.1", port_of(proxy)) for _ in "ab"]
+            loop = asyncio.get_running_loop()
+            start = loop.time()
+            for _, writer in pairs:
+                writer.write(bytes(200_000))
+            reads = (reader.readexactly(200_000) for reader, _ in pairs)
+            echoed = await asyncio.wait_for(asyncio.gather(*reads), 30 + SLACK)
+            elapsed = loop.time() - start
+            for _, writer in pairs:
+                writer.close()
+    assert [len(e) for e in echoed] == [200_000, 200_000]
+    assert elapsed >= 0.79
+
+
 async def test_a_short_tcp_outage_delays_the_stream_and_a_long_one_cuts_it() -> None:
     async with tcp_echo() as port:
         with NetemProxy("lan", "tcp/127.0.0.1:0", f"tcp/127.0.0.1:{port}", cut_after=0.8) as proxy:

@@ -9,6 +9,7 @@ in-process memory transport. README "Network emulator" has the profiles and the 
 from telebot.netem.model import (
     PROFILES,
     Burst,
+    InOrder,
     LinkModel,
     ModelStats,
     Outages,
@@ -21,6 +22,7 @@ from telebot.netem.proxy import NetemProxy, ProxyStats, parse_endpoint
 __all__ = [
     "PROFILES",
     "Burst",
+    "InOrder",
     "LinkModel",
     "ModelStats",
     "NetemProxy",

@@ -23,7 +23,10 @@ their own jittered time, possibly ahead of earlier ones. With ``ordered=True`` i
 TCP byte stream: nothing is lost or reordered, but a "lost" chunk arrives after TCP's
 retransmission timeout (doubling on each further loss) and holds up every chunk behind it
 (head-of-line blocking); an outage delays instead of losing; the queue never drops (the
-sender is held back by flow control instead: see :meth:`LinkModel.backlog`).
+sender is held back by flow control instead: see :meth:`LinkModel.backlog`). Several TCP
+connections through one access link share one ordered model (its bandwidth queue, its loss
+chain), each in order on its own (:class:`InOrder`): a retransmission holds up only its
+own connection, and a picture queued on one still delays a key press sent on another.
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ __all__ = [
     "PROFILES",
     "Burst",
     "Direction",
+    "InOrder",
     "LinkModel",
     "LinkQueue",
     "ModelStats",
@@ -345,6 +349,16 @@ class ModelStats:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
+class InOrder:
+    """One TCP byte stream's order on an ordered :class:`LinkModel`: when its last chunk
+    arrives (a chunk never arrives before the one sent ahead of it on the same stream)."""
+
+    __slots__ = ("last_arrival",)
+
+    def __init__(self) -> None:
+        self.last_arrival = -math.inf
+
+
 class LinkModel:
     """One direction of a link playing a :class:`Profile`, packet by packet (sans-IO)."""
 
@@ -370,7 +384,7 @@ class LinkModel:
         self._retry_rng = _rng(seed, direction, "retransmissions")
         self._queue = LinkQueue()
         self._bad = False  # the burst chain's state
-        self._last_arrival = -math.inf
+        self._order = InOrder()  # datagrams' order, or the stream's when none is given
 
     @classmethod
     def pair(
@@ -386,7 +400,7 @@ class LinkModel:
     @property
     def last_arrival(self) -> float:
         """When the last packet kept in order arrives (-inf before any)."""
-        return self._last_arrival
+        return self._order.last_arrival
 
     def backlog(self, now: float) -> float:
         """Seconds of traffic waiting in the bandwidth queue at ``now``.
@@ -396,8 +410,11 @@ class LinkModel:
         """
         return self._queue.wait(now)
 
-    def transmit(self, size: int, now: float) -> float | None:
-        """When a packet of ``size`` bytes sent at ``now`` arrives, or None if it is lost."""
+    def transmit(self, size: int, now: float, stream: InOrder | None = None) -> float | None:
+        """When a packet of ``size`` bytes sent at ``now`` arrives, or None if it is lost.
+
+        ``stream``: on an ordered model, the byte stream the chunk belongs to (default: the
+        model's own one), so that several streams share the link but not their order."""
         p = self.profile
         self.stats.sent += 1
         # Always the same five draws, so one packet's fate does not shift the next ones'.
@@ -408,7 +425,7 @@ class LinkModel:
         lost = burst_lost or loss_draw < p.loss
         delay = max(0.0, p.delay + (2.0 * spread - 1.0) * p.jitter)
         if self.ordered:
-            return self._stream(size, now, lost, delay)
+            return self._stream(size, now, lost, delay, stream or self._order)
         if self.schedule.gap_at(now) is not None:
             self._lose(outage=True)
             return None
@@ -425,8 +442,9 @@ class LinkModel:
             return None
         if overtake < p.reorder:
             return departed + delay
-        self._last_arrival = max(departed + delay, self._last_arrival)
-        return self._last_arrival
+        order = self._order
+        order.last_arrival = max(departed + delay, order.last_arrival)
+        return order.last_arrival
 
     def _lose(self, *, outage: bool = False, tail: bool = False, burst: bool = False) -> None:
         self.stats.lost += 1
@@ -434,7 +452,7 @@ class LinkModel:
         self.stats.tail_dropped += tail
         self.stats.burst_lost += burst
 
-    def _stream(self, size: int, now: float, lost: bool, delay: float) -> float:
+    def _stream(self, size: int, now: float, lost: bool, delay: float, order: InOrder) -> float:
         p = self.profile
         departed = now
         rate = p.rate(self.direction)
@@ -453,6 +471,6 @@ class LinkModel:
             lost = self._retry_rng.random() < p.mean_loss
         self.stats.retransmitted += late
         # A byte stream arrives in order: a late chunk holds up everything behind it.
-        arrival = max(attempt + delay, self._last_arrival)
-        self._last_arrival = arrival
+        arrival = max(attempt + delay, order.last_arrival)
+        order.last_arrival = arrival
         return arrival

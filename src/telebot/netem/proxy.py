@@ -22,8 +22,11 @@ Two modes, chosen by the endpoints' scheme:
   stream is cut into segments of :data:`MSS` bytes (on a lossless profile, whole reads)
   that go through an ``ordered`` model:
   nothing is lost, but a segment the model loses arrives one retransmission timeout later
-  (doubling while it keeps being lost) and holds up every byte behind it — how TCP turns
-  loss into stalls of every lane. The bandwidth queue never drops: when it holds more than
+  (doubling while it keeps being lost) and holds up every byte behind it in its own
+  connection — how TCP turns loss into stalls of every lane. All connections share one
+  link too (one pair of ordered models: one bandwidth queue, one burst chain), each in
+  order on its own (:class:`~telebot.netem.model.InOrder`), as connections through one
+  4G dongle do. The bandwidth queue never drops: when it holds more than
   the profile's ``queue`` seconds, or :data:`WINDOW` bytes wait undelivered, the proxy
   stops reading from the sender (TCP's flow control).
 
@@ -59,7 +62,15 @@ from types import TracebackType
 from typing import Any, Literal, Self
 
 from telebot.errors import ConfigError, TransportError
-from telebot.netem.model import Direction, LinkModel, ModelStats, OutageSchedule, Profile, profile
+from telebot.netem.model import (
+    Direction,
+    InOrder,
+    LinkModel,
+    ModelStats,
+    OutageSchedule,
+    Profile,
+    profile,
+)
 
 __all__ = ["CUT_AFTER", "MSS", "WINDOW", "Endpoint", "NetemProxy", "ProxyStats", "parse_endpoint"]
 
@@ -125,7 +136,7 @@ def parse_endpoint(text: str, *, listen: bool = False) -> Endpoint:
 class ProxyStats:
     """The proxy's counters (a snapshot: :attr:`NetemProxy.stats`).
 
-    ``up``/``down`` sum the models of every connection: for TCP, ``sent`` counts segments
+    ``up``/``down`` count the link's two directions: for TCP, ``sent`` counts segments
     and ``retransmitted`` the late ones; for UDP, ``sent`` counts datagrams and ``lost``
     those that did not arrive.
     """
@@ -347,6 +358,7 @@ class _Stream:
         self.model = model
         self.reader = reader
         self.writer = writer
+        self.order = InOrder()  # this connection's own order on the shared link
         self.pending = 0  # bytes scheduled, not yet written
         self.drained = asyncio.Event()
 
@@ -355,10 +367,11 @@ class _Stream:
         queue = self.relay.proxy.profile.queue
         try:
             while True:
-                # Flow control: a full bandwidth queue or a stalled stream holds the sender.
-                # (Only this pump feeds the model: one sleep drains the excess.)
+                # Flow control: a full bandwidth queue or a stalled stream holds the sender
+                # (checked again after the wait: other connections share the queue).
                 if (backlog := self.model.backlog(loop.time())) > queue:
                     await asyncio.sleep(backlog - queue)
+                    continue
                 while self.pending > WINDOW:
                     self.drained.clear()
                     await self.drained.wait()
@@ -375,7 +388,7 @@ class _Stream:
 
     def done_at(self) -> float:
         """When everything this direction was given will have arrived."""
-        return max(self.relay.loop.time(), self.model.last_arrival)
+        return max(self.relay.loop.time(), self.order.last_arrival)
 
     def write_eof(self) -> None:
         if not self.writer.is_closing() and self.writer.can_write_eof():
@@ -393,7 +406,7 @@ class _Stream:
         size = MSS if self.model.profile.mean_loss > 0 else len(data)
         for offset in range(0, len(data), size):
             segment = view[offset : offset + size]
-            arrival = self.model.transmit(len(segment), now)
+            arrival = self.model.transmit(len(segment), now, self.order)
             assert arrival is not None  # an ordered model delays, it does not lose
             if arrival != batch_at and batch:  # segments arriving together go together
                 self._deliver_at(batch_at, bytes(batch))
@@ -417,10 +430,12 @@ class _Stream:
 
 
 class _TcpRelay(_Relay):
-    """Byte streams: each connection its own pair of ordered models."""
+    """Byte streams: one link (a pair of ordered models) for every connection, each
+    connection in order on its own."""
 
     def __init__(self, proxy: NetemProxy, loop: asyncio.AbstractEventLoop) -> None:
         super().__init__(proxy, loop)
+        self.link = self.new_models(proxy.seed, ordered=True)
         self.server: asyncio.Server | None = None
         # Each connection's two sockets, each mapped to the other.
         self.connections: dict[asyncio.StreamWriter, asyncio.StreamWriter] = {}
@@ -452,10 +467,9 @@ class _TcpRelay(_Relay):
             stats.connections += 1
             self.connections[writer] = up_writer
             self.connections[up_writer] = writer
-            models = self.new_models(self.proxy.seed + stats.connections - 1, ordered=True)
             streams = (
-                _Stream(self, "up", models["up"], reader, up_writer),
-                _Stream(self, "down", models["down"], up_reader, writer),
+                _Stream(self, "up", self.link["up"], reader, up_writer),
+                _Stream(self, "down", self.link["down"], up_reader, writer),
             )
             await asyncio.gather(*(s.pump() for s in streams))
             # Both ways ended: close once the last bytes have arrived.
