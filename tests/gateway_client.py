@@ -58,9 +58,11 @@ def proof(private_key: bytes, name: str, challenge: dict[str, Any]) -> tuple[byt
     return public, hmac.new(shared, message, hashlib.sha256).digest()
 
 
-def put_frame(key: str, payload: bytes, lane: int = 1) -> bytes:
+def put_frame(key: str, payload: bytes, lane: int = 1, copy: int | None = None) -> bytes:
+    """A PUT (docs/protocol.md §26.2); with ``copy``, flagged with that copy id."""
     encoded = key.encode()
-    return bytes([lane]) + struct.pack(">H", len(encoded)) + encoded + payload
+    head = bytes([lane]) if copy is None else bytes([lane | 0x80]) + copy.to_bytes(8, "big")
+    return head + struct.pack(">H", len(encoded)) + encoded + payload
 
 
 def parse_sample(frame: bytes) -> tuple[int, str, bytes]:

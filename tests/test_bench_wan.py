@@ -98,6 +98,21 @@ def test_the_result_line_holds_the_worst_profile_on_the_default_link(wan: Module
     assert wan.ratio(100.0, 20.0) == "5.0x" and wan.ratio(1.0, 0.0) == "-"
 
 
+def test_a_missed_target_minus_the_delay_names_its_row_and_the_link_s_own_spread(
+    wan: ModuleType,
+) -> None:
+    wifi = wan.Row("wifi", "quic", delay_ms=5.0, stop=[12.0], glass=[10.0], release=[9.0])
+    bad = wan.Row("bad", "quic", delay_ms=80.0, stop=[130.0], glass=[90.0], release=[95.0])
+    lines = wan.report([wifi, bad], drive=True, amounts=wan.FULL, seconds=1.0)
+    stop = next(ln for ln in lines if ln.startswith("target stop p99"))
+    # bad's +-40 ms: a p99 39 ms above the mean whatever the transport.
+    assert stop.endswith(
+        "50.0 MISS (bad/quic; the link alone: one-way delay p99 39 ms above its mean)"
+    )
+    assert next(ln for ln in lines if ln.startswith("target glass p99")).endswith("10.0 PASS")
+    assert wan.spread_p99_ms("lan") == 0.0 and wan.spread_p99_ms("4g") == pytest.approx(14.7)
+
+
 def test_rows_and_the_lossy_profile(wan: ModuleType) -> None:
     assert wan.parse_row("4g/quic") == ("4g", "quic") and wan.parse_row("wifi") == ("wifi", "quic")
     assert wan.parse_row("4g/browser") == ("4g", "browser")
@@ -111,12 +126,17 @@ def test_rows_and_the_lossy_profile(wan: ModuleType) -> None:
 
 def test_a_browser_row_shows_what_the_page_measured_and_dashes_elsewhere(wan: ModuleType) -> None:
     row = wan.Row("4g", "browser", 40.0, stop=[60.0, 250.0], glass=[70.0, 90.0], seconds=1.0)
+    row.trips, row.drive_seconds = 1, 36.0
     lines = wan.report([row], drive=True, amounts=wan.FULL, seconds=1.0)
     cells = [
         c.strip() for c in next(ln for ln in lines if ln.lstrip().startswith("4g/b")).split("|")
     ]
     assert cells[:5] == ["4g/browser", "40", "210.0", "30.0", "50.0"]  # stop p99, glass p50/p99
-    assert set(cells[5:]) == {"-"}  # late, unshown, reconnect, trips, silence, release
-    assert "4g/browser (1 s): 2 key presses, 2 frames watched in the page" in lines
+    assert cells[8] == "100.00"  # trips/h: 1 in 36 s of the page driving
+    assert set(cells[5:8] + cells[9:]) == {"-"}  # late, unshown, reconnect, silence, release
+    line = (
+        "4g/browser (1 s): 2 key presses, 2 frames watched in the page, 1 trips in 36 s of driving"
+    )
+    assert line in lines
     # A browser row compares ways to the robot: the RESULT stays the default link's.
     assert wan.result_rows([row, wan.Row("4g", "quic")])[0].link == "quic"

@@ -49,6 +49,7 @@ from telebot.gateway.admission import (
 from telebot.gateway.core import (
     MAX_PAYLOAD,
     Budget,
+    CopyFilter,
     KeyRules,
     Limits,
     OutQueue,
@@ -166,6 +167,24 @@ def test_parsing_refuses_garbage_in_one_short_line() -> None:
         and "\n" not in str(caught.value)
     )
     assert parse_put(put_frame("a/b", b"x" * MAX_PAYLOAD)).payload == b"x" * MAX_PAYLOAD
+
+
+def test_a_copied_put_carries_its_copy_id_and_a_user_s_filter_passes_each_id_once() -> None:
+    put = parse_put(put_frame("a/b", b"STOP", lane=0, copy=2**64 - 1))
+    assert (put.lane, put.key, put.payload, put.copy) == ("control", "a/b", b"STOP", 2**64 - 1)
+    assert parse_put(put_frame("a/b", b"x")).copy is None
+    for bad, why in [
+        (bytes([0x80, 0, 0, 0]), "shorter than a copied PUT's header"),
+        (bytes([0x83]) + bytes(8) + b"\0\1k", "lane 3"),
+        (bytes([0x80]) + bytes(8) + b"\0\x09k", "a key length of 9"),
+    ]:
+        with pytest.raises(Refusal, match=why) as caught:
+            parse_put(bad)
+        assert caught.value.code == "garbage"
+    copies = CopyFilter(remembered=3)
+    assert [copies.first(c) for c in (1, 2, 1, 3, 2)] == [True, True, False, True, False]
+    assert copies.first(4) and copies.first(1)  # 1 was the oldest of four: forgotten
+    assert not copies.first(4)
 
 
 def test_sub_token_and_watch_have_a_budget_of_their_own() -> None:
@@ -365,6 +384,35 @@ async def test_allowed_keys_reach_zenoh_and_samples_reach_the_browser(live: Live
     else:
         raise AssertionError("no SAMPLE reached the browser")
     assert live.gateway.stats.cut == {}
+
+
+async def test_a_put_sent_on_two_websockets_under_one_copy_id_is_published_once(
+    live: Live,
+) -> None:
+    first, second, bob = [await live.admitted(who) for who in (live.alice, live.alice, live.bob)]
+    key, bob_key = f"{NS}/robot/{ROBOT}/in/{USER}", f"{NS}/robot/{ROBOT}/in/bob"
+    await _received_until(
+        live.network,
+        f"{NS}/robot/{ROBOT}/**",
+        lambda: first.send_bytes(put_frame(key, b"ready", lane=0)),
+        lambda s: s.payload == b"ready",
+    )
+    got: list[Sample] = []
+    sub = live.network.subscribe(f"{NS}/robot/{ROBOT}/in/*", got.extend)
+    try:
+        for copy in (1, 2):
+            for ws in (first, second):  # a page's two WebSockets, the same PUT on each
+                await ws.send_bytes(put_frame(key, b"STOP-%d" % copy, lane=0, copy=copy))
+        await bob.send_bytes(put_frame(bob_key, b"BOB-1", lane=0, copy=1))  # bob's own id 1
+        await wait_until(lambda: live.gateway.stats.duplicates == 2, timeout=30)
+        await first.send_bytes(put_frame(key, b"end", lane=0))
+        await wait_until(lambda: any(s.payload == b"end" for s in got), timeout=30)
+        await wait_until(lambda: any(s.payload == b"BOB-1" for s in got), timeout=30)
+    finally:
+        sub.close()
+    assert sorted(s.payload for s in got if s.key == key) == [b"STOP-1", b"STOP-2", b"end"]
+    assert [s.payload for s in got if s.key == bob_key] == [b"BOB-1"]
+    assert live.gateway.stats.duplicates == 2 and live.gateway.stats.cut == {}
 
 
 async def test_presence_watch_and_token_go_both_ways(live: Live) -> None:

@@ -32,6 +32,8 @@ export class GatewayError extends Error {
 
 const LABEL = new TextEncoder().encode("telebot-gateway-v1");
 const LANES = { control: 0, data: 1, bulk: 2 };
+/** The lane byte's flag of a PUT that carries a copy id (§26.2). */
+const COPY_FLAG = 0x80;
 const MAX_ID = 0xffff;
 /**
  * Bytes the websocket may hold unsent before DATA and BULK frames are dropped (the local
@@ -280,20 +282,26 @@ export class GatewayLink {
   /**
    * Publish `payload` on `key` with the QoS of `lane`. Returns whether it was sent (false:
    * dropped, the link closed or, DATA/BULK only, the websocket congested).
+   * `copy`: the 8-byte copy id of a PUT also sent on another websocket of this user (the
+   * gateway publishes the first of each copy id, §26.2).
    * @param {string} key @param {Uint8Array} payload @param {"control"|"data"|"bulk"} [lane]
+   * @param {Uint8Array} [copy]
    * @returns {boolean}
    */
-  publish(key, payload, lane = "data") {
+  publish(key, payload, lane = "data", copy = undefined) {
     const laneNumber = LANES[lane];
     if (laneNumber === undefined) throw new GatewayError(`unknown lane ${excerpt(String(lane), 40)}`);
     if (payload.length > MAX_PAYLOAD) throw new GatewayError(`a payload of ${payload.length} bytes (at most ${MAX_PAYLOAD})`);
+    if (copy !== undefined && copy.length !== 8) throw new GatewayError(`a copy id of ${copy.length} bytes (8)`);
     const keyBytes = encoder.encode(key);
-    const frame = new Uint8Array(3 + keyBytes.length + payload.length);
-    frame[0] = laneNumber;
-    frame[1] = keyBytes.length >> 8;
-    frame[2] = keyBytes.length & 0xff;
-    frame.set(keyBytes, 3);
-    frame.set(payload, 3 + keyBytes.length);
+    const head = copy === undefined ? 1 : 9;
+    const frame = new Uint8Array(head + 2 + keyBytes.length + payload.length);
+    frame[0] = copy === undefined ? laneNumber : laneNumber | COPY_FLAG;
+    if (copy !== undefined) frame.set(copy, 1);
+    frame[head] = keyBytes.length >> 8;
+    frame[head + 1] = keyBytes.length & 0xff;
+    frame.set(keyBytes, head + 2);
+    frame.set(payload, head + 2 + keyBytes.length);
     if (laneNumber !== LANES.control && !this.closed && this._congested()) {
       this.stats.congested++;
       return false;
@@ -338,7 +346,9 @@ export class GatewayLink {
  * sound, the user's camera) on the other. A websocket is one TCP stream, delivered in
  * order: on a lossy network one lost segment of a picture holds up every byte behind it
  * for a retransmission timeout (at least 0.2 s), a STOP and the heartbeats included. Split,
- * a picture's loss holds up only pictures (bench/wan.py's `PROFILE/browser` rows).
+ * a picture's loss holds up only pictures (bench/wan.py's `PROFILE/browser` rows). CONTROL
+ * PUTs go on both, with one copy id (the gateway publishes whichever comes first, §26.2):
+ * a STOP then waits for TCP only when both streams wait for a retransmission at once.
  * Closed as soon as either is (the other is closed then too): `onclose` says why, once.
  */
 export class SplitLink {
@@ -365,6 +375,10 @@ export class SplitLink {
     }
     // One closed before it was handed over (while the other was admitted): no use alone.
     if (this.closed) this.close();
+    /** The next copy id: 4 random bytes of this link, then a counter (§26.2). */
+    this.copyId = new Uint8Array(8);
+    crypto.getRandomValues(this.copyId.subarray(0, 4));
+    this.copies = new DataView(this.copyId.buffer);
   }
 
   /** Whether either websocket is closed (the link is of no use then). */
@@ -387,9 +401,16 @@ export class SplitLink {
     return (keyExpr.endsWith("/data") ? this.bulk : this.control).subscribe(keyExpr, cb);
   }
 
-  /** See {@link GatewayLink#publish}: CONTROL on the control link, DATA and BULK on the other. */
+  /**
+   * See {@link GatewayLink#publish}: CONTROL on both links with one copy id (sent if either
+   * took it), DATA and BULK on the bulk link.
+   */
   publish(/** @type {string} */ key, /** @type {Uint8Array} */ payload, /** @type {"control"|"data"|"bulk"} */ lane = "data") {
-    return (lane === "control" ? this.control : this.bulk).publish(key, payload, lane);
+    if (lane !== "control") return this.bulk.publish(key, payload, lane);
+    const copy = this.copyId.slice();
+    this.copies.setUint32(4, (this.copies.getUint32(4) + 1) >>> 0);
+    const sent = this.control.publish(key, payload, lane, copy);
+    return this.bulk.publish(key, payload, lane, copy) || sent;
   }
 
   /** See {@link GatewayLink#declareToken}. */

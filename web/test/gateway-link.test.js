@@ -137,9 +137,10 @@ test("a split link: control, the inbox, tokens and watches on one websocket, a c
   assert.equal(link.publish(`${to}/ctl`, payload, "control"), true);
   assert.equal(link.publish(`${to}/data`, payload, "data"), true);
   assert.equal(link.publish(`${to}/data`, payload, "bulk"), true);
-  assert.deepEqual(lanesSent(control), [0]);
-  assert.deepEqual(lanesSent(bulk), [1, 2]);
-  assert.equal(link.stats.sent, 3);
+  // CONTROL goes on both, flagged with one copy id (§26.2); DATA and BULK on the bulk one.
+  assert.deepEqual(lanesSent(control), [0x80]);
+  assert.deepEqual(lanesSent(bulk), [0x80, 1, 2]);
+  assert.equal(link.stats.sent, 4);
   // Either websocket closing closes the other and the link, and says why once.
   const told = [];
   link.onclose = (info) => told.push(info.code);
@@ -150,6 +151,32 @@ test("a split link: control, the inbox, tokens and watches on one websocket, a c
   assert.deepEqual(told, ["1006"]);
   assert.equal(link.closed, true);
   assert.equal(link.publish(`${to}/ctl`, payload, "control"), false); // dropped, as a closed link does
+});
+
+test("a split link sends each CONTROL PUT on both websockets under one copy id, a new id each", () => {
+  const sockets = [0, 1].map(() => ({ sent: [], send(m) { this.sent.push(m); }, close() { this.closed = true; } }));
+  const link = new SplitLink(...sockets.map((ws) => new GatewayLink(ws, "alice", { op: "admitted" })));
+  const key = "telebot/robot/guiabot/call/alice/0123456789abcdef/ctl";
+  link.publish(key, Uint8Array.of(7, 8, 9), "control");
+  link.publish(key, Uint8Array.of(7, 8, 9), "control"); // the same bytes again: a new PUT
+  const keyBytes = new TextEncoder().encode(key);
+  const parse = (frame) => ({
+    lane: frame[0],
+    copy: Buffer.from(frame.subarray(1, 9)).toString("hex"),
+    key: new TextDecoder().decode(frame.subarray(11, 11 + ((frame[9] << 8) | frame[10]))),
+    payload: [...frame.subarray(11 + keyBytes.length)],
+  });
+  const [first, second] = sockets.map((ws) => ws.sent.map((m) => parse(new Uint8Array(m))));
+  assert.deepEqual(first, second); // the same two PUTs on each websocket
+  assert.deepEqual(first.map((p) => [p.lane, p.key, p.payload]), [[0x80, key, [7, 8, 9]], [0x80, key, [7, 8, 9]]]);
+  const [a, b] = first.map((p) => BigInt(`0x${p.copy}`));
+  assert.equal(b, a + 1n); // one counter, under this link's random prefix
+  // Another page's link has another prefix: its copies are never taken for this one's.
+  const other = [0, 1].map(() => ({ sent: [], send(m) { this.sent.push(m); }, close() {} }));
+  new SplitLink(...other.map((ws) => new GatewayLink(ws, "alice", { op: "admitted" }))).publish(key, Uint8Array.of(1), "control");
+  assert.notEqual(parse(new Uint8Array(other[0].sent[0])).copy.slice(0, 8), first[0].copy.slice(0, 8));
+  // A copy id must be 8 bytes.
+  assert.throws(() => link.control.publish(key, Uint8Array.of(1), "control", new Uint8Array(4)), GatewayError);
 });
 
 test("a split link made of a websocket that closed meanwhile closes the other at once", () => {

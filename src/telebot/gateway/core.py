@@ -30,12 +30,15 @@ from telebot.identity import decode_key, encode_key
 __all__ = [
     "CLOSE_CUT",
     "CLOSE_REFUSED",
+    "COPIES_REMEMBERED",
+    "COPY_FLAG",
     "MAX_KEY_BYTES",
     "MAX_PAYLOAD",
     "PROOF_LABEL",
     "Admit",
     "Budget",
     "Challenge",
+    "CopyFilter",
     "KeyRules",
     "Limits",
     "Op",
@@ -454,7 +457,8 @@ class Op:
 
 @dataclass(slots=True)
 class Put:
-    """A binary PUT: publish ``payload`` on ``key`` with the QoS of ``lane``.
+    """A binary PUT: publish ``payload`` on ``key`` with the QoS of ``lane``; ``copy``: the
+    copy id of a PUT the browser sent on more than one WebSocket (§26.2), or None.
 
     Not frozen: one is built for every PUT, and a frozen dataclass takes several times
     longer to build.
@@ -463,6 +467,36 @@ class Put:
     lane: str
     key: str
     payload: bytes
+    copy: int | None = None
+
+
+#: The lane byte's flag of a PUT with a copy id (§26.2).
+COPY_FLAG: Final = 0x80
+#: A user's copied PUTs are told apart by copy id among the last this many (§26.2).
+COPIES_REMEMBERED: Final = 1024
+
+
+class CopyFilter:
+    """One user's recent copy ids: the first PUT of each is published, later ones dropped
+    (a page sends a CONTROL PUT on both its WebSockets, §26.2, so that a stop does not
+    wait for a retransmission on one of them)."""
+
+    __slots__ = ("_order", "_remembered", "_seen")
+
+    def __init__(self, remembered: int = COPIES_REMEMBERED) -> None:
+        self._remembered = remembered
+        self._seen: set[int] = set()
+        self._order: collections.deque[int] = collections.deque()
+
+    def first(self, copy: int) -> bool:
+        """Whether ``copy`` is new (remembered from now on), False for a copy seen before."""
+        if copy in self._seen:
+            return False
+        self._seen.add(copy)
+        self._order.append(copy)
+        if len(self._order) > self._remembered:
+            self._seen.discard(self._order.popleft())
+        return True
 
 
 _WITH_KEY: Final = ("sub", "token", "watch")
@@ -489,22 +523,30 @@ def parse_op(raw: str) -> Op:
 
 
 def parse_put(raw: bytes) -> Put:
-    """A binary PUT ``[u8 lane][u16 key length][key][payload]``; Refusal if malformed."""
-    if len(raw) < 3:
+    """A binary PUT ``[u8 lane][u16 key length][key][payload]``, or with the lane's
+    :data:`COPY_FLAG` ``[u8 lane | 0x80][u64 copy id][u16 key length][key][payload]``
+    (§26.2); Refusal if malformed."""
+    copy, at = None, 1
+    if raw[:1] and raw[0] & COPY_FLAG:
+        if len(raw) < 11:
+            raise _garbage("a binary message shorter than a copied PUT's header", raw)
+        copy, at = int.from_bytes(raw[1:9], "big"), 9
+    if len(raw) < at + 2:
         raise _garbage("a binary message shorter than a PUT header", raw)
-    lane, length = raw[0], raw[1] << 8 | raw[2]
+    lane, length = raw[0] & ~COPY_FLAG, raw[at] << 8 | raw[at + 1]
     if lane >= len(LANES):
-        raise _garbage(f"lane {lane} (0 control, 1 data, 2 bulk)", raw)
-    if not 1 <= length <= MAX_KEY_BYTES or len(raw) < 3 + length:
+        raise _garbage(f"lane {lane} (0 control, 1 data, 2 bulk; +128 with a copy id)", raw)
+    start = at + 2
+    if not 1 <= length <= MAX_KEY_BYTES or len(raw) < start + length:
         raise _garbage(f"a key length of {length}", raw)
-    payload = raw[3 + length :]
+    payload = raw[start + length :]
     if len(payload) > MAX_PAYLOAD:
         raise Refusal("too_large", f"a payload of {len(payload)} bytes (at most {MAX_PAYLOAD})")
     try:
-        key = raw[3 : 3 + length].decode("utf-8")
+        key = raw[start : start + length].decode("utf-8")
     except UnicodeDecodeError:
         raise _garbage("a key that is not UTF-8", raw) from None
-    return Put(LANES[lane], key, payload)
+    return Put(LANES[lane], key, payload, copy)
 
 
 def sample_header(sub_id: int, key: str) -> bytes:

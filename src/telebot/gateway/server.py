@@ -55,6 +55,7 @@ from telebot.gateway.core import (
     MAX_KEY_BYTES,
     MAX_PAYLOAD,
     Budget,
+    CopyFilter,
     KeyRules,
     Limits,
     Op,
@@ -101,6 +102,8 @@ class GatewayStats:
     bytes_out: int = 0
     dropped_out: int = 0
     dropped_control: int = 0
+    #: PUTs not published: a copy of one that came first on another WebSocket (§26.2).
+    duplicates: int = 0
 
     def count(self, table: dict[str, int], code: str) -> None:
         """One more ``code`` in ``refused`` or ``cut``."""
@@ -150,6 +153,8 @@ class Gateway:
         self._sockets: set[web.WebSocketResponse] = set()
         self._pending: dict[str, int] = {}
         self._names: dict[str, int] = {}
+        #: Per admitted name, the copy ids of its recent copied PUTs (§26.2).
+        self._copies: dict[str, CopyFilter] = {}
         self._rechecking: asyncio.Task[None] | None = None
         self._cutting: set[asyncio.Task[None]] = set()
 
@@ -299,6 +304,14 @@ class Gateway:
             self._names[name] = left
         else:
             self._names.pop(name, None)
+            self._copies.pop(name, None)
+
+    def first_copy(self, name: str, copy: int) -> bool:
+        """Whether a PUT of ``name`` with copy id ``copy`` is the first one (§26.2)."""
+        copies = self._copies.get(name)
+        if copies is None:
+            copies = self._copies[name] = CopyFilter()
+        return copies.first(copy)
 
     # --- admission ----------------------------------------------------------------------
 
@@ -471,6 +484,9 @@ class _Browser:
                 oldest.close()
         else:
             self.publishers.move_to_end(slot)
+        if put.copy is not None and not self.gateway.first_copy(self.name, put.copy):
+            self.gateway.stats.duplicates += 1  # its twin came first on the other WebSocket
+            return
         try:
             publisher.put(put.payload)
         except TransportError as exc:
