@@ -789,6 +789,7 @@ async def page_drive(page: Any, home: Path, seconds: float, row: Row) -> None:
     other, re-armed after any stop, as a nurse would): the deadman's trips, from the robot's
     audit log (no real fault here: the link only jitters, loses or roams)."""
     audit = AuditTail(home / "audit.jsonl")
+    reconnected = int(await browser.page_state(page, "ui.stats.reconnected"))
     start = time.monotonic()
     while time.monotonic() - start < seconds:
         armed, moving, x = await browser.page_state(
@@ -805,6 +806,7 @@ async def page_drive(page: Any, home: Path, seconds: float, row: Row) -> None:
             )
         await asyncio.sleep(0.5)
     row.drive_seconds += time.monotonic() - start
+    row.drops += int(await browser.page_state(page, "ui.stats.reconnected")) - reconnected
     trips = [r for r in audit.read() if r["what"] == "deadman" and r["outcome"] == "stopped"]
     row.trips += len(trips)
     row.notes += [f"deadman: {r['detail']}" for r in trips]
@@ -852,7 +854,7 @@ def row_line(row: Row, amounts: Amounts) -> str:
     )
     if row.link == BROWSER:
         counted = f"{len(row.stop)} key presses, {len(row.glass)} frames watched in the page" + (
-            f", {trips.removesuffix(', ')}" if trips else ""
+            f", {trips}{row.drops} calls dropped while driving" if trips else ""
         )
     else:
         counted = (

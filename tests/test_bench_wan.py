@@ -135,7 +135,8 @@ def test_a_browser_row_shows_what_the_page_measured_and_dashes_elsewhere(wan: Mo
     assert cells[8] == "100.00"  # trips/h: 1 in 36 s of the page driving
     assert set(cells[5:8] + cells[9:]) == {"-"}  # late, unshown, reconnect, silence, release
     line = (
-        "4g/browser (1 s): 2 key presses, 2 frames watched in the page, 1 trips in 36 s of driving"
+        "4g/browser (1 s): 2 key presses, 2 frames watched in the page, 1 trips in 36 s of "
+        "driving, 0 calls dropped while driving"
     )
     assert line in lines
     # A browser row compares ways to the robot: the RESULT stays the default link's.

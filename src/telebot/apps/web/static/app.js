@@ -17,7 +17,7 @@
     // and the names of the places labelled.
     drawn: { plan: 0, labels: [] },
     // Measurements for tests and benchmarks (wall-clock ms).
-    stats: { keyTimes: [], poseDraw: [], frameTimes: [], hides: [] },
+    stats: { keyTimes: [], poseDraw: [], frameTimes: [], hides: [], reconnected: 0 },
   };
   ui.handlers = {};
   window.telebotUI = ui;
@@ -127,7 +127,7 @@
       case "connection":
         if (m.state === "reconnecting" || m.state === "ended") linkLost();
         ui.state.call = m;
-        if (m.state === "reconnected") linkBack();
+        if (m.state === "reconnected") { ui.stats.reconnected += 1; linkBack(); }
         showConn();
         showAlert();
         if (m.state !== "connected") addChat("[" + (m.state === "reconnected" ? "reconnected after " + m.seconds.toFixed(1) + " s" : m.detail || m.state) + "]", m.state === "reconnected" ? "" : "fail");
