@@ -339,34 +339,6 @@ export class GatewayLink {
   }
 }
 
-/** Samples a {@link SplitLink} remembers per subscription to drop the second copy. */
-const SAMPLES_REMEMBERED = 256;
-
-/**
- * The recent samples of one subscription, by key and payload: a sample that comes on both
- * websockets is delivered once. (A call's control payloads are sealed, each with its own
- * counter and tag: two samples with the same bytes are one sample twice.)
- */
-export class RecentSamples {
-  constructor(remembered = SAMPLES_REMEMBERED) {
-    this.remembered = remembered;
-    /** @type {Set<string>} in the order seen (a Set iterates in insertion order) */
-    this.seen = new Set();
-  }
-
-  /**
-   * Whether this is the first time (it is remembered from now on).
-   * @param {string} key @param {Uint8Array} payload
-   */
-  first(key, payload) {
-    const id = `${key}\n${payload.length}\n${String.fromCharCode(...payload.subarray(-32))}`;
-    if (this.seen.has(id)) return false;
-    this.seen.add(id);
-    if (this.seen.size > this.remembered) this.seen.delete(this.seen.values().next().value);
-    return true;
-  }
-}
-
 /**
  * Two admitted links to one gateway used as one link (the same API as {@link GatewayLink}):
  * the CONTROL lane (HELLOs, heartbeats, stops; the call's `…/ctl` keys, the inbox, tokens
@@ -376,8 +348,7 @@ export class RecentSamples {
  * for a retransmission timeout (at least 0.2 s), a STOP and the heartbeats included. Split,
  * a picture's loss holds up only pictures (bench/wan.py's `PROFILE/browser` rows). CONTROL
  * PUTs go on both, with one copy id (the gateway publishes whichever comes first, §26.2):
- * a STOP then waits for TCP only when both streams wait for a retransmission at once; a
- * call's control samples come on both too, the first copy delivered.
+ * a STOP then waits for TCP only when both streams wait for a retransmission at once.
  * Closed as soon as either is (the other is closed then too): `onclose` says why, once.
  */
 export class SplitLink {
@@ -425,20 +396,9 @@ export class SplitLink {
     return sum;
   }
 
-  /**
-   * See {@link GatewayLink#subscribe}: a call's `…/data` keys on the bulk link; its `…/ctl`
-   * keys (the robot's heartbeats and safety messages) on both, each sample delivered once
-   * (the first of its two copies), so that one stalled stream does not silence the robot.
-   */
+  /** See {@link GatewayLink#subscribe}: a call's `…/data` keys on the bulk link. */
   subscribe(/** @type {string} */ keyExpr, /** @type {(key: string, payload: Uint8Array) => void} */ cb) {
-    if (keyExpr.endsWith("/data")) return this.bulk.subscribe(keyExpr, cb);
-    if (!keyExpr.endsWith("/ctl")) return this.control.subscribe(keyExpr, cb);
-    const seen = new RecentSamples();
-    const first = (/** @type {string} */ key, /** @type {Uint8Array} */ payload) => {
-      if (seen.first(key, payload)) cb(key, payload);
-    };
-    const both = [this.control.subscribe(keyExpr, first), this.bulk.subscribe(keyExpr, first)];
-    return { close: () => { for (const sub of both) sub.close(); } };
+    return (keyExpr.endsWith("/data") ? this.bulk : this.control).subscribe(keyExpr, cb);
   }
 
   /**

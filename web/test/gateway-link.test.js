@@ -4,7 +4,7 @@
 import { test } from "node:test";
 import assert from "node:assert/strict";
 import { x25519 } from "@noble/curves/ed25519";
-import { admissionProof, connectGateway, decodeKey, encodeKey, GatewayError, GatewayLink, RecentSamples, SplitLink } from "../src/gateway-link.js";
+import { admissionProof, connectGateway, decodeKey, encodeKey, GatewayError, GatewayLink, SplitLink } from "../src/gateway-link.js";
 
 const range = (from) => Uint8Array.from({ length: 32 }, (_, i) => from + i);
 
@@ -131,7 +131,7 @@ test("a split link: control, the inbox, tokens and watches on one websocket, a c
     "token telebot/presence/user/alice/0011223344556677",
     "watch telebot/presence/robot/guiabot/*",
   ]);
-  assert.deepEqual(ops(bulk), [`sub ${call}/ctl`, `sub ${call}/data`]); // a call's control on both
+  assert.deepEqual(ops(bulk), [`sub ${call}/data`]);
   const to = "telebot/robot/guiabot/call/alice/0123456789abcdef";
   const payload = new Uint8Array(10);
   assert.equal(link.publish(`${to}/ctl`, payload, "control"), true);
@@ -177,44 +177,6 @@ test("a split link sends each CONTROL PUT on both websockets under one copy id, 
   assert.notEqual(parse(new Uint8Array(other[0].sent[0])).copy.slice(0, 8), first[0].copy.slice(0, 8));
   // A copy id must be 8 bytes.
   assert.throws(() => link.control.publish(key, Uint8Array.of(1), "control", new Uint8Array(4)), GatewayError);
-});
-
-test("a split link delivers a call's control sample once, whichever websocket brings it first", () => {
-  const sockets = [0, 1].map(() => ({ sent: [], send(m) { this.sent.push(m); }, close() { this.closed = true; } }));
-  const link = new SplitLink(...sockets.map((ws) => new GatewayLink(ws, "alice", { op: "admitted" })));
-  const key = "telebot/user/alice/0011223344556677/call/guiabot/0123456789abcdef/ctl";
-  const got = [];
-  const sub = link.subscribe(key, (k, payload) => got.push([...payload]));
-  const subIds = sockets.map((ws) => JSON.parse(ws.sent[0]).id);
-  const sample = (ws, id, payload) => {
-    const keyBytes = new TextEncoder().encode(key);
-    const frame = new Uint8Array(4 + keyBytes.length + payload.length);
-    new DataView(frame.buffer).setUint16(0, id);
-    new DataView(frame.buffer).setUint16(2, keyBytes.length);
-    frame.set(keyBytes, 4);
-    frame.set(payload, 4 + keyBytes.length);
-    ws.onmessage({ data: frame.buffer });
-  };
-  sample(sockets[1], subIds[1], Uint8Array.of(1, 1)); // the bulk websocket was first
-  sample(sockets[0], subIds[0], Uint8Array.of(2, 2));
-  sample(sockets[0], subIds[0], Uint8Array.of(1, 1)); // the other copies, later
-  sample(sockets[1], subIds[1], Uint8Array.of(2, 2));
-  sample(sockets[0], subIds[0], Uint8Array.of(3, 3));
-  assert.deepEqual(got, [[1, 1], [2, 2], [3, 3]]);
-  sub.close();
-  for (const ws of sockets) assert.equal(JSON.parse(ws.sent.at(-1)).op, "unsub");
-});
-
-test("recent samples: a copy is dropped until it is one of the oldest beyond the bound", () => {
-  const seen = new RecentSamples(2);
-  const a = Uint8Array.of(1), b = Uint8Array.of(2), c = Uint8Array.of(3);
-  assert.deepEqual([seen.first("k", a), seen.first("k", a), seen.first("j", a)], [true, false, true]);
-  assert.deepEqual([seen.first("k", b), seen.first("k", c), seen.first("k", a)], [true, true, true]);
-  // Only the last 32 bytes, the length and the key tell samples apart (a sealed frame's tag).
-  const long = new Uint8Array(100).fill(9), other = new Uint8Array(100).fill(9);
-  other[0] = 1;
-  assert.equal(seen.first("k", long), true);
-  assert.equal(seen.first("k", other), false);
 });
 
 test("a split link made of a websocket that closed meanwhile closes the other at once", () => {
