@@ -9,7 +9,8 @@ session, the product's reconnection). Between them a network emulator
 (:class:`telebot.netem.NetemProxy`, on loopback, in this process on its own thread): the
 user's zenoh session connects to the proxy, the proxy to the robot's listening endpoint, and
 every byte or datagram crosses the profile's one-way delay, jitter, loss, bandwidth cap and
-outages (seeded: every run loses the same packets). Rows:
+outages (seeded: every run loses the same packets; on TCP, whose connections share the
+link's loss draws, as the connections' reads interleave). Rows:
 
 - ``lan`` (the baseline, through the same proxy) and the profiles ``wifi``, ``4g``,
   ``intercontinental``, ``bad`` on the link telebot uses across the internet, ``quic/``
@@ -156,14 +157,15 @@ TARGETS = {  # RESULT key: (target, what)
     "false_trips_4g_h": (1.0, "false trips/h 4g"),
     "release_p99_ms": (30.0, "release p99 - delay"),
 }
-#: The figures taken minus the profile's mean one-way delay: none can be below the link's
-#: own spread, whatever carries it (:func:`spread_p99_ms`).
+#: The figures taken minus the profile's mean one-way delay: over many samples of one
+#: packet each, the link's own spread puts their p99 this far up (:func:`spread_p99_ms`).
 MINUS_DELAY = ("stop_p99_ms", "glass_p99_ms", "release_p99_ms")
 
 
 def spread_p99_ms(profile: str) -> float:
     """How far above its mean the profile's one-way delay is at its 99th percentile, ms
-    (the delay is uniform in delay +- jitter): the least a p99 minus the mean delay can be."""
+    (the delay is uniform in delay +- jitter): what the link alone adds to a large sample's
+    p99 minus the mean delay (a few samples' p99, their maximum, sits a little lower)."""
     return 0.98 * PROFILES[profile].jitter * 1000
 
 
@@ -629,13 +631,18 @@ async def measure_watch(
     audit.read()
     window = audit.records[first:]
     row.glass += [ms for ms, _, _ in watcher.between(start, end)]
-    trips = [r for r in window if r["what"] == "deadman" and r["outcome"] == "stopped"]
-    row.trips += len(trips)
-    row.notes += [f"deadman: {r['detail']}" for r in trips]
+    note_trips(row, window)
     row.drive_seconds += end - start
     row.drops += client.reconnects - drops
     with contextlib.suppress(TelebotError):
         await client.stop()
+
+
+def note_trips(row: Row, records: list[dict[str, Any]]) -> None:
+    """The deadman's latches among the robot's audit ``records``: counted, and why, noted."""
+    trips = [r for r in records if r["what"] == "deadman" and r["outcome"] == "stopped"]
+    row.trips += len(trips)
+    row.notes += [f"deadman: {r['detail']}" for r in trips]
 
 
 async def measure_reconnects(
@@ -777,11 +784,20 @@ async def measure_browser_row(
             if not row.failed:
                 stops = browser.stops(page, daemon.robot_home, name, amounts.stops, row.stop)
                 await phase(row, "stops", stops)
-                watch = page_glass(page, watch_s, row)
-                drive = page_drive(page, daemon.robot_home, watch_s, row)
-                await phase(row, "watch", asyncio.gather(watch, drive))
+                await phase(row, "watch", page_watch(page, daemon.robot_home, watch_s, row))
             if row.failed:  # what the page said may tell why
                 row.notes += way.console[-3:]
+
+
+async def page_watch(page: Any, home: Path, seconds: float, row: Row) -> None:
+    """Glass to glass in the page while it drives the robot; either failing ends both (its
+    error is the phase's)."""
+    try:
+        async with asyncio.TaskGroup() as group:
+            group.create_task(page_glass(page, seconds, row))
+            group.create_task(page_drive(page, home, seconds, row))
+    except ExceptionGroup as failed:
+        raise failed.exceptions[0] from None
 
 
 async def page_drive(page: Any, home: Path, seconds: float, row: Row) -> None:
@@ -807,9 +823,8 @@ async def page_drive(page: Any, home: Path, seconds: float, row: Row) -> None:
         await asyncio.sleep(0.5)
     row.drive_seconds += time.monotonic() - start
     row.drops += int(await browser.page_state(page, "ui.stats.reconnected")) - reconnected
-    trips = [r for r in audit.read() if r["what"] == "deadman" and r["outcome"] == "stopped"]
-    row.trips += len(trips)
-    row.notes += [f"deadman: {r['detail']}" for r in trips]
+    note_trips(row, audit.read())
+    await page.evaluate("() => window.telebotUI.send({type: 'stop'})")
 
 
 async def page_glass(page: Any, seconds: float, row: Row) -> None:

@@ -175,6 +175,8 @@ def test_a_copied_put_carries_its_copy_id_and_a_user_s_filter_passes_each_id_onc
     assert parse_put(put_frame("a/b", b"x")).copy is None
     for bad, why in [
         (bytes([0x80, 0, 0, 0]), "shorter than a copied PUT's header"),
+        (bytes([0x80]) + bytes(9), "shorter than a copied PUT's header"),  # 10 bytes
+        (bytes([0x80]) + bytes(10), "a key length of 0"),  # 11: the header, no key
         (bytes([0x83]) + bytes(8) + b"\0\1k", "lane 3"),
         (bytes([0x80]) + bytes(8) + b"\0\x09k", "a key length of 9"),
     ]:
@@ -185,6 +187,8 @@ def test_a_copied_put_carries_its_copy_id_and_a_user_s_filter_passes_each_id_onc
     assert [copies.first(c) for c in (1, 2, 1, 3, 2)] == [True, True, False, True, False]
     assert copies.first(4) and copies.first(1)  # 1 was the oldest of four: forgotten
     assert not copies.first(4)
+    copies.forget(4)  # its PUT could not be published: its twin may be
+    assert copies.first(4)
 
 
 def test_sub_token_and_watch_have_a_budget_of_their_own() -> None:
@@ -413,6 +417,12 @@ async def test_a_put_sent_on_two_websockets_under_one_copy_id_is_published_once(
     assert sorted(s.payload for s in got if s.key == key) == [b"STOP-1", b"STOP-2", b"end"]
     assert [s.payload for s in got if s.key == bob_key] == [b"BOB-1"]
     assert live.gateway.stats.duplicates == 2 and live.gateway.stats.cut == {}
+    # The name's copy ids are forgotten with its last WebSocket (bob's stay while he is on).
+    assert set(live.gateway._copies) == {USER, "bob"}
+    for ws in (first, second):
+        await ws.close()
+    await wait_until(lambda: set(live.gateway._copies) == {"bob"}, timeout=30)
+    await bob.close()
 
 
 async def test_presence_watch_and_token_go_both_ways(live: Live) -> None:

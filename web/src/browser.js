@@ -47,8 +47,9 @@ export const telebot = {
   SplitLink,
   // The pages served by a gateway: the start page (gateway.html) and the robot page's
   // port (static/port.js), each through an admitted link to the gateway beside the page.
-  // A call's link is split: control on one websocket, pictures and sound on another
-  // (gateway-link.js's SplitLink says why); an invite's redemption needs only one.
+  // A call's link is split: control on one websocket (what the page sends of it on both),
+  // pictures and sound on another (gateway-link.js's SplitLink says why); an invite's
+  // redemption needs only one.
   ...pageApi({ Endpoint, RobotSession, openLink: (a) => (a.invite ? connectGateway(a.url, a) : connectSplit(a.url, a)) }),
 };
 /** @type {any} */ (globalThis).telebot = telebot;

@@ -341,9 +341,9 @@ export class GatewayLink {
 
 /**
  * Two admitted links to one gateway used as one link (the same API as {@link GatewayLink}):
- * the CONTROL lane (HELLOs, heartbeats, stops; the call's `…/ctl` keys, the inbox, tokens
- * and watches) on one websocket, DATA and BULK (the call's `…/data` keys: pose, pictures,
- * sound, the user's camera) on the other. A websocket is one TCP stream, delivered in
+ * the call's `…/ctl` keys, the inbox, tokens and watches on one websocket, DATA and BULK
+ * (the call's `…/data` keys: pose, pictures, sound, the user's camera) on the other, and
+ * CONTROL PUTs (HELLOs, heartbeats, stops) on both (below). A websocket is one TCP stream, delivered in
  * order: on a lossy network one lost segment of a picture holds up every byte behind it
  * for a retransmission timeout (at least 0.2 s), a STOP and the heartbeats included. Split,
  * a picture's loss holds up only pictures (bench/wan.py's `PROFILE/browser` rows). CONTROL

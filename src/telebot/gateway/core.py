@@ -498,6 +498,10 @@ class CopyFilter:
             self._seen.discard(self._order.popleft())
         return True
 
+    def forget(self, copy: int) -> None:
+        """Let ``copy`` pass again (its first PUT could not be published)."""
+        self._seen.discard(copy)
+
 
 _WITH_KEY: Final = ("sub", "token", "watch")
 _WITHOUT_KEY: Final = ("unsub", "untoken", "unwatch")

@@ -306,12 +306,12 @@ class Gateway:
             self._names.pop(name, None)
             self._copies.pop(name, None)
 
-    def first_copy(self, name: str, copy: int) -> bool:
-        """Whether a PUT of ``name`` with copy id ``copy`` is the first one (§26.2)."""
+    def copies(self, name: str) -> CopyFilter:
+        """The copy ids of ``name``'s recent copied PUTs (§26.2), across its WebSockets."""
         copies = self._copies.get(name)
         if copies is None:
             copies = self._copies[name] = CopyFilter()
-        return copies.first(copy)
+        return copies
 
     # --- admission ----------------------------------------------------------------------
 
@@ -484,13 +484,18 @@ class _Browser:
                 oldest.close()
         else:
             self.publishers.move_to_end(slot)
-        if put.copy is not None and not self.gateway.first_copy(self.name, put.copy):
-            self.gateway.stats.duplicates += 1  # its twin came first on the other WebSocket
-            return
+        copy, copies = put.copy, None
+        if copy is not None:
+            copies = self.gateway.copies(self.name)
+            if not copies.first(copy):
+                self.gateway.stats.duplicates += 1  # its twin came first on the other WebSocket
+                return
         try:
             publisher.put(put.payload)
         except TransportError as exc:
             log.debug("gateway: put on %s failed: %s", put.key, exc)
+            if copies is not None and copy is not None:
+                copies.forget(copy)  # not published: its twin may still be
             return
         self.gateway.stats.published += 1
 

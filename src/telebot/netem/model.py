@@ -399,7 +399,8 @@ class LinkModel:
 
     @property
     def last_arrival(self) -> float:
-        """When the last packet kept in order arrives (-inf before any)."""
+        """When the last packet kept in order arrives (-inf before any); on an ordered model,
+        of the model's own stream (one given to :meth:`transmit` keeps its own)."""
         return self._order.last_arrival
 
     def backlog(self, now: float) -> float:
@@ -425,7 +426,8 @@ class LinkModel:
         lost = burst_lost or loss_draw < p.loss
         delay = max(0.0, p.delay + (2.0 * spread - 1.0) * p.jitter)
         if self.ordered:
-            return self._stream(size, now, lost, delay, stream or self._order)
+            order = stream if stream is not None else self._order
+            return self._stream(size, now, lost, delay, order)
         if self.schedule.gap_at(now) is not None:
             self._lose(outage=True)
             return None
