@@ -334,6 +334,14 @@ async def arm(page: Any) -> None:
                 raise RuntimeError(f"not armed after {ARM_TRIES} tries: {exc}") from None
 
 
+async def goal_far_end(page: Any, x: float) -> None:
+    """From the page, a goal at the corridor's end away from ``x`` (the robot's x)."""
+    target = ENDS[1] if x < sum(ENDS) / 2 else ENDS[0]
+    await page.evaluate(
+        f"() => window.telebotUI.send({{type: 'goal', x: {target}, y: {CORRIDOR_Y}}})"
+    )
+
+
 async def stops(page: Any, home: Path, who: str, presses: int, out: list[float]) -> None:
     """Key press → robot at rest (ms), ``presses`` times, into ``out``; ``home`` is the
     robot's (its audit log), ``who`` the page's user."""
@@ -343,12 +351,9 @@ async def stops(page: Any, home: Path, who: str, presses: int, out: list[float])
     await page.locator("#map").focus()
     for i in range(presses):
         x = float(await page_state(page, "ui.state.pose.x"))
-        target = ENDS[1] if x < sum(ENDS) / 2 else ENDS[0]
         for attempt in range(3):
             await arm(page)
-            await page.evaluate(
-                f"() => window.telebotUI.send({{type: 'goal', x: {target}, y: {CORRIDOR_Y}}})"
-            )
+            await goal_far_end(page, x)
             try:
                 await wait_page(page, "Math.abs(ui.state.pose.v) > 0.2", 10, f"moving ({i})")
                 break

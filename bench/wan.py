@@ -816,10 +816,7 @@ async def page_drive(page: Any, home: Path, seconds: float, row: Row) -> None:
         if not armed:
             await page.evaluate("() => window.telebotUI.send({type: 'arm'})")
         elif not moving:
-            goal = browser.ENDS[1] if x < sum(browser.ENDS) / 2 else browser.ENDS[0]
-            await page.evaluate(
-                f"() => window.telebotUI.send({{type: 'goal', x: {goal}, y: {browser.CORRIDOR_Y}}})"
-            )
+            await browser.goal_far_end(page, x)
         await asyncio.sleep(0.5)
     row.drive_seconds += time.monotonic() - start
     row.drops += int(await browser.page_state(page, "ui.stats.reconnected")) - reconnected
