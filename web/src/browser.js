@@ -22,6 +22,7 @@ import { STOP_HOWS, sayText } from "./services/messages.js";
 import { decodeMapPng, pngSize } from "./services/map.js";
 import { CODEC_IDS, CODEC_NAMES } from "./services/video.js";
 import { GatewayError, SplitLink, connectGateway, connectSplit } from "./gateway-link.js";
+import { WebTransportSocket, connectBest } from "./webtransport.js";
 import { pageApi } from "./page-entry.js";
 
 export const telebot = {
@@ -44,12 +45,14 @@ export const telebot = {
   GatewayError,
   connectGateway,
   connectSplit,
+  connectBest,
   SplitLink,
+  WebTransportSocket,
   // The pages served by a gateway: the start page (gateway.html) and the robot page's
-  // port (static/port.js), each through an admitted link to the gateway beside the page.
-  // A call's link is split: control on one websocket (what the page sends of it on both),
-  // pictures and sound on another (gateway-link.js's SplitLink says why); an invite's
-  // redemption needs only one.
-  ...pageApi({ Endpoint, RobotSession, openLink: (a) => (a.invite ? connectGateway(a.url, a) : connectSplit(a.url, a)) }),
+  // port (static/port.js), each through an admitted link to the gateway beside the page:
+  // a WebTransport session when the gateway offers one and the browser reaches it, else two
+  // websockets, control on one (what the page sends of it on both), pictures and sound on
+  // the other (webtransport.js and gateway-link.js's SplitLink say why).
+  ...pageApi({ Endpoint, RobotSession, openLink: (a) => connectBest(a.url, a) }),
 };
 /** @type {any} */ (globalThis).telebot = telebot;

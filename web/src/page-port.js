@@ -29,7 +29,11 @@
  */
 export function robotPort(robot, deps) {
   let session = null;
+  /** How the page reaches its gateway now: "webtransport", "websocket" (null: not yet). */
+  let kind = null;
   return {
+    /** @returns {string|null} how the call's link reaches the gateway (its `kind`). */
+    linkKind: () => kind,
     /** @param {PortHandlers} h */
     connect(h) {
       const fail = (text) => {
@@ -68,7 +72,10 @@ export function robotPort(robot, deps) {
           }
           link = endpoint = null;
         }
-        if (!link) link = await deps.openLink(me);
+        if (!link) {
+          link = await deps.openLink(me);
+          kind = link.kind ?? null;
+        }
         if (!endpoint) endpoint = new deps.Endpoint({ link, name: me.name, privateKey: me.privateKey });
         return endpoint.call(robot, robotKey);
       },

@@ -34,7 +34,7 @@ from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Self
+from typing import Any, Protocol, Self
 
 from aiohttp import WSMsgType, web
 
@@ -67,6 +67,7 @@ from telebot.gateway.core import (
     parse_put,
     sample_header,
 )
+from telebot.gateway.webtransport import Session, WebTransportListener
 
 __all__ = ["STATIC", "Gateway", "GatewayStats"]
 
@@ -114,7 +115,9 @@ class Gateway:
     """``async with Gateway(transport, admitter, ...) as gw:`` serves until closed.
 
     ``ssl_context`` None serves plain HTTP, allowed on a loopback host only (tests).
-    ``port`` 0 picks a free port (see :attr:`url`).
+    ``port`` 0 picks a free port (see :attr:`url`). ``webtransport`` also serves the
+    gateway over HTTP/3 WebTransport on UDP (docs/protocol.md §26.5; ``GET /webtransport``
+    tells a page where).
     """
 
     def __init__(
@@ -131,6 +134,7 @@ class Gateway:
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], float] = time.time,
         recheck: float = RECHECK,
+        webtransport: bool = True,
     ) -> None:
         if ssl_context is None and host not in ("127.0.0.1", "::1", "localhost"):
             raise ValueError(f"the gateway serves plain HTTP on loopback only, not on {host}")
@@ -145,12 +149,16 @@ class Gateway:
         self.clock = clock
         self.wall_clock = wall_clock
         self.recheck = recheck
+        self.webtransport = webtransport
+        #: The WebTransport listener once started (UDP, the same port number as HTTPS,
+        #: or any free one when ``port`` is 0), None when off or its port was taken.
+        self.listener: WebTransportListener | None = None
         self.stats = GatewayStats()
         self._browsers: set[_Browser] = set()
         self._runner: web.AppRunner | None = None
         #: Websockets being served (admitted or not), not yet admitted ones by source
         #: address, admitted ones (and admissions being answered) by name.
-        self._sockets: set[web.WebSocketResponse] = set()
+        self._sockets: set[_Socket] = set()
         self._pending: dict[str, int] = {}
         self._names: dict[str, int] = {}
         #: Per admitted name, the copy ids of its recent copied PUTs (§26.2).
@@ -167,11 +175,13 @@ class Gateway:
 
     async def start(self) -> None:
         """Listen (OSError if the address is taken)."""
+        requested = self.port
         app = web.Application()
         app.router.add_get("/", self._page("gateway.html"))
         app.router.add_get("/call", self._page("index.html"))
         app.router.add_get("/gateway", self._websocket)
         app.router.add_get("/stats", self._stats)
+        app.router.add_get("/webtransport", self._offer)
         if self.static.is_dir():
             app.router.add_static("/static/", self.static, show_index=False)
         self._runner = web.AppRunner(app, handle_signals=False, access_log=None)
@@ -192,8 +202,26 @@ class Gateway:
         if self.port == 0:
             sockets = getattr(site._server, "sockets", None) or []
             self.port = int(sockets[0].getsockname()[1])
+        if self.webtransport:
+            await self._listen_webtransport(0 if requested == 0 else self.port)
         self._rechecking = asyncio.create_task(self._recheck(), name="gateway recheck")
         log.info("browser gateway at %s", self.url)
+
+    async def _listen_webtransport(self, port: int) -> None:
+        listener = WebTransportListener(
+            self.host,
+            port,
+            admits=lambda session: self._enter(session, session.peer),
+            serve_session=self._webtransport,
+            max_message=MAX_MESSAGE,
+        )
+        try:
+            await listener.start()
+        except OSError as exc:  # pages fall back to WebSockets: worse on a lossy link, not broken
+            log.warning("gateway: no WebTransport (UDP port %d: %s)", port, exc.strerror or exc)
+            return
+        self.listener = listener
+        log.info("browser gateway: WebTransport on UDP port %d", listener.port)
 
     async def close(self) -> None:
         """Close every websocket and the server; idempotent."""
@@ -202,9 +230,12 @@ class Gateway:
             self._rechecking = None
         for task in list(self._cutting):
             task.cancel()
-        for ws in list(self._sockets):  # admitted or still being challenged
+        for sock in list(self._sockets):  # admitted or still being challenged
             with contextlib.suppress(Exception):
-                await ws.close(code=1001, message=b"gateway shutting down")
+                await sock.close(1001, "gateway shutting down")
+        if self.listener is not None:
+            listener, self.listener = self.listener, None
+            await listener.close()
         if self._runner is not None:
             runner, self._runner = self._runner, None
             await runner.cleanup()
@@ -242,10 +273,36 @@ class Gateway:
     async def _stats(self, request: web.Request) -> web.StreamResponse:
         return web.json_response(self.stats_json())
 
+    async def _offer(self, request: web.Request) -> web.StreamResponse:
+        """Where and with which certificate a page opens a WebTransport session (§26.5)."""
+        if self.listener is None:
+            return web.json_response({"error": "this gateway serves no WebTransport"}, status=404)
+        return web.json_response(self.listener.offer(), headers={"Cache-Control": "no-store"})
+
     async def _websocket(self, request: web.Request) -> web.StreamResponse:
         peer = str(request.remote)
+        # No permessage-deflate: the frames are sealed (ciphertext does not compress), so
+        # deflating them only burns CPU on both ends, 30 pictures a second.
+        ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE, heartbeat=30.0, compress=False)
+        sock = _WebSocket(ws)
+        # Checked and counted before the websocket is accepted, before any await.
+        busy = self._enter(sock, peer)
+        if busy is not None:
+            return web.Response(status=503, text=f"telebot gateway: {busy}\n")
+        try:
+            await ws.prepare(request)
+        except BaseException:
+            self._leave(sock, peer, pending=True)
+            raise
+        await self._serve(sock, peer)
+        return ws
+
+    async def _webtransport(self, session: Session) -> None:
+        await self._serve(session, session.peer)
+
+    def _enter(self, sock: _Socket, peer: str) -> str | None:
+        """Count a new connection from ``peer``, or say (one line, counted) why not."""
         limits = self.limits
-        # Checked before the websocket is accepted, and counted before any await.
         if len(self._sockets) >= limits.max_connections:
             return self._busy("full", f"the gateway serves {limits.max_connections} connections")
         if self._pending.get(peer, 0) >= limits.max_pending_per_address:
@@ -253,22 +310,27 @@ class Gateway:
                 "busy",
                 f"{peer} has {limits.max_pending_per_address} connections not yet admitted",
             )
-        # No permessage-deflate: the frames are sealed (ciphertext does not compress), so
-        # deflating them only burns CPU on both ends, 30 pictures a second.
-        ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE, heartbeat=30.0, compress=False)
-        self._sockets.add(ws)
+        self._sockets.add(sock)
         self._pending[peer] = self._pending.get(peer, 0) + 1
+        return None
+
+    def _leave(self, sock: _Socket, peer: str, *, pending: bool) -> None:
+        self._sockets.discard(sock)
+        if pending:
+            self._release_pending(peer)
+
+    async def _serve(self, sock: _Socket, peer: str) -> None:
+        """Admit a connection counted by :meth:`_enter`, then relay for it until it ends."""
         pending, name = True, None
         try:
-            await ws.prepare(request)
             self.stats.connections += 1
-            admitted = await self._admit(ws, peer)  # its name counted in _names if admitted
+            admitted = await self._admit(sock, peer)  # its name counted in _names if admitted
             pending = False
             self._release_pending(peer)
             if admitted is None:
-                return ws
+                return
             name, key = admitted
-            browser = _Browser(self, ws, name, peer, key)
+            browser = _Browser(self, sock, name, peer, key)
             self._browsers.add(browser)
             self.stats.admitted += 1
             self.stats.active += 1
@@ -278,18 +340,15 @@ class Gateway:
                 self._browsers.discard(browser)
                 self.stats.active -= 1
                 browser.release()
-            return ws
         finally:
-            self._sockets.discard(ws)
-            if pending:
-                self._release_pending(peer)
+            self._leave(sock, peer, pending=pending)
             if name is not None:
                 self._release_name(name)
 
-    def _busy(self, code: str, text: str) -> web.StreamResponse:
+    def _busy(self, code: str, text: str) -> str:
         self.stats.count(self.stats.refused, code)
         log.info("gateway: refused a connection: %s", text)
-        return web.Response(status=503, text=f"telebot gateway: {text}\n")
+        return text
 
     def _release_pending(self, peer: str) -> None:
         left = self._pending.get(peer, 0) - 1
@@ -315,19 +374,17 @@ class Gateway:
 
     # --- admission ----------------------------------------------------------------------
 
-    async def _admit(self, ws: web.WebSocketResponse, peer: str) -> tuple[str, bytes] | None:
+    async def _admit(self, sock: _Socket, peer: str) -> tuple[str, bytes] | None:
         challenge = make_challenge(os.urandom(32), os.urandom(32))
         try:
-            await ws.send_str(json.dumps(challenge.message(self.namespace)))
+            await sock.send_text(json.dumps(challenge.message(self.namespace)))
             try:
-                msg = await asyncio.wait_for(ws.receive(), self.limits.admission_timeout)
+                answer = await asyncio.wait_for(sock.receive(), self.limits.admission_timeout)
             except TimeoutError:
                 raise Refusal("timeout", "no answer to the challenge in time") from None
-            if msg.type in (WSMsgType.CLOSE, WSMsgType.CLOSING, WSMsgType.CLOSED):
+            if answer is None:
                 return None
-            if msg.type == WSMsgType.ERROR:
-                raise Refusal("too_large", f"a message the websocket refused: {msg.data}")
-            admit = parse_admission(msg.data)
+            admit = parse_admission(answer)
             if not challenge.verify(admit.name, admit.key, admit.proof):
                 raise Refusal("bad_proof", f"the proof for {admit.name} does not verify")
             # After the proof: only the key's holder can use up its name's connections.
@@ -351,7 +408,7 @@ class Gateway:
                 raise Refusal("gateway_error", text) from exc
             self._names[admit.name] = self._names.get(admit.name, 0) + 1
             try:
-                await ws.send_str(json.dumps({"op": "admitted", "name": admit.name}))
+                await sock.send_text(json.dumps({"op": "admitted", "name": admit.name}))
             except BaseException:
                 self._release_name(admit.name)
                 raise
@@ -368,11 +425,11 @@ class Gateway:
             else:
                 log.info("gateway: refused %s: %s", peer, excerpt(str(refusal)))
             with contextlib.suppress(Exception):
-                await ws.send_str(
+                await sock.send_text(
                     json.dumps({"op": "refused", "code": refusal.code, "text": refusal.text})
                 )
             with contextlib.suppress(Exception):
-                await ws.close(code=CLOSE_REFUSED, message=refusal.code.encode())
+                await sock.close(CLOSE_REFUSED, refusal.code)
             return None
         except (ConnectionError, RuntimeError):  # the browser went away mid-admission
             return None
@@ -404,14 +461,53 @@ class Gateway:
                     task.add_done_callback(self._cutting.discard)
 
 
-class _Browser:
-    """One admitted websocket: its budget, subscriptions, tokens, watches, out queue."""
+class _Socket(Protocol):
+    """A connection as the gateway serves it: a WebSocket or a WebTransport session.
 
-    def __init__(
-        self, gateway: Gateway, ws: web.WebSocketResponse, name: str, peer: str, key: bytes
-    ) -> None:
-        self.gateway = gateway
+    ``receive`` gives a text message (``str``), a binary one (``bytes``) or None once
+    closed, and raises :class:`Refusal` for what the connection's own layer refused.
+    """
+
+    async def receive(self) -> str | bytes | None: ...
+    async def send_text(self, text: str) -> None: ...
+    async def send_bytes(self, data: bytes) -> None: ...
+    async def close(self, code: int, reason: str) -> None: ...
+
+
+class _WebSocket:
+    """aiohttp's websocket as a :class:`_Socket`."""
+
+    def __init__(self, ws: web.WebSocketResponse) -> None:
         self.ws = ws
+
+    async def receive(self) -> str | bytes | None:
+        while True:
+            msg = await self.ws.receive()
+            kind = msg.type
+            if kind is WSMsgType.BINARY or kind is WSMsgType.TEXT:
+                data: str | bytes = msg.data
+                return data
+            if kind is WSMsgType.ERROR:
+                raise Refusal("too_large", f"a message the websocket refused: {msg.data}")
+            if kind in (WSMsgType.CLOSE, WSMsgType.CLOSING, WSMsgType.CLOSED):
+                return None
+
+    async def send_text(self, text: str) -> None:
+        await self.ws.send_str(text)
+
+    async def send_bytes(self, data: bytes) -> None:
+        await self.ws.send_bytes(data)
+
+    async def close(self, code: int, reason: str) -> None:
+        await self.ws.close(code=code, message=reason.encode())
+
+
+class _Browser:
+    """One admitted connection: its budget, subscriptions, tokens, watches, out queue."""
+
+    def __init__(self, gateway: Gateway, sock: _Socket, name: str, peer: str, key: bytes) -> None:
+        self.gateway = gateway
+        self.sock = sock
         self.name = name
         self.peer = peer
         self.key = key
@@ -438,23 +534,19 @@ class _Browser:
         """Relay until the browser closes or is cut off."""
         writer = asyncio.create_task(self._write(), name=f"gateway writer {self.name}")
         stats, spend, clock = self.gateway.stats, self.budget.spend, self.gateway.clock
+        receive = self.sock.receive
         try:
-            async for msg in self.ws:
-                kind = msg.type
+            while (data := await receive()) is not None:
                 if self._cut:  # cut off from outside (revoked): nothing more goes anywhere
                     break
-                if kind is WSMsgType.BINARY or kind is WSMsgType.TEXT:
-                    data = msg.data  # bytes (BINARY) or str (TEXT)
-                    size = len(data)
-                    stats.frames_in += 1
-                    stats.bytes_in += size
-                    spend(size, clock())
-                    if kind is WSMsgType.BINARY:
-                        self._put(data)
-                    else:
-                        self._handle(parse_op(data))
-                elif kind is WSMsgType.ERROR:
-                    raise Refusal("too_large", f"a message the websocket refused: {msg.data}")
+                size = len(data)
+                stats.frames_in += 1
+                stats.bytes_in += size
+                spend(size, clock())
+                if isinstance(data, bytes):
+                    self._put(data)
+                else:
+                    self._handle(parse_op(data))
         except Refusal as refusal:
             await self._cut_off(refusal)
         finally:
@@ -626,7 +718,7 @@ class _Browser:
                 waiting.set_result(None)
 
     async def _write(self) -> None:
-        stats, out, ws = self.gateway.stats, self._out, self.ws
+        stats, out, sock = self.gateway.stats, self._out, self.sock
         loop = asyncio.get_running_loop()
         try:
             while True:
@@ -637,9 +729,9 @@ class _Browser:
                     continue
                 size = len(item)
                 if isinstance(item, bytes):
-                    await ws.send_bytes(item)
+                    await sock.send_bytes(item)
                 else:
-                    await ws.send_str(item)
+                    await sock.send_text(item)
                 stats.frames_out += 1
                 stats.bytes_out += size
         except (ConnectionError, RuntimeError):
@@ -655,11 +747,11 @@ class _Browser:
         stats.count(stats.cut, refusal.code)
         log.warning("gateway: cut off %s from %s: %s", self.name, self.peer, excerpt(str(refusal)))
         with contextlib.suppress(Exception):
-            await self.ws.send_str(
+            await self.sock.send_text(
                 json.dumps({"op": "cut", "code": refusal.code, "text": refusal.text})
             )
         with contextlib.suppress(Exception):
-            await self.ws.close(code=CLOSE_CUT, message=refusal.code.encode())
+            await self.sock.close(CLOSE_CUT, refusal.code)
 
     def release(self) -> None:
         """Undeclare everything this browser declared; idempotent."""

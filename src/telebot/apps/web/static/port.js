@@ -29,5 +29,7 @@
     },
     send: (msg) => (inner ? inner.send(msg) : false),
     sendMedia: (header, data, isVideo) => (inner ? inner.sendMedia(header, data, isVideo) : false),
+    // How the call reaches the gateway: "webtransport", "websocket" (null: not yet).
+    linkKind: () => (inner ? inner.linkKind() : null),
   };
 })();

@@ -1,0 +1,474 @@
+"""The gateway's WebTransport (HTTP/3 over QUIC) listener: one more way in for a page.
+
+A WebSocket is one TCP stream: on a lossy link one lost segment holds every byte behind it
+(a stop included) for TCP's retransmission timeout. A WebTransport session carries the
+same messages as the gateway's WebSocket (docs/protocol.md §26.5) without that: the
+page's PUTs and the gateway's SAMPLEs each go as one QUIC datagram when they fit (lost,
+never late) or on a unidirectional stream of their own (resent, but holding up nothing
+else); text messages (admission, ``sub``, ``alive``, …) on the session's first
+bidirectional stream, in order.
+
+The listener (aioquic) has a certificate of its own: ECDSA P-256, valid
+:data:`CERT_DAYS` days, made in memory at start and again when half its life is gone, as a
+browser's ``serverCertificateHashes`` requires; the page learns its SHA-256 from the
+gateway's HTTPS origin (``GET /webtransport``), so it trusts it exactly as far as the page
+itself. Nothing here decides anything: a :class:`Session` is handed to the gateway, which
+admits and serves it as it does a WebSocket.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import collections
+import contextlib
+import datetime
+import hashlib
+import logging
+import struct
+import time
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+from aioquic.asyncio.protocol import QuicConnectionProtocol
+from aioquic.asyncio.server import QuicServer, serve
+from aioquic.buffer import encode_uint_var
+from aioquic.h3.connection import H3_ALPN, H3Connection
+from aioquic.h3.events import (
+    DatagramReceived,
+    H3Event,
+    HeadersReceived,
+    WebTransportStreamDataReceived,
+)
+from aioquic.quic.configuration import QuicConfiguration
+from aioquic.quic.events import ConnectionTerminated, ProtocolNegotiated, QuicEvent
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import NameOID
+
+from telebot.errors import excerpt
+from telebot.gateway.core import Refusal
+
+__all__ = [
+    "CERT_DAYS",
+    "DATAGRAM_MAX",
+    "PATH",
+    "PREAMBLE",
+    "Session",
+    "WebTransportListener",
+    "text_frame",
+]
+
+log = logging.getLogger(__name__)
+
+#: What the browser's bidirectional stream starts with, before its first text message.
+PREAMBLE = b"TBG1"
+#: The session's path (the same as the WebSocket's).
+PATH = b"/gateway"
+#: Days a listener's certificate is valid (a browser takes a hash-pinned one of ≤ 14 days).
+CERT_DAYS = 13
+#: The largest message sent as one datagram; larger ones go on a stream of their own.
+#: QUIC packets here are at most 1,200 bytes, less their header, tag and frame headers.
+DATAGRAM_MAX = 1100
+#: Messages received and not yet served, per session; beyond it the session is cut
+#: (``flood``): the gateway's budget counts them as it serves them.
+INBOX = 4096
+#: Bytes handed to QUIC and not yet sent, per session, beyond which the gateway's writer
+#: waits (its own bounded queues then drop the oldest data, as for a slow WebSocket).
+BACKLOG = 64 * 1024
+#: Seconds the browser has to open its bidirectional stream after the session is accepted.
+OPEN_TIMEOUT = 10.0
+#: Seconds between PINGs on an idle connection (the idle timeout is three times it).
+KEEPALIVE = 10.0
+_CLOSE_CAPSULE = 0x2843  # CLOSE_WEBTRANSPORT_SESSION (draft-ietf-webtrans-http3)
+
+
+def text_frame(text: str) -> bytes:
+    """A text message on the session's bidirectional stream: ``u32 length ‖ UTF-8``."""
+    data = text.encode()
+    return struct.pack(">I", len(data)) + data
+
+
+def _certificate(now: datetime.datetime) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey]:
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "telebot gateway")])
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(name)
+        .issuer_name(name)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - datetime.timedelta(minutes=5))
+        .not_valid_after(now + datetime.timedelta(days=CERT_DAYS))
+        # Chromium takes no certificate without a subject alternative name, even one pinned
+        # by its hash (whose names it does not check against the address).
+        .add_extension(x509.SubjectAlternativeName([x509.DNSName("localhost")]), critical=False)
+        .sign(key, hashes.SHA256())
+    )
+    return cert, key
+
+
+class Session:
+    """One WebTransport session, as the gateway sees a connection.
+
+    :meth:`receive` gives the browser's messages in arrival order: ``str`` (a text
+    message of the bidirectional stream), ``bytes`` (a datagram, or a unidirectional
+    stream's whole content), ``None`` once the session is closed; it raises
+    :class:`Refusal` (``too_large``, ``garbage``, ``flood``) for what breaks the framing.
+    """
+
+    def __init__(self, protocol: _Protocol, session_id: int, peer: str, max_message: int) -> None:
+        self._protocol = protocol
+        self.session_id = session_id
+        self.peer = peer
+        self._max = max_message
+        self._inbox: collections.deque[str | bytes | Refusal | None] = collections.deque()
+        self._ready = asyncio.Event()
+        self._control: int | None = None  # the browser's first bidirectional stream
+        self._opened = asyncio.Event()  # set with its preamble: text can go back on it
+        self._text = bytearray()
+        self._streams: dict[int, bytearray] = {}
+        self._out_streams: set[int] = set()
+        self.closed = False
+
+    # --- from the browser --------------------------------------------------------------
+
+    def _push(self, item: str | bytes | Refusal | None) -> None:
+        if self.closed and item is not None:
+            return
+        if len(self._inbox) >= INBOX and item is not None:
+            item = Refusal("flood", f"more than {INBOX} messages waiting")
+            self.closed = True
+        self._inbox.append(item)
+        self._ready.set()
+
+    def _datagram(self, data: bytes) -> None:
+        self._push(data)
+
+    def _stream_data(self, stream_id: int, data: bytes, ended: bool) -> None:
+        if stream_id % 4 == 0:  # client-initiated bidirectional: the text stream
+            if self._control is None:
+                self._control = stream_id
+            if stream_id != self._control:
+                self._push(Refusal("garbage", "a second bidirectional stream"))
+                return
+            self._text += data
+            if not self._opened.is_set():
+                if len(self._text) < len(PREAMBLE):
+                    return
+                if self._text[: len(PREAMBLE)] != PREAMBLE:
+                    self._push(Refusal("garbage", "a stream that is not telebot's"))
+                    return
+                del self._text[: len(PREAMBLE)]
+                self._opened.set()
+            while len(self._text) >= 4:
+                (length,) = struct.unpack_from(">I", self._text)
+                if length > self._max:
+                    self._push(Refusal("too_large", f"a text message of {length} bytes"))
+                    return
+                if len(self._text) < 4 + length:
+                    break
+                raw = bytes(self._text[4 : 4 + length])
+                del self._text[: 4 + length]
+                try:
+                    self._push(raw.decode())
+                except UnicodeDecodeError:
+                    self._push(Refusal("garbage", "a text message that is not UTF-8"))
+                    return
+            if ended:
+                self._push(None)
+            return
+        buffer = self._streams.setdefault(stream_id, bytearray())
+        buffer += data
+        if len(buffer) > self._max:
+            self._streams.pop(stream_id, None)
+            self._push(Refusal("too_large", f"a stream of more than {self._max} bytes"))
+            return
+        if ended:
+            self._push(bytes(self._streams.pop(stream_id)))
+
+    async def receive(self) -> str | bytes | None:
+        """The next message (see the class), waiting for it."""
+        while not self._inbox:
+            self._ready.clear()
+            await self._ready.wait()
+        item = self._inbox.popleft()
+        if isinstance(item, Refusal):
+            raise item
+        if item is None:
+            self._inbox.appendleft(None)  # closed for good: every later call says so
+        return item
+
+    # --- to the browser ----------------------------------------------------------------
+
+    def backlog(self) -> int:
+        """Bytes handed to QUIC for this session and not yet sent or acknowledged."""
+        quic = self._protocol._quic
+        pending = sum(len(d) for d in quic._datagrams_pending)
+        for stream_id in list(self._out_streams):
+            stream = quic._streams.get(stream_id)
+            if stream is None or stream.sender.is_finished:
+                self._out_streams.discard(stream_id)
+                continue
+            sender = stream.sender
+            pending += sender._buffer_stop - sender._buffer_start
+        return pending
+
+    async def _room(self) -> None:
+        # QUIC sends more only as acknowledgements come in: look again at each packet.
+        progress = self._protocol._progress
+        while self.backlog() > BACKLOG and not self.closed:
+            progress.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(progress.wait(), 0.1)
+
+    async def send_text(self, text: str) -> None:
+        """A text message on the bidirectional stream (in order, reliable)."""
+        if not self._opened.is_set():  # the browser opens the stream (and speaks) first
+            try:
+                await asyncio.wait_for(self._opened.wait(), OPEN_TIMEOUT)
+            except TimeoutError:
+                raise ConnectionError("the browser opened no stream in time") from None
+        if self.closed or self._control is None:
+            raise ConnectionError("the WebTransport session is closed")
+        self._protocol._quic.send_stream_data(self._control, text_frame(text))
+        self._protocol.transmit()
+
+    async def send_bytes(self, data: bytes) -> None:
+        """One message: a datagram if it fits, else a unidirectional stream of its own."""
+        if self.closed:
+            raise ConnectionError("the WebTransport session is closed")
+        await self._room()
+        protocol = self._protocol
+        if len(data) <= DATAGRAM_MAX:
+            protocol._http.send_datagram(self.session_id, data)
+        else:
+            stream_id = protocol._http.create_webtransport_stream(
+                self.session_id, is_unidirectional=True
+            )
+            protocol._quic.send_stream_data(stream_id, data, end_stream=True)
+            self._out_streams.add(stream_id)
+        protocol.transmit()
+
+    async def close(self, code: int = 0, reason: str = "") -> None:
+        """End the session with ``code`` and ``reason`` (the browser's ``closed`` gets
+        them), then the connection a moment later; idempotent."""
+        if self.closed and self._protocol._ended:
+            return
+        self.closed = True
+        self._push(None)
+        protocol = self._protocol
+        with contextlib.suppress(Exception):
+            body = struct.pack(">I", code) + reason.encode()[:1024]
+            capsule = encode_uint_var(_CLOSE_CAPSULE) + encode_uint_var(len(body)) + body
+            protocol._http.send_data(self.session_id, capsule, end_stream=True)
+            protocol.transmit()
+        protocol.end_soon()
+
+    async def wait_closed(self) -> None:
+        """Until the connection under the session is gone."""
+        await self._protocol._gone.wait()
+
+
+class _Protocol(QuicConnectionProtocol):
+    """One QUIC connection: HTTP/3 with WebTransport, one session at most."""
+
+    def __init__(self, *args: Any, listener: WebTransportListener, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._listener = listener
+        self._http: H3Connection = None  # type: ignore[assignment]  # set when negotiated
+        self._session: Session | None = None
+        self._gone = asyncio.Event()
+        self._ended = False
+        self._keepalive: asyncio.TimerHandle | None = None
+        #: Set at each packet received (acknowledgements free room to send more).
+        self._progress = asyncio.Event()
+
+    def datagram_received(self, data: bytes | str, addr: Any) -> None:
+        super().datagram_received(data, addr)
+        self._progress.set()
+
+    def quic_event_received(self, event: QuicEvent) -> None:
+        if isinstance(event, ProtocolNegotiated):
+            self._http = H3Connection(self._quic, enable_webtransport=True)
+            self._ping()
+        elif isinstance(event, ConnectionTerminated):
+            self._ended = True
+            if self._keepalive is not None:
+                self._keepalive.cancel()
+            if self._session is not None:
+                self._session.closed = True
+                self._session._opened.set()  # a sender waiting for the stream: it is over
+                self._session._inbox.append(None)
+                self._session._ready.set()
+            self._gone.set()
+            return
+        if self._http is None:
+            return
+        try:
+            events = self._http.handle_event(event)
+        except Exception as exc:  # a peer breaking HTTP/3: its connection ends, not ours
+            log.info("gateway: WebTransport: %s", exc)
+            self._quic.close(error_code=0x101, reason_phrase="bad HTTP/3")
+            self.transmit()
+            return
+        for h3_event in events:
+            self._h3(h3_event)
+
+    def _h3(self, event: H3Event) -> None:
+        session = self._session
+        if isinstance(event, HeadersReceived):
+            headers = dict(event.headers)
+            webtransport = (
+                headers.get(b":method") == b"CONNECT"
+                and headers.get(b":protocol") == b"webtransport"
+            )
+            if not webtransport or headers.get(b":path", b"").split(b"?")[0] != PATH:
+                self._answer(event.stream_id, 404)
+            elif session is not None:
+                self._answer(event.stream_id, 429)  # one session a connection
+            else:
+                self._accept(event.stream_id)
+        elif session is None:
+            return
+        elif isinstance(event, DatagramReceived):
+            if event.stream_id == session.session_id:
+                session._datagram(event.data)
+        elif (
+            isinstance(event, WebTransportStreamDataReceived)
+            and event.session_id == session.session_id
+        ):
+            session._stream_data(event.stream_id, event.data, event.stream_ended)
+
+    def _answer(self, stream_id: int, status: int) -> None:
+        self._http.send_headers(stream_id, [(b":status", str(status).encode())], end_stream=True)
+        self.transmit()
+
+    def _accept(self, stream_id: int) -> None:
+        peer = self._transport.get_extra_info("peername") if self._transport else None
+        address = str(peer[0]) if peer else "?"
+        session = Session(self, stream_id, address, self._listener.max_message)
+        if self._listener.admits(session) is not None:
+            self._answer(stream_id, 503)
+            self.end_soon()
+            return
+        self._session = session
+        self._http.send_headers(
+            stream_id, [(b":status", b"200"), (b"sec-webtransport-http3-draft", b"draft02")]
+        )
+        self.transmit()
+        self._listener.spawn(self._session)
+
+    def _ping(self) -> None:
+        if self._ended:
+            return
+        self._quic.send_ping(int(time.monotonic() * 1000))
+        self.transmit()
+        loop = asyncio.get_running_loop()
+        self._keepalive = loop.call_later(KEEPALIVE, self._ping)
+
+    def end_soon(self, delay: float = 1.0) -> None:
+        """Close the connection after ``delay`` s (the close capsule on its way first)."""
+
+        def end() -> None:
+            if not self._ended:
+                self._quic.close(error_code=0)
+                self.transmit()
+
+        asyncio.get_running_loop().call_later(delay, end)
+
+
+class WebTransportListener:
+    """HTTP/3 WebTransport at ``https://HOST:PORT/gateway`` over UDP.
+
+    ``admits(session)`` decides before a session is accepted (None: yes; else a one-line
+    reason, answered HTTP 503); ``serve_session(session)`` then runs for each accepted one.
+    """
+
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        *,
+        admits: Callable[[Session], str | None],
+        serve_session: Callable[[Session], Awaitable[None]],
+        max_message: int,
+        clock: Callable[[], datetime.datetime] = lambda: datetime.datetime.now(datetime.UTC),
+    ) -> None:
+        self.host = host
+        self.port = port
+        self.admits = admits
+        self._serve = serve_session
+        self.max_message = max_message
+        self._clock = clock
+        self._server: QuicServer | None = None
+        self._configuration = QuicConfiguration(
+            alpn_protocols=H3_ALPN,
+            is_client=False,
+            max_datagram_frame_size=65536,
+            idle_timeout=3 * KEEPALIVE,
+        )
+        self._made = self._clock()
+        self._rotate(force=True)
+        self._tasks: set[asyncio.Task[None]] = set()
+
+    def _rotate(self, force: bool = False) -> None:
+        now = self._clock()
+        if not force and now - self._made < datetime.timedelta(days=CERT_DAYS / 2):
+            return
+        cert, key = _certificate(now)
+        self._made = now
+        self._configuration.certificate = cert
+        self._configuration.private_key = key
+        der = cert.public_bytes(serialization.Encoding.DER)
+        self._hash = hashlib.sha256(der).digest()
+
+    def offer(self) -> dict[str, Any]:
+        """What a page needs to open a session: ``{"port": P, "path": "/gateway",
+        "hashes": [<the certificate's SHA-256, base64>]}`` (a new certificate once the
+        current one is half through its life)."""
+        self._rotate()
+        return {
+            "port": self.port,
+            "path": PATH.decode(),
+            "hashes": [base64.b64encode(self._hash).decode()],
+        }
+
+    async def start(self) -> None:
+        """Listen (OSError if the UDP port is taken)."""
+
+        def protocol(*args: Any, **kwargs: Any) -> _Protocol:
+            return _Protocol(*args, listener=self, **kwargs)
+
+        self._server = await serve(
+            self.host, self.port, configuration=self._configuration, create_protocol=protocol
+        )
+        if self.port == 0:
+            transport = self._server._transport
+            assert transport is not None
+            self.port = int(transport.get_extra_info("sockname")[1])
+
+    def spawn(self, session: Session) -> None:
+        task = asyncio.create_task(self._run(session), name=f"webtransport {session.peer}")
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _run(self, session: Session) -> None:
+        try:
+            await self._serve(session)
+        except Exception as exc:  # never the listener's end because one session failed
+            log.warning("gateway: a WebTransport session failed: %s", excerpt(repr(exc)))
+        finally:
+            await session.close(1000, "")
+
+    async def close(self) -> None:
+        """Stop listening and end every session."""
+        for task in list(self._tasks):
+            task.cancel()
+        for task in list(self._tasks):
+            with contextlib.suppress(BaseException):
+                await task
+        if self._server is not None:
+            server, self._server = self._server, None
+            server.close()
