@@ -111,10 +111,13 @@ from telebot.router import certs
 from telebot.services.client import RobotClient, connect
 from telebot.testing.net import free_port
 
-#: The browser's way to the robot: Chromium (the page's own client, web/src) over HTTPS and a
-#: WebSocket to the robot's gateway: TCP underneath (the proxy in TCP mode).
+#: The browser's way to the robot: Chromium (the page's own client, web/src) on the robot's
+#: gateway, by WebTransport (HTTP/3 over QUIC: the proxy in UDP mode), the page's default.
 BROWSER = "browser"
-LINKS = ("tcp", "udp", "quic", BROWSER)
+#: The same page kept on its fallback, two WebSockets (TCP: the proxy in TCP mode).
+BROWSER_WS = "browser-ws"
+BROWSERS = (BROWSER, BROWSER_WS)
+LINKS = ("tcp", "udp", "quic", BROWSER, BROWSER_WS)
 #: What a browser row measures (its other columns print ``-``).
 BROWSER_FIGURES = ("stop_p99_ms", "glass_p50_ms", "glass_p99_ms", "false_trips_h")
 #: The link across the internet (``telebot-router``'s): every profile is measured on it.
@@ -131,6 +134,7 @@ ROWS: tuple[tuple[str, str], ...] = (
     ("4g", "udp"),
     ("wifi", BROWSER),
     ("4g", BROWSER),
+    ("4g", BROWSER_WS),
 )
 #: The rows of a quick run: one profile (every phase; the baseline's row would double it).
 QUICK_ROWS: tuple[tuple[str, str], ...] = (("4g", DEFAULT_LINK),)
@@ -373,10 +377,10 @@ class WanDaemon(Daemon):
         )
         self.link = link
         #: The link the robot's zenoh listens on (a browser reaches the gateway instead).
-        self.zenoh_link = "tcp" if link == BROWSER else link
+        self.zenoh_link = "tcp" if link in BROWSERS else link
         self.ca: Path | None = None
         self.gateway_port: int | None = None
-        if link == BROWSER:
+        if link in BROWSERS:
             self.gateway_port = free_port()
             with self.robot_config.open("a") as config:
                 config.write(f'[gateway]\nlisten = "127.0.0.1"\nport = {self.gateway_port}\n')
@@ -715,7 +719,7 @@ async def measure_row(
 ) -> None:
     """Every phase of one row through proxies with ``profile``."""
     watch_s = amounts.trip_watch_s if row.profile in TRIP_PROFILES else amounts.watch_s
-    if row.link == BROWSER:
+    if row.link in BROWSERS:
         await measure_browser_row(daemon, profile, row, amounts, watch_s)
         return
     audit = AuditTail(daemon.robot_home / "audit.jsonl")
@@ -761,32 +765,70 @@ async def measure_browser_row(
     daemon: WanDaemon, profile: Profile, row: Row, amounts: Amounts, watch_s: float
 ) -> None:
     """The browser's row: a nurse's page (bench/browser.py: a key made in the page by an
-    invite) through a TCP proxy with ``profile`` in front of the robot's gateway; key
-    presses that stop the driving robot (``browser.stops``), then the video watched while
-    the page drives (:func:`page_drive`)."""
+    invite) through proxies with ``profile`` in front of the robot's gateway (TCP for the
+    page and its WebSockets, UDP for its WebTransport; ``browser-ws`` rows get no
+    WebTransport offer, so the page keeps to its WebSockets); key presses that stop the
+    driving robot (``browser.stops``), then the video watched while the page drives
+    (:func:`page_drive`)."""
     assert daemon.gateway_port is not None
-    target = f"tcp/127.0.0.1:{daemon.gateway_port}"
     name = "nurse-" + row.profile  # one key per row: each row's page makes its own
+    want = "webtransport" if row.link == BROWSER else "websocket"
     with (
-        NetemProxy(profile, "tcp/127.0.0.1:0", target, SEED) as proxy,
+        NetemProxy(
+            profile, "tcp/127.0.0.1:0", f"tcp/127.0.0.1:{daemon.gateway_port}", SEED
+        ) as proxy,
+        NetemProxy(
+            profile, "udp/127.0.0.1:0", f"udp/127.0.0.1:{daemon.gateway_port}", SEED
+        ) as datagrams,
         tempfile.TemporaryDirectory(prefix="telebot-bench-wan-page-") as tmp,
     ):
         port = int(proxy.endpoint.rpartition(":")[2])
+        udp_port = int(datagrams.endpoint.rpartition(":")[2])
         way = browser.Way(row.name)  # collects the page's console and failed responses
         async with (
             browser.chromium(Path(tmp)) as chromium,
             browser.gateway_page(chromium, way) as page,
         ):
+            await page.route("**/webtransport", offer_through(udp_port, row.link))
             url = f"https://127.0.0.1:{port}/call?robot={daemon.robot}"
             await phase(row, "setup", browser.enrol(page, daemon, port, name, timeout=60))
             if not row.failed:
                 await phase(row, "call", page.goto(url, timeout=60_000))
+            if not row.failed:
+                await phase(row, "link", page_link_is(page, want))
             if not row.failed:
                 stops = browser.stops(page, daemon.robot_home, name, amounts.stops, row.stop)
                 await phase(row, "stops", stops)
                 await phase(row, "watch", page_watch(page, daemon.robot_home, watch_s, row))
             if row.failed:  # what the page said may tell why
                 row.notes += way.console[-3:]
+
+
+def offer_through(udp_port: int, link: str) -> Callable[[Any], Awaitable[None]]:
+    """A route for the page's ``/webtransport``: the gateway's offer with the UDP proxy's
+    port (so the page's QUIC goes through the emulator), or none for a ``browser-ws`` row."""
+
+    async def route(request: Any) -> None:
+        if link == BROWSER_WS:
+            await request.fulfill(status=404, json={"error": "off for this row"})
+            return
+        response = await request.fetch()
+        offer = await response.json()
+        offer["port"] = udp_port
+        await request.fulfill(response=response, json=offer)
+
+    return route
+
+
+async def page_link_is(page: Any, kind: str) -> None:
+    """The page's call reaches the gateway the way the row measures, or the phase fails."""
+    deadline = time.monotonic() + 60
+    while (found := await page.evaluate("() => window.telebotPort.linkKind()")) is None:
+        if time.monotonic() > deadline:
+            raise RuntimeError("the page opened no link to its gateway in 60 s")
+        await asyncio.sleep(0.2)
+    if found != kind:
+        raise RuntimeError(f"the page's link is {found}, not {kind}")
 
 
 async def page_watch(page: Any, home: Path, seconds: float, row: Row) -> None:
@@ -864,7 +906,7 @@ def row_line(row: Row, amounts: Amounts) -> str:
     trips = (
         f"{row.trips} trips in {row.drive_seconds:.0f} s of driving, " if row.drive_seconds else ""
     )
-    if row.link == BROWSER:
+    if row.link in BROWSERS:
         counted = f"{len(row.stop)} key presses, {len(row.glass)} frames watched in the page" + (
             f", {trips}{row.drops} calls dropped while driving" if trips else ""
         )
@@ -914,7 +956,7 @@ def report(rows: list[Row], drive: bool, amounts: Amounts, seconds: float) -> li
         cells = []
         for _, key in columns:
             value = figures[key]
-            if row.link == BROWSER and key not in BROWSER_FIGURES:
+            if row.link in BROWSERS and key not in BROWSER_FIGURES:
                 cells.append(f"{'-':>11}")
                 continue
             if key == "release_p99_ms" and not drive:

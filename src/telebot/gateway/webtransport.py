@@ -127,6 +127,7 @@ class Session:
         self._ready = asyncio.Event()
         self._control: int | None = None  # the browser's first bidirectional stream
         self._opened = asyncio.Event()  # set with its preamble: text can go back on it
+        self._broken: Refusal | None = None  # a stream without the preamble
         self._text = bytearray()
         self._streams: dict[int, bytearray] = {}
         self._out_streams: set[int] = set()
@@ -153,12 +154,15 @@ class Session:
             if stream_id != self._control:
                 self._push(Refusal("garbage", "a second bidirectional stream"))
                 return
+            if self._broken is not None:
+                return
             self._text += data
             if not self._opened.is_set():
                 if len(self._text) < len(PREAMBLE):
                     return
                 if self._text[: len(PREAMBLE)] != PREAMBLE:
-                    self._push(Refusal("garbage", "a stream that is not telebot's"))
+                    self._broken = Refusal("garbage", "a stream that is not telebot's")
+                    self._opened.set()  # a sender waiting for it: refused, not waiting on
                     return
                 del self._text[: len(PREAMBLE)]
                 self._opened.set()
@@ -224,12 +228,15 @@ class Session:
                 await asyncio.wait_for(progress.wait(), 0.1)
 
     async def send_text(self, text: str) -> None:
-        """A text message on the bidirectional stream (in order, reliable)."""
+        """A text message on the bidirectional stream (in order, reliable); raises
+        :class:`Refusal` when the browser opened none in time, or one not telebot's."""
         if not self._opened.is_set():  # the browser opens the stream (and speaks) first
             try:
                 await asyncio.wait_for(self._opened.wait(), OPEN_TIMEOUT)
             except TimeoutError:
-                raise ConnectionError("the browser opened no stream in time") from None
+                raise Refusal("timeout", "no stream opened in time") from None
+        if self._broken is not None:
+            raise self._broken
         if self.closed or self._control is None:
             raise ConnectionError("the WebTransport session is closed")
         self._protocol._quic.send_stream_data(self._control, text_frame(text))

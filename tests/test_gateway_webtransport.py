@@ -1,0 +1,169 @@
+"""The gateway over WebTransport (docs/protocol.md §26.5), with a Python client (aioquic).
+
+The same gateway as tests/test_gateway.py's (a real zenoh session behind it, one more on
+the "network" side), reached over HTTP/3 on UDP: the offer at ``/webtransport`` names the
+certificate the listener presents; a session is admitted with the same proof; PUTs go by
+datagram or by a stream of their own, SAMPLEs come back the same way by size; what breaks
+the framing is refused or cut in one line with the WebSocket's codes; sessions count
+against the gateway's caps. The browser's own client over it: tests/test_browser_e2e.py.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import json
+import os
+from typing import Any
+
+import pytest
+
+from conftest import wait_until
+from gateway_client import b64, parse_sample, proof, put_frame
+from rig import ROBOT, USER
+from telebot.gateway.core import Limits
+from telebot.identity import Identity
+from test_gateway import NS, Live, _another_gateway, _received_until, live
+from webtransport_client import Session, peer_certificate_der, session
+
+__all__ = ["live"]  # the fixture, shared with tests/test_gateway.py
+
+HOST = "127.0.0.1"
+
+
+async def _admit(wt: Session, who: Identity) -> dict[str, Any]:
+    wt.open_stream()
+    challenge = json.loads(await wt.receive())
+    assert challenge["op"] == "challenge", challenge
+    public, mac = proof(who.private_key, who.name, challenge)
+    wt.send_text(
+        json.dumps({"op": "admit", "name": who.name, "key": b64(public), "proof": b64(mac)})
+    )
+    answer: dict[str, Any] = json.loads(await wt.receive())
+    return answer
+
+
+def _port(live: Live) -> int:
+    assert live.gateway.listener is not None
+    return live.gateway.listener.port
+
+
+async def test_the_offer_names_the_certificate_the_listener_presents(live: Live) -> None:
+    async with live.http.get(live.gateway.url + "webtransport") as response:
+        assert response.status == 200
+        offer = await response.json()
+    assert offer["port"] == _port(live) and offer["path"] == "/gateway"
+    async with session(HOST, offer["port"]) as wt:
+        assert wt.status == 200
+        digest = hashlib.sha256(peer_certificate_der(wt)).digest()
+    assert offer["hashes"] == [base64.b64encode(digest).decode()]
+    # Another path is no session.
+    async with session(HOST, offer["port"], "/elsewhere") as wt:
+        assert wt.status == 404
+
+
+async def test_a_gateway_without_webtransport_says_so(live: Live) -> None:
+    async with _another_gateway(live, Limits(), webtransport=False) as gw:
+        assert gw.listener is None
+        async with live.http.get(gw.url + "webtransport") as response:
+            assert response.status == 404
+            assert "no WebTransport" in (await response.json())["error"]
+
+
+async def test_a_session_is_admitted_and_relays_by_datagram_and_by_stream(live: Live) -> None:
+    async with session(HOST, _port(live)) as wt:
+        assert await _admit(wt, live.alice) == {"op": "admitted", "name": USER}
+        hello_key = f"{NS}/robot/{ROBOT}/in/{USER}"
+        call_key = f"{NS}/robot/{ROBOT}/call/{USER}/0123456789abcdef/data"
+        big = os.urandom(20_000)
+
+        async def datagram() -> None:
+            wt.send_datagram(put_frame(hello_key, b"HELLO", lane=0))
+
+        async def stream() -> None:
+            wt.send_stream(put_frame(call_key, big))
+
+        pattern = f"{NS}/robot/{ROBOT}/**"
+        await _received_until(live.network, pattern, datagram, lambda s: s.payload == b"HELLO")
+        await _received_until(live.network, pattern, stream, lambda s: s.payload == big)
+        # The other way: a small SAMPLE as a datagram, a large one on a stream of its own.
+        wt.send_text(json.dumps({"op": "sub", "id": 7, "key": f"{NS}/user/{USER}/**"}))
+        inbox = f"{NS}/user/{USER}/0123456789abcdef/in/{ROBOT}"
+        publisher = live.network.publisher(inbox)
+        got: dict[int, bytes] = {}
+        for payload in (b"WELCOME", os.urandom(5_000)):
+            for _ in range(300):
+                publisher.put(payload)
+                try:
+                    message = await wt.receive(timeout=0.2)
+                except TimeoutError:
+                    continue
+                assert isinstance(message, bytes)
+                assert parse_sample(message) == (7, inbox, payload)
+                got[len(payload)] = message
+                break
+        assert set(got) == {7, 5_000}, "a SAMPLE did not reach the browser"
+        assert live.gateway.stats.cut == {} and live.gateway.stats.published >= 2
+
+
+@pytest.mark.parametrize(
+    ("case", "code"),
+    [("preamble", "garbage"), ("binary", "garbage"), ("oversize", "too_large")],
+)
+async def test_bad_framing_before_admission_is_refused_with_4001(
+    live: Live, case: str, code: str
+) -> None:
+    async with session(HOST, _port(live)) as wt:
+        if case == "preamble":
+            wt.send_raw(b"GET / HTTP/1.1\r\n")
+        else:
+            wt.open_stream()
+            assert json.loads(await wt.receive())["op"] == "challenge"
+            if case == "binary":
+                wt.send_datagram(os.urandom(100))
+            else:
+                wt.send_raw((1 << 30).to_bytes(4, "big"))
+        messages, (close_code, reason) = await wt.until_closed()
+    assert close_code == 4001 and reason == code
+    if case != "preamble":  # with no stream, nothing can be said before the close
+        answer = json.loads(messages[-1])
+        assert answer["op"] == "refused" and answer["code"] == code and len(answer["text"]) < 300
+    assert live.gateway.stats.refused == {code: 1}
+    assert live.gateway.stats.admitted == 0
+
+
+@pytest.mark.parametrize(
+    ("case", "code"), [("garbage", "garbage"), ("oversize", "too_large"), ("key", "key")]
+)
+async def test_bad_input_after_admission_cuts_off_with_4008(
+    live: Live, case: str, code: str
+) -> None:
+    async with session(HOST, _port(live)) as wt:
+        assert (await _admit(wt, live.alice))["op"] == "admitted"
+        if case == "garbage":
+            wt.send_datagram(b"\x09\x00")
+        elif case == "oversize":
+            wt.send_stream(b"\x01" * 40_000)
+        else:
+            wt.send_datagram(put_frame(f"{NS}/robot/{ROBOT}/call/bob/0123456789abcdef/ctl", b"x"))
+        messages, (close_code, reason) = await wt.until_closed()
+    assert close_code == 4008 and reason == code
+    cut = json.loads(messages[-1])
+    assert cut["op"] == "cut" and cut["code"] == code and len(cut["text"]) < 400
+    assert live.gateway.stats.cut == {code: 1}
+
+
+async def test_sessions_count_against_the_gateway_s_caps(live: Live) -> None:
+    async with _another_gateway(live, Limits(max_connections=1)) as gw:
+        assert gw.listener is not None
+        async with session(HOST, gw.listener.port) as first:
+            assert first.status == 200
+            first.open_stream()
+            assert json.loads(await first.receive())["op"] == "challenge"
+            async with session(HOST, gw.listener.port) as second:
+                assert second.status == 503
+            assert gw.stats.refused == {"full": 1}
+        # The first one gone, its place is free again.
+        await wait_until(lambda: not gw._sockets, timeout=30)
+        async with session(HOST, gw.listener.port) as third:
+            assert third.status == 200
