@@ -21,8 +21,11 @@ link's loss draws, as the connections' reads interleave). Rows:
   is retransmitted after TCP's timeout and holds up everything behind it) and ``udp/``
   (zenoh's datagram link: a lost datagram is gone; no TLS);
 - ``wifi`` and ``4g`` in a **browser** (``PROFILE/browser``): the nurse's or the relative's
-  way, a headless Chromium (bench/browser.py's) on the robot's own gateway (``[gateway]``,
-  HTTPS and its WebSocket: TCP), the proxy in TCP mode in front of the gateway; the page's
+  way, a headless Chromium (bench/browser.py's) on the robot's own gateway (``[gateway]``),
+  by WebTransport (HTTP/3 over QUIC, the page's default: a proxy in UDP mode in front of the
+  gateway's UDP port, the page's ``/webtransport`` offer pointed at it) and HTTPS for the
+  page itself (a proxy in TCP mode); ``4g/browser-ws`` is the same page on its fallback,
+  two WebSockets (TCP; no WebTransport offered). The page's
   key made by an invite, as a nurse would. Measured: key press → robot at rest (a key that
   is not a drive key, pressed while the robot drives to a goal; bench/browser.py's
   ``stops``), glass to glass in the page (the robot's capture time to the page's

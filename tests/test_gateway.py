@@ -220,6 +220,17 @@ def test_the_out_queue_sends_control_first_and_drops_only_data_behind_data() -> 
     assert queue.dropped_control == 2 and queue.pop() == "c2"
 
 
+def test_the_out_queue_holds_data_the_connection_has_no_room_for_never_control() -> None:
+    queue = OutQueue(Limits())
+    queue.push(b"P" * 5000, control=False)  # a picture's fragment: a stream of its own
+    queue.push(b"pose", control=False)
+    queue.push(b"CTL", control=True)
+    no_room = lambda item: len(item) < 1000  # noqa: E731  (QUIC's streams full)
+    assert queue.pop(no_room) == b"CTL"
+    assert queue.pop(no_room) is None and len(queue) == 2  # data keeps its order
+    assert queue.pop(lambda item: True) == b"P" * 5000 and queue.pop(no_room) == b"pose"
+
+
 # --- a live gateway in this process --------------------------------------------------------
 
 

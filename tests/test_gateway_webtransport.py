@@ -167,3 +167,36 @@ async def test_sessions_count_against_the_gateway_s_caps(live: Live) -> None:
         await wait_until(lambda: not gw._sockets, timeout=30)
         async with session(HOST, gw.listener.port) as third:
             assert third.status == 200
+
+
+def test_random_loss_does_not_shrink_the_window_below_the_floor_rate() -> None:
+    from aioquic.quic.congestion.reno import RenoCongestionControl
+    from aioquic.quic.packet_builder import QuicSentPacket
+
+    from telebot.gateway.webtransport import MIN_RATE, FloorReno
+
+    def lossy(control: RenoCongestionControl) -> int:
+        """An ocean's round trip, then a loss every round trip for 20 of them."""
+        control.on_rtt_measurement(now=0.0, rtt=0.32)
+        for n in range(20):
+            packet = QuicSentPacket(
+                epoch=3,
+                in_flight=True,
+                is_ack_eliciting=True,
+                is_crypto_packet=False,
+                packet_number=n,
+                packet_type=0,
+                sent_time=0.32 * n + 0.01,
+                sent_bytes=1200,
+            )
+            control.on_packet_sent(packet=packet)
+            control.on_packets_lost(now=0.32 * n + 0.02, packets=[packet])
+        return control.congestion_window
+
+    floor = int(MIN_RATE / 8 * 0.32)
+    assert lossy(RenoCongestionControl(max_datagram_size=1200)) < floor // 4  # plain Reno
+    assert lossy(FloorReno(max_datagram_size=1200)) == floor
+    persistent = FloorReno(max_datagram_size=1200)
+    persistent.on_rtt_measurement(now=0.0, rtt=0.32)
+    persistent.on_persistent_congestion()  # an outage
+    assert persistent.congestion_window == floor

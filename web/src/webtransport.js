@@ -19,6 +19,8 @@ const decoder = new TextDecoder();
 export const PREAMBLE = encoder.encode("TBG1");
 /** The largest message a gateway takes on a stream (a PUT's header, key and payload). */
 export const MAX_MESSAGE = 3 + 256 + 33060 + 1024 + 8;
+/** Datagrams the browser keeps for the page until it reads them (it drops the oldest beyond). */
+export const INCOMING_DATAGRAMS = 1024;
 /** Seconds a WebTransport admission may take before the page uses WebSockets instead. */
 export const TRY_FOR = 5;
 /** Seconds after a failed WebTransport attempt during which the page goes straight to WebSockets. */
@@ -116,6 +118,8 @@ export class WebTransportSocket {
       () => this._end(1006, ""),
     );
     this.opened = this._open();
+    // For whoever looks into a page (devtools, tests): the session's own counters.
+    this.getStats = () => this.wt.getStats?.();
   }
 
   async _open() {
@@ -125,6 +129,14 @@ export class WebTransportSocket {
       const bidi = await wt.createBidirectionalStream();
       this.text = bidi.writable.getWriter();
       this.text.write(PREAMBLE).catch(() => {});
+      // Browsers keep few datagrams for a page that is busy (one, or a few): a heartbeat
+      // arriving while the page decodes a picture would drop the one before it.
+      try {
+        wt.datagrams.incomingMaxBufferedDatagrams = INCOMING_DATAGRAMS;
+      } catch { /* an older browser: the next line */ }
+      try {
+        wt.datagrams.incomingHighWaterMark = INCOMING_DATAGRAMS;
+      } catch { /* a newer one: the line before */ }
       this.datagrams = wt.datagrams.writable.getWriter();
       this._readText(bidi.readable);
       this._readDatagrams(wt.datagrams.readable);

@@ -18,6 +18,7 @@ import hmac
 import json
 import re
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Final, Literal
 
@@ -422,13 +423,14 @@ class OutQueue:
             self.dropped_data += dropped
         return dropped
 
-    def pop(self) -> str | bytes | None:
-        """The next item to send (a control one if any), or None if nothing waits."""
+    def pop(self, data_ok: Callable[[str | bytes], bool] | None = None) -> str | bytes | None:
+        """The next item to send (a control one if any), or None if nothing waits; with
+        ``data_ok``, a data item only if it accepts it (the connection has room for it)."""
         if self._control:
             item = self._control.popleft()
             self._control_bytes -= len(item)
             return item
-        if self._data:
+        if self._data and (data_ok is None or data_ok(self._data[0])):
             item = self._data.popleft()
             self._data_bytes -= len(item)
             return item

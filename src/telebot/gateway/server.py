@@ -83,6 +83,8 @@ MAX_PUBLISHERS = 32
 MAX_HEADERS = 256
 _LANES = {"control": Lane.CONTROL, "data": Lane.DATA, "bulk": Lane.BULK}
 _RECEIVE = ReceiveLimits(max_samples=512, max_bytes=4_000_000, max_payload=MAX_PAYLOAD)
+#: How often (seconds) the writer looks again whether a connection has room for data.
+ROOM_POLL = 0.01
 #: How often (seconds) open connections are checked against the admitter's files, if changed.
 RECHECK = 5.0
 
@@ -466,9 +468,12 @@ class _Socket(Protocol):
 
     ``receive`` gives a text message (``str``), a binary one (``bytes``) or None once
     closed, and raises :class:`Refusal` for what the connection's own layer refused.
+    ``has_room`` says whether a data item would go now rather than wait behind others, so
+    control items are not held up behind it in the sender (§26.5).
     """
 
     async def receive(self) -> str | bytes | None: ...
+    def has_room(self, item: str | bytes) -> bool: ...
     async def send_text(self, text: str) -> None: ...
     async def send_bytes(self, data: bytes) -> None: ...
     async def close(self, code: int, reason: str) -> None: ...
@@ -491,6 +496,9 @@ class _WebSocket:
                 raise Refusal("too_large", f"a message the websocket refused: {msg.data}")
             if kind in (WSMsgType.CLOSE, WSMsgType.CLOSING, WSMsgType.CLOSED):
                 return None
+
+    def has_room(self, item: str | bytes) -> bool:
+        return True  # one TCP stream: aiohttp's send waits for its drain itself
 
     async def send_text(self, text: str) -> None:
         await self.ws.send_str(text)
@@ -722,10 +730,14 @@ class _Browser:
         loop = asyncio.get_running_loop()
         try:
             while True:
-                item = out.pop()
+                item = out.pop(sock.has_room)
                 if item is None:
                     self._waiting = waiting = loop.create_future()
-                    await waiting
+                    if len(out):  # data waits for room: look again soon, or at a new item
+                        with contextlib.suppress(TimeoutError):
+                            await asyncio.wait_for(waiting, ROOM_POLL)
+                    else:
+                        await waiting
                     continue
                 size = len(item)
                 if isinstance(item, bytes):

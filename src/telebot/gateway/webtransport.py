@@ -27,7 +27,7 @@ import hashlib
 import logging
 import struct
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Iterable
 from typing import Any
 
 from aioquic.asyncio.protocol import QuicConnectionProtocol
@@ -41,7 +41,10 @@ from aioquic.h3.events import (
     WebTransportStreamDataReceived,
 )
 from aioquic.quic.configuration import QuicConfiguration
+from aioquic.quic.congestion.base import K_MINIMUM_WINDOW, register_congestion_control
+from aioquic.quic.congestion.reno import RenoCongestionControl
 from aioquic.quic.events import ConnectionTerminated, ProtocolNegotiated, QuicEvent
+from aioquic.quic.packet_builder import QuicSentPacket
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
@@ -74,14 +77,58 @@ DATAGRAM_MAX = 1100
 #: Messages received and not yet served, per session; beyond it the session is cut
 #: (``flood``): the gateway's budget counts them as it serves them.
 INBOX = 4096
-#: Bytes handed to QUIC and not yet sent, per session, beyond which the gateway's writer
-#: waits (its own bounded queues then drop the oldest data, as for a slow WebSocket).
+#: Bytes of a session's streams handed to QUIC and not yet acknowledged, beyond which the
+#: gateway's writer waits (its own bounded queues then drop the oldest data, as for a slow
+#: WebSocket).
 BACKLOG = 64 * 1024
+#: Datagrams waiting in QUIC (its congestion window full) beyond which the oldest is dropped.
+DATAGRAMS_WAITING = 64
+#: Bits per second below which the gateway's QUIC does not shrink its window (:class:`FloorReno`):
+#: above a page's video (about 0.6 Mbit/s), below the slowest link profile (1 Mbit/s).
+MIN_RATE = 800_000
 #: Seconds the browser has to open its bidirectional stream after the session is accepted.
 OPEN_TIMEOUT = 10.0
 #: Seconds between PINGs on an idle connection (the idle timeout is three times it).
 KEEPALIVE = 10.0
 _CLOSE_CAPSULE = 0x2843  # CLOSE_WEBTRANSPORT_SESSION (draft-ietf-webtrans-http3)
+
+
+class FloorReno(RenoCongestionControl):
+    """New Reno that never shrinks its window below what :data:`MIN_RATE` needs over the
+    last round trip measured.
+
+    Plain Reno halves its window at every loss: on a radio link's random loss (1–5 %) or
+    across an ocean (a window regained at one packet per 0.32 s round trip), it ends far
+    below the video's rate, whose pictures then arrive seconds late or not at all (the
+    robot's stale-video lockout stops it). A real bottleneck below the floor shows as
+    delay instead, which the robot's video follows (its receiver reports, §17.4), as a
+    WebRTC sender's minimum bitrate does.
+    """
+
+    def __init__(self, *, max_datagram_size: int) -> None:
+        super().__init__(max_datagram_size=max_datagram_size)
+        self.floor = K_MINIMUM_WINDOW * max_datagram_size
+
+    def _lift(self) -> None:
+        self.congestion_window = max(self.congestion_window, self.floor)
+        if self.ssthresh is not None:
+            self.ssthresh = max(self.ssthresh, self.floor)
+
+    def on_rtt_measurement(self, *, now: float, rtt: float) -> None:
+        super().on_rtt_measurement(now=now, rtt=rtt)
+        self.floor = max(self.floor, int(MIN_RATE / 8 * min(rtt, 1.0)))
+        self._lift()
+
+    def on_packets_lost(self, *, now: float, packets: Iterable[QuicSentPacket]) -> None:
+        super().on_packets_lost(now=now, packets=packets)
+        self._lift()
+
+    def on_persistent_congestion(self) -> None:
+        super().on_persistent_congestion()
+        self._lift()
+
+
+register_congestion_control("telebot-floor-reno", FloorReno)
 
 
 def text_frame(text: str) -> bytes:
@@ -207,9 +254,9 @@ class Session:
     # --- to the browser ----------------------------------------------------------------
 
     def backlog(self) -> int:
-        """Bytes handed to QUIC for this session and not yet sent or acknowledged."""
+        """Bytes of this session's streams handed to QUIC and not yet acknowledged."""
         quic = self._protocol._quic
-        pending = sum(len(d) for d in quic._datagrams_pending)
+        pending = 0
         for stream_id in list(self._out_streams):
             stream = quic._streams.get(stream_id)
             if stream is None or stream.sender.is_finished:
@@ -219,13 +266,10 @@ class Session:
             pending += sender._buffer_stop - sender._buffer_start
         return pending
 
-    async def _room(self) -> None:
-        # QUIC sends more only as acknowledgements come in: look again at each packet.
-        progress = self._protocol._progress
-        while self.backlog() > BACKLOG and not self.closed:
-            progress.clear()
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(progress.wait(), 0.1)
+    def has_room(self, item: str | bytes) -> bool:
+        """Whether ``item`` goes now: text and datagrams always, a stream message while
+        less than :data:`BACKLOG` of this session's streams is unacknowledged."""
+        return isinstance(item, str) or len(item) <= DATAGRAM_MAX or self.backlog() <= BACKLOG
 
     async def send_text(self, text: str) -> None:
         """A text message on the bidirectional stream (in order, reliable); raises
@@ -243,12 +287,17 @@ class Session:
         self._protocol.transmit()
 
     async def send_bytes(self, data: bytes) -> None:
-        """One message: a datagram if it fits, else a unidirectional stream of its own."""
+        """One message: a datagram if it fits (QUIC sends datagrams ahead of streams, so a
+        heartbeat passes the pictures; the oldest dropped beyond :data:`DATAGRAMS_WAITING`),
+        else a unidirectional stream of its own (the gateway sends those only while
+        :meth:`has_room`)."""
         if self.closed:
             raise ConnectionError("the WebTransport session is closed")
-        await self._room()
         protocol = self._protocol
         if len(data) <= DATAGRAM_MAX:
+            waiting = protocol._quic._datagrams_pending
+            while len(waiting) >= DATAGRAMS_WAITING:
+                waiting.popleft()  # stale by now: newer ones say more
             protocol._http.send_datagram(self.session_id, data)
         else:
             stream_id = protocol._http.create_webtransport_stream(
@@ -289,12 +338,6 @@ class _Protocol(QuicConnectionProtocol):
         self._gone = asyncio.Event()
         self._ended = False
         self._keepalive: asyncio.TimerHandle | None = None
-        #: Set at each packet received (acknowledgements free room to send more).
-        self._progress = asyncio.Event()
-
-    def datagram_received(self, data: bytes | str, addr: Any) -> None:
-        super().datagram_received(data, addr)
-        self._progress.set()
 
     def quic_event_received(self, event: QuicEvent) -> None:
         if isinstance(event, ProtocolNegotiated):
@@ -415,6 +458,7 @@ class WebTransportListener:
             is_client=False,
             max_datagram_frame_size=65536,
             idle_timeout=3 * KEEPALIVE,
+            congestion_control_algorithm="telebot-floor-reno",
         )
         self._made = self._clock()
         self._rotate(force=True)

@@ -1,0 +1,129 @@
+// The WebTransport link's own parts (docs/protocol.md §26.5): its text framing, the offer
+// it takes from the gateway, and how WebTransportSocket maps a WebSocket's sends onto a
+// session (a stand-in WebTransport here: node has none). Against a real gateway in
+// Chromium: tests/test_browser_e2e.py; the gateway's side: tests/test_gateway_webtransport.py.
+import { test } from "node:test";
+import assert from "node:assert/strict";
+import { GatewayError } from "../src/gateway-link.js";
+import { PREAMBLE, TextFrames, WebTransportSocket, connectBest, textFrame, webTransportOffer } from "../src/webtransport.js";
+
+test("text frames round-trip across any split, and an oversize one is a GatewayError", () => {
+  const bytes = new Uint8Array([...textFrame('{"op":"challenge"}'), ...textFrame("é"), ...textFrame("")]);
+  for (let cut = 0; cut <= bytes.length; cut++) {
+    const frames = new TextFrames();
+    const got = [...frames.push(bytes.subarray(0, cut)), ...frames.push(bytes.subarray(cut))];
+    assert.deepEqual(got, ['{"op":"challenge"}', "é", ""]);
+  }
+  assert.deepEqual([...textFrame("ab")], [0, 0, 0, 2, 97, 98]);
+  const huge = new Uint8Array([0x7f, 0, 0, 0]);
+  assert.throws(() => new TextFrames().push(huge), (e) => e instanceof GatewayError && e.message.length < 200);
+});
+
+const goodOffer = { port: 8443, path: "/gateway", hashes: ["AAAA"] };
+
+test("the offer is read beside the page and checked; none without WebTransport", async () => {
+  const asked = [];
+  const fetchImpl = async (url) => {
+    asked.push(url);
+    return { ok: true, json: async () => goodOffer };
+  };
+  assert.equal(await webTransportOffer("wss://robot:8443/gateway", fetchImpl), null); // no WebTransport here
+  globalThis.WebTransport = class {};
+  try {
+    assert.deepEqual(await webTransportOffer("wss://robot:8443/gateway", fetchImpl), goodOffer);
+    assert.deepEqual(asked, ["https://robot:8443/webtransport"]);
+    for (const bad of [{ port: "1" }, { ...goodOffer, hashes: [1] }, { ...goodOffer, path: null }, null]) {
+      assert.equal(await webTransportOffer("wss://robot/", async () => ({ ok: true, json: async () => bad })), null);
+    }
+    assert.equal(await webTransportOffer("wss://robot/", async () => ({ ok: false })), null);
+    assert.equal(await webTransportOffer("wss://robot/", async () => { throw new Error("offline"); }), null);
+  } finally {
+    delete globalThis.WebTransport;
+  }
+});
+
+/** A stand-in WebTransport recording what is written where. */
+function fakeTransport() {
+  const written = { text: [], datagrams: [], streams: [] };
+  let closeWith;
+  class Fake {
+    constructor(url, options) {
+      this.url = url;
+      this.options = options;
+      this.ready = Promise.resolve();
+      this.closed = new Promise((resolve) => { closeWith = resolve; });
+      const writer = (into) => ({ write: async (chunk) => { into.push(chunk); }, close: async () => {} });
+      const empty = () => ({ getReader: () => ({ read: () => new Promise(() => {}), cancel: async () => {} }) });
+      this.datagrams = { maxDatagramSize: 1000, writable: { getWriter: () => writer(written.datagrams) }, readable: empty() };
+      this.incomingUnidirectionalStreams = empty();
+    }
+    async createBidirectionalStream() {
+      return { writable: { getWriter: () => ({ write: async (c) => { written.text.push(c); } }) }, readable: (() => ({ getReader: () => ({ read: () => new Promise(() => {}) }) }))() };
+    }
+    async createUnidirectionalStream() {
+      const chunks = [];
+      written.streams.push(chunks);
+      return { getWriter: () => ({ write: async (c) => { chunks.push(c); }, close: async () => {} }) };
+    }
+    close(info) { closeWith({ closeCode: info.closeCode, reason: "" }); }
+  }
+  return { Fake, written, end: (closeCode, reason) => closeWith({ closeCode, reason }) };
+}
+
+test("a WebTransportSocket sends text in order, small bytes as datagrams, large ones on a stream", async () => {
+  const { Fake, written, end } = fakeTransport();
+  const socket = new WebTransportSocket("wss://robot.local:8443/gateway", { port: 9443, path: "/gateway", hashes: ["AAEC"] }, Fake);
+  assert.equal(socket.wt.url, "https://robot.local:9443/gateway");
+  assert.deepEqual([...socket.wt.options.serverCertificateHashes[0].value], [0, 1, 2]);
+  await socket.opened;
+  // A busy page keeps the datagrams that arrive meanwhile (the browser's default: a few).
+  assert.equal(socket.wt.datagrams.incomingMaxBufferedDatagrams, 1024);
+  socket.send('{"op":"sub"}');
+  socket.send(new Uint8Array(1000));
+  socket.send(new Uint8Array(1001));
+  assert.equal(socket.bufferedAmount, 1001); // until QUIC took the stream
+  await new Promise((r) => setTimeout(r, 10));
+  assert.equal(socket.bufferedAmount, 0);
+  assert.deepEqual(written.text.map((c) => [...c]), [[...PREAMBLE], [...textFrame('{"op":"sub"}')]]);
+  assert.equal(written.datagrams.length, 1);
+  assert.equal(written.streams.length, 1);
+  assert.equal(written.streams[0][0].length, 1001);
+  const closes = [];
+  socket.onclose = (e) => closes.push(e);
+  end(4008, "flood");
+  await new Promise((r) => setTimeout(r, 0));
+  assert.deepEqual(closes, [{ code: 4008, reason: "flood" }]);
+  socket.send("after"); // closed: dropped, no throw
+  assert.equal(written.text.length, 2);
+});
+
+test("connectBest falls back to websockets when the WebTransport session never opens", async () => {
+  globalThis.WebTransport = class {
+    constructor() {
+      this.ready = Promise.reject(new Error("QUIC blocked"));
+      this.ready.catch(() => {});
+      this.closed = new Promise(() => {});
+    }
+    close() {}
+  };
+  const realFetch = globalThis.fetch;
+  globalThis.fetch = async () => ({ ok: true, json: async () => goodOffer });
+  const opened = [];
+  class NoWebSocket {
+    constructor(url) {
+      opened.push(url);
+      throw new Error("no network in this test");
+    }
+  }
+  try {
+    await assert.rejects(
+      connectBest("wss://robot:8443/gateway", { name: "alice", privateKey: new Uint8Array(32), publicKey: new Uint8Array(32), WebSocket: NoWebSocket }),
+      (e) => e instanceof GatewayError,
+    );
+    // The WebTransport attempt failed, so both of the split link's websockets were tried.
+    assert.deepEqual(opened, ["wss://robot:8443/gateway", "wss://robot:8443/gateway"]);
+  } finally {
+    delete globalThis.WebTransport;
+    globalThis.fetch = realFetch;
+  }
+});
