@@ -20,7 +20,7 @@ link's loss draws, as the connections' reads interleave). Rows:
 - ``4g`` on ``tcp/`` (zenoh's default link on a LAN; the proxy in TCP mode: a lost segment
   is retransmitted after TCP's timeout and holds up everything behind it) and ``udp/``
   (zenoh's datagram link: a lost datagram is gone; no TLS);
-- ``wifi`` and ``4g`` in a **browser** (``PROFILE/browser``): the nurse's or the relative's
+- every profile but ``lan`` in a **browser** (``PROFILE/browser``): the nurse's or the relative's
   way, a headless Chromium (bench/browser.py's) on the robot's own gateway (``[gateway]``),
   by WebTransport (HTTP/3 over QUIC, the page's default: a proxy in UDP mode in front of the
   gateway's UDP port, the page's ``/webtransport`` offer pointed at it) and HTTPS for the
@@ -137,6 +137,8 @@ ROWS: tuple[tuple[str, str], ...] = (
     ("4g", "udp"),
     ("wifi", BROWSER),
     ("4g", BROWSER),
+    ("intercontinental", BROWSER),
+    ("bad", BROWSER),
     ("4g", BROWSER_WS),
 )
 #: The rows of a quick run: one profile (every phase; the baseline's row would double it).

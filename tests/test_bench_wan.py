@@ -116,6 +116,7 @@ def test_a_missed_target_minus_the_delay_names_its_row_and_the_link_s_own_spread
 def test_rows_and_the_lossy_profile(wan: ModuleType) -> None:
     assert wan.parse_row("4g/quic") == ("4g", "quic") and wan.parse_row("wifi") == ("wifi", "quic")
     assert wan.parse_row("4g/browser") == ("4g", "browser")
+    assert wan.parse_row("bad/browser-ws") == ("bad", "browser-ws")
     with pytest.raises(ValueError, match="unknown profile 'moon'"):
         wan.parse_row("moon/tcp")
     with pytest.raises(ValueError, match="unknown link 'sctp'"):
@@ -140,4 +141,8 @@ def test_a_browser_row_shows_what_the_page_measured_and_dashes_elsewhere(wan: Mo
     )
     assert line in lines
     # A browser row compares ways to the robot: the RESULT stays the default link's.
-    assert wan.result_rows([row, wan.Row("4g", "quic")])[0].link == "quic"
+    fallback = wan.Row("4g", "browser-ws", 40.0, stop=[60.0], glass=[70.0], seconds=1.0)
+    assert [r.link for r in wan.result_rows([row, fallback, wan.Row("4g", "quic")])] == ["quic"]
+    cells = wan.report([fallback], drive=True, amounts=wan.FULL, seconds=1.0)
+    cells = [c.strip() for c in next(ln for ln in cells if "4g/browser-ws |" in ln).split("|")]
+    assert cells[5:8] == ["-", "-", "-"]  # the page's figures only, as on WebTransport
