@@ -12,7 +12,7 @@ to the same robot (the same home and key), one after the other:
 - **robot gateway**: the same daemon with ``[gateway]`` on 127.0.0.1 over HTTPS (the
   self-signed certificate it makes); the page it serves at ``https://127.0.0.1:PORT/``, the
   protocol in the page (the bundle, ``static/telebot-client.js``) over the gateway's
-  WebSocket. The browser's key is made in the page and registered the way a nurse would:
+  WebTransport session (HTTP/3 over QUIC, the page's default; docs/protocol.md §26.5). The browser's key is made in the page and registered the way a nurse would:
   ``telebot-robot invite nurse --role driver`` prints a link, the start page opens it, makes
   the key and accepts the invite (the gateway redeems it);
 - **router gateway**: ``telebot-router run DIR --listen tls/… --gateway 127.0.0.1:PORT`` in

@@ -10,11 +10,12 @@ Each browser user starts from nothing: the start page (``/``) makes the key, the
 admin runs ``telebot-robot invite NAME --role ROLE --url …`` (the real command, in its own
 process), the browser opens the printed link, which registers its key with the robot and
 pins the robot's; the call button opens the robot page (``/call?robot=…``), whose client
-(the bundle) calls the robot through the gateway. alice drives: a tap on the map is a goal
+(the bundle) calls the robot through the gateway, by WebTransport (HTTP/3 over QUIC, the
+page's default; dave's browser, without it, by two websockets). alice drives: a tap on the map is a goal
 the robot reaches, STOP stops it, and so do a touch on the video while it moves and the
 page hidden while it moves; the touch joystick drives it by hand, and lifting the finger
 releases it. When the network goes while alice drives (her page's
-websockets closed, new ones failing, until it comes back), the robot's deadman stops it,
+WebTransport sessions and websockets closed, new ones failing, until it comes back), the robot's deadman stops it,
 her page says so at once, and once the call is back shows it latched with re-arm as the
 one action. bob, invited as an observer in a second browser context, sees who drives,
 cannot drive, and may stop.
@@ -62,8 +63,8 @@ ROBOT_S = 30.0 + 10 * SLACK
 
 
 #: In every page, before its scripts: ``window.testNetwork.cut()`` closes the page's
-#: websockets (its gateway link) and makes new ones fail at once, as with the network gone,
-#: until ``restore()``.
+#: WebTransport sessions and websockets (its gateway link) and makes new ones fail at once,
+#: as with the network gone, until ``restore()``.
 NETWORK_SWITCH = """
 (() => {
   const Real = window.WebSocket;
@@ -189,8 +190,9 @@ async def invite(e2e: E2E, name: str, role: str) -> str:
     return links[0]
 
 
-async def join(e2e: E2E, name: str, role: str) -> User:
-    """A new phone: make a key on the start page, open an invite, accept it, call."""
+async def join(e2e: E2E, name: str, role: str, *, init_script: str = "") -> User:
+    """A new phone: make a key on the start page, open an invite, accept it, call
+    (``init_script``: more of the page's world, set before its scripts)."""
     context = await e2e.browser.new_context(
         viewport=PORTRAIT,
         has_touch=True,
@@ -200,6 +202,8 @@ async def join(e2e: E2E, name: str, role: str) -> User:
     )
     await context.add_init_script(NETWORK_SWITCH)
     await context.add_init_script(GENEROUS_CALLS)
+    if init_script:
+        await context.add_init_script(init_script)
     page = await context.new_page()
     page.on("pageerror", lambda error: e2e.page_errors.append(f"{name}: {error}"))
     user = User(name, context, page)
@@ -568,6 +572,22 @@ async def test_an_observer_sees_who_drives_cannot_drive_and_may_stop(e2e: E2E) -
     await alice.wait_for_function(
         "() => window.telebotUI.state.safety?.armed === false", timeout=PAGE_MS
     )
+
+
+async def test_a_browser_without_webtransport_calls_over_two_websockets(e2e: E2E) -> None:
+    # A browser with no WebTransport (or a network that blocks UDP: the same fallback, after
+    # its 5 s try) calls over the two websockets of protocol §26.2, and its stop stops.
+    dave = await join(e2e, "dave", "observer", init_script="delete window.WebTransport;")
+    page = dave.page
+    assert await page.evaluate("() => window.telebotPort.linkKind()") == "websocket"
+    open_sockets = await page.evaluate(
+        "() => window.testNetwork.sockets.filter((s) => s.readyState === WebSocket.OPEN).length"
+    )
+    assert open_sockets == 2, open_sockets
+    await page.wait_for_function("() => window.telebotUI.state.frames >= 3", timeout=PAGE_MS)
+    await drive_far(e2e, e2e.users["alice"].page)
+    await page.tap("#stop")
+    await stopped_by(e2e, "dave", "button")
 
 
 async def test_the_pages_threw_nothing(e2e: E2E) -> None:

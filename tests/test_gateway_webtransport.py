@@ -160,6 +160,7 @@ async def test_sessions_count_against_the_gateway_s_caps(live: Live) -> None:
             assert first.status == 200
             first.open_stream()
             assert json.loads(await first.receive())["op"] == "challenge"
+            assert gw._pending == {HOST: 1}  # counted by its own address
             async with session(HOST, gw.listener.port) as second:
                 assert second.status == 503
             assert gw.stats.refused == {"full": 1}

@@ -178,16 +178,17 @@ class Session:
         self._text = bytearray()
         self._streams: dict[int, bytearray] = {}
         self._out_streams: set[int] = set()
+        self._flooded = False
         self.closed = False
 
     # --- from the browser --------------------------------------------------------------
 
     def _push(self, item: str | bytes | Refusal | None) -> None:
-        if self.closed and item is not None:
+        if (self.closed or self._flooded) and item is not None:
             return
         if len(self._inbox) >= INBOX and item is not None:
             item = Refusal("flood", f"more than {INBOX} messages waiting")
-            self.closed = True
+            self._flooded = True  # nothing more taken; the gateway cuts it off at this one
         self._inbox.append(item)
         self._ready.set()
 
@@ -396,8 +397,9 @@ class _Protocol(QuicConnectionProtocol):
         self.transmit()
 
     def _accept(self, stream_id: int) -> None:
-        peer = self._transport.get_extra_info("peername") if self._transport else None
-        address = str(peer[0]) if peer else "?"
+        # The server's one UDP socket has no peer: the connection's current path has it.
+        paths = self._quic._network_paths
+        address = str(paths[0].addr[0]) if paths else "?"
         session = Session(self, stream_id, address, self._listener.max_message)
         if self._listener.admits(session) is not None:
             self._answer(stream_id, 503)
