@@ -201,3 +201,53 @@ def test_random_loss_does_not_shrink_the_window_below_the_floor_rate() -> None:
     persistent.on_rtt_measurement(now=0.0, rtt=0.32)
     persistent.on_persistent_congestion()  # an outage
     assert persistent.congestion_window == floor
+
+
+async def test_through_a_lossy_link_streams_arrive_whole_and_most_datagrams_arrive(
+    live: Live,
+) -> None:
+    # The `bad` profile (80 ± 40 ms, 5 % loss in bursts, 1 Mbit/s) between the browser and
+    # the gateway's UDP port: admission and text ride the reliable stream, each large SAMPLE
+    # its own stream (resent until whole), datagrams are lost now and then, never late.
+    from telebot.netem import NetemProxy
+
+    target = f"udp/{HOST}:{_port(live)}"
+    with NetemProxy("bad", f"udp/{HOST}:0", target, seed=7) as proxy:
+        port = int(proxy.endpoint.rpartition(":")[2])
+        async with session(HOST, port) as wt:
+            assert await _admit(wt, live.alice) == {"op": "admitted", "name": USER}
+            wt.send_text(json.dumps({"op": "sub", "id": 1, "key": f"{NS}/user/{USER}/**"}))
+            inbox = f"{NS}/user/{USER}/0123456789abcdef/in/{ROBOT}"
+            publisher = live.network.publisher(inbox)
+            pictures = [bytes([n]) * 5_000 for n in range(20)]
+            first = pictures[0]
+            for _ in range(300):  # until the subscription is declared
+                publisher.put(first)
+                try:
+                    message = await wt.receive(timeout=0.2)
+                except TimeoutError:
+                    continue
+                if isinstance(message, bytes) and parse_sample(message)[2] == first:
+                    break
+            for picture in pictures[1:]:
+                publisher.put(picture)
+            got: set[bytes] = set()
+            while not set(pictures[1:]) <= got:  # every one, whole (else a timeout here)
+                message = await wt.receive(timeout=30)
+                assert isinstance(message, bytes)
+                got.add(parse_sample(message)[2])
+            # 100 small PUTs as datagrams, 20 ms apart: most go through, some may not.
+            call_key = f"{NS}/robot/{ROBOT}/call/{USER}/0123456789abcdef/ctl"
+            seen: list[bytes] = []
+            sub = live.network.subscribe(
+                call_key, lambda batch: seen.extend(s.payload for s in batch)
+            )
+            try:
+                for n in range(100):
+                    wt.send_datagram(put_frame(call_key, n.to_bytes(2, "big"), lane=0))
+                    await wt.pump(0.02)
+                await wait_until(lambda: len(seen) >= 50, timeout=30)
+            finally:
+                sub.close()
+            assert len(set(seen)) == len(seen) <= 100  # none twice, nothing invented
+    assert live.gateway.stats.cut == {}
