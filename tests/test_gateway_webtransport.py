@@ -251,3 +251,31 @@ async def test_through_a_lossy_link_streams_arrive_whole_and_most_datagrams_arri
                 sub.close()
             assert len(set(seen)) == len(seen) <= 100  # none twice, nothing invented
     assert live.gateway.stats.cut == {}
+
+
+def test_the_certificate_is_short_lived_and_made_anew_half_way() -> None:
+    import datetime
+
+    from cryptography import x509
+
+    from telebot.gateway.webtransport import CERT_DAYS, WebTransportListener
+
+    now = [datetime.datetime(2026, 11, 27, tzinfo=datetime.UTC)]
+
+    async def never(session: Any) -> None:
+        raise AssertionError("no session here")
+
+    listener = WebTransportListener(
+        HOST, 0, admits=lambda s: None, serve_session=never, max_message=1, clock=lambda: now[0]
+    )
+    cert = listener._configuration.certificate
+    assert isinstance(cert, x509.Certificate)
+    life = cert.not_valid_after_utc - cert.not_valid_before_utc
+    assert (
+        datetime.timedelta(days=CERT_DAYS) <= life < datetime.timedelta(days=14)
+    )  # a browser's bound
+    first = listener.offer()["hashes"]
+    now[0] += datetime.timedelta(days=CERT_DAYS / 2 - 1)
+    assert listener.offer()["hashes"] == first
+    now[0] += datetime.timedelta(days=2)
+    assert listener.offer()["hashes"] != first

@@ -22,7 +22,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from telebot.errors import ConfigError
 
-__all__ = ["local_hosts", "self_signed", "server_context"]
+__all__ = ["local_hosts", "self_signed", "server_certificate", "server_context"]
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +52,36 @@ def local_hosts() -> list[str]:
     return list(dict.fromkeys(hosts))
 
 
+def server_certificate(
+    common_name: str, hosts: list[str], valid: datetime.timedelta
+) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey]:
+    """A self-signed server certificate (ECDSA P-256) for ``hosts`` (names or addresses),
+    valid from five minutes ago for ``valid``, and its new key."""
+    key = ec.generate_private_key(ec.SECP256R1())
+    names: list[x509.GeneralName] = []
+    for host in hosts:
+        try:
+            names.append(x509.IPAddress(ipaddress.ip_address(host)))
+        except ValueError:
+            names.append(x509.DNSName(host))
+    subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, common_name)])
+    now = datetime.datetime.now(datetime.UTC)
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(subject)
+        .issuer_name(subject)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - datetime.timedelta(minutes=5))
+        .not_valid_after(now + valid)
+        .add_extension(x509.SubjectAlternativeName(names), critical=False)
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH]), critical=False)
+        .sign(key, hashes.SHA256())
+    )
+    return cert, key
+
+
 def self_signed(directory: Path, hosts: list[str]) -> tuple[Path, Path, bool]:
     """``directory/cert.pem`` and ``key.pem``, made (self-signed, ten years) if missing.
 
@@ -61,28 +91,7 @@ def self_signed(directory: Path, hosts: list[str]) -> tuple[Path, Path, bool]:
     if cert_path.is_file() and key_path.is_file():
         return cert_path, key_path, False
     directory.mkdir(parents=True, exist_ok=True)
-    key = ec.generate_private_key(ec.SECP256R1())
-    names: list[x509.GeneralName] = []
-    for host in hosts:
-        try:
-            names.append(x509.IPAddress(ipaddress.ip_address(host)))
-        except ValueError:
-            names.append(x509.DNSName(host))
-    subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "telebot robot gateway")])
-    now = datetime.datetime.now(datetime.UTC)
-    cert = (
-        x509.CertificateBuilder()
-        .subject_name(subject)
-        .issuer_name(subject)
-        .public_key(key.public_key())
-        .serial_number(x509.random_serial_number())
-        .not_valid_before(now - datetime.timedelta(minutes=5))
-        .not_valid_after(now + datetime.timedelta(days=3650))
-        .add_extension(x509.SubjectAlternativeName(names), critical=False)
-        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-        .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH]), critical=False)
-        .sign(key, hashes.SHA256())
-    )
+    cert, key = server_certificate("telebot robot gateway", hosts, datetime.timedelta(days=3650))
     key_path.write_bytes(b"")
     key_path.chmod(0o600)
     key_path.write_bytes(

@@ -45,13 +45,11 @@ from aioquic.quic.congestion.base import K_MINIMUM_WINDOW, register_congestion_c
 from aioquic.quic.congestion.reno import RenoCongestionControl
 from aioquic.quic.events import ConnectionTerminated, ProtocolNegotiated, QuicEvent
 from aioquic.quic.packet_builder import QuicSentPacket
-from cryptography import x509
-from cryptography.hazmat.primitives import hashes, serialization
-from cryptography.hazmat.primitives.asymmetric import ec
-from cryptography.x509.oid import NameOID
+from cryptography.hazmat.primitives import serialization
 
 from telebot.errors import excerpt
 from telebot.gateway.core import Refusal
+from telebot.gateway.tls import server_certificate
 
 __all__ = [
     "CERT_DAYS",
@@ -135,25 +133,6 @@ def text_frame(text: str) -> bytes:
     """A text message on the session's bidirectional stream: ``u32 length ‖ UTF-8``."""
     data = text.encode()
     return struct.pack(">I", len(data)) + data
-
-
-def _certificate(now: datetime.datetime) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey]:
-    key = ec.generate_private_key(ec.SECP256R1())
-    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "telebot gateway")])
-    cert = (
-        x509.CertificateBuilder()
-        .subject_name(name)
-        .issuer_name(name)
-        .public_key(key.public_key())
-        .serial_number(x509.random_serial_number())
-        .not_valid_before(now - datetime.timedelta(minutes=5))
-        .not_valid_after(now + datetime.timedelta(days=CERT_DAYS))
-        # Chromium takes no certificate without a subject alternative name, even one pinned
-        # by its hash (whose names it does not check against the address).
-        .add_extension(x509.SubjectAlternativeName([x509.DNSName("localhost")]), critical=False)
-        .sign(key, hashes.SHA256())
-    )
-    return cert, key
 
 
 class Session:
@@ -470,7 +449,11 @@ class WebTransportListener:
         now = self._clock()
         if not force and now - self._made < datetime.timedelta(days=CERT_DAYS / 2):
             return
-        cert, key = _certificate(now)
+        # Chromium takes no certificate without a subject alternative name, even one pinned
+        # by its hash (whose names it does not check against the address).
+        cert, key = server_certificate(
+            "telebot gateway", ["localhost"], datetime.timedelta(days=CERT_DAYS)
+        )
         self._made = now
         self._configuration.certificate = cert
         self._configuration.private_key = key
