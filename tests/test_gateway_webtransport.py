@@ -17,6 +17,7 @@ import os
 from typing import Any
 
 import pytest
+from aioquic.buffer import encode_uint_var
 
 from conftest import wait_until
 from gateway_client import b64, parse_sample, proof, put_frame
@@ -133,7 +134,8 @@ async def test_bad_framing_before_admission_is_refused_with_4001(
 
 
 @pytest.mark.parametrize(
-    ("case", "code"), [("garbage", "garbage"), ("oversize", "too_large"), ("key", "key")]
+    ("case", "code"),
+    [("garbage", "garbage"), ("oversize", "too_large"), ("key", "key"), ("partial", "flood")],
 )
 async def test_bad_input_after_admission_cuts_off_with_4008(
     live: Live, case: str, code: str
@@ -144,6 +146,9 @@ async def test_bad_input_after_admission_cuts_off_with_4008(
             wt.send_datagram(b"\x09\x00")
         elif case == "oversize":
             wt.send_stream(b"\x01" * 40_000)
+        elif case == "partial":  # streams begun and never ended hold memory: 16 at most
+            for _ in range(17):
+                wt.send_partial(b"\x01\x00")
         else:
             wt.send_datagram(put_frame(f"{NS}/robot/{ROBOT}/call/bob/0123456789abcdef/ctl", b"x"))
         messages, (close_code, reason) = await wt.until_closed()
@@ -197,6 +202,11 @@ def test_random_loss_does_not_shrink_the_window_below_the_floor_rate() -> None:
     floor = int(MIN_RATE / 8 * 0.32)
     assert lossy(RenoCongestionControl(max_datagram_size=1200)) < floor // 4  # plain Reno
     assert lossy(FloorReno(max_datagram_size=1200)) == floor
+    # The floor follows the last round trip measured, down as well as up.
+    near = FloorReno(max_datagram_size=1200)
+    near.on_rtt_measurement(now=0.0, rtt=0.32)
+    near.on_rtt_measurement(now=1.0, rtt=0.05)
+    assert near.floor == int(MIN_RATE / 8 * 0.05)
     persistent = FloorReno(max_datagram_size=1200)
     persistent.on_rtt_measurement(now=0.0, rtt=0.32)
     persistent.on_persistent_congestion()  # an outage
@@ -249,7 +259,8 @@ async def test_through_a_lossy_link_streams_arrive_whole_and_most_datagrams_arri
                 await wait_until(lambda: len(seen) >= 50, timeout=30)
             finally:
                 sub.close()
-            assert len(set(seen)) == len(seen) <= 100  # none twice, nothing invented
+            sent = {n.to_bytes(2, "big") for n in range(100)}
+            assert len(set(seen)) == len(seen) and set(seen) <= sent  # none twice, none made up
     assert live.gateway.stats.cut == {}
 
 
@@ -279,3 +290,16 @@ def test_the_certificate_is_short_lived_and_made_anew_half_way() -> None:
     assert listener.offer()["hashes"] == first
     now[0] += datetime.timedelta(days=2)
     assert listener.offer()["hashes"] != first
+
+
+async def test_a_session_the_browser_closes_frees_its_place_at_once(live: Live) -> None:
+    async with session(HOST, _port(live)) as wt:
+        assert (await _admit(wt, live.alice))["op"] == "admitted"
+        assert live.gateway.stats.active == 1 and live.gateway._names == {USER: 1}
+        # A capsule of a browser's own (WT_MAX_STREAMS, say) ends nothing.
+        wt.send_capsule(0x190B4D3F, encode_uint_var(100))
+        wt.send_text(json.dumps({"op": "unsub", "id": 3}))
+        assert json.loads(await wt.receive())["code"] == "unknown_id"  # still served
+        wt.close_session()  # the QUIC connection stays: only the session ends
+        await wait_until(lambda: live.gateway.stats.active == 0, timeout=5)
+        assert not live.gateway._sockets and live.gateway._names == {}

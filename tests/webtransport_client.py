@@ -16,7 +16,7 @@ from typing import Any
 
 from aioquic.asyncio.client import connect
 from aioquic.asyncio.protocol import QuicConnectionProtocol
-from aioquic.buffer import Buffer
+from aioquic.buffer import Buffer, encode_uint_var
 from aioquic.h3.connection import H3_ALPN, FrameType, H3Connection
 from aioquic.h3.events import (
     DatagramReceived,
@@ -94,6 +94,25 @@ class Session:
         )
         self.client._quic.send_stream_data(stream_id, data, end_stream=True)
         self._flush()
+
+    def send_partial(self, data: bytes) -> None:
+        """Bytes on a new unidirectional stream, never ended."""
+        stream_id = self.client.h3.create_webtransport_stream(
+            self.session_id, is_unidirectional=True
+        )
+        self.client._quic.send_stream_data(stream_id, data)
+        self._flush()
+
+    def send_capsule(self, kind: int, body: bytes, end: bool = False) -> None:
+        """A capsule on the CONNECT stream (``end``: and the stream's end)."""
+        capsule = encode_uint_var(kind) + encode_uint_var(len(body)) + body
+        self.client.h3.send_data(self.session_id, capsule, end_stream=end)
+        self._flush()
+
+    def close_session(self, code: int = 0) -> None:
+        """Close the session (its capsule and the end of the CONNECT stream), keeping the
+        QUIC connection."""
+        self.send_capsule(0x2843, struct.pack(">I", code), end=True)
 
     def _event(self, event: Any) -> None:
         if isinstance(event, ConnectionTerminated):

@@ -156,8 +156,9 @@ export class WebTransportSocket {
         if (done) return;
         for (const text of frames.push(value)) this.onmessage({ data: text });
       }
-    } catch {
-      this.close(1002);
+    } catch (error) {
+      // Framing broken: our end. Anything else is the session ending: `closed` says how.
+      if (error instanceof GatewayError) this.close(1002);
     }
   }
 
@@ -195,13 +196,10 @@ export class WebTransportSocket {
       this.bufferedAmount += size;
       this.wt.createUnidirectionalStream().then(async (stream) => {
         const writer = stream.getWriter();
-        try {
-          await writer.write(data);
-          await writer.close();
-        } finally {
-          this.bufferedAmount -= size;
-        }
-      }).catch(() => { this.bufferedAmount = Math.max(0, this.bufferedAmount - size); });
+        await writer.write(data);
+        await writer.close();
+      }).catch(() => { /* the session ended: closed says so */ })
+        .finally(() => { this.bufferedAmount -= size; });
     }
   }
 
@@ -245,12 +243,16 @@ export async function webTransportOffer(url, fetchImpl = globalThis.fetch) {
  * The page's link to its gateway: one WebTransport session when the gateway offers it and
  * the browser reaches it within {@link TRY_FOR} s, else (and for {@link FALLBACK_FOR} s
  * after such a failure) {@link connectSplit}'s two WebSockets. `link.kind` says which.
- * A refusal (a wrong key, an invite used) is the gateway's answer: it is not retried.
+ * A refusal (a wrong key, too many connections) is the gateway's answer: it is not
+ * retried. An invite is redeemed on one WebSocket (`options.invite`).
  * @param {string} url @param {Parameters<typeof connectGateway>[1]} options
  */
 export async function connectBest(url, options) {
   const now = Date.now() / 1000;
-  const offer = now - failedAt > FALLBACK_FOR ? await webTransportOffer(url) : null;
+  // An invite is redeemed once: on one WebSocket, never on a try that may time out after
+  // the gateway used it up.
+  const tryIt = !options.invite && now - failedAt > FALLBACK_FOR;
+  const offer = tryIt ? await webTransportOffer(url) : null;
   if (offer) {
     try {
       const Socket = class extends WebTransportSocket {

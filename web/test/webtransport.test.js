@@ -97,31 +97,116 @@ test("a WebTransportSocket sends text in order, small bytes as datagrams, large 
   assert.equal(written.text.length, 2);
 });
 
-test("connectBest falls back to websockets when the WebTransport session never opens", async () => {
-  globalThis.WebTransport = class {
+/** A stand-in WebTransport whose session never opens (UDP blocked); counts its tries. */
+function blockedTransport(tries) {
+  return class {
     constructor() {
+      tries.push(1);
       this.ready = Promise.reject(new Error("QUIC blocked"));
       this.ready.catch(() => {});
       this.closed = new Promise(() => {});
     }
     close() {}
   };
+}
+
+class NoWebSocket {
+  static opened = [];
+  constructor(url) {
+    NoWebSocket.opened.push(url);
+    throw new Error("no network in this test");
+  }
+}
+
+const alice = { name: "alice", privateKey: new Uint8Array(32), publicKey: new Uint8Array(32), WebSocket: NoWebSocket };
+
+test("connectBest redeems an invite on a websocket, never trying WebTransport", async () => {
+  const tries = [];
+  globalThis.WebTransport = blockedTransport(tries);
   const realFetch = globalThis.fetch;
   globalThis.fetch = async () => ({ ok: true, json: async () => goodOffer });
-  const opened = [];
-  class NoWebSocket {
-    constructor(url) {
-      opened.push(url);
-      throw new Error("no network in this test");
-    }
-  }
+  NoWebSocket.opened = [];
   try {
+    await assert.rejects(connectBest("wss://robot:8443/gateway", { ...alice, invite: "T" }), (e) => e instanceof GatewayError);
+    assert.deepEqual(tries, []);
+    assert.deepEqual(NoWebSocket.opened, ["wss://robot:8443/gateway"]); // one, for the invite
+  } finally {
+    delete globalThis.WebTransport;
+    globalThis.fetch = realFetch;
+  }
+});
+
+test("connectBest falls back to websockets when the WebTransport session never opens", async () => {
+  const tries = [];
+  globalThis.WebTransport = blockedTransport(tries);
+  const realFetch = globalThis.fetch;
+  globalThis.fetch = async () => ({ ok: true, json: async () => goodOffer });
+  NoWebSocket.opened = [];
+  try {
+    await assert.rejects(connectBest("wss://robot:8443/gateway", alice), (e) => e instanceof GatewayError);
+    assert.equal(tries.length, 1); // WebTransport was tried, and failed
+    // Then both of the split link's websockets.
+    assert.deepEqual(NoWebSocket.opened, ["wss://robot:8443/gateway", "wss://robot:8443/gateway"]);
+    // Within the next minute the page goes straight to websockets.
+    await assert.rejects(connectBest("wss://robot:8443/gateway", alice));
+    assert.equal(tries.length, 1);
+  } finally {
+    delete globalThis.WebTransport;
+    globalThis.fetch = realFetch;
+  }
+});
+
+test("a refusal over WebTransport is the gateway's answer: not retried on websockets", async () => {
+  const { x25519 } = await import("@noble/curves/ed25519");
+  const { encodeKey } = await import("../src/gateway-link.js");
+  const tries = [];
+  class Refusing {
+    constructor() {
+      tries.push(1);
+      this.ready = Promise.resolve();
+      this.closed = new Promise(() => {});
+      const pending = [];
+      let wake = null;
+      const push = (text) => { pending.push(textFrame(text)); if (wake) wake(); };
+      this.readable = {
+        getReader: () => ({
+          read: async () => {
+            while (!pending.length) await new Promise((r) => { wake = r; });
+            return { value: pending.shift(), done: false };
+          },
+        }),
+      };
+      const never = () => ({ getReader: () => ({ read: () => new Promise(() => {}) }) });
+      this.datagrams = { maxDatagramSize: 1000, writable: { getWriter: () => ({ write: async () => {} }) }, readable: never() };
+      this.incomingUnidirectionalStreams = never();
+      this.writable = {
+        getWriter: () => ({
+          write: async (chunk) => {
+            if (chunk.length === 4) { // the preamble: the gateway challenges
+              push(JSON.stringify({ op: "challenge", v: 1, ns: "telebot", gateway: encodeKey(x25519.getPublicKey(new Uint8Array(32).fill(9))), nonce: encodeKey(new Uint8Array(32)) }));
+            } else {
+              push(JSON.stringify({ op: "refused", code: "wrong_key", text: "alice is admitted with another key" }));
+            }
+          },
+        }),
+      };
+    }
+    async createBidirectionalStream() { return { writable: this.writable, readable: this.readable }; }
+    close() {}
+  }
+  globalThis.WebTransport = Refusing;
+  const realFetch = globalThis.fetch;
+  globalThis.fetch = async () => ({ ok: true, json: async () => goodOffer });
+  NoWebSocket.opened = [];
+  try {
+    // A fresh copy of the module: the test before left it going straight to websockets.
+    const fresh = await import(`../src/webtransport.js?refusal=${Date.now()}`);
     await assert.rejects(
-      connectBest("wss://robot:8443/gateway", { name: "alice", privateKey: new Uint8Array(32), publicKey: new Uint8Array(32), WebSocket: NoWebSocket }),
-      (e) => e instanceof GatewayError,
+      fresh.connectBest("wss://robot:8443/gateway", alice),
+      (e) => e.code === "wrong_key" && /another key/.test(e.message),
     );
-    // The WebTransport attempt failed, so both of the split link's websockets were tried.
-    assert.deepEqual(opened, ["wss://robot:8443/gateway", "wss://robot:8443/gateway"]);
+    assert.equal(tries.length, 1);
+    assert.deepEqual(NoWebSocket.opened, []); // no websocket tried after a refusal
   } finally {
     delete globalThis.WebTransport;
     globalThis.fetch = realFetch;

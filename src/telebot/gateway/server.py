@@ -409,6 +409,7 @@ class Gateway:
                 text = "the gateway cannot read or write its lists (its log says why)"
                 raise Refusal("gateway_error", text) from exc
             self._names[admit.name] = self._names.get(admit.name, 0) + 1
+            sock.admitted = True  # from now on its PUTs are taken, whatever way they come
             try:
                 await sock.send_text(json.dumps({"op": "admitted", "name": admit.name}))
             except BaseException:
@@ -469,8 +470,11 @@ class _Socket(Protocol):
     ``receive`` gives a text message (``str``), a binary one (``bytes``) or None once
     closed, and raises :class:`Refusal` for what the connection's own layer refused.
     ``has_room`` says whether a data item would go now rather than wait behind others, so
-    control items are not held up behind it in the sender (§26.5).
+    control items are not held up behind it in the sender (§26.5). ``admitted`` is set
+    once the gateway admits it (before, a WebTransport session takes text only).
     """
+
+    admitted: bool
 
     async def receive(self) -> str | bytes | None: ...
     def has_room(self, item: str | bytes) -> bool: ...
@@ -484,6 +488,7 @@ class _WebSocket:
 
     def __init__(self, ws: web.WebSocketResponse) -> None:
         self.ws = ws
+        self.admitted = False
 
     async def receive(self) -> str | bytes | None:
         while True:

@@ -30,12 +30,14 @@ import time
 from collections.abc import Awaitable, Callable, Iterable
 from typing import Any
 
+from aioquic._buffer import Buffer, BufferReadError
 from aioquic.asyncio.protocol import QuicConnectionProtocol
 from aioquic.asyncio.server import QuicServer, serve
 from aioquic.buffer import encode_uint_var
 from aioquic.h3.connection import H3_ALPN, H3Connection
 from aioquic.h3.events import (
     DatagramReceived,
+    DataReceived,
     H3Event,
     HeadersReceived,
     WebTransportStreamDataReceived,
@@ -43,7 +45,7 @@ from aioquic.h3.events import (
 from aioquic.quic.configuration import QuicConfiguration
 from aioquic.quic.congestion.base import K_MINIMUM_WINDOW, register_congestion_control
 from aioquic.quic.congestion.reno import RenoCongestionControl
-from aioquic.quic.events import ConnectionTerminated, ProtocolNegotiated, QuicEvent
+from aioquic.quic.events import ConnectionTerminated, ProtocolNegotiated, QuicEvent, StreamReset
 from aioquic.quic.packet_builder import QuicSentPacket
 from cryptography.hazmat.primitives import serialization
 
@@ -72,9 +74,14 @@ CERT_DAYS = 13
 #: The largest message sent as one datagram; larger ones go on a stream of their own.
 #: QUIC packets here are at most 1,200 bytes, less their header, tag and frame headers.
 DATAGRAM_MAX = 1100
-#: Messages received and not yet served, per session; beyond it the session is cut
-#: (``flood``): the gateway's budget counts them as it serves them.
+#: Messages and bytes received and not yet served, per session; beyond either the session
+#: is cut (``flood``): the gateway's budget counts them as it serves them.
 INBOX = 4096
+INBOX_BYTES = 1_000_000
+#: Unidirectional streams of a session half received at once; beyond it: ``flood``.
+PARTIAL_STREAMS = 16
+#: Unacknowledged bytes on the text stream beyond which the browser is too slow: closed.
+TEXT_BACKLOG = 256 * 1024
 #: Bytes of a session's streams handed to QUIC and not yet acknowledged, beyond which the
 #: gateway's writer waits (its own bounded queues then drop the oldest data, as for a slow
 #: WebSocket).
@@ -84,11 +91,15 @@ DATAGRAMS_WAITING = 64
 #: Bits per second below which the gateway's QUIC does not shrink its window (:class:`FloorReno`):
 #: above a page's video (about 0.6 Mbit/s), below the slowest link profile (1 Mbit/s).
 MIN_RATE = 800_000
+#: The close code of a browser too slow to take its text messages (as a WebSocket's 1008).
+CLOSE_SLOW = 1008
 #: Seconds the browser has to open its bidirectional stream after the session is accepted.
 OPEN_TIMEOUT = 10.0
 #: Seconds between PINGs on an idle connection (the idle timeout is three times it).
 KEEPALIVE = 10.0
 _CLOSE_CAPSULE = 0x2843  # CLOSE_WEBTRANSPORT_SESSION (draft-ietf-webtrans-http3)
+#: The largest capsule a browser's CONNECT stream is expected to carry (its close: 1 KB).
+MAX_CAPSULE = 4096
 
 
 class FloorReno(RenoCongestionControl):
@@ -105,7 +116,7 @@ class FloorReno(RenoCongestionControl):
 
     def __init__(self, *, max_datagram_size: int) -> None:
         super().__init__(max_datagram_size=max_datagram_size)
-        self.floor = K_MINIMUM_WINDOW * max_datagram_size
+        self._minimum = self.floor = K_MINIMUM_WINDOW * max_datagram_size
 
     def _lift(self) -> None:
         self.congestion_window = max(self.congestion_window, self.floor)
@@ -114,7 +125,7 @@ class FloorReno(RenoCongestionControl):
 
     def on_rtt_measurement(self, *, now: float, rtt: float) -> None:
         super().on_rtt_measurement(now=now, rtt=rtt)
-        self.floor = max(self.floor, int(MIN_RATE / 8 * min(rtt, 1.0)))
+        self.floor = max(self._minimum, int(MIN_RATE / 8 * min(rtt, 1.0)))
         self._lift()
 
     def on_packets_lost(self, *, now: float, packets: Iterable[QuicSentPacket]) -> None:
@@ -158,6 +169,11 @@ class Session:
         self._streams: dict[int, bytearray] = {}
         self._out_streams: set[int] = set()
         self._flooded = False
+        self._capsule = bytearray()  # the CONNECT stream's capsules, received so far
+        self._inbox_bytes = 0
+        #: Datagrams and unidirectional streams are taken only once admitted (before, a
+        #: browser may only answer the challenge, on the text stream).
+        self.admitted = False
         self.closed = False
 
     # --- from the browser --------------------------------------------------------------
@@ -165,14 +181,21 @@ class Session:
     def _push(self, item: str | bytes | Refusal | None) -> None:
         if (self.closed or self._flooded) and item is not None:
             return
-        if len(self._inbox) >= INBOX and item is not None:
-            item = Refusal("flood", f"more than {INBOX} messages waiting")
+        size = len(item) if isinstance(item, (str, bytes)) else 0
+        if item is not None and (
+            len(self._inbox) >= INBOX or self._inbox_bytes + size > INBOX_BYTES
+        ):
+            item, size = Refusal("flood", f"more than {INBOX} messages waiting"), 0
             self._flooded = True  # nothing more taken; the gateway cuts it off at this one
+        self._inbox_bytes += size
         self._inbox.append(item)
         self._ready.set()
 
     def _datagram(self, data: bytes) -> None:
-        self._push(data)
+        if self.admitted:
+            self._push(data)
+        else:  # only the answer to the challenge, on the text stream, before admission
+            self._push(Refusal("garbage", "a datagram before admission"))
 
     def _stream_data(self, stream_id: int, data: bytes, ended: bool) -> None:
         if stream_id % 4 == 0:  # client-initiated bidirectional: the text stream
@@ -210,7 +233,15 @@ class Session:
             if ended:
                 self._push(None)
             return
-        buffer = self._streams.setdefault(stream_id, bytearray())
+        if not self.admitted:
+            self._push(Refusal("garbage", "a stream before admission"))
+            return
+        buffer = self._streams.get(stream_id)
+        if buffer is None:
+            if len(self._streams) >= PARTIAL_STREAMS:
+                self._push(Refusal("flood", f"more than {PARTIAL_STREAMS} streams at once"))
+                return
+            buffer = self._streams[stream_id] = bytearray()
         buffer += data
         if len(buffer) > self._max:
             self._streams.pop(stream_id, None)
@@ -219,12 +250,33 @@ class Session:
         if ended:
             self._push(bytes(self._streams.pop(stream_id)))
 
+    def _capsules(self, data: bytes) -> bool:
+        """Take capsules the browser sent on the CONNECT stream; whether one closes it."""
+        self._capsule += data
+        while self._capsule:
+            buf = Buffer(data=bytes(self._capsule))
+            try:
+                kind = buf.pull_uint_var()
+                body = buf.pull_uint_var()
+            except BufferReadError:
+                return False
+            if kind == _CLOSE_CAPSULE:
+                return True
+            if body > MAX_CAPSULE:  # nothing of ours is that large: not a browser's
+                return True
+            if buf.capacity - buf.tell() < body:
+                return False
+            del self._capsule[: buf.tell() + body]
+        return False
+
     async def receive(self) -> str | bytes | None:
         """The next message (see the class), waiting for it."""
         while not self._inbox:
             self._ready.clear()
             await self._ready.wait()
         item = self._inbox.popleft()
+        if isinstance(item, (str, bytes)):
+            self._inbox_bytes -= len(item)
         if isinstance(item, Refusal):
             raise item
         if item is None:
@@ -247,9 +299,15 @@ class Session:
         return pending
 
     def has_room(self, item: str | bytes) -> bool:
-        """Whether ``item`` goes now: text and datagrams always, a stream message while
-        less than :data:`BACKLOG` of this session's streams is unacknowledged."""
-        return isinstance(item, str) or len(item) <= DATAGRAM_MAX or self.backlog() <= BACKLOG
+        """Whether data ``item`` goes now (the gateway asks for data only): a datagram while
+        QUIC holds fewer than half :data:`DATAGRAMS_WAITING` (the rest is control's), a
+        stream message while less than :data:`BACKLOG` of this session's streams is
+        unacknowledged."""
+        if isinstance(item, str):
+            return True
+        if len(item) <= DATAGRAM_MAX:  # data datagrams leave half the queue to control ones
+            return len(self._protocol._quic._datagrams_pending) < DATAGRAMS_WAITING // 2
+        return self.backlog() <= BACKLOG
 
     async def send_text(self, text: str) -> None:
         """A text message on the bidirectional stream (in order, reliable); raises
@@ -258,12 +316,22 @@ class Session:
             try:
                 await asyncio.wait_for(self._opened.wait(), OPEN_TIMEOUT)
             except TimeoutError:
-                raise Refusal("timeout", "no stream opened in time") from None
+                self._broken = Refusal("timeout", "no stream opened in time")
         if self._broken is not None:
             raise self._broken
         if self.closed or self._control is None:
             raise ConnectionError("the WebTransport session is closed")
-        self._protocol._quic.send_stream_data(self._control, text_frame(text))
+        quic = self._protocol._quic
+        stream = quic._streams.get(self._control)
+        if stream is not None and (
+            stream.sender._buffer_stop - stream.sender._buffer_start > TEXT_BACKLOG
+        ):  # a browser that takes nothing: its queue stops here, and so does it
+            await self.close(CLOSE_SLOW, "slow")
+            raise ConnectionError("the browser takes no more text")
+        try:
+            quic.send_stream_data(self._control, text_frame(text))
+        except ValueError as exc:  # the stream ended meanwhile
+            raise ConnectionError(str(exc)) from None
         self._protocol.transmit()
 
     async def send_bytes(self, data: bytes) -> None:
@@ -274,17 +342,20 @@ class Session:
         if self.closed:
             raise ConnectionError("the WebTransport session is closed")
         protocol = self._protocol
-        if len(data) <= DATAGRAM_MAX:
-            waiting = protocol._quic._datagrams_pending
-            while len(waiting) >= DATAGRAMS_WAITING:
-                waiting.popleft()  # stale by now: newer ones say more
-            protocol._http.send_datagram(self.session_id, data)
-        else:
-            stream_id = protocol._http.create_webtransport_stream(
-                self.session_id, is_unidirectional=True
-            )
-            protocol._quic.send_stream_data(stream_id, data, end_stream=True)
-            self._out_streams.add(stream_id)
+        try:
+            if len(data) <= DATAGRAM_MAX:
+                waiting = protocol._quic._datagrams_pending
+                while len(waiting) >= DATAGRAMS_WAITING:
+                    waiting.popleft()  # stale by now: newer ones say more
+                protocol._http.send_datagram(self.session_id, data)
+            else:
+                stream_id = protocol._http.create_webtransport_stream(
+                    self.session_id, is_unidirectional=True
+                )
+                protocol._quic.send_stream_data(stream_id, data, end_stream=True)
+                self._out_streams.add(stream_id)
+        except ValueError as exc:  # the connection is closing
+            raise ConnectionError(str(exc)) from None
         protocol.transmit()
 
     async def close(self, code: int = 0, reason: str = "") -> None:
@@ -296,7 +367,7 @@ class Session:
         self._push(None)
         protocol = self._protocol
         with contextlib.suppress(Exception):
-            body = struct.pack(">I", code) + reason.encode()[:1024]
+            body = struct.pack(">I", code) + reason[:200].encode()
             capsule = encode_uint_var(_CLOSE_CAPSULE) + encode_uint_var(len(body)) + body
             protocol._http.send_data(self.session_id, capsule, end_stream=True)
             protocol.transmit()
@@ -322,7 +393,11 @@ class _Protocol(QuicConnectionProtocol):
     def quic_event_received(self, event: QuicEvent) -> None:
         if isinstance(event, ProtocolNegotiated):
             self._http = H3Connection(self._quic, enable_webtransport=True)
-            self._ping()
+            # A connection that opens no session in time is closed (it holds state here).
+            asyncio.get_running_loop().call_later(OPEN_TIMEOUT, self._no_session)
+        elif isinstance(event, StreamReset) and self._session is not None:
+            # HTTP/3 says nothing of a reset: what the stream brought so far is dropped here.
+            self._session._streams.pop(event.stream_id, None)
         elif isinstance(event, ConnectionTerminated):
             self._ended = True
             if self._keepalive is not None:
@@ -370,6 +445,20 @@ class _Protocol(QuicConnectionProtocol):
             and event.session_id == session.session_id
         ):
             session._stream_data(event.stream_id, event.data, event.stream_ended)
+        elif (
+            isinstance(event, DataReceived)
+            and event.stream_id == session.session_id
+            and (session._capsules(event.data) or event.stream_ended)
+        ):  # the browser's side of the CONNECT stream: capsules (its flow control, not
+            # ours to follow), its close capsule, or its end
+            session.closed = True
+            session._push(None)
+            self.end_soon()
+
+    def _no_session(self) -> None:
+        if self._session is None and not self._ended:
+            self._quic.close(error_code=0x10C, reason_phrase="no session")  # H3_REQUEST_CANCELLED
+            self.transmit()
 
     def _answer(self, stream_id: int, status: int) -> None:
         self._http.send_headers(stream_id, [(b":status", str(status).encode())], end_stream=True)
@@ -385,6 +474,7 @@ class _Protocol(QuicConnectionProtocol):
             self.end_soon()
             return
         self._session = session
+        self._ping()
         self._http.send_headers(
             stream_id, [(b":status", b"200"), (b"sec-webtransport-http3-draft", b"draft02")]
         )
