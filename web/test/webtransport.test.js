@@ -120,29 +120,33 @@ class NoWebSocket {
 
 const alice = { name: "alice", privateKey: new Uint8Array(32), publicKey: new Uint8Array(32), WebSocket: NoWebSocket };
 
-test("connectBest redeems an invite on a websocket, never trying WebTransport", async () => {
-  const tries = [];
-  globalThis.WebTransport = blockedTransport(tries);
+/** Run `body` in a browser with `Transport` as its WebTransport and the gateway's offer
+ * at /webtransport; nothing of it is left behind. */
+async function inBrowser(Transport, body) {
+  globalThis.WebTransport = Transport;
   const realFetch = globalThis.fetch;
   globalThis.fetch = async () => ({ ok: true, json: async () => goodOffer });
   NoWebSocket.opened = [];
   try {
-    await assert.rejects(connectBest("wss://robot:8443/gateway", { ...alice, invite: "T" }), (e) => e instanceof GatewayError);
-    assert.deepEqual(tries, []);
-    assert.deepEqual(NoWebSocket.opened, ["wss://robot:8443/gateway"]); // one, for the invite
+    await body();
   } finally {
     delete globalThis.WebTransport;
     globalThis.fetch = realFetch;
   }
+}
+
+test("connectBest redeems an invite on a websocket, never trying WebTransport", async () => {
+  const tries = [];
+  await inBrowser(blockedTransport(tries), async () => {
+    await assert.rejects(connectBest("wss://robot:8443/gateway", { ...alice, invite: "T" }), (e) => e instanceof GatewayError);
+    assert.deepEqual(tries, []);
+    assert.deepEqual(NoWebSocket.opened, ["wss://robot:8443/gateway"]); // one, for the invite
+  });
 });
 
 test("connectBest falls back to websockets when the WebTransport session never opens", async () => {
   const tries = [];
-  globalThis.WebTransport = blockedTransport(tries);
-  const realFetch = globalThis.fetch;
-  globalThis.fetch = async () => ({ ok: true, json: async () => goodOffer });
-  NoWebSocket.opened = [];
-  try {
+  await inBrowser(blockedTransport(tries), async () => {
     await assert.rejects(connectBest("wss://robot:8443/gateway", alice), (e) => e instanceof GatewayError);
     assert.equal(tries.length, 1); // WebTransport was tried, and failed
     // Then both of the split link's websockets.
@@ -150,10 +154,7 @@ test("connectBest falls back to websockets when the WebTransport session never o
     // Within the next minute the page goes straight to websockets.
     await assert.rejects(connectBest("wss://robot:8443/gateway", alice));
     assert.equal(tries.length, 1);
-  } finally {
-    delete globalThis.WebTransport;
-    globalThis.fetch = realFetch;
-  }
+  });
 });
 
 test("a refusal over WebTransport is the gateway's answer: not retried on websockets", async () => {
@@ -194,11 +195,7 @@ test("a refusal over WebTransport is the gateway's answer: not retried on websoc
     async createBidirectionalStream() { return { writable: this.writable, readable: this.readable }; }
     close() {}
   }
-  globalThis.WebTransport = Refusing;
-  const realFetch = globalThis.fetch;
-  globalThis.fetch = async () => ({ ok: true, json: async () => goodOffer });
-  NoWebSocket.opened = [];
-  try {
+  await inBrowser(Refusing, async () => {
     // A fresh copy of the module: the test before left it going straight to websockets.
     const fresh = await import(`../src/webtransport.js?refusal=${Date.now()}`);
     await assert.rejects(
@@ -207,8 +204,5 @@ test("a refusal over WebTransport is the gateway's answer: not retried on websoc
     );
     assert.equal(tries.length, 1);
     assert.deepEqual(NoWebSocket.opened, []); // no websocket tried after a refusal
-  } finally {
-    delete globalThis.WebTransport;
-    globalThis.fetch = realFetch;
-  }
+  });
 });
