@@ -56,8 +56,10 @@ from telebot.gateway.tls import server_certificate
 __all__ = [
     "CERT_DAYS",
     "DATAGRAM_MAX",
+    "MIN_RATE",
     "PATH",
     "PREAMBLE",
+    "FloorReno",
     "Session",
     "WebTransportListener",
     "text_frame",
@@ -190,6 +192,12 @@ class Session:
         self._inbox_bytes += size
         self._inbox.append(item)
         self._ready.set()
+
+    def _ended(self) -> None:
+        """The browser or its connection ended the session: :meth:`receive` says None."""
+        self.closed = True
+        self._opened.set()  # a sender waiting for the stream: it is over
+        self._push(None)
 
     def _datagram(self, data: bytes) -> None:
         if self.admitted:
@@ -373,10 +381,6 @@ class Session:
             protocol.transmit()
         protocol.end_soon()
 
-    async def wait_closed(self) -> None:
-        """Until the connection under the session is gone."""
-        await self._protocol._gone.wait()
-
 
 class _Protocol(QuicConnectionProtocol):
     """One QUIC connection: HTTP/3 with WebTransport, one session at most."""
@@ -386,7 +390,6 @@ class _Protocol(QuicConnectionProtocol):
         self._listener = listener
         self._http: H3Connection = None  # type: ignore[assignment]  # set when negotiated
         self._session: Session | None = None
-        self._gone = asyncio.Event()
         self._ended = False
         self._keepalive: asyncio.TimerHandle | None = None
 
@@ -403,11 +406,7 @@ class _Protocol(QuicConnectionProtocol):
             if self._keepalive is not None:
                 self._keepalive.cancel()
             if self._session is not None:
-                self._session.closed = True
-                self._session._opened.set()  # a sender waiting for the stream: it is over
-                self._session._inbox.append(None)
-                self._session._ready.set()
-            self._gone.set()
+                self._session._ended()
             return
         if self._http is None:
             return
@@ -451,8 +450,7 @@ class _Protocol(QuicConnectionProtocol):
             and (session._capsules(event.data) or event.stream_ended)
         ):  # the browser's side of the CONNECT stream: capsules (its flow control, not
             # ours to follow), its close capsule, or its end
-            session.closed = True
-            session._push(None)
+            session._ended()
             self.end_soon()
 
     def _no_session(self) -> None:
