@@ -91,6 +91,7 @@ NETWORK_SWITCH = """
       if (net.offline) throw new DOMException("the network is gone (a test)", "NetworkError");
       super(...args);
       net.sessions.push(this);
+      this.closed.finally(() => { this.ended = true; }).catch(() => {});
     }
   };
 })();
@@ -392,9 +393,15 @@ async def test_a_new_phone_makes_a_key_redeems_an_invite_and_calls(e2e: E2E) -> 
         shown,
     )
     assert spread > 40, spread
-    # The call runs on one WebTransport session to the gateway (HTTP/3 over QUIC: a lost
-    # packet of the video holds up no stop; web/src/webtransport.js), no websocket open.
+    # The call runs on WebTransport to the gateway (HTTP/3 over QUIC: a lost packet of the
+    # video holds up no stop; web/src/webtransport.js), two sessions (two QUIC connections:
+    # pictures filling one's congestion window never hold back the other's heartbeats and
+    # stops), no websocket open.
     assert await page.evaluate("() => window.telebotPort.linkKind()") == "webtransport"
+    sessions = await page.evaluate(
+        "() => window.testNetwork.sessions.filter((s) => !s.ended).length"
+    )
+    assert sessions == 2, sessions
     open_sockets = await page.evaluate(
         "() => window.testNetwork.sockets.filter((s) => s.readyState === WebSocket.OPEN).length"
     )

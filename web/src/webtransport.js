@@ -240,7 +240,7 @@ export async function webTransportOffer(url, fetchImpl = globalThis.fetch) {
 }
 
 /**
- * The page's link to its gateway: one WebTransport session when the gateway offers it and
+ * The page's link to its gateway: two WebTransport sessions as one {@link SplitLink} when the gateway offers it and
  * the browser reaches it within {@link TRY_FOR} s, else (and for {@link FALLBACK_FOR} s
  * after such a failure) {@link connectSplit}'s two WebSockets. `link.kind` says which.
  * A refusal (a wrong key, too many connections) is the gateway's answer: it is not
@@ -258,7 +258,10 @@ export async function connectBest(url, options) {
       const Socket = class extends WebTransportSocket {
         constructor(/** @type {string} */ to) { super(to, offer); }
       };
-      const link = await connectGateway(url, { ...options, WebSocket: /** @type {any} */ (Socket), timeout: Math.min(options.timeout ?? TRY_FOR, TRY_FOR) });
+      // Two sessions, as with WebSockets: each is a QUIC connection with a congestion
+      // window of its own, so pictures that fill one (Wi-Fi roaming: every packet of a
+      // 0.3 s gap unacknowledged) never hold back the heartbeats and stops on the other.
+      const link = await connectSplit(url, { ...options, WebSocket: /** @type {any} */ (Socket), timeout: Math.min(options.timeout ?? TRY_FOR, TRY_FOR) });
       link.kind = "webtransport";
       return link;
     } catch (error) {
