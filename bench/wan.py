@@ -64,7 +64,8 @@ telebot and the link's losses add to the speed of light):
   The share of frames never shown (lost, or skipped until the next keyframe) is printed
   beside it.
 - **reconnect**: the proxy forces a 3 s outage (``NetemProxy.outage``); from its end (the
-  heal) to the first pose of the new call. p99; target ≤ 1 s.
+  heal) to the first pose of the new call. p99; target ≤ 1 s. In a browser row both of the
+  page's proxies (UDP and TCP) are out, and the first pose is the page's (``page_reconnects``).
 
 Each figure's ratio to the ``lan`` row is printed (how much the network costs). A sample
 that fails (a dropped call, a refusal, a record that never came) is counted in the row's
@@ -122,7 +123,13 @@ BROWSER_WS = "browser-ws"
 BROWSERS = (BROWSER, BROWSER_WS)
 LINKS = ("tcp", "udp", "quic", BROWSER, BROWSER_WS)
 #: What a browser row measures (its other columns print ``-``).
-BROWSER_FIGURES = ("stop_p99_ms", "glass_p50_ms", "glass_p99_ms", "false_trips_h")
+BROWSER_FIGURES = (
+    "stop_p99_ms",
+    "glass_p50_ms",
+    "glass_p99_ms",
+    "reconnect_p99_ms",
+    "false_trips_h",
+)
 #: The link across the internet (``telebot-router``'s): every profile is measured on it.
 DEFAULT_LINK = "quic"
 BASELINE = "lan"
@@ -805,6 +812,10 @@ async def measure_browser_row(
                 stops = browser.stops(page, daemon.robot_home, name, amounts.stops, row.stop)
                 await phase(row, "stops", stops)
                 await phase(row, "watch", page_watch(page, daemon.robot_home, watch_s, row))
+                outages = page_reconnects(
+                    page, (proxy, datagrams), row, amounts.outages, amounts.outage_s
+                )
+                await phase(row, "outages", outages)
             if row.failed:  # what the page said may tell why
                 row.notes += way.console[-3:]
 
@@ -834,6 +845,45 @@ async def page_link_is(page: Any, kind: str) -> None:
         await asyncio.sleep(0.2)
     if found != kind:
         raise RuntimeError(f"the page's link is {found}, not {kind}")
+
+
+#: In the page: the wall-clock time (ms) of each pose it shows, with the page's count of
+#: reconnections then (``window.benchPoses``, the last 1,000).
+POSES_JS = """() => {
+  const ui = window.telebotUI;
+  window.benchPoses = [];
+  ui.hooks.message.push((m) => {
+    if (m.type !== "pose") return;
+    window.benchPoses.push([Date.now(), ui.stats.reconnected]);
+    if (window.benchPoses.length > 1000) window.benchPoses.shift();
+  });
+}"""
+
+
+async def page_reconnects(
+    page: Any, proxies: tuple[NetemProxy, ...], row: Row, outages: int, seconds: float
+) -> None:
+    """As :func:`measure_reconnects`, for the page: ``seconds`` of outage on all its
+    ``proxies`` at once (the network gone), then from the heal to the first pose the page
+    shows on its new call."""
+    await page.evaluate(POSES_JS)
+    for outage in range(1, outages + 1):
+        await page.wait_for_function("() => window.benchPoses.length > 0", timeout=60_000)
+        before = int(await browser.page_state(page, "ui.stats.reconnected"))
+        for proxy in proxies:
+            proxy.outage(seconds)
+        healed_ms = (time.time() + seconds) * 1000
+        back = (
+            "([healed, before]) => { const p = window.benchPoses.find(([t, n]) =>"
+            " t > healed && n > before); return p ? p[0] : null; }"
+        )
+        handle = await page.wait_for_function(
+            back, arg=[healed_ms, before], timeout=60_000, polling=5
+        )
+        row.reconnect.append(float(await handle.json_value()) - healed_ms)
+        if outage < outages:
+            await asyncio.sleep(0.5)  # the new call settles before the next outage
+            await page.evaluate("() => { window.benchPoses.length = 0; }")
 
 
 async def page_watch(page: Any, home: Path, seconds: float, row: Row) -> None:
@@ -912,8 +962,10 @@ def row_line(row: Row, amounts: Amounts) -> str:
         f"{row.trips} trips in {row.drive_seconds:.0f} s of driving, " if row.drive_seconds else ""
     )
     if row.link in BROWSERS:
-        counted = f"{len(row.stop)} key presses, {len(row.glass)} frames watched in the page" + (
-            f", {trips}{row.drops} calls dropped while driving" if trips else ""
+        counted = (
+            f"{len(row.stop)} key presses, {len(row.glass)} frames watched in the page"
+            + (f", {trips}{row.drops} calls dropped while driving" if trips else "")
+            + (f", {len(row.reconnect)} outages of {amounts.outage_s:g} s" if row.reconnect else "")
         )
     else:
         counted = (

@@ -127,17 +127,18 @@ def test_rows_and_the_lossy_profile(wan: ModuleType) -> None:
 
 def test_a_browser_row_shows_what_the_page_measured_and_dashes_elsewhere(wan: ModuleType) -> None:
     row = wan.Row("4g", "browser", 40.0, stop=[60.0, 250.0], glass=[70.0, 90.0], seconds=1.0)
-    row.trips, row.drive_seconds = 1, 36.0
+    row.trips, row.drive_seconds, row.reconnect = 1, 36.0, [300.0, 500.0]
     lines = wan.report([row], drive=True, amounts=wan.FULL, seconds=1.0)
     cells = [
         c.strip() for c in next(ln for ln in lines if ln.lstrip().startswith("4g/b")).split("|")
     ]
     assert cells[:5] == ["4g/browser", "40", "210.0", "30.0", "50.0"]  # stop p99, glass p50/p99
+    assert cells[7] == "500.0"  # reconnect p99: heal -> the page's first pose
     assert cells[8] == "100.00"  # trips/h: 1 in 36 s of the page driving
-    assert set(cells[5:8] + cells[9:]) == {"-"}  # late, unshown, reconnect, silence, release
+    assert set(cells[5:7] + cells[9:]) == {"-"}  # late, unshown, silence, release
     line = (
         "4g/browser (1 s): 2 key presses, 2 frames watched in the page, 1 trips in 36 s of "
-        "driving, 0 calls dropped while driving"
+        "driving, 0 calls dropped while driving, 2 outages of 3 s"
     )
     assert line in lines
     # A browser row compares ways to the robot: the RESULT stays the default link's.
@@ -145,4 +146,4 @@ def test_a_browser_row_shows_what_the_page_measured_and_dashes_elsewhere(wan: Mo
     assert [r.link for r in wan.result_rows([row, fallback, wan.Row("4g", "quic")])] == ["quic"]
     cells = wan.report([fallback], drive=True, amounts=wan.FULL, seconds=1.0)
     cells = [c.strip() for c in next(ln for ln in cells if "4g/browser-ws |" in ln).split("|")]
-    assert cells[5:8] == ["-", "-", "-"]  # the page's figures only, as on WebTransport
+    assert cells[5:7] == ["-", "-"]  # the page's figures only, as on WebTransport

@@ -175,6 +175,65 @@ async def test_sessions_count_against_the_gateway_s_caps(live: Live) -> None:
             assert third.status == 200
 
 
+def test_probes_keep_coming_every_quarter_second_through_an_outage() -> None:
+    from aioquic.quic.packet_builder import QuicSentPacket
+    from aioquic.quic.recovery import QuicPacketRecovery, QuicPacketSpace
+
+    from telebot.gateway.webtransport import MAX_PROBE_INTERVAL, cap_probe_backoff
+
+    def probe_times(capped: bool, rtt: float, outage: float) -> list[float]:
+        """When the probes go out while nothing comes back for ``outage`` s, and the first
+        one after it."""
+        recovery = QuicPacketRecovery(
+            congestion_control_algorithm="reno",
+            initial_rtt=0.1,
+            max_datagram_size=1200,
+            peer_completed_address_validation=True,
+            send_probe=lambda: None,
+        )
+        if capped:
+            cap_probe_backoff(recovery)
+        space = QuicPacketSpace()
+        space.is_application_data = True  # type: ignore[attr-defined]
+        recovery.spaces = [space]
+        recovery.handshake_confirmed = True
+        recovery._rtt_initialized, recovery._rtt_smoothed = True, rtt
+        recovery._rtt_variance = rtt / 4
+        def send(number: int, now: float) -> None:
+            packet = QuicSentPacket(
+                epoch=3,
+                in_flight=True,
+                is_ack_eliciting=True,
+                is_crypto_packet=False,
+                packet_number=number,
+                packet_type=0,
+                sent_time=now,
+                sent_bytes=1200,
+            )
+            recovery.on_packet_sent(packet=packet, space=space)
+
+        send(0, 0.0)
+        times: list[float] = []
+        while True:
+            due = recovery.get_loss_detection_time(amplification_limited=False)
+            assert due is not None
+            times.append(due)
+            if due > outage:
+                return times
+            recovery.on_loss_detection_timeout(now=due)
+            send(len(times), due)  # the probe (lost: the network is gone)
+
+    # 4G's round trip, a 3 s outage: with RFC 9002's doubling the first probe after the heal
+    # comes 2.7 s after it; capped, one goes every 0.25 s, the first within 0.25 s.
+    plain, capped = probe_times(False, 0.08, 3.0), probe_times(True, 0.08, 3.0)
+    assert plain[-1] - 3.0 > 1.0, plain
+    assert max(b - a for a, b in zip(capped, capped[1:], strict=False)) <= MAX_PROBE_INTERVAL
+    assert capped[-1] - 3.0 <= MAX_PROBE_INTERVAL
+    # Across an ocean the undoubled probe timeout is longer than the cap: it is kept.
+    ocean = probe_times(True, 0.32, 3.0)
+    assert min(b - a for a, b in zip(ocean, ocean[1:], strict=False)) > MAX_PROBE_INTERVAL
+
+
 def test_random_loss_does_not_shrink_the_window_below_the_floor_rate() -> None:
     from aioquic.quic.congestion.reno import RenoCongestionControl
     from aioquic.quic.packet_builder import QuicSentPacket

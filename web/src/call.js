@@ -85,7 +85,24 @@ export class Endpoint {
     this.inbox = link.subscribe(`${this.base}/in/*`, (/** @type {string} */ key, /** @type {Uint8Array} */ payload) =>
       this.onInbox(key, payload),
     );
+    /** @type {Map<string, (key: string, payload: Uint8Array) => void>} each call's DATA frames, by `robot/callId` */
+    this.dataRoutes = new Map();
+    // One subscription for every call's DATA key, made once with the link: a new call's
+    // pose and pictures need no subscription of their own, whose `sub` (on the link's
+    // bulk half) waited after a network outage until that half's own QUIC or TCP
+    // retransmissions got through, seconds after the call was back.
+    this.data = link.subscribe(`${this.base}/call/*/*/data`, (/** @type {string} */ key, /** @type {Uint8Array} */ payload) =>
+      this.onData(key, payload),
+    );
     this.token = link.declareToken(this.presenceKey);
+  }
+
+  /** @param {string} key @param {Uint8Array} payload */
+  onData(key, payload) {
+    const [robot, idHex] = key.slice(this.base.length + "/call/".length).split("/");
+    const route = this.dataRoutes.get(`${robot}/${idHex}`);
+    if (route) route(key, payload);
+    else this.reject("unknown_call"); // a call that ended (or never was): its frames go nowhere
   }
 
   /** @param {string} reason */
@@ -146,8 +163,11 @@ export class Endpoint {
       if (live) live.receive(payload);
       else if (early.length < EARLY_FRAMES) early.push(payload);
     };
-    // The call's keys are listened on before the first HELLO goes out (§2.1).
-    const subscriptions = [link.subscribe(`${callBase}/ctl`, onCallFrame), link.subscribe(`${callBase}/data`, onCallFrame)];
+    // The call's keys are listened on before the first HELLO goes out (§2.1): its CONTROL
+    // key here, its DATA key by the endpoint's one subscription.
+    const route = `${robot}/${idHex}`;
+    this.dataRoutes.set(route, onCallFrame);
+    const subscriptions = [link.subscribe(`${callBase}/ctl`, onCallFrame), { close: () => this.dataRoutes.delete(route) }];
     /** @type {Map<string, boolean>} */
     const tokens = new Map();
     const prefix = `${this.ns}/presence/robot/${robot}/`;
@@ -244,6 +264,11 @@ export class Endpoint {
     }
   }
 
+  /** The link closed under this endpoint: every call being set up fails now (CallError). */
+  linkClosed() {
+    for (const fail of [...this.failPending.values()]) fail(new CallError("the link to the gateway closed"));
+  }
+
   /**
    * Hang up every call ("shutting down"), then withdraw the presence token 50 ms after
    * the last HANGUP (so the robot sees the hang-up, not a drop), then the inbox.
@@ -257,6 +282,7 @@ export class Endpoint {
     const wait = this.lastHangup + TOKEN_GRACE_MS - performance.now();
     if (wait > 0) await new Promise((resolve) => setTimeout(resolve, wait));
     this.token.close();
+    this.data.close();
     this.inbox.close();
   }
 }

@@ -4,7 +4,7 @@
 // Conditions are polled, never timed.
 import { test } from "node:test";
 import assert from "node:assert/strict";
-import { CallEnded, CallRejected, CallTimeout, KeyMismatch } from "../src/errors.js";
+import { CallEnded, CallError, CallRejected, CallTimeout, KeyMismatch } from "../src/errors.js";
 import { toHex, utf8 } from "../src/bytes.js";
 import { encodeKey, generateKeyPair } from "../src/identity.js";
 import { decodeFrame, encodeRetry, encodeWelcome } from "../src/proto/frames.js";
@@ -125,7 +125,12 @@ test("a call: keys, lanes, early frames, echo, heartbeats with rtt, hang-up copi
   const endpoint = new Endpoint({ link, name: "alice", privateKey: alice.privateKey, suites: ["chachapoly"] });
   const base = `telebot/user/alice/${endpoint.instance}`;
   assert.match(endpoint.instance, /^[0-9a-f]{16}$/);
-  assert.deepEqual(link.log.slice(-2).map((e) => [e.op, e.key]), [["sub", `${base}/in/*`], ["token", `telebot/presence/user/alice/${endpoint.instance}`]]);
+  // The inbox, every call's DATA key (one subscription for all calls), then the token.
+  assert.deepEqual(link.log.slice(-3).map((e) => [e.op, e.key]), [
+    ["sub", `${base}/in/*`],
+    ["sub", `${base}/call/*/*/data`],
+    ["token", `telebot/presence/user/alice/${endpoint.instance}`],
+  ]);
   /** @type {any[]} */
   const unrouted = [];
   const call = await endpoint.call("guiabot", encodeKey(robot.keys.publicKey));
@@ -166,6 +171,11 @@ test("a call: keys, lanes, early frames, echo, heartbeats with rtt, hang-up copi
   await until(() => robot.received.some((r) => r.ended), "the robot sees the hang-up");
   assert.deepEqual(robot.received.at(-1).ended, { kind: "hung_up", byPeer: true, detail: "bye" });
   assert.throws(() => chat.send("late"), CallEnded);
+  // A frame on the ended call's DATA key reaches no call: counted, dropped.
+  const subsBefore = link.log.filter((e) => e.op === "sub").length;
+  link.publish(`${base}/call/guiabot/${call.id}/data`, new Uint8Array(40), "data");
+  await until(() => endpoint.rejected.unknown_call === 1, "the late frame counted");
+  assert.equal(link.log.filter((e) => e.op === "sub").length, subsBefore); // no call made a sub of its own for DATA
   clearInterval(robot.timer);
   await endpoint.close();
   assert.equal(link.log.at(-1)?.op, "untoken");
@@ -213,6 +223,10 @@ test("set-up failures: refusal, no answer, KEY MISMATCH, closing while calling",
   // guiabot is online with another key than the one given: at once, without a timeout.
   const wrong = generateKeyPair().publicKey;
   await assert.rejects(endpoint.call("guiabot", wrong, { timeout: 600 }), (e) => e instanceof KeyMismatch && e.message.includes(encodeKey(robot.keys.publicKey)));
+  // The link closed under the endpoint: a call being set up fails at once.
+  const orphan = endpoint.call("ghost", wrong, { timeout: 600 });
+  endpoint.linkClosed();
+  await assert.rejects(orphan, (e) => e instanceof CallError && /the link to the gateway closed/.test(e.message));
   const pending = endpoint.call("ghost", wrong, { timeout: 600 });
   await endpoint.close();
   await assert.rejects(pending, /the endpoint closed while calling/);

@@ -99,3 +99,30 @@ test("a link the gateway closed is opened again on the session's redial, with a 
   await session.o.connect(); // while the new link is open, it is reused
   assert.equal(seen.links, 2);
 });
+
+test("a link that closes while a call is being set up fails that call at once; the next opens a new link", async () => {
+  const { deps, seen, h } = rig();
+  const links = [];
+  deps.openLink = async () => {
+    const link = { closed: false, onclose: null, close() { this.closed = true; } };
+    links.push(link);
+    return link;
+  };
+  deps.Endpoint = class {
+    constructor(o) { seen.endpoint = o; this.fails = []; }
+    call() { return new Promise((resolve, reject) => this.fails.push(reject)); } // the robot never answers
+    linkClosed() { for (const fail of this.fails.splice(0)) fail(new Error("the link to the gateway closed")); }
+    close() { seen.closed.push("endpoint"); }
+  };
+  robotPort("guiabot", deps).connect(h);
+  await settle();
+  const session = seen.sessions[0];
+  const attempt = session.o.connect(); // a redial, waiting for the robot on the first link
+  links[0].closed = true;
+  links[0].onclose({ code: "closed", text: "Connection lost" }); // Chromium ended the QUIC connection
+  await assert.rejects(attempt, /the link to the gateway closed/); // at once, not after 10 s
+  session.o.connect().catch(() => {});
+  await settle();
+  assert.equal(links.length, 2); // the next attempt is on a new link
+  assert.equal(typeof links[1].onclose, "function");
+});
