@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import base64
 import hashlib
-import json
 import itertools
+import json
 import os
 from typing import Any
 
@@ -200,6 +200,7 @@ def test_probes_keep_coming_every_quarter_second_through_an_outage() -> None:
         recovery.handshake_confirmed = True
         recovery._rtt_initialized, recovery._rtt_smoothed = True, rtt
         recovery._rtt_variance = rtt / 4
+
         def send(number: int, now: float) -> None:
             packet = QuicSentPacket(
                 epoch=3,
