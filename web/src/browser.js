@@ -50,9 +50,9 @@ export const telebot = {
   WebTransportSocket,
   // The pages served by a gateway: the start page (gateway.html) and the robot page's
   // port (static/port.js), each through an admitted link to the gateway beside the page:
-  // a WebTransport session when the gateway offers one and the browser reaches it, else two
-  // websockets, control on one (what the page sends of it on both), pictures and sound on
-  // the other (webtransport.js and gateway-link.js's SplitLink say why).
+  // two WebTransport sessions when the gateway offers them and the browser reaches it, else
+  // two websockets; either way control on one (what the page sends of it on both), pictures
+  // and sound on the other (webtransport.js and gateway-link.js's SplitLink say why).
   ...pageApi({ Endpoint, RobotSession, openLink: (a) => connectBest(a.url, a) }),
 };
 /** @type {any} */ (globalThis).telebot = telebot;

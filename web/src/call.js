@@ -87,14 +87,23 @@ export class Endpoint {
     );
     /** @type {Map<string, (key: string, payload: Uint8Array) => void>} each call's DATA frames, by `robot/callId` */
     this.dataRoutes = new Map();
-    // One subscription for every call's DATA key, made once with the link: a new call's
-    // pose and pictures need no subscription of their own, whose `sub` (on the link's
-    // bulk half) waited after a network outage until that half's own QUIC or TCP
-    // retransmissions got through, seconds after the call was back.
-    this.data = link.subscribe(`${this.base}/call/*/*/data`, (/** @type {string} */ key, /** @type {Uint8Array} */ payload) =>
-      this.onData(key, payload),
-    );
+    /** @type {Map<string, {close: () => void}>} one subscription per robot for its calls' DATA keys */
+    this.dataSubscriptions = new Map();
     this.token = link.declareToken(this.presenceKey);
+  }
+
+  /**
+   * Listen to every call's DATA key with `robot` (once per robot, kept while the endpoint
+   * lives): a redialled call's pose and pictures then need no subscription of their own,
+   * whose `sub` (on the link's bulk half) waited after a network outage until that half's
+   * own QUIC or TCP retransmissions got through, seconds after the call was back. Only
+   * `robot` may publish on these keys (protocol §22.2).
+   * @param {string} robot
+   */
+  listenToDataOf(robot) {
+    if (this.dataSubscriptions.has(robot)) return;
+    const keyExpr = `${this.base}/call/${robot}/*/data`;
+    this.dataSubscriptions.set(robot, this.link.subscribe(keyExpr, (/** @type {string} */ key, /** @type {Uint8Array} */ payload) => this.onData(key, payload)));
   }
 
   /** @param {string} key @param {Uint8Array} payload */
@@ -167,6 +176,7 @@ export class Endpoint {
     // key here, its DATA key by the endpoint's one subscription.
     const route = `${robot}/${idHex}`;
     this.dataRoutes.set(route, onCallFrame);
+    this.listenToDataOf(robot);
     const subscriptions = [link.subscribe(`${callBase}/ctl`, onCallFrame), { close: () => this.dataRoutes.delete(route) }];
     /** @type {Map<string, boolean>} */
     const tokens = new Map();
@@ -282,7 +292,7 @@ export class Endpoint {
     const wait = this.lastHangup + TOKEN_GRACE_MS - performance.now();
     if (wait > 0) await new Promise((resolve) => setTimeout(resolve, wait));
     this.token.close();
-    this.data.close();
+    for (const subscription of this.dataSubscriptions.values()) subscription.close();
     this.inbox.close();
   }
 }

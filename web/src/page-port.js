@@ -82,6 +82,9 @@ export function robotPort(robot, deps) {
           opened.onclose = () => {
             if (link === opened) endpoint?.linkClosed();
           };
+          // Closed already (one half went while the other was being admitted): the next
+          // attempt opens another.
+          if (opened.closed) throw new Error("the link to the gateway closed as it opened");
         }
         if (!endpoint) endpoint = new deps.Endpoint({ link, name: me.name, privateKey: me.privateKey });
         return endpoint.call(robot, robotKey);

@@ -125,12 +125,7 @@ test("a call: keys, lanes, early frames, echo, heartbeats with rtt, hang-up copi
   const endpoint = new Endpoint({ link, name: "alice", privateKey: alice.privateKey, suites: ["chachapoly"] });
   const base = `telebot/user/alice/${endpoint.instance}`;
   assert.match(endpoint.instance, /^[0-9a-f]{16}$/);
-  // The inbox, every call's DATA key (one subscription for all calls), then the token.
-  assert.deepEqual(link.log.slice(-3).map((e) => [e.op, e.key]), [
-    ["sub", `${base}/in/*`],
-    ["sub", `${base}/call/*/*/data`],
-    ["token", `telebot/presence/user/alice/${endpoint.instance}`],
-  ]);
+  assert.deepEqual(link.log.slice(-2).map((e) => [e.op, e.key]), [["sub", `${base}/in/*`], ["token", `telebot/presence/user/alice/${endpoint.instance}`]]);
   /** @type {any[]} */
   const unrouted = [];
   const call = await endpoint.call("guiabot", encodeKey(robot.keys.publicKey));
@@ -144,6 +139,9 @@ test("a call: keys, lanes, early frames, echo, heartbeats with rtt, hang-up copi
   const firstHello = link.log.indexOf(/** @type {any} */ (hello));
   const ctl = link.log.findIndex((e) => e.op === "sub" && e.key === `${base}/call/guiabot/${call.id}/ctl`);
   assert.ok(ctl >= 0 && ctl < firstHello);
+  // DATA: one subscription for every call with guiabot, kept while the endpoint lives.
+  const data = link.log.findIndex((e) => e.op === "sub" && e.key === `${base}/call/guiabot/*/data`);
+  assert.ok(data >= 0 && data < firstHello);
   await until(() => unrouted.length > 0, "the early datagram");
   assert.deepEqual(unrouted[0], ["early", "first", true]);
   const chat = call.channel("chat");
@@ -172,10 +170,12 @@ test("a call: keys, lanes, early frames, echo, heartbeats with rtt, hang-up copi
   assert.deepEqual(robot.received.at(-1).ended, { kind: "hung_up", byPeer: true, detail: "bye" });
   assert.throws(() => chat.send("late"), CallEnded);
   // A frame on the ended call's DATA key reaches no call: counted, dropped.
-  const subsBefore = link.log.filter((e) => e.op === "sub").length;
   link.publish(`${base}/call/guiabot/${call.id}/data`, new Uint8Array(40), "data");
   await until(() => endpoint.rejected.unknown_call === 1, "the late frame counted");
-  assert.equal(link.log.filter((e) => e.op === "sub").length, subsBefore); // no call made a sub of its own for DATA
+  // Another robot's key is not listened to at all.
+  link.publish(`${base}/call/intruder/${call.id}/data`, new Uint8Array(40), "data");
+  await new Promise((resolve) => setTimeout(resolve, 20));
+  assert.equal(endpoint.rejected.unknown_call, 1);
   clearInterval(robot.timer);
   await endpoint.close();
   assert.equal(link.log.at(-1)?.op, "untoken");
@@ -231,4 +231,6 @@ test("set-up failures: refusal, no answer, KEY MISMATCH, closing while calling",
   await endpoint.close();
   await assert.rejects(pending, /the endpoint closed while calling/);
   assert.equal(link.subs.size, 1); // only the robot's inbox is left
+  // Three calls to ghost, one DATA subscription for them all.
+  assert.equal(link.log.filter((e) => e.op === "sub" && e.key.endsWith("/call/ghost/*/data")).length, 1);
 });

@@ -154,9 +154,9 @@ def cap_probe_backoff(recovery: QuicPacketRecovery) -> None:
     RFC 9002 doubles the probe timeout at every probe that goes unanswered. After a 3 s
     outage the next probe then comes up to as long again after the heal: the page's
     pictures (a session whose window the outage filled) came back 1.1–3.6 s after the
-    network on 4G. Capped, a probe a few hundred bytes long goes out every 0.25 s while
-    the network is gone, and the first after it returns unblocks the session. A dead
-    browser still ends at the idle timeout.
+    network on 4G. Capped, a probe (a packet or two) goes out every 0.25 s while the
+    network is gone, and the first after it returns unblocks the session. A dead browser
+    still ends at the idle timeout.
     """
     probe = recovery.on_loss_detection_timeout
 
