@@ -25,6 +25,12 @@ export const INCOMING_DATAGRAMS = 1024;
 export const TRY_FOR = 5;
 /** Seconds after a failed WebTransport attempt during which the page goes straight to WebSockets. */
 export const FALLBACK_FOR = 60;
+/**
+ * Seconds a WebTransport admission may take once WebTransport has worked for this page:
+ * UDP passes here, so a slow try is the network's loss (on `bad`, 5 %, two new QUIC
+ * connections right after an outage took over 5 s now and then), not a block.
+ */
+export const RETRY_FOR = 15;
 
 /** `u32 length ‖ UTF-8`: one text message on the bidirectional stream. */
 export function textFrame(text) {
@@ -217,6 +223,8 @@ export class WebTransportSocket {
 }
 
 let failedAt = -Infinity;
+/** Whether a WebTransport link was admitted in this page. */
+let worked = false;
 
 /**
  * The gateway's WebTransport offer (`GET /webtransport` beside `url`), or null when it has
@@ -241,8 +249,9 @@ export async function webTransportOffer(url, fetchImpl = globalThis.fetch) {
 
 /**
  * The page's link to its gateway: two WebTransport sessions as one {@link SplitLink} when the gateway offers it and
- * the browser reaches it within {@link TRY_FOR} s, else (and for {@link FALLBACK_FOR} s
- * after such a failure) {@link connectSplit}'s two WebSockets. `link.kind` says which.
+ * the browser reaches it within {@link TRY_FOR} s ({@link RETRY_FOR} s once it has
+ * reached it), else (and for {@link FALLBACK_FOR} s after such a failure)
+ * {@link connectSplit}'s two WebSockets. `link.kind` says which.
  * A refusal (a wrong key, too many connections) is the gateway's answer: it is not
  * retried. An invite is redeemed on one WebSocket (`options.invite`).
  * @param {string} url @param {Parameters<typeof connectGateway>[1]} options
@@ -261,7 +270,9 @@ export async function connectBest(url, options) {
       // Two sessions, as with WebSockets: each is a QUIC connection with a congestion
       // window of its own, so pictures that fill one (Wi-Fi roaming: every packet of a
       // 0.3 s gap unacknowledged) never hold back the heartbeats and stops on the other.
-      const link = await connectSplit(url, { ...options, WebSocket: /** @type {any} */ (Socket), timeout: Math.min(options.timeout ?? TRY_FOR, TRY_FOR) });
+      const limit = worked ? RETRY_FOR : TRY_FOR;
+      const link = await connectSplit(url, { ...options, WebSocket: /** @type {any} */ (Socket), timeout: Math.min(options.timeout ?? limit, limit) });
+      worked = true;
       link.kind = "webtransport";
       return link;
     } catch (error) {

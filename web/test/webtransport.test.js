@@ -206,3 +206,59 @@ test("a refusal over WebTransport is the gateway's answer: not retried on websoc
     assert.deepEqual(NoWebSocket.opened, []); // no websocket tried after a refusal
   });
 });
+
+test("once WebTransport worked in the page, a later try gets RETRY_FOR s before falling back", async () => {
+  const { x25519 } = await import("@noble/curves/ed25519");
+  const { encodeKey } = await import("../src/gateway-link.js");
+  /** A stand-in session that admits whoever answers the challenge. */
+  class Welcoming {
+    constructor() {
+      this.ready = Promise.resolve();
+      this.closed = new Promise(() => {});
+      const pending = [];
+      let wake = null;
+      const push = (text) => { pending.push(textFrame(text)); if (wake) wake(); };
+      this.readable = {
+        getReader: () => ({
+          read: async () => {
+            while (!pending.length) await new Promise((r) => { wake = r; });
+            return { value: pending.shift(), done: false };
+          },
+        }),
+      };
+      const never = () => ({ getReader: () => ({ read: () => new Promise(() => {}) }) });
+      this.datagrams = { maxDatagramSize: 1000, writable: { getWriter: () => ({ write: async () => {} }) }, readable: never() };
+      this.incomingUnidirectionalStreams = never();
+      this.writable = {
+        getWriter: () => ({
+          write: async (chunk) => {
+            if (chunk.length === 4) push(JSON.stringify({ op: "challenge", v: 1, ns: "telebot", gateway: encodeKey(x25519.getPublicKey(new Uint8Array(32).fill(9))), nonce: encodeKey(new Uint8Array(32)) }));
+            else push(JSON.stringify({ op: "admitted", name: "alice" }));
+          },
+        }),
+      };
+    }
+    async createBidirectionalStream() { return { writable: this.writable, readable: this.readable }; }
+    close() {}
+  }
+  const fresh = await import(`../src/webtransport.js?retry=${Date.now()}`);
+  const timers = [];
+  const realSetTimeout = globalThis.setTimeout;
+  globalThis.setTimeout = (fn, ms, ...rest) => { timers.push(ms); return realSetTimeout(fn, ms, ...rest); };
+  try {
+    await inBrowser(Welcoming, async () => {
+      const link = await fresh.connectBest("wss://robot:8443/gateway", alice);
+      assert.equal(link.kind, "webtransport");
+      link.close();
+    });
+    assert.ok(timers.includes(fresh.TRY_FOR * 1000), `the first try waits ${fresh.TRY_FOR} s: ${timers}`);
+    timers.length = 0;
+    await inBrowser(blockedTransport([]), async () => {
+      await assert.rejects(fresh.connectBest("wss://robot:8443/gateway", alice));
+    });
+    assert.ok(timers.includes(fresh.RETRY_FOR * 1000), `a later try waits ${fresh.RETRY_FOR} s: ${timers}`);
+    assert.ok(!timers.includes(fresh.TRY_FOR * 1000));
+  } finally {
+    globalThis.setTimeout = realSetTimeout;
+  }
+});
