@@ -225,6 +225,14 @@ export class WebTransportSocket {
 let failedAt = -Infinity;
 /** Whether a WebTransport link was admitted in this page. */
 let worked = false;
+/**
+ * The offer that last opened a link, by gateway URL: used again for the next link, whose
+ * fetch (on the page's TCP connection, after an outage still in its retransmission
+ * back-off) took up to 2.6 s on `bad`; fetched afresh once it fails (the gateway
+ * restarted, or renewed its certificate).
+ * @type {Map<string, {port: number, path: string, hashes: string[]}>}
+ */
+const offers = new Map();
 
 /**
  * The gateway's WebTransport offer (`GET /webtransport` beside `url`), or null when it has
@@ -261,7 +269,8 @@ export async function connectBest(url, options) {
   // An invite is redeemed once: on one WebSocket, never on a try that may time out after
   // the gateway used it up.
   const tryIt = !options.invite && now - failedAt > FALLBACK_FOR;
-  const offer = tryIt ? await webTransportOffer(url) : null;
+  const cached = tryIt ? offers.get(url) : undefined;
+  const offer = cached ?? (tryIt ? await webTransportOffer(url) : null);
   if (offer) {
     try {
       const Socket = class extends WebTransportSocket {
@@ -273,12 +282,15 @@ export async function connectBest(url, options) {
       const limit = worked ? RETRY_FOR : TRY_FOR;
       const link = await connectSplit(url, { ...options, WebSocket: /** @type {any} */ (Socket), timeout: Math.min(options.timeout ?? limit, limit) });
       worked = true;
+      offers.set(url, offer);
       link.kind = "webtransport";
       return link;
     } catch (error) {
       const code = error instanceof GatewayError ? error.code : "";
       // Not the gateway's answer (a refusal is): this network or browser, so WebSockets.
       if (!["", "unreachable", "timeout", "closed", "garbage", "1006", "1002"].includes(code)) throw error;
+      offers.delete(url);
+      if (cached) return connectBest(url, options); // once more, with the gateway's offer of now
       failedAt = Date.now() / 1000;
     }
   }

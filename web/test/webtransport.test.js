@@ -207,7 +207,7 @@ test("a refusal over WebTransport is the gateway's answer: not retried on websoc
   });
 });
 
-test("once WebTransport worked in the page, a later try gets RETRY_FOR s before falling back", async () => {
+test("once WebTransport worked in the page: its offer is used again, and a later try gets RETRY_FOR s before falling back", async () => {
   const { x25519 } = await import("@noble/curves/ed25519");
   const { encodeKey } = await import("../src/gateway-link.js");
   /** A stand-in session that admits whoever answers the challenge. */
@@ -242,20 +242,34 @@ test("once WebTransport worked in the page, a later try gets RETRY_FOR s before 
     close() {}
   }
   const fresh = await import(`../src/webtransport.js?retry=${Date.now()}`);
+  let fetches = 0;
+  const counting = async (body) => {
+    const counted = globalThis.fetch;
+    globalThis.fetch = async (...args) => { fetches += 1; return counted(...args); };
+    try { await body(); } finally { globalThis.fetch = counted; }
+  };
   const timers = [];
   const realSetTimeout = globalThis.setTimeout;
   globalThis.setTimeout = (fn, ms, ...rest) => { timers.push(ms); return realSetTimeout(fn, ms, ...rest); };
   try {
-    await inBrowser(Welcoming, async () => {
+    await inBrowser(Welcoming, () => counting(async () => {
       const link = await fresh.connectBest("wss://robot:8443/gateway", alice);
       assert.equal(link.kind, "webtransport");
       link.close();
-    });
+      // The next link uses the same offer: no fetch (after an outage the page's TCP may
+      // still be waiting out its back-off).
+      (await fresh.connectBest("wss://robot:8443/gateway", alice)).close();
+    }));
+    assert.equal(fetches, 1);
     assert.ok(timers.includes(fresh.TRY_FOR * 1000), `the first try waits ${fresh.TRY_FOR} s: ${timers}`);
     timers.length = 0;
-    await inBrowser(blockedTransport([]), async () => {
+    const tries = [];
+    await inBrowser(blockedTransport(tries), () => counting(async () => {
       await assert.rejects(fresh.connectBest("wss://robot:8443/gateway", alice));
-    });
+    }));
+    // The cached offer failed: fetched again and tried once more, then websockets.
+    assert.equal(fetches, 2);
+    assert.equal(tries.length, 4); // two sessions a try
     assert.ok(timers.includes(fresh.RETRY_FOR * 1000), `a later try waits ${fresh.RETRY_FOR} s: ${timers}`);
     assert.ok(!timers.includes(fresh.TRY_FOR * 1000));
   } finally {
