@@ -176,8 +176,23 @@ async def test_sessions_count_against_the_gateway_s_caps(live: Live) -> None:
             assert third.status == 200
 
 
-def test_probes_keep_coming_every_quarter_second_through_an_outage() -> None:
+def sent_packet(number: int, sent_time: float) -> Any:
+    """An application-data packet of 1,200 bytes, ack-eliciting, as aioquic records one."""
     from aioquic.quic.packet_builder import QuicSentPacket
+
+    return QuicSentPacket(
+        epoch=3,
+        in_flight=True,
+        is_ack_eliciting=True,
+        is_crypto_packet=False,
+        packet_number=number,
+        packet_type=0,
+        sent_time=sent_time,
+        sent_bytes=1200,
+    )
+
+
+def test_probes_keep_coming_every_quarter_second_through_an_outage() -> None:
     from aioquic.quic.recovery import QuicPacketRecovery, QuicPacketSpace
 
     from telebot.gateway.webtransport import MAX_PROBE_INTERVAL, cap_probe_backoff
@@ -202,17 +217,7 @@ def test_probes_keep_coming_every_quarter_second_through_an_outage() -> None:
         recovery._rtt_variance = rtt / 4
 
         def send(number: int, now: float) -> None:
-            packet = QuicSentPacket(
-                epoch=3,
-                in_flight=True,
-                is_ack_eliciting=True,
-                is_crypto_packet=False,
-                packet_number=number,
-                packet_type=0,
-                sent_time=now,
-                sent_bytes=1200,
-            )
-            recovery.on_packet_sent(packet=packet, space=space)
+            recovery.on_packet_sent(packet=sent_packet(number, now), space=space)
 
         send(0, 0.0)
         times: list[float] = []
@@ -238,7 +243,6 @@ def test_probes_keep_coming_every_quarter_second_through_an_outage() -> None:
 
 def test_random_loss_does_not_shrink_the_window_below_the_floor_rate() -> None:
     from aioquic.quic.congestion.reno import RenoCongestionControl
-    from aioquic.quic.packet_builder import QuicSentPacket
 
     from telebot.gateway.webtransport import MIN_RATE, FloorReno
 
@@ -246,16 +250,7 @@ def test_random_loss_does_not_shrink_the_window_below_the_floor_rate() -> None:
         """An ocean's round trip, then a loss every round trip for 20 of them."""
         control.on_rtt_measurement(now=0.0, rtt=0.32)
         for n in range(20):
-            packet = QuicSentPacket(
-                epoch=3,
-                in_flight=True,
-                is_ack_eliciting=True,
-                is_crypto_packet=False,
-                packet_number=n,
-                packet_type=0,
-                sent_time=0.32 * n + 0.01,
-                sent_bytes=1200,
-            )
+            packet = sent_packet(n, 0.32 * n + 0.01)
             control.on_packet_sent(packet=packet)
             control.on_packets_lost(now=0.32 * n + 0.02, packets=[packet])
         return control.congestion_window

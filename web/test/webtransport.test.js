@@ -157,11 +157,15 @@ test("connectBest falls back to websockets when the WebTransport session never o
   });
 });
 
-test("a refusal over WebTransport is the gateway's answer: not retried on websockets", async () => {
+/**
+ * A stand-in WebTransport whose gateway challenges after the preamble and answers the
+ * page's admission with `answer` (counts its sessions in `tries`).
+ * @param {object} answer @param {number[]} [tries]
+ */
+async function answeringTransport(answer, tries = []) {
   const { x25519 } = await import("@noble/curves/ed25519");
   const { encodeKey } = await import("../src/gateway-link.js");
-  const tries = [];
-  class Refusing {
+  return class {
     constructor() {
       tries.push(1);
       this.ready = Promise.resolve();
@@ -186,7 +190,7 @@ test("a refusal over WebTransport is the gateway's answer: not retried on websoc
             if (chunk.length === 4) { // the preamble: the gateway challenges
               push(JSON.stringify({ op: "challenge", v: 1, ns: "telebot", gateway: encodeKey(x25519.getPublicKey(new Uint8Array(32).fill(9))), nonce: encodeKey(new Uint8Array(32)) }));
             } else {
-              push(JSON.stringify({ op: "refused", code: "wrong_key", text: "alice is admitted with another key" }));
+              push(JSON.stringify(answer));
             }
           },
         }),
@@ -194,7 +198,12 @@ test("a refusal over WebTransport is the gateway's answer: not retried on websoc
     }
     async createBidirectionalStream() { return { writable: this.writable, readable: this.readable }; }
     close() {}
-  }
+  };
+}
+
+test("a refusal over WebTransport is the gateway's answer: not retried on websockets", async () => {
+  const tries = [];
+  const Refusing = await answeringTransport({ op: "refused", code: "wrong_key", text: "alice is admitted with another key" }, tries);
   await inBrowser(Refusing, async () => {
     // A fresh copy of the module: the test before left it going straight to websockets.
     const fresh = await import(`../src/webtransport.js?refusal=${Date.now()}`);
@@ -208,39 +217,7 @@ test("a refusal over WebTransport is the gateway's answer: not retried on websoc
 });
 
 test("once WebTransport worked in the page: its offer is used again, and a later try gets RETRY_FOR s before falling back", async () => {
-  const { x25519 } = await import("@noble/curves/ed25519");
-  const { encodeKey } = await import("../src/gateway-link.js");
-  /** A stand-in session that admits whoever answers the challenge. */
-  class Welcoming {
-    constructor() {
-      this.ready = Promise.resolve();
-      this.closed = new Promise(() => {});
-      const pending = [];
-      let wake = null;
-      const push = (text) => { pending.push(textFrame(text)); if (wake) wake(); };
-      this.readable = {
-        getReader: () => ({
-          read: async () => {
-            while (!pending.length) await new Promise((r) => { wake = r; });
-            return { value: pending.shift(), done: false };
-          },
-        }),
-      };
-      const never = () => ({ getReader: () => ({ read: () => new Promise(() => {}) }) });
-      this.datagrams = { maxDatagramSize: 1000, writable: { getWriter: () => ({ write: async () => {} }) }, readable: never() };
-      this.incomingUnidirectionalStreams = never();
-      this.writable = {
-        getWriter: () => ({
-          write: async (chunk) => {
-            if (chunk.length === 4) push(JSON.stringify({ op: "challenge", v: 1, ns: "telebot", gateway: encodeKey(x25519.getPublicKey(new Uint8Array(32).fill(9))), nonce: encodeKey(new Uint8Array(32)) }));
-            else push(JSON.stringify({ op: "admitted", name: "alice" }));
-          },
-        }),
-      };
-    }
-    async createBidirectionalStream() { return { writable: this.writable, readable: this.readable }; }
-    close() {}
-  }
+  const Welcoming = await answeringTransport({ op: "admitted", name: "alice" });
   const fresh = await import(`../src/webtransport.js?retry=${Date.now()}`);
   let fetches = 0;
   const counting = async (body) => {
