@@ -4,8 +4,9 @@ Run ``.venv/bin/python bench/wan.py`` (about 15 minutes; ``--quick``: one row of
 
 One robot, ``telebot-robot run`` with the simulator (the small map, a fast base: 1.5 m/s,
 3 m/s²; its camera 640 × 480, the default video) in its own process, the product's call
-timeout (0.5 s) and deadman; one user in this process (``telebot.connect``: a zenoh client
-session, the product's reconnection). Between them a network emulator
+timeout (0.5 s) and deadman; one user in this process (``telebot.connect``: a zenoh client,
+the product's reconnection; on QUIC two sessions, the calls' data on the second, the
+product's default ``data_session``; ``--one-session``: one, for comparison). Between them a network emulator
 (:class:`telebot.netem.NetemProxy`, on loopback, in this process on its own thread): the
 user's zenoh session connects to the proxy, the proxy to the robot's listening endpoint, and
 every byte or datagram crosses the profile's one-way delay, jitter, loss, bandwidth cap and
@@ -424,6 +425,10 @@ def proxy_to(daemon: WanDaemon, profile: Profile, seed: int) -> Iterator[NetemPr
         yield proxy
 
 
+#: ``[transport.zenoh]`` keys the user's config gets besides (``--one-session``).
+USER_ZENOH: dict[str, Any] = {}
+
+
 def user_config(daemon: WanDaemon, proxy: NetemProxy) -> AppConfig:
     """The user's config: a zenoh client that reaches the robot only through ``proxy``
     (a peer could find the robot's own endpoint behind its back), the product's call
@@ -437,6 +442,7 @@ def user_config(daemon: WanDaemon, proxy: NetemProxy) -> AppConfig:
         "multicast_scouting": False,
         "options": options,
     }
+    zenoh.update(USER_ZENOH)
     return AppConfig.model_validate(
         {"transport": {"zenoh": zenoh}, "call": {"timeout": REAL_TIMEOUT}}
     )
@@ -1091,7 +1097,15 @@ def main() -> None:
         metavar="PROFILE/LINK",
         help="measure only this row (repeatable), e.g. 4g/udp",
     )
+    parser.add_argument(
+        "--one-session",
+        action="store_true",
+        help="the Python user's zenoh on one session (data_session = false): the comparison "
+        "for its default on QUIC, a second session for the calls' data",
+    )
     args = parser.parse_args()
+    if args.one_session:
+        USER_ZENOH["data_session"] = False
     try:
         selected = [parse_row(text) for text in args.row] or list(
             QUICK_ROWS if args.quick else ROWS

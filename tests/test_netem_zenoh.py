@@ -80,6 +80,37 @@ async def test_a_call_over_wifi_survives_a_roaming_gap_and_a_stop_sent_into_it_a
 
 
 @pytest.mark.zenoh
+@pytest.mark.parametrize("data_session", [True, False])
+async def test_a_calls_data_goes_on_a_connection_of_its_own(
+    tmp_path: Path, data_session: bool
+) -> None:
+    # With ``data_session`` the user's zenoh dials twice: pose and pictures (the call's
+    # ``/data`` keys) on one connection, stops, heartbeats and presence on the other, so
+    # pictures never fill the congestion window a stop needs. The call works either way.
+    listen = f"tcp/127.0.0.1:{free_port()}"
+    robot_transport = ZenohTransport(ZenohSettings(listen=[listen], multicast_scouting=False))
+    async with (
+        robot_on_hub(
+            tmp_path,
+            MemoryHub(),
+            transport=robot_transport,
+            timeout=GENEROUS_TIMEOUT,
+            services=ServiceSettings(pose_hz=20.0),
+        ) as (nav, safety, _server, _endpoint),
+        NetemProxy("lan", "tcp/127.0.0.1:0", listen, seed=1) as proxy,
+    ):
+        config = through(proxy, GENEROUS_TIMEOUT)
+        config.transport.zenoh.data_session = data_session
+        async with connect(ROBOT, home=tmp_path / "user", config=config, timeout=20) as client:
+            assert (await client.arm()).ok and safety.supervisor.armed
+            await client.pose(timeout=10)  # the data key's
+            assert (await client.stop()).ok  # the control key's
+            assert not safety.supervisor.armed and nav.velocity() == Velocity()
+            assert client.reconnects == 0
+            assert proxy.stats.connections == (2 if data_session else 1)
+
+
+@pytest.mark.zenoh
 async def test_the_first_call_back_after_an_outage_hears_the_robot(tmp_path: Path) -> None:
     # zenoh's udp/ link never repeats a lost declaration: a call set up during the outage
     # would subscribe into the void, and nothing of it would ever come back. The client

@@ -446,6 +446,28 @@ def test_a_dialling_session_announces_a_one_second_lease_and_an_option_or_a_file
     assert lease(later.transport.zenoh) == 10_000
 
 
+def test_a_session_dialling_quic_splits_calls_data_onto_a_second_session() -> None:
+    # On by default only where it pays: a dialler on QUIC (one congestion window per
+    # connection); a listener, TCP, or the key set either way decides as it says.
+    assert ZenohSettings(mode="client", connect=["quic/127.0.0.1:7447"]).splits_data
+    assert ZenohSettings(connect=["quic/127.0.0.1:7447"]).splits_data
+    assert not ZenohSettings(mode="client", connect=["tcp/127.0.0.1:7447"]).splits_data
+    assert not ZenohSettings(listen=["quic/0.0.0.0:7447"]).splits_data
+    assert not ZenohSettings(
+        listen=["quic/0.0.0.0:7447"], connect=["quic/127.0.0.1:7448"]
+    ).splits_data
+    assert not ZenohSettings(
+        mode="client", connect=["quic/127.0.0.1:7447"], data_session=False
+    ).splits_data
+    assert ZenohSettings(connect=["tcp/127.0.0.1:7447"], data_session=True).splits_data
+
+
+async def test_a_data_session_without_connect_endpoints_is_a_one_line_error() -> None:
+    transport = ZenohTransport(ZenohSettings(data_session=True, multicast_scouting=False))
+    with pytest.raises(TransportError, match=r"data_session = true needs connect endpoints"):
+        await transport.open()
+
+
 # --- publish / subscribe in one process ------------------------------------------------
 
 

@@ -115,6 +115,12 @@ class ZenohSettings(StrictModel):
     #: answered with a reset, dials afresh at once (a zenoh config file or a
     #: ``transport/link/tx/lease`` option rules instead).
     lease: float | None = Field(default=None, ge=0.1, le=3600)
+    #: A second zenoh session, dialling the same ``connect`` endpoints, for calls' data keys
+    #: (``.../data``: video, pose, sound) and the first for everything else (stops,
+    #: heartbeats, the handshake, presence): a connection of their own, so pictures never
+    #: fill the congestion window that stops and heartbeats need (protocol §2.3). Unset: on
+    #: for a session that dials (:attr:`dials`) a ``quic/`` endpoint.
+    data_session: bool | None = None
     # The call timeout of the AppConfig this belongs to (AppConfig.fit_lease), 0 if none.
     _call_timeout: float = PrivateAttr(default=0.0)
 
@@ -122,6 +128,13 @@ class ZenohSettings(StrictModel):
     def dials(self) -> bool:
         """Whether this session dials: client mode, or ``connect`` endpoints and no ``listen``."""
         return self.mode == "client" or (bool(self.connect) and not self.listen)
+
+    @property
+    def splits_data(self) -> bool:
+        """Whether this transport opens :attr:`data_session`'s second session."""
+        if self.data_session is not None:
+            return self.data_session
+        return self.dials and any(e.startswith("quic/") for e in self.connect)
 
     @property
     def dial_lease(self) -> float:

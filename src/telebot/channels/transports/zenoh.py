@@ -114,6 +114,9 @@ _MMAP_THRESHOLD = 32 << 20 if ctypes.sizeof(ctypes.c_void_p) == 8 else 512 << 10
 _MALLOC_ENV = ("MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TOP_PAD_")
 _allocator_tuned: bool | None = None  # None: not tried yet in this process
 
+#: How a call's data key ends (``{base}/call/{sender}/{call_id}/data``: video, pose, sound;
+#: telebot.channels.call): what ``[transport.zenoh] data_session`` puts on its own session.
+DATA_KEY_SUFFIX = "/data"
 #: Publisher QoS of each lane, as keyword arguments of ``Session.declare_publisher``.
 #: Every lane drops under congestion (a stale pose or video frame is worth nothing, and a
 #: blocked publisher would block the event loop); CONTROL is sent first and at once
@@ -671,6 +674,8 @@ class ZenohTransport(Transport):
         #: their CPU apart (the robot's gateway); None: left as they are.
         self.reader_name = reader_name
         self._session: zenoh.Session | None = None
+        # The second session of ``settings.data_session`` (calls' data keys), if any.
+        self._data_session: zenoh.Session | None = None
         self._session_id: str | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._opening = False
@@ -709,13 +714,21 @@ class ZenohTransport(Transport):
             raise TransportError("zenoh transport is closed; create a new one")
         if self._session is not None or self._opening:
             raise TransportError("zenoh transport is already open")
-        config = build_zenoh_config(self.settings)
+        if self.settings.data_session and not self.settings.connect:
+            raise TransportError(
+                "transport.zenoh.data_session = true needs connect endpoints: "
+                "the second session only dials"
+            )
+        configs = [build_zenoh_config(self.settings)]
+        if self.settings.splits_data:
+            # It only dials: the first session has the listening endpoints, if any.
+            configs.append(build_zenoh_config(self.settings.model_copy(update={"listen": []})))
         keep_freed_memory()
         self._loop = asyncio.get_running_loop()
         self._opening = True
-        task = asyncio.ensure_future(asyncio.to_thread(zenoh.open, config))
+        task = asyncio.ensure_future(_open_sessions(configs))
         try:
-            session = await asyncio.shield(task)
+            session, *data = await asyncio.shield(task)
         except asyncio.CancelledError:
             # The thread cannot be stopped; close the session it may still produce.
             task.add_done_callback(_close_late_session)
@@ -737,9 +750,11 @@ class ZenohTransport(Transport):
         finally:
             self._opening = False
         if self._closed:  # close() ran while zenoh.open was still working
-            threading.Thread(target=session.close, name="zenoh-close-late", daemon=True).start()
+            for late in (session, *data):
+                threading.Thread(target=late.close, name="zenoh-close-late", daemon=True).start()
             raise TransportError("zenoh transport was closed while opening")
         self._session = session
+        self._data_session = data[0] if data else None
         self._session_id = str(session.zid())
         logger.debug("zenoh session %s open (%s)", self._session_id, self.settings.mode)
 
@@ -764,6 +779,7 @@ class ZenohTransport(Transport):
             return
         self._closed = True
         session, self._session = self._session, None
+        data_session, self._data_session = self._data_session, None
         entities = list(self._entities.values())
         self._entities.clear()
         for entity in entities:
@@ -778,6 +794,8 @@ class ZenohTransport(Transport):
                 entity._undeclare()
             if self._owns_session:
                 _close_session(session)
+            if data_session is not None:
+                _close_session(data_session)
 
         timeout = self.settings.close_timeout
         try:
@@ -793,7 +811,7 @@ class ZenohTransport(Transport):
 
     def publisher(self, key: str, lane: Lane = Lane.DATA) -> ZenohPublisher:
         """Declare a publisher on ``key`` with the QoS of ``lane``."""
-        session = self._require_open()
+        session = self._session_for(key)
         try:
             raw = session.declare_publisher(key, **LANE_QOS[lane])
         except zenoh.ZError as exc:
@@ -808,7 +826,7 @@ class ZenohTransport(Transport):
         limits: ReceiveLimits | None = None,
     ) -> ZenohSubscription:
         """Deliver samples matching ``pattern`` to ``callback(batch)`` on the loop."""
-        session = self._require_open()
+        session = self._session_for(pattern)
         assert self._loop is not None
         limits = limits if limits is not None else ReceiveLimits()
         sub = ZenohSubscription(self, self._loop, pattern, callback, limits)
@@ -856,6 +874,13 @@ class ZenohTransport(Transport):
             raise TransportError("zenoh transport is not open; call open() first")
         return self._session
 
+    def _session_for(self, key: str) -> zenoh.Session:
+        """The session for ``key``: the data session (if open) for a call's data key."""
+        session = self._require_open()
+        if self._data_session is not None and key.endswith(DATA_KEY_SUFFIX):
+            return self._data_session
+        return session
+
     def _remember(self, entity: _E) -> _E:
         self._entities[id(entity)] = entity
         return entity
@@ -864,9 +889,24 @@ class ZenohTransport(Transport):
         self._entities.pop(id(entity), None)
 
 
-def _close_late_session(task: asyncio.Future[zenoh.Session]) -> None:
-    """Close a session whose open() was cancelled while zenoh.open was still running."""
+async def _open_sessions(configs: list[zenoh.Config]) -> list[zenoh.Session]:
+    """One zenoh session per config, opened at once on worker threads; if one fails, those
+    that opened are closed and its error raised."""
+    results = await asyncio.gather(
+        *(asyncio.to_thread(zenoh.open, config) for config in configs), return_exceptions=True
+    )
+    sessions = [r for r in results if isinstance(r, zenoh.Session)]
+    for result in results:
+        if isinstance(result, BaseException):
+            for session in sessions:
+                threading.Thread(target=session.close, name="zenoh-close", daemon=True).start()
+            raise result
+    return sessions
+
+
+def _close_late_session(task: asyncio.Future[list[zenoh.Session]]) -> None:
+    """Close the sessions whose open() was cancelled while zenoh.open was still running."""
     if task.cancelled() or task.exception() is not None:
         return
-    session = task.result()
-    threading.Thread(target=session.close, name="zenoh-close-late", daemon=True).start()
+    for session in task.result():
+        threading.Thread(target=session.close, name="zenoh-close-late", daemon=True).start()
