@@ -71,6 +71,8 @@ from telebot.channels.proto.session import (
 )
 from telebot.channels.suites import suite_preference
 from telebot.channels.transports.base import (
+    CONTROL_KEY_SUFFIX,
+    DATA_KEY_SUFFIX,
     Lane,
     Presence,
     Publisher,
@@ -164,9 +166,9 @@ class Call:
         self.role = role
         call_keys = f"{peer_base}/call/{endpoint.identity.name}/{session.call_id.hex()}"
         self._peer_keys = {
-            Lane.CONTROL: f"{call_keys}/ctl",
-            Lane.DATA: f"{call_keys}/data",
-            Lane.BULK: f"{call_keys}/data",
+            Lane.CONTROL: call_keys + CONTROL_KEY_SUFFIX,
+            Lane.DATA: call_keys + DATA_KEY_SUFFIX,
+            Lane.BULK: call_keys + DATA_KEY_SUFFIX,
         }
         self._publishers: dict[Lane, Publisher] = {}
         # DATA and BULK datagrams sent after the first of a loop turn wait here until
@@ -428,12 +430,14 @@ class _CallInbox:
         self._gated_seen = 0  # forged CONTROL frames already counted in the call's stats
         keys = f"{endpoint.base}/call/{peer}/{call_id.hex()}"
         transport = endpoint.transport
-        control = transport.subscribe(f"{keys}/ctl", self._on_samples, limits=CONTROL_LIMITS)
+        control = transport.subscribe(
+            keys + CONTROL_KEY_SUFFIX, self._on_samples, limits=CONTROL_LIMITS
+        )
         control.gate = self._authentic
         self._subscriptions = [control]
         try:
             self._subscriptions.append(
-                transport.subscribe(f"{keys}/data", self._on_samples, limits=DATA_LIMITS)
+                transport.subscribe(keys + DATA_KEY_SUFFIX, self._on_samples, limits=DATA_LIMITS)
             )
         except BaseException:
             self.close()

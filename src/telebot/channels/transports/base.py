@@ -61,6 +61,14 @@ def gate_passes(gate: Callable[[bytes], bool], payload: bytes) -> bool:
         return True
 
 
+#: How a call's data key ends (``{base}/call/{sender}/{call_id}/data``: its DATA and BULK
+#: frames: pose, video, sound; telebot.channels.call), and what a transport may carry apart
+#: from the rest (``[transport.zenoh] data_session``).
+DATA_KEY_SUFFIX = "/data"
+#: How a call's CONTROL key ends (heartbeats, stops, the call's set-up).
+CONTROL_KEY_SUFFIX = "/ctl"
+
+
 class Lane(enum.Enum):
     """Quality of service of a publisher: which traffic may delay which.
 

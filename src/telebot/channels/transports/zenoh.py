@@ -60,6 +60,7 @@ from typing import Any, Final, Protocol, Self, TypeVar
 import zenoh
 
 from telebot.channels.transports.base import (
+    DATA_KEY_SUFFIX,
     CliOption,
     Lane,
     Presence,
@@ -114,9 +115,6 @@ _MMAP_THRESHOLD = 32 << 20 if ctypes.sizeof(ctypes.c_void_p) == 8 else 512 << 10
 _MALLOC_ENV = ("MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TOP_PAD_")
 _allocator_tuned: bool | None = None  # None: not tried yet in this process
 
-#: How a call's data key ends (``{base}/call/{sender}/{call_id}/data``: video, pose, sound;
-#: telebot.channels.call): what ``[transport.zenoh] data_session`` puts on its own session.
-DATA_KEY_SUFFIX = "/data"
 #: Publisher QoS of each lane, as keyword arguments of ``Session.declare_publisher``.
 #: Every lane drops under congestion (a stale pose or video frame is worth nothing, and a
 #: blocked publisher would block the event loop); CONTROL is sent first and at once
