@@ -101,13 +101,28 @@ async def test_a_calls_data_goes_on_a_connection_of_its_own(
     ):
         config = through(proxy, GENEROUS_TIMEOUT)
         config.transport.zenoh.data_session = data_session
-        async with connect(ROBOT, home=tmp_path / "user", config=config, timeout=20) as client:
+        async with (
+            ZenohTransport(config.transport.zenoh) as transport,
+            connect(
+                ROBOT, home=tmp_path / "user", config=config, transport=transport, timeout=20
+            ) as client,
+        ):
             assert (await client.arm()).ok and safety.supervisor.armed
             await client.pose(timeout=10)  # the data key's
+            assert client.reconnects == 0
+            assert proxy.stats.connections == (2 if data_session else 1)
+            if data_session:
+                # The pose rides the second session: with it gone no pose comes, and the
+                # call, its heartbeats and a stop go on over the first.
+                assert transport.data_session is not None
+                transport.data_session.close()
+                await asyncio.sleep(0.2)  # what was on its way
+                before = client.latest_pose.value
+                await asyncio.sleep(1.0)  # 20 poses a second, were they still coming
+                assert client.latest_pose.value is before
             assert (await client.stop()).ok  # the control key's
             assert not safety.supervisor.armed and nav.velocity() == Velocity()
             assert client.reconnects == 0
-            assert proxy.stats.connections == (2 if data_session else 1)
 
 
 @pytest.mark.zenoh

@@ -27,8 +27,13 @@ import zenoh
 
 from conftest import SLACK, wait_until
 from telebot.channels.transports import create_transport
-from telebot.channels.transports.base import Lane, ReceiveLimits, Sample
-from telebot.channels.transports.zenoh import LINK_LEASE_MS, ZenohTransport, build_zenoh_config
+from telebot.channels.transports.base import Lane, ReceiveLimits, Sample, is_call_data_key
+from telebot.channels.transports.zenoh import (
+    LINK_LEASE_MS,
+    ZenohTransport,
+    build_zenoh_config,
+    data_session_config,
+)
 from telebot.config import AppConfig, TransportSettings, ZenohSettings
 from telebot.errors import TransportError
 from telebot.testing.net import free_port
@@ -462,6 +467,32 @@ def test_a_session_dialling_quic_splits_calls_data_onto_a_second_session() -> No
     assert ZenohSettings(connect=["tcp/127.0.0.1:7447"], data_session=True).splits_data
 
 
+def test_only_a_calls_data_keys_go_on_the_data_session() -> None:
+    call = "telebot/user/alice/00112233aabbccdd/call/guiabot/0123456789abcdef"
+    assert is_call_data_key(f"{call}/data")
+    assert is_call_data_key("telebot/user/alice/00112233aabbccdd/call/guiabot/*/data")
+    assert not is_call_data_key(f"{call}/ctl")
+    # A user named "data" sends its HELLO here, and a robot named "call" listens here.
+    assert not is_call_data_key("telebot/robot/guiabot/in/data")
+    assert not is_call_data_key("telebot/robot/call/in/data")
+    assert not is_call_data_key("telebot/user/alice/**")
+    assert not is_call_data_key("data")
+
+
+def test_the_data_session_only_dials_as_a_client() -> None:
+    # Even where the first session listens (zenoh's default for a peer, or an endpoint),
+    # the second takes no port and scouts nobody: it dials what the first dials.
+    settings = ZenohSettings(connect=["quic/127.0.0.1:7447"], listen=["tcp/0.0.0.0:7448"])
+    config = data_session_config(settings)
+    assert json.loads(config.get_json("mode")) == "client"
+    assert json.loads(config.get_json("listen/endpoints")) == []
+    assert json.loads(config.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(config.get_json("connect/endpoints")) == [
+        "quic/127.0.0.1:7447?mixed_rel=auto"
+    ]
+    assert int(json.loads(config.get_json("transport/link/tx/lease"))) == LINK_LEASE_MS
+
+
 async def test_a_data_session_without_connect_endpoints_is_a_one_line_error() -> None:
     transport = ZenohTransport(ZenohSettings(data_session=True, multicast_scouting=False))
     with pytest.raises(TransportError, match=r"data_session = true needs connect endpoints"):
@@ -469,6 +500,39 @@ async def test_a_data_session_without_connect_endpoints_is_a_one_line_error() ->
 
 
 # --- publish / subscribe in one process ------------------------------------------------
+
+
+async def test_an_adopting_transport_keeps_its_owners_data_session_and_leaves_both_open() -> None:
+    # A robot that is a router's client on QUIC has a data session; its gateway adopts
+    # both of its sessions, so a page's call data meets the robot's own on one session.
+    listen = f"tcp/127.0.0.1:{free_port()}"
+    call = f"t/{uuid.uuid4().hex}/call/guiabot/0123456789abcdef"
+    peer = ZenohSettings(listen=[listen], multicast_scouting=False)
+    dialler = ZenohSettings(
+        mode="client", connect=[listen], multicast_scouting=False, data_session=True
+    )
+    async with ZenohTransport(peer) as robot, ZenohTransport(dialler) as owner:
+        assert owner.data_session is not None
+        gateway = ZenohTransport()
+        await gateway.adopt(owner.session, owner.data_session)
+        assert gateway.data_session is owner.data_session
+        data, ctl = Inbox(), Inbox()
+        gateway.subscribe(f"{call}/data", data)
+        gateway.subscribe(f"{call}/ctl", ctl)
+        to_data, to_ctl = robot.publisher(f"{call}/data"), robot.publisher(f"{call}/ctl")
+        await warm_up(to_data.put, data)
+        await warm_up(to_ctl.put, ctl)
+        await gateway.close()
+        # Both sessions stay open for their owner, which still hears the robot.
+        mine = Inbox()
+        owner.subscribe(f"{call}/data", mine)
+        await warm_up(to_data.put, mine)
+        # ...and the data key was on the data session: without it, nothing more comes.
+        owner.data_session.close()
+        await asyncio.sleep(0.2)
+        to_data.put(b"after")
+        await asyncio.sleep(0.5)
+        assert mine.samples == []
 
 
 async def test_roundtrip_between_two_transports(

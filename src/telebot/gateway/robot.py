@@ -88,7 +88,10 @@ async def robot_gateway(
         )
 
     if isinstance(transport, ZenohTransport):
-        thread = GatewayThread(transport.session, make)
+        # The robot's calls' data rides its data session when it has one (a client of a
+        # router on QUIC): the gateway's must too, or the two would meet only through the
+        # router, whose access control lets neither through.
+        thread = GatewayThread(transport.session, make, transport.data_session)
         try:
             gateway = await thread.start()
         except OSError as exc:

@@ -29,11 +29,18 @@ THREAD_NAME = "telebot-gateway"
 
 class GatewayThread:
     """A :class:`Gateway` on a thread of its own, with its own loop and its own transport
-    over an open zenoh ``session``. :meth:`start` returns once it listens (OSError if it
-    cannot); :meth:`stop` closes it and joins the thread."""
+    over an open zenoh ``session`` (and its owner's ``data_session`` for calls' data keys,
+    if it has one: ``[transport.zenoh] data_session``). :meth:`start` returns once it
+    listens (OSError if it cannot); :meth:`stop` closes it and joins the thread."""
 
-    def __init__(self, session: object, make: Callable[[Transport], Gateway]) -> None:
+    def __init__(
+        self,
+        session: object,
+        make: Callable[[Transport], Gateway],
+        data_session: object | None = None,
+    ) -> None:
         self._session = session
+        self._data_session = data_session
         self._make = make
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop: asyncio.Event | None = None
@@ -67,7 +74,7 @@ class GatewayThread:
         self._loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
         transport = ZenohTransport(reader_name=THREAD_NAME)
-        await transport.adopt(self._session)  # type: ignore[arg-type]
+        await transport.adopt(self._session, self._data_session)  # type: ignore[arg-type]
         try:
             gateway = self._make(transport)
             await gateway.start()

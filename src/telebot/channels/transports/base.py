@@ -31,6 +31,8 @@ from typing import TYPE_CHECKING, ClassVar, Self
 
 from pydantic import BaseModel
 
+from telebot.channels.proto.frames import CALL_ID_LEN
+
 if TYPE_CHECKING:
     from telebot.config import TransportSettings
 
@@ -62,11 +64,24 @@ def gate_passes(gate: Callable[[bytes], bool], payload: bytes) -> bool:
 
 
 #: How a call's data key ends (``{base}/call/{sender}/{call_id}/data``: its DATA and BULK
-#: frames: pose, video, sound; telebot.channels.call), and what a transport may carry apart
-#: from the rest (``[transport.zenoh] data_session``).
+#: frames: pose, video, sound; telebot.channels.call).
 DATA_KEY_SUFFIX = "/data"
-#: How a call's CONTROL key ends (heartbeats, stops, the call's set-up).
+#: How a call's CONTROL key ends (heartbeats, stops).
 CONTROL_KEY_SUFFIX = "/ctl"
+
+
+def is_call_data_key(key: str) -> bool:
+    """Whether ``key`` is a call's data key, ``…/call/{sender}/{call_id}/data``, or a
+    pattern over such keys (the call id ``*``): what a transport may carry apart from the
+    rest (``[transport.zenoh] data_session``). Not a handshake key such as
+    ``{ns}/robot/R/in/data`` (a user named ``data``): its call id chunk is not one."""
+    chunks = key.split("/")
+    if len(chunks) < 5 or chunks[-4] != "call" or "/" + chunks[-1] != DATA_KEY_SUFFIX:
+        return False
+    call_id = chunks[-2]
+    return call_id == "*" or (
+        len(call_id) == 2 * CALL_ID_LEN and all(c in "0123456789abcdef" for c in call_id)
+    )
 
 
 class Lane(enum.Enum):

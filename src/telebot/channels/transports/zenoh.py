@@ -60,7 +60,6 @@ from typing import Any, Final, Protocol, Self, TypeVar
 import zenoh
 
 from telebot.channels.transports.base import (
-    DATA_KEY_SUFFIX,
     CliOption,
     Lane,
     Presence,
@@ -73,6 +72,7 @@ from telebot.channels.transports.base import (
     SubscriptionStats,
     Transport,
     gate_passes,
+    is_call_data_key,
 )
 from telebot.channels.transports.inbox import Inbox
 from telebot.config import DIAL_LEASE, TransportSettings, ZenohSettings
@@ -256,6 +256,17 @@ def build_zenoh_config(settings: ZenohSettings) -> zenoh.Config:
             _insert(config, path, value, f"{path} =")
     for path, value in settings.options.items():
         _insert(config, path, value, f"option {path!r} =")
+    return config
+
+
+def data_session_config(settings: ZenohSettings) -> zenoh.Config:
+    """The config of ``settings``' data session: the same endpoints to dial, credentials
+    and options, as a client that neither listens nor scouts (a listening endpoint, even
+    zenoh's default, belongs to the first session)."""
+    config = build_zenoh_config(
+        settings.model_copy(update={"mode": "client", "listen": [], "multicast_scouting": False})
+    )
+    _insert(config, "listen/endpoints", [], "listen")
     return config
 
 
@@ -706,6 +717,13 @@ class ZenohTransport(Transport):
         """The underlying ``zenoh.Session``, for what this interface does not cover."""
         return self._require_open()
 
+    @property
+    def data_session(self) -> zenoh.Session | None:
+        """The second session that carries calls' data keys (``[transport.zenoh]
+        data_session``), or None: all on :attr:`session`."""
+        self._require_open()
+        return self._data_session
+
     async def open(self) -> None:
         """Open the zenoh session on a worker thread (zenoh.open may block)."""
         if self._closed:
@@ -719,8 +737,7 @@ class ZenohTransport(Transport):
             )
         configs = [build_zenoh_config(self.settings)]
         if self.settings.splits_data:
-            # It only dials: the first session has the listening endpoints, if any.
-            configs.append(build_zenoh_config(self.settings.model_copy(update={"listen": []})))
+            configs.append(data_session_config(self.settings))
         keep_freed_memory()
         self._loop = asyncio.get_running_loop()
         self._opening = True
@@ -756,14 +773,18 @@ class ZenohTransport(Transport):
         self._session_id = str(session.zid())
         logger.debug("zenoh session %s open (%s)", self._session_id, self.settings.mode)
 
-    async def adopt(self, session: zenoh.Session) -> None:
-        """Use an open session of someone else's (the router's, for its browser gateway)
-        instead of opening one: :meth:`close` undeclares what this transport declared and
-        leaves the session open."""
+    async def adopt(
+        self, session: zenoh.Session, data_session: zenoh.Session | None = None
+    ) -> None:
+        """Use open sessions of someone else's (the router's or the robot's, for its browser
+        gateway) instead of opening them: ``session``, and ``data_session`` for calls' data
+        keys if the owner has one (:attr:`data_session`); :meth:`close` undeclares what this
+        transport declared and leaves the sessions open."""
         if self._closed or self._session is not None or self._opening:
             raise TransportError("zenoh transport is already open or closed")
         self._loop = asyncio.get_running_loop()
         self._session = session
+        self._data_session = data_session
         self._session_id = str(session.zid())
         self._owns_session = False
 
@@ -792,8 +813,8 @@ class ZenohTransport(Transport):
                 entity._undeclare()
             if self._owns_session:
                 _close_session(session)
-            if data_session is not None:
-                _close_session(data_session)
+                if data_session is not None:
+                    _close_session(data_session)
 
         timeout = self.settings.close_timeout
         try:
@@ -875,7 +896,7 @@ class ZenohTransport(Transport):
     def _session_for(self, key: str) -> zenoh.Session:
         """The session for ``key``: the data session (if open) for a call's data key."""
         session = self._require_open()
-        if self._data_session is not None and key.endswith(DATA_KEY_SUFFIX):
+        if self._data_session is not None and is_call_data_key(key):
             return self._data_session
         return session
 
