@@ -748,7 +748,9 @@ class ZenohTransport(Transport):
             # The thread cannot be stopped; close the session it may still produce.
             task.add_done_callback(_close_late_session)
             raise
-        except zenoh.ZError as exc:
+        except _OpenFailed as failed:
+            exc = failed.error
+            which = " (its data session: transport.zenoh.data_session)" if failed.index else ""
             hint = ""
             if any(e.startswith(("tls/", "quic/")) for e in self.settings.connect):
                 # zenoh says only "Unable to connect"; through a telebot router the usual
@@ -758,7 +760,7 @@ class ZenohTransport(Transport):
                     "certificate from its CA: check transport.zenoh.tls)"
                 )
             raise TransportError(
-                f"cannot open zenoh session (mode={self.settings.mode}, "
+                f"cannot open zenoh session{which} (mode={self.settings.mode}, "
                 f"listen={self.settings.listen}, connect={self.settings.connect}): "
                 f"{_reason(exc)}{hint}"
             ) from exc
@@ -908,17 +910,27 @@ class ZenohTransport(Transport):
         self._entities.pop(id(entity), None)
 
 
+class _OpenFailed(Exception):
+    """zenoh.open's error for the ``index``-th config of :func:`_open_sessions`."""
+
+    def __init__(self, index: int, error: zenoh.ZError) -> None:
+        super().__init__(str(error))
+        self.index, self.error = index, error
+
+
 async def _open_sessions(configs: list[zenoh.Config]) -> list[zenoh.Session]:
     """One zenoh session per config, opened at once on worker threads; if one fails, those
-    that opened are closed and its error raised."""
+    that opened are closed and its error raised (a ZError as :class:`_OpenFailed`)."""
     results = await asyncio.gather(
         *(asyncio.to_thread(zenoh.open, config) for config in configs), return_exceptions=True
     )
     sessions = [r for r in results if isinstance(r, zenoh.Session)]
-    for result in results:
+    for index, result in enumerate(results):
         if isinstance(result, BaseException):
             for session in sessions:
                 threading.Thread(target=session.close, name="zenoh-close", daemon=True).start()
+            if isinstance(result, zenoh.ZError):
+                raise _OpenFailed(index, result) from result
             raise result
     return sessions
 
