@@ -108,13 +108,15 @@ class RouterRig:
         timeout: float = GENEROUS_TIMEOUT,
         sim: Mapping[str, Any] | None = None,
         extra: str = "",
+        endpoint: str | None = None,
     ) -> Path:
-        """A robot daemon's TOML config: a client of the router, the small fast map."""
+        """A robot daemon's TOML config: a client of the router (its TLS endpoint, or
+        ``endpoint``), the small fast map."""
         sim = FAST_SIM if sim is None else sim
         lines = [
             "[transport.zenoh]",
             'mode = "client"',
-            f"connect = [{json.dumps(self.endpoint)}]",
+            f"connect = [{json.dumps(endpoint or self.endpoint)}]",
             "multicast_scouting = false",
             "[transport.zenoh.tls]",
             f"ca = {json.dumps(str(client.ca))}",

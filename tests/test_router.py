@@ -62,8 +62,16 @@ class Fleet:
     quic: str
 
 
-def _start_robot(fleet_base: Path, router: RouterRig, name: str, cert: certs.ClientCert) -> Process:
-    config = router.write_robot_config(fleet_base / f"{name}.toml", cert, timeout=REAL_TIMEOUT)
+def _start_robot(
+    fleet_base: Path,
+    router: RouterRig,
+    name: str,
+    cert: certs.ClientCert,
+    endpoint: str | None = None,
+) -> Process:
+    config = router.write_robot_config(
+        fleet_base / f"{name}.toml", cert, timeout=REAL_TIMEOUT, endpoint=endpoint
+    )
     process = Process(
         [
             "telebot.apps.robot_cli",
@@ -106,7 +114,9 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet]:
     daemons: dict[str, Process] = {}
     try:
         for name in ROBOTS:
-            daemons[name] = _start_robot(base, router, name, robot_certs[name])
+            # scout dials the router's QUIC endpoint (its calls' data on a second session).
+            endpoint = quic if name == "scout" else None
+            daemons[name] = _start_robot(base, router, name, robot_certs[name], endpoint)
         yield Fleet(base, router, user_home, user, admin, other_user, robot_certs, daemons, quic)
     finally:
         for process in daemons.values():
@@ -166,6 +176,19 @@ async def test_a_user_calls_a_robot_over_the_routers_quic_endpoint(fleet: Fleet)
     wrong = fleet.router.zenoh(stranger).model_copy(update={"connect": [fleet.quic]})
     with pytest.raises(TransportError, match="certificate"):
         await ZenohTransport(wrong).open()
+
+
+async def test_a_robot_and_a_user_both_on_quic_each_with_a_data_session(fleet: Fleet) -> None:
+    # scout and the user each open two sessions to the router (the calls' data on the
+    # second): the ACL lets both of each through, and pose, chat and a stop all arrive.
+    config = fleet.router.app_config(fleet.user)
+    config.transport.zenoh.connect = [fleet.quic]
+    assert config.transport.zenoh.splits_data
+    async with connect("scout", home=fleet.user_home, config=config, timeout=20) as client:
+        assert (await client.pose()).state
+        assert [r.text async for r in client.chat_replies("help")]
+        assert (await client.stop()).ok
+        assert client.reconnects == 0
 
 
 async def test_the_acl_keeps_a_robot_off_another_robots_keys(fleet: Fleet) -> None:
