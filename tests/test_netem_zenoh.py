@@ -116,10 +116,15 @@ async def test_a_calls_data_goes_on_a_connection_of_its_own(
                 # call, its heartbeats and a stop go on over the first.
                 assert transport.data_session is not None
                 transport.data_session.close()
-                await asyncio.sleep(0.2)  # what was on its way
-                before = client.latest_pose.value
-                await asyncio.sleep(1.0)  # 20 poses a second, were they still coming
-                assert client.latest_pose.value is before
+                # What was on its way may still come; then nothing, where 20 poses a
+                # second would keep coming over the first session.
+                quiet, last = 0.0, client.latest_pose.value
+                async with asyncio.timeout(10):
+                    while quiet < 1.0:
+                        await asyncio.sleep(0.1)
+                        now = client.latest_pose.value
+                        quiet = 0.0 if now is not last else quiet + 0.1
+                        last = now
             assert (await client.stop()).ok  # the control key's
             assert not safety.supervisor.armed and nav.velocity() == Velocity()
             assert client.reconnects == 0

@@ -183,8 +183,13 @@ async def test_a_robot_and_a_user_both_on_quic_each_with_a_data_session(fleet: F
     # second): the ACL lets both of each through, and pose, chat and a stop all arrive.
     config = fleet.router.app_config(fleet.user)
     config.transport.zenoh.connect = [fleet.quic]
-    assert config.transport.zenoh.splits_data
-    async with connect("scout", home=fleet.user_home, config=config, timeout=20) as client:
+    async with (
+        ZenohTransport(config.transport.zenoh) as transport,
+        connect(
+            "scout", home=fleet.user_home, config=config, transport=transport, timeout=20
+        ) as client,
+    ):
+        assert transport.data_session is not None
         assert (await client.pose()).state
         assert [r.text async for r in client.chat_replies("help")]
         assert (await client.stop()).ok

@@ -479,18 +479,40 @@ def test_only_a_calls_data_keys_go_on_the_data_session() -> None:
     assert not is_call_data_key("data")
 
 
-def test_the_data_session_only_dials_as_a_client() -> None:
+def test_the_data_session_only_dials() -> None:
     # Even where the first session listens (zenoh's default for a peer, or an endpoint),
-    # the second takes no port and scouts nobody: it dials what the first dials.
-    settings = ZenohSettings(connect=["quic/127.0.0.1:7447"], listen=["tcp/0.0.0.0:7448"])
+    # the second takes no port and scouts nobody: it dials what the first dials, in the
+    # first's mode (a peer keeps retrying an endpoint that is not up yet).
+    settings = ZenohSettings(
+        connect=["quic/127.0.0.1:7447", "quic/127.0.0.1:7449"], listen=["tcp/0.0.0.0:7448"]
+    )
     config = data_session_config(settings)
-    assert json.loads(config.get_json("mode")) == "client"
+    assert json.loads(config.get_json("mode")) == "peer"
     assert json.loads(config.get_json("listen/endpoints")) == []
     assert json.loads(config.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(config.get_json("scouting/gossip/enabled")) is False
     assert json.loads(config.get_json("connect/endpoints")) == [
-        "quic/127.0.0.1:7447?mixed_rel=auto"
+        "quic/127.0.0.1:7447?mixed_rel=auto",
+        "quic/127.0.0.1:7449?mixed_rel=auto",
     ]
-    assert int(json.loads(config.get_json("transport/link/tx/lease"))) == LINK_LEASE_MS
+    client = data_session_config(settings.model_copy(update={"mode": "client", "listen": []}))
+    assert json.loads(client.get_json("mode")) == "client"
+    assert int(json.loads(client.get_json("transport/link/tx/lease"))) == LINK_LEASE_MS
+
+
+async def test_a_peer_whose_robot_is_not_up_yet_opens_both_sessions_and_finds_it_later() -> None:
+    # A user in peer mode (the default) started before its robot: both sessions open and
+    # keep dialling; once the robot listens, a call's data reaches the data session.
+    listen = f"tcp/127.0.0.1:{free_port()}"
+    user = ZenohSettings(connect=[listen], multicast_scouting=False, data_session=True)
+    call = f"t/{uuid.uuid4().hex}/call/guiabot/0123456789abcdef"
+    async with ZenohTransport(user) as transport:
+        assert transport.data_session is not None
+        data = Inbox()
+        transport.subscribe(f"{call}/data", data)
+        robot = ZenohSettings(listen=[listen], multicast_scouting=False)
+        async with ZenohTransport(robot) as robot_transport:
+            await warm_up(robot_transport.publisher(f"{call}/data").put, data, timeout=15)
 
 
 async def test_a_data_session_without_connect_endpoints_is_a_one_line_error() -> None:

@@ -260,13 +260,16 @@ def build_zenoh_config(settings: ZenohSettings) -> zenoh.Config:
 
 
 def data_session_config(settings: ZenohSettings) -> zenoh.Config:
-    """The config of ``settings``' data session: the same endpoints to dial, credentials
-    and options, as a client that neither listens nor scouts (a listening endpoint, even
-    zenoh's default, belongs to the first session)."""
+    """The config of ``settings``' data session: the same mode, endpoints to dial,
+    credentials and options (a peer keeps dialling every endpoint in the background, a
+    client gives up as the first session does), but it neither listens nor scouts: a
+    listening endpoint, even zenoh's default, belongs to the first session, and what the
+    first finds by scouting it reaches without the data."""
     config = build_zenoh_config(
-        settings.model_copy(update={"mode": "client", "listen": [], "multicast_scouting": False})
+        settings.model_copy(update={"listen": [], "multicast_scouting": False})
     )
     _insert(config, "listen/endpoints", [], "listen")
+    _insert(config, "scouting/gossip/enabled", False, "gossip")
     return config
 
 
