@@ -10,8 +10,10 @@ the call: the first call back hears the robot.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import pytest
 
@@ -22,7 +24,9 @@ from telebot.channels.transports.zenoh import ZenohTransport
 from telebot.config import AppConfig, ServiceSettings, ZenohSettings
 from telebot.netem import NetemProxy, profile
 from telebot.robot.nav import Velocity
+from telebot.robot.sim.stack import SimNavStack
 from telebot.services.client import connect
+from telebot.services.safety.robot import SafetyDriver
 from telebot.testing.net import free_port
 
 ROAM = profile("wifi").outages.duration  # type: ignore[union-attr]
@@ -37,24 +41,35 @@ def through(proxy: NetemProxy, timeout: float, **sections: Any) -> AppConfig:
     )
 
 
-@pytest.mark.zenoh
-async def test_a_call_over_wifi_survives_a_roaming_gap_and_a_stop_sent_into_it_arrives(
-    tmp_path: Path,
-) -> None:
-    listen = f"tcp/127.0.0.1:{free_port()}"
+@contextlib.asynccontextmanager
+async def robot_behind(
+    tmp_path: Path, profile_name: str, link: Literal["tcp", "udp"], timeout: float
+) -> AsyncIterator[tuple[SimNavStack, SafetyDriver, NetemProxy]]:
+    """A robot (20 poses a second, call ``timeout``) on a zenoh session of its own that
+    listens on ``link``, and a :class:`NetemProxy` in front of it playing ``profile_name``:
+    (its navigation stack, its safety service, the proxy)."""
+    listen = f"{link}/127.0.0.1:{free_port(link)}"
     robot_transport = ZenohTransport(ZenohSettings(listen=[listen], multicast_scouting=False))
-    # The rig's generous call timeout: this test is about the link, not about how long a
-    # silence the deadman forgives (TCP turns the 300 ms gap into a longer stall).
     async with (
         robot_on_hub(
             tmp_path,
             MemoryHub(),
             transport=robot_transport,
-            timeout=GENEROUS_TIMEOUT,
+            timeout=timeout,
             services=ServiceSettings(pose_hz=20.0),
         ) as (nav, safety, _server, _endpoint),
-        NetemProxy("wifi", "tcp/127.0.0.1:0", listen, seed=1) as proxy,
+        NetemProxy(profile_name, f"{link}/127.0.0.1:0", listen, seed=1) as proxy,
     ):
+        yield nav, safety, proxy
+
+
+@pytest.mark.zenoh
+async def test_a_call_over_wifi_survives_a_roaming_gap_and_a_stop_sent_into_it_arrives(
+    tmp_path: Path,
+) -> None:
+    # The rig's generous call timeout: this test is about the link, not about how long a
+    # silence the deadman forgives (TCP turns the 300 ms gap into a longer stall).
+    async with robot_behind(tmp_path, "wifi", "tcp", GENEROUS_TIMEOUT) as (nav, safety, proxy):
         config = through(proxy, GENEROUS_TIMEOUT)
         async with connect(ROBOT, home=tmp_path / "user", config=config, timeout=20) as client:
             assert (await client.arm()).ok
@@ -87,18 +102,7 @@ async def test_a_calls_data_goes_on_a_connection_of_its_own(
     # With ``data_session`` the user's zenoh dials twice: pose and pictures (the call's
     # ``/data`` keys) on one connection, stops, heartbeats and presence on the other, so
     # pictures never fill the congestion window a stop needs. The call works either way.
-    listen = f"tcp/127.0.0.1:{free_port()}"
-    robot_transport = ZenohTransport(ZenohSettings(listen=[listen], multicast_scouting=False))
-    async with (
-        robot_on_hub(
-            tmp_path,
-            MemoryHub(),
-            transport=robot_transport,
-            timeout=GENEROUS_TIMEOUT,
-            services=ServiceSettings(pose_hz=20.0),
-        ) as (nav, safety, _server, _endpoint),
-        NetemProxy("lan", "tcp/127.0.0.1:0", listen, seed=1) as proxy,
-    ):
+    async with robot_behind(tmp_path, "lan", "tcp", GENEROUS_TIMEOUT) as (nav, safety, proxy):
         config = through(proxy, GENEROUS_TIMEOUT)
         config.transport.zenoh.data_session = data_session
         async with (
@@ -136,19 +140,8 @@ async def test_the_first_call_back_after_an_outage_hears_the_robot(tmp_path: Pat
     # would subscribe into the void, and nothing of it would ever come back. The client
     # redials on keys it subscribed to while the link was good (``_listen_ahead``), so the
     # first new call hears the robot.
-    listen = f"udp/127.0.0.1:{free_port('udp')}"
-    robot_transport = ZenohTransport(ZenohSettings(listen=[listen], multicast_scouting=False))
     timeout = 1.0  # both sides: the outage drops the call, a loaded machine does not
-    async with (
-        robot_on_hub(
-            tmp_path,
-            MemoryHub(),
-            transport=robot_transport,
-            timeout=timeout,
-            services=ServiceSettings(pose_hz=20.0),
-        ),
-        NetemProxy("lan", "udp/127.0.0.1:0", listen, seed=1) as proxy,
-    ):
+    async with robot_behind(tmp_path, "lan", "udp", timeout) as (_nav, _safety, proxy):
         config = through(proxy, timeout, reconnect={"base": 0.05, "cap": 0.5})
         async with connect(ROBOT, home=tmp_path / "user", config=config, timeout=20) as client:
             await client.pose(timeout=10)

@@ -70,8 +70,15 @@ async def phone_page(url: str) -> AsyncIterator[Any]:
             await browser.close()
 
 
-async def box(page: Any, selector: str) -> dict[str, float]:
-    value = await page.locator(selector).bounding_box()
+async def box(page: Any, selector: str, timeout: float = 10.0) -> dict[str, float]:
+    """Where ``selector`` is on the page, once it is displayed (a page shows some parts
+    only after its first messages: the joystick once it knows it may drive)."""
+    locator = page.locator(selector)
+    try:
+        await locator.wait_for(state="visible", timeout=timeout * 1000)
+    except Exception as exc:  # playwright's TimeoutError
+        raise AssertionError(f"{selector} is not displayed within {timeout:g} s") from exc
+    value = await locator.bounding_box()
     assert value is not None, f"{selector} is not displayed"
     return dict(value)
 
