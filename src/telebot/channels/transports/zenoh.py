@@ -770,8 +770,7 @@ class ZenohTransport(Transport):
         finally:
             self._opening = False
         if self._closed:  # close() ran while zenoh.open was still working
-            for late in (session, *data):
-                threading.Thread(target=late.close, name="zenoh-close-late", daemon=True).start()
+            _close_in_background([session, *data])
             raise TransportError("zenoh transport was closed while opening")
         self._session = session
         self._data_session = data[0] if data else None
@@ -930,8 +929,7 @@ async def _open_sessions(configs: list[zenoh.Config]) -> list[zenoh.Session]:
     sessions = [r for r in results if isinstance(r, zenoh.Session)]
     for index, result in enumerate(results):
         if isinstance(result, BaseException):
-            for session in sessions:
-                threading.Thread(target=session.close, name="zenoh-close", daemon=True).start()
+            _close_in_background(sessions)
             if isinstance(result, zenoh.ZError):
                 raise _OpenFailed(index, result) from result
             raise result
@@ -942,5 +940,11 @@ def _close_late_session(task: asyncio.Future[list[zenoh.Session]]) -> None:
     """Close the sessions whose open() was cancelled while zenoh.open was still running."""
     if task.cancelled() or task.exception() is not None:
         return
-    for session in task.result():
+    _close_in_background(task.result())
+
+
+def _close_in_background(sessions: list[zenoh.Session]) -> None:
+    """Close sessions nobody will use (an open that failed or was given up) on daemon
+    threads: zenoh's close may block, and no one waits for it."""
+    for session in sessions:
         threading.Thread(target=session.close, name="zenoh-close-late", daemon=True).start()
