@@ -583,6 +583,21 @@ def test_the_drive_state_repeats_at_5_hz_while_active() -> None:
     assert active[-1].seq == rig.seq
 
 
+def test_a_state_that_ends_driving_is_sent_three_times_then_no_more() -> None:
+    """The lane is lossy: one lost ``released`` must not leave the page saying "driving"."""
+    rig = Rig()
+    rig.join("c1")
+    rig.arm()
+    rig.hold(0.3, seconds=0.5)
+    before = len(rig.states())
+    rig.send(0.0, 0.0)
+    for _ in range(round(2.0 / DT)):
+        rig.step()
+    ended = rig.states()[before:]
+    assert [s.code for s in ended] == [Reason.RELEASED] * 3
+    assert len({s.seq for s in ended}) == 1 and not any(s.active for s in ended)
+
+
 def test_the_drive_config_section(tmp_path: Path) -> None:
     assert RobotConfig().drive.stale_after == 0.3
     path = tmp_path / "robot.toml"

@@ -85,6 +85,9 @@ log = logging.getLogger(__name__)
 
 #: While a call drives, its state is repeated this often (s): 5 Hz.
 STATE_EVERY = 0.2
+#: A state that ends driving is sent this many more times, STATE_EVERY apart: the lane is
+#: lossy, and nothing else would repeat it (a lost ``released`` left a page saying "driving").
+END_REPEATS = 2
 #: A refused command is asked of the supervisor again after this long (s) while the key
 #: stays held (at once when the safety state changes, or after the user lets go): a held
 #: key must not write 20 audit records a second.
@@ -213,6 +216,7 @@ class CallDrive:
         self.dropped = 0
         self._sent: DriveState | None = None
         self._next_state = math.inf
+        self._end_repeats = 0
         self.channel.set_callback(self._on_datagram)
         self.service.attach(self)
 
@@ -236,23 +240,30 @@ class CallDrive:
 
     def report(self, state: DriveState, now: float, *, force: bool = False) -> None:
         """Send ``state`` if ``active`` or ``code`` changed (or ``force``); while active,
-        :meth:`tick` repeats it at 5 Hz."""
+        :meth:`tick` repeats it at 5 Hz, and a state that ends driving END_REPEATS times."""
         sent = self._sent
         changed = sent is None or (sent.active, sent.code) != (state.active, state.code)
         self._sent = state
-        if state.active:
-            if changed:
-                self._next_state = now + STATE_EVERY
-        else:
-            self._next_state = math.inf
+        if changed:
+            self._next_state = now + STATE_EVERY
+            self._end_repeats = 0 if state.active else END_REPEATS
         if changed or force:
             self._send(state)
 
     def tick(self, now: float) -> None:
-        """Repeat the state at 5 Hz while this call drives."""
-        if self._sent is not None and self._sent.active and now >= self._next_state:
+        """Repeat the state: at 5 Hz while this call drives, END_REPEATS times once it ended."""
+        sent = self._sent
+        if sent is None or now < self._next_state:
+            return
+        if sent.active:
             self._next_state = max(self._next_state + STATE_EVERY, now)
             self._send(self.service.state_of(self))
+        elif self._end_repeats > 0:
+            self._end_repeats -= 1
+            self._next_state = now + STATE_EVERY if self._end_repeats else math.inf
+            self._send(sent)
+        else:
+            self._next_state = math.inf
 
     def close(self) -> None:
         """The call ended: its follow and its driving end (the robot stops)."""
