@@ -35,11 +35,15 @@ lint: install
 # time, and fails if any fails again: on a busy 2-core machine a browser or multi-process
 # test may miss a wait now and then. Both runs' failures are printed.
 RERUN_AT_MOST := 10
-QUICK_BENCHES := tests/test_bench_quick.py tests/test_bench_browser.py
+QUICK_BENCHES := tests/test_bench_browser.py tests/test_bench_quick.py
 NOT_QUICK_BENCHES := $(QUICK_BENCHES:%=--ignore=%)
 RERUN_FAILED = { n=$$($(BIN)/python -c 'import json, pathlib; p = pathlib.Path(".pytest_cache/v/cache/lastfailed"); print(len(json.loads(p.read_text())) if p.exists() else 0)'); \
 	echo "make test: $$n failed; at most $(RERUN_AT_MOST) are run again, one at a time"; \
 	test "$$n" -ge 1 -a "$$n" -le $(RERUN_AT_MOST) && $(BIN)/pytest -q -rA --lf --lfnf=none; }
+# This machine's environment sets PYTHONDONTWRITEBYTECODE: with no bytecode cache every
+# pytest worker rewrote and compiled the hundred test modules again (10 s each time), and every
+# process a test starts compiled telebot anew. An empty value turns it off for the tests.
+test: export PYTHONDONTWRITEBYTECODE =
 test: lint install-debian node_modules/.installed
 	npm test
 	rm -f .pytest_cache/v/cache/lastfailed  # a failure left by an earlier run is not this run's

@@ -4,7 +4,7 @@ subprocess, exits 0 and ends with a well-formed ``RESULT key=value ...`` line.
 The figures are not checked (a quick run's are noise, and bench/ measures speed): this only
 keeps a refactor from breaking a benchmark unseen (one did: ``bench/ui.py`` called a method
 the web UI no longer had). Each benchmark is its own test; ``make test`` runs this module
-after the rest of the suite, one benchmark at a time (each starts several processes, and
+after the rest of the suite, two benchmarks at a time (each starts several processes, and
 beside the browser tests they starved Chromium's video). ``bench/_*.py`` are the
 benchmarks' helpers, run by them. ``make bench-quick`` runs the same list by hand.
 """
