@@ -260,24 +260,28 @@ class Daemon:
         self.base = base
         self.robot = robot
         self.driver = driver
-        self.timeout = timeout
         self.robot_home = base / "robot"
         self.user_home = base / "user"
         self.observer = observer
         self.observer_home = base / (observer or "observer")
         if observer is not None:
             self.add_user(observer, Role.OBSERVER, self.observer_home)
-        self.robot_config = write_config(
-            base / "robot.toml",
-            timeout=timeout,
-            sim=FAST_SIM if sim is None else sim,
-            stale_video=stale_video,
-        )
-        self.user_config = self.write_user_config("user.toml")
+        self._sim = FAST_SIM if sim is None else sim
+        self._stale_video = stale_video
+        self.robot_config = base / "robot.toml"
+        self.set_timeout(timeout)
         self.port = 0
         self.process: Process | None = None
         #: The daemon's ``ready`` event (its first line) of the last start.
         self.ready: dict[str, Any] = {}
+
+    def set_timeout(self, timeout: float) -> None:
+        """The call timeout of the robot (from its next start) and of its users' configs."""
+        self.timeout = timeout
+        write_config(
+            self.robot_config, timeout=timeout, sim=self._sim, stale_video=self._stale_video
+        )
+        self.user_config = self.write_user_config("user.toml")
 
     def add_user(self, name: str, role: Role, home: Path) -> Identity:
         """A new user with a home of its own, in the robot's contacts with ``role``."""
