@@ -175,7 +175,7 @@ def _publish_while_the_loop_is_busy(
     publisher.put(genuine)
     for n in range(forged):
         publisher.put(DataFrame.make_header(call_id, 10_000 + n) + os.urandom(41))
-        if n % 50 == 0:
+        if n % 10 == 0:
             time.sleep(0.002)  # let the reader thread keep up with zenoh's own channel
     time.sleep(0.5 * SLACK)  # the reader has queued (or refused) all of it
 
