@@ -276,7 +276,8 @@ class Daemon:
         self.ready: dict[str, Any] = {}
 
     def set_timeout(self, timeout: float) -> None:
-        """The call timeout of the robot (from its next start) and of its users' configs."""
+        """The call timeout of the robot (from its next start), of ``user.toml`` and of the
+        users connected with :meth:`connect` from now on."""
         self.timeout = timeout
         write_config(
             self.robot_config, timeout=timeout, sim=self._sim, stale_video=self._stale_video

@@ -350,7 +350,7 @@ async def test_an_observer_cannot_drive_but_its_stop_stops_a_moving_robot(
 # solo, make test runs them alone after the rest. Beside them a browser test's Chromium or
 # gateway went silent for 2 s, and its call dropped in the middle of its goal.
 
-#: How long the flooding user floods (s): the issue's figure.
+#: How long the flooding user floods (s): 2.5 of the rig's generous call timeouts.
 FLOOD_SECONDS = 5.0
 
 

@@ -85,8 +85,9 @@ log = logging.getLogger(__name__)
 
 #: While a call drives, its state is repeated this often (s): 5 Hz.
 STATE_EVERY = 0.2
-#: A state that ends driving is sent this many more times, STATE_EVERY apart: the lane is
-#: lossy, and nothing else would repeat it (a lost ``released`` left a page saying "driving").
+#: An inactive state (driving ended, or refused) is sent this many more times when it changes,
+#: STATE_EVERY apart: the lane is lossy, and nothing else would repeat it (a lost
+#: ``released`` left a page saying "driving").
 END_REPEATS = 2
 #: A refused command is asked of the supervisor again after this long (s) while the key
 #: stays held (at once when the safety state changes, or after the user lets go): a held
@@ -240,7 +241,7 @@ class CallDrive:
 
     def report(self, state: DriveState, now: float, *, force: bool = False) -> None:
         """Send ``state`` if ``active`` or ``code`` changed (or ``force``); while active,
-        :meth:`tick` repeats it at 5 Hz, and a state that ends driving END_REPEATS times."""
+        :meth:`tick` repeats it at 5 Hz, and a changed inactive one END_REPEATS times."""
         sent = self._sent
         changed = sent is None or (sent.active, sent.code) != (state.active, state.code)
         self._sent = state
@@ -251,7 +252,8 @@ class CallDrive:
             self._send(state)
 
     def tick(self, now: float) -> None:
-        """Repeat the state: at 5 Hz while this call drives, END_REPEATS times once it ended."""
+        """Repeat the state: at 5 Hz while this call drives, END_REPEATS times when it stopped
+        (each with the newest ``seq`` taken)."""
         sent = self._sent
         if sent is None or now < self._next_state:
             return
@@ -261,7 +263,7 @@ class CallDrive:
         elif self._end_repeats > 0:
             self._end_repeats -= 1
             self._next_state = now + STATE_EVERY if self._end_repeats else math.inf
-            self._send(sent)
+            self._send(_with_seq(sent, self))
         else:
             self._next_state = math.inf
 
@@ -363,13 +365,13 @@ class DriveService:
             state, key, when = call.refused
             retry = UNMEASURED_RETRY if state.code == Reason.RTT_UNMEASURED else REFUSAL_RETRY
             if key == self._safety_key() and now - when < retry:
-                call.report(self._with_seq(state, call), now)
+                call.report(_with_seq(state, call), now)
                 return
         refusal = self._may_start(call)
         if refusal is not None:
             state = DriveState(0, False, refusal.code, refusal.text, 0.0, 0.0, self._cap())
             call.refused = (state, self._safety_key(), now)
-            call.report(self._with_seq(state, call), now, force=True)
+            call.report(_with_seq(state, call), now, force=True)
             return
         call.refused = None
         if self.driver is not None:  # no supervisor: the newest driver takes over
@@ -547,12 +549,13 @@ class DriveService:
         seq = call.seq if call.seq is not None else 0
         call.report(DriveState(seq, False, code, text, 0.0, 0.0, self._cap()), now)
 
-    @staticmethod
-    def _with_seq(state: DriveState, call: CallDrive) -> DriveState:
-        seq = call.seq if call.seq is not None else 0
-        return DriveState(
-            seq, state.active, state.code, state.text, state.linear, state.angular, state.cap
-        )
+
+def _with_seq(state: DriveState, call: CallDrive) -> DriveState:
+    """``state`` with the newest ``seq`` taken from ``call``."""
+    seq = call.seq if call.seq is not None else 0
+    return DriveState(
+        seq, state.active, state.code, state.text, state.linear, state.angular, state.cap
+    )
 
 
 def _clamp(value: float, limit: float) -> float:

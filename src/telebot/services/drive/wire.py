@@ -10,8 +10,8 @@ reordered old command never undoes a newer one. ``linear`` (m/s, + forward) and
 ``angular`` (rad/s, + counter-clockwise, REP-103) are finite numbers; both 0 is a
 *release*: the robot stops at once (not latched) and direct driving ends.
 
-Robot → user, at once whenever ``active`` or ``code`` changes, at 5 Hz while active, and a
-state that ends driving twice more (0.2 s apart: the lane is lossy)::
+Robot → user, at once whenever ``active`` or ``code`` changes, at 5 Hz while active, and an
+inactive one twice more (0.2 s apart: the lane is lossy)::
 
     {"type": "drive_state", "seq": 41, "active": true, "code": "ok", "reason": "",
      "linear": 0.3, "angular": -0.5, "cap": 0.42}
