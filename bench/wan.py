@@ -589,6 +589,7 @@ async def measure_releases(client: RobotClient, audit: AuditTail, row: Row, coun
                 break
             if time.monotonic() > deadline:
                 raise RuntimeError(f"the base did not move by hand ({client.drive_state})")
+        moving = time.monotonic()
         await asyncio.sleep(0.1)
         drive(linear, 0.0)
         t0 = time.monotonic()
@@ -602,6 +603,21 @@ async def measure_releases(client: RobotClient, audit: AuditTail, row: Row, coun
                 ),
                 RELEASE_WAIT,
             )
+        except RuntimeError:
+            # Say how driving ended instead (stale, stopped by the deadman, ...), if it did.
+            ends = [
+                r
+                for r in audit.records
+                if r["what"].startswith("drive by hand: end") and r["t"] >= moving
+            ]
+            if not ends:
+                raise
+            early = t0 - ends[-1]["t"]
+            when = "before" if early >= 0 else "after"
+            raise RuntimeError(
+                f"driving ended {abs(early):.2f} s {when} the release, not by it: "
+                f"{ends[-1].get('detail', '')}"
+            ) from None
         finally:
             await asyncio.sleep(0.3)  # at rest: the next press starts from standstill
         return (record["t"] - t0) * 1000
