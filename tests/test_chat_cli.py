@@ -148,6 +148,20 @@ async def until_line(process: Process, needle: str, timeout: float = 20.0) -> li
     return lines
 
 
+async def leave_with_ctrl_d(chat_process: Process, keyboard: int) -> None:
+    """Ctrl-D on an empty line leaves; the chat exits 0. On a loaded machine the chat's
+    newest pose may still be one from before a stop (they come once a second here): then
+    the key stops the robot (the paper's rule, and the chat says so) and the next leaves."""
+    for _ in range(3):
+        os.write(keyboard, b"\x04")
+        try:
+            left = await asyncio.to_thread(chat_process.popen.wait, 10)
+            break
+        except subprocess.TimeoutExpired:
+            await until_line(chat_process, "[key pressed: stopping]", 5)
+    assert left == 0, chat_process.stderr()
+
+
 async def test_on_a_terminal_a_key_stops_a_motion_after_its_end_is_a_command_and_status_says_latched(
     daemon: Daemon, processes: list[Process], capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -180,17 +194,7 @@ async def test_on_a_terminal_a_key_stops_a_motion_after_its_end_is_a_command_and
         os.write(keyboard, b"status\r")
         lines = await until_line(alice, "latched")
         assert lines[-1].endswith(f"{LATCHED}: stop requested by {daemon.driver} (key)"), lines
-        # Ctrl-D on an empty line leaves. On a loaded machine the chat's newest pose may
-        # still be one from before the stop (they come once a second here): then the key
-        # stops the robot (the paper's rule, and the chat says so) and the next one leaves.
-        for _ in range(3):
-            os.write(keyboard, b"\x04")
-            try:
-                left = await asyncio.to_thread(alice.popen.wait, 10)
-                break
-            except subprocess.TimeoutExpired:
-                await until_line(alice, "[key pressed: stopping]", 5)
-        assert left == 0, alice.stderr()
+        await leave_with_ctrl_d(alice, keyboard)
     finally:
         os.close(keyboard)
     # The one key stop (a stop is sent again until acknowledged: each copy is audited).
@@ -249,17 +253,7 @@ async def test_on_a_terminal_tab_drives_with_the_arrow_keys_and_any_other_key_st
         await until_line(alice, "[key pressed: stopping; drive mode off]")
         os.write(keyboard, b"status\r")
         await until_line(alice, "latched")
-        # Ctrl-D on an empty line leaves. On a loaded machine the chat's newest pose may
-        # still be one from before the stop (they come once a second here): then the key
-        # stops the robot (the paper's rule, and the chat says so) and the next one leaves.
-        for _ in range(3):
-            os.write(keyboard, b"\x04")
-            try:
-                left = await asyncio.to_thread(alice.popen.wait, 10)
-                break
-            except subprocess.TimeoutExpired:
-                await until_line(alice, "[key pressed: stopping]", 5)
-        assert left == 0, alice.stderr()
+        await leave_with_ctrl_d(alice, keyboard)
     finally:
         os.close(keyboard)
     records = daemon.audit()
