@@ -588,6 +588,25 @@ def test_a_frozen_picture_lowers_the_cap_and_then_stops_a_moving_robot() -> None
     assert sup.rearm("a", 2.1).allowed and sup.speed_cap(2.1) == MAX
 
 
+def test_a_re_arm_in_the_step_that_stops_a_blind_robot_is_refused_and_it_stays_latched() -> None:
+    # Found by test_supervisor_model: the re-arm came at the instant the frozen picture
+    # stopped the moving robot; it re-armed in the same step, so the stop did not latch.
+    sup = watched()
+    sup.motion(True, 1.0)
+    live(sup, 1.0, 1.0 + STALE - 0.05)
+    assert sup.armed  # her last heartbeat came 50 ms before the picture is STALE old
+    decision = sup.rearm("a", 1.0 + STALE)
+    assert stops(decision.actions) and not decision.allowed and not sup.armed
+    assert decision.code == Reason.VIDEO_STALE
+    assert (
+        decision.text
+        == "the robot has just stopped: video frozen for 1.0 s: the robot stopped itself"
+    )
+    assert sup.stop_code == Reason.VIDEO_STALE
+    # A re-arm made after the stop is an ordinary one.
+    assert sup.rearm("a", 1.0 + STALE + 0.01).allowed
+
+
 def test_at_rest_a_frozen_picture_only_lowers_the_cap_and_fresh_frames_restore_it() -> None:
     sup = watched()
     actions = live(sup, 1.0, 1.0 + 2 * STALE - 0.1)  # long frozen, but the robot stands

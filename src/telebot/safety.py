@@ -15,8 +15,9 @@ Rules (fail safe: when in doubt, stop or refuse):
 - **Latch and re-arm** (ISO 13850; ISO 3691-4 §4.1.14, no automatic restart). After any stop
   the robot stays *disarmed*; the running goal is cancelled by :class:`Stop` (the
   NavStack's ``stop()`` cancels it), never resumed. Only :meth:`SafetySupervisor.rearm` by
-  the drive holder arms it again, and re-arming starts nothing: a new motion command is
-  needed. The supervisor starts disarmed, so a daemon that crashed and restarted comes
+  the drive holder arms it again (not one that arrives in the very step in which the robot
+  stopped itself: the driver sent it before knowing), and re-arming starts nothing: a new
+  motion command is needed. The supervisor starts disarmed, so a daemon that crashed and restarted comes
   back stopped, and its first actions are a :class:`Stop` and a zero speed cap.
 - **Deadman.** While armed, the drive holder's last sign of life (any authentic frame of its
   call) must be younger than ``timeout``; at the timeout the supervisor stops and latches.
@@ -289,6 +290,11 @@ class _Step:
     stops: list[Action]
     rest: list[Action]
     audits: list[Action]
+
+    @property
+    def was_armed(self) -> bool:
+        """Whether the robot was armed when this step began (``key`` starts with it)."""
+        return bool(self.key[0])
 
 
 class SafetySupervisor:
@@ -632,7 +638,9 @@ class SafetySupervisor:
         return self._decide(step, call_id, label, True, "")
 
     def rearm(self, call_id: str, now: float) -> Decision:
-        """Arm the robot again after a stop: only the drive holder, on a live link.
+        """Arm the robot again after a stop: only the drive holder, on a live link, and
+        not in the very step in which the robot stopped itself (that stop latches until
+        a re-arm made after it).
 
         Re-arming starts nothing: the goal that was running was cancelled by the stop.
         """
@@ -647,6 +655,11 @@ class SafetySupervisor:
                     f"your link is silent for {age:.2f} s; re-arm needs a live link",
                     Reason.LINK_SILENT,
                 )
+            elif step.was_armed and not self._armed:
+                # The robot stopped itself in this very step (its holder's picture froze
+                # while it moved): the re-arm was sent before its driver could know. A
+                # stop latches until a re-arm made after it.
+                refusal = f"the robot has just stopped: {self._reason}", self._code
         if refusal is not None:
             return self._decide(step, call_id, "rearm", False, *refusal)
         if self._armed:
