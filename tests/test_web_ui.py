@@ -407,17 +407,22 @@ async def test_a_click_to_goal_draws_the_planned_path_and_places_are_labelled(ri
         assert math.dist(points[0], (start.x, start.y)) < 0.2
         assert math.dist(points[-1], (room_b.x, room_b.y)) < 0.1  # the click, to a pixel
         assert plan["goal"] is not None
-        # The polyline is on the canvas: the path's colour halfway along a segment well
-        # ahead of the robot (where nothing else is drawn over it).
-        pixel = await page.evaluate(
-            """([pts, rx, ry]) => {
-              const ui = window.telebotUI;
+        # The polyline is on the canvas: the path's colour halfway along a drawn segment
+        # well ahead of the robot (where nothing else is drawn over it), by the page's own
+        # pose at that moment (on a loaded machine the robot may be far along by the time
+        # a round trip from here would have looked).
+        found = await page.wait_for_function(
+            """() => {
+              const ui = window.telebotUI, plan = ui.state.plan, p = ui.state.pose;
+              if (!plan || !p || ui.drawn.plan < 2) return null;
+              const pts = plan.points;
               let best = null, bestLen = 0;
-              for (let i = 1; i + 1 < pts.length; i++) {
+              for (let i = pts.length - ui.drawn.plan; i + 1 < pts.length; i++) {
                 const [ax, ay] = pts[i], [bx, by] = pts[i + 1];
                 const len = Math.hypot(bx - ax, by - ay);
-                if (len > bestLen && Math.hypot(ax - rx, ay - ry) > 1.5) { best = i; bestLen = len; }
+                if (len > bestLen && Math.hypot(ax - p.x, ay - p.y) > 1.5) { best = i; bestLen = len; }
               }
+              if (best === null) return null;
               const [ax, ay] = pts[best], [bx, by] = pts[best + 1];
               const [sx, sy] = ui.worldToScreen((ax + bx) / 2, (ay + by) / 2);
               const dpr = window.devicePixelRatio || 1;
@@ -425,8 +430,9 @@ async def test_a_click_to_goal_draws_the_planned_path_and_places_are_labelled(ri
               return Array.from(c.getContext('2d').getImageData(
                 Math.round(sx * dpr), Math.round(sy * dpr), 1, 1).data);
             }""",
-            [points, rig.nav.pose().pose.x, rig.nav.pose().pose.y],
+            timeout=10000,
         )
+        pixel = await found.json_value()
         assert pixel[:3] == [0, 160, 160], pixel
         ARTIFACTS.mkdir(exist_ok=True)
         await page.screenshot(path=str(ARTIFACTS / "web_ui_plan.png"))
