@@ -600,9 +600,11 @@ def test_a_re_arm_in_the_step_that_stops_a_blind_robot_is_refused_and_it_stays_l
     assert decision.code == Reason.VIDEO_STALE
     assert (
         decision.text
-        == "the robot has just stopped: video frozen for 1.0 s: the robot stopped itself"
+        == "the robot has just stopped: video frozen for 1.0 s: the robot stopped itself;"
+        " arm again to drive on"
     )
     assert sup.stop_code == Reason.VIDEO_STALE
+    assert ("rearm", "refused") in [(r.what, r.outcome) for r in audits(decision.actions)]
     # A re-arm made after the stop is an ordinary one.
     assert sup.rearm("a", 1.0 + STALE + 0.01).allowed
 

@@ -290,11 +290,8 @@ class _Step:
     stops: list[Action]
     rest: list[Action]
     audits: list[Action]
-
-    @property
-    def was_armed(self) -> bool:
-        """Whether the robot was armed when this step began (``key`` starts with it)."""
-        return bool(self.key[0])
+    #: Whether the robot was armed when this step began.
+    armed: bool
 
 
 class SafetySupervisor:
@@ -637,10 +634,13 @@ class SafetySupervisor:
         self._camera = camera
         return self._decide(step, call_id, label, True, "")
 
-    def rearm(self, call_id: str, now: float) -> Decision:
+    def rearm(self, call_id: str, now: float, *, armed_when_received: bool = False) -> Decision:
         """Arm the robot again after a stop: only the drive holder, on a live link, and
-        not in the very step in which the robot stopped itself (that stop latches until
-        a re-arm made after it).
+        not if the robot stopped itself while this request was being read (in this step,
+        or, with ``armed_when_received``, since the request arrived armed: its own frame,
+        taken as a sign of life first, brought the deadman or a frozen picture due). Its
+        driver sent it before they could know; that stop latches until a re-arm made
+        after it.
 
         Re-arming starts nothing: the goal that was running was cancelled by the stop.
         """
@@ -655,11 +655,11 @@ class SafetySupervisor:
                     f"your link is silent for {age:.2f} s; re-arm needs a live link",
                     Reason.LINK_SILENT,
                 )
-            elif step.was_armed and not self._armed:
-                # The robot stopped itself in this very step (its holder's picture froze
-                # while it moved): the re-arm was sent before its driver could know. A
-                # stop latches until a re-arm made after it.
-                refusal = f"the robot has just stopped: {self._reason}", self._code
+            elif (step.armed or armed_when_received) and not self._armed:
+                refusal = (
+                    f"the robot has just stopped: {self._reason}; arm again to drive on",
+                    self._code,
+                )
         if refusal is not None:
             return self._decide(step, call_id, "rearm", False, *refusal)
         if self._armed:
@@ -831,7 +831,7 @@ class SafetySupervisor:
         # Time never runs backwards in here: a late event is handled at the latest time
         # seen (only a sign of life keeps its own, older stamp).
         self._clock = max(self._clock, float(now))
-        step = _Step(self._clock, self._key(), [], [], [])
+        step = _Step(self._clock, self._key(), [], [], [], self._armed)
         boot, self._boot = self._boot, []
         for action in boot:
             (step.audits if isinstance(action, Audit) else step.stops).append(action)
@@ -982,7 +982,7 @@ class SafetySupervisor:
 
     def _fault(self, call_id: str | None, what: str) -> list[Action]:
         """A ``now`` that is not a finite number: the clock cannot be trusted, so stop."""
-        step = _Step(self._clock, self._key(), [], [], [])
+        step = _Step(self._clock, self._key(), [], [], [], self._armed)
         boot, self._boot = self._boot, []
         for action in boot:
             (step.audits if isinstance(action, Audit) else step.stops).append(action)

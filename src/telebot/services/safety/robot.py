@@ -285,9 +285,13 @@ class CallGate:
         self._driver.stop(self.call_id, text, how)
 
     def rearm(self) -> Refusal | None:
-        """Re-arm the robot (the drive holder only)."""
+        """Re-arm the robot (the drive holder only; not if it stopped itself while the
+        request was read: :meth:`SafetySupervisor.rearm`)."""
+        sup = self._driver.supervisor
+        armed = sup.armed
         self._driver.heard(self.call_id)
-        return self._decide(self._driver.supervisor.rearm(self.call_id, self._driver._clock()))
+        now = self._driver._clock()
+        return self._decide(sup.rearm(self.call_id, now, armed_when_received=armed))
 
     def take(self) -> Refusal | None:
         """Take the drive."""
