@@ -46,6 +46,7 @@ from rig import (
 from telebot.channels.call import UserEndpoint
 from telebot.channels.transports.memory import MemoryHub, MemoryTransport
 from telebot.config import CallSettings
+from telebot.errors import CallEnded
 from telebot.identity import Identity, KnownRobots
 from telebot.reasons import Reason
 from telebot.robot.nav import Velocity
@@ -514,9 +515,17 @@ async def test_a_killed_daemon_comes_back_disarmed(tmp_path: Path) -> None:
     daemon.start()
     try:
         async with daemon.connect() as alice:
-            await arm(alice)
-            await drive_far(alice)
-            await next_pose(alice, lambda p: abs(p.v) > 0.05, timeout=10)
+            for attempt in range(1, 4):
+                try:
+                    await arm(alice)
+                    await drive_far(alice)
+                    await next_pose(alice, lambda p: abs(p.v) > 0.05, timeout=10)
+                    break
+                except CallEnded:
+                    # On a loaded machine the product's 0.5 s can lapse before the kill too:
+                    # the client calls back (the robot stays stopped), and this starts again.
+                    if attempt == 3:
+                        raise
             killed = time.monotonic()
             # The simulated base lives inside the daemon process, so "the base stops" is
             # trivially true here: nothing is left to move it. What can be checked is that
