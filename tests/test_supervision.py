@@ -292,17 +292,23 @@ async def test_a_robot_that_fails_to_start_closes_its_audit_log(
     assert str(audit) not in open_paths()  # ... and closed again
 
 
-def test_a_re_arm_whose_own_frame_brings_the_deadman_due_is_refused_and_the_stop_latches() -> None:
-    # Armed, no control step since; the driver's `arm` (a page repeats it until it is
-    # answered) arrives after a silence: taking its frame as a sign of life first finds the
-    # deadman due and stops the robot. The request was sent before its driver knew of the
-    # stop: refused, and the stop latches until the next `arm`.
+def armed_at_100() -> tuple[list[float], SafetyDriver, FakeCall]:
+    """A driver on a settable clock (``clock[0]``), alice armed at 100.0, heard then."""
     clock = [100.0]
     driver = SafetyDriver(room(), timeout=0.5, max_speed=0.5, clock=lambda: clock[0])
     alice = FakeCall("c1", "alice", Role.DRIVER, last_heard=100.0)
     driver.join(alice)  # type: ignore[arg-type]
     driver.tick()
     assert driver.gate("c1").rearm() is None and driver.state().armed
+    return clock, driver, alice
+
+
+def test_a_re_arm_whose_own_frame_brings_the_deadman_due_is_refused_and_the_stop_latches() -> None:
+    # Armed, no control step since; the driver's `arm` (a page repeats it until it is
+    # answered) arrives after a silence: taking its frame as a sign of life first finds the
+    # deadman due and stops the robot. The request was sent before its driver knew of the
+    # stop: refused, and the stop latches until the next `arm`.
+    clock, driver, alice = armed_at_100()
     clock[0] = alice.last_heard = 101.0  # no tick in between
     refusal = driver.gate("c1").rearm()
     assert refusal is not None and refusal.code == Reason.LINK_SILENT, refusal
@@ -316,12 +322,7 @@ def test_a_re_arm_whose_own_frame_brings_the_deadman_due_is_refused_and_the_stop
 def test_a_re_arm_right_after_the_link_came_back_is_not_refused_on_a_stale_view() -> None:
     # The deadman stopped the robot; the driver's link is back (its arm request is itself a
     # sign of life) before the next control step has looked: one `arm` must do.
-    clock = [100.0]
-    driver = SafetyDriver(room(), timeout=0.5, max_speed=0.5, clock=lambda: clock[0])
-    alice = FakeCall("c1", "alice", Role.DRIVER, last_heard=100.0)
-    driver.join(alice)  # type: ignore[arg-type]
-    driver.tick()
-    assert driver.gate("c1").rearm() is None
+    clock, driver, alice = armed_at_100()
     clock[0] = 101.0
     driver.tick()
     state = driver.state()
