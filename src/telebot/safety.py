@@ -15,10 +15,10 @@ Rules (fail safe: when in doubt, stop or refuse):
 - **Latch and re-arm** (ISO 13850; ISO 3691-4 §4.1.14, no automatic restart). After any stop
   the robot stays *disarmed*; the running goal is cancelled by :class:`Stop` (the
   NavStack's ``stop()`` cancels it), never resumed. Only :meth:`SafetySupervisor.rearm` by
-  the drive holder arms it again (not one that arrives in the very step in which the robot
-  stopped itself: the driver sent it before knowing), and re-arming starts nothing: a new
-  motion command is needed. The supervisor starts disarmed, so a daemon that crashed and restarted comes
-  back stopped, and its first actions are a :class:`Stop` and a zero speed cap.
+  the drive holder arms it again (not one read while the robot stopped itself: its driver
+  sent it before knowing), and re-arming starts nothing: a new motion command is needed.
+  The supervisor starts disarmed, so a daemon that crashed and restarted comes back
+  stopped, and its first actions are a :class:`Stop` and a zero speed cap.
 - **Deadman.** While armed, the drive holder's last sign of life (any authentic frame of its
   call) must be younger than ``timeout``; at the timeout the supervisor stops and latches.
   The holder hanging up, dropping, releasing the drive, or losing it to an admin stops and
